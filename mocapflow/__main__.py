@@ -1,0 +1,3 @@
+from mocapflow.pipeline.cli import main
+
+raise SystemExit(main())

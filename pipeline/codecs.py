@@ -1,0 +1,212 @@
+"""How stage outputs become Zarr arrays + JSON attrs, and back.
+
+The engine stores every output as one Zarr group.  An output value is encoded as
+an :class:`Encoded`: named arrays, each with its ``dimension_names``, plus JSON
+attrs.  Built in:
+
+* ``ndarray``: one array ``data`` with dims ``dim_0 …``;
+* JSON values (dict/list/str/number/bool/None): attrs only;
+* ``dict`` holding at least one ndarray (a *record*): ndarray values become
+  arrays, the rest attrs.
+
+Domain types (markers, motion, mesh, …) register a codec with :func:`codec`;
+the engine finds it by the type's registered name, so it never imports them.
+Exporters (``mocapflow export``) register the same way with :func:`exporter`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "Encoded",
+    "codec",
+    "decode",
+    "digest_encoded",
+    "encode",
+    "exporter",
+    "find_exporter",
+]
+
+
+@dataclass
+class Encoded:
+    """An output ready for storage.
+
+    Attributes
+    ----------
+    type : str
+        Codec name (``ndarray``, ``json``, ``record`` or a registered type).
+    arrays : dict
+        ``name -> (array, dims)`` with ``len(dims) == array.ndim``.
+    attrs : dict
+        JSON-serialisable attributes.
+    """
+
+    type: str
+    arrays: dict[str, tuple[np.ndarray, tuple[str, ...]]] = field(default_factory=dict)
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class _Codec:
+    name: str
+    cls: type
+    encode: Callable[[Any], Encoded]
+    decode: Callable[[Encoded], Any]
+
+
+_BY_NAME: dict[str, _Codec] = {}
+_BY_CLASS: dict[type, _Codec] = {}
+_EXPORTERS: dict[str, Callable[..., list[Path]]] = {}
+
+
+def codec(name: str, *, encode: Callable[[Any], Encoded], decode: Callable[[Encoded], Any]):
+    """Class decorator registering a storage codec for a domain type.
+
+    Parameters
+    ----------
+    name : str
+        Stable type name stored in the entry (never rename it: stored entries
+        refer to it).
+    encode : callable
+        ``obj -> Encoded``.
+    decode : callable
+        ``Encoded -> obj``; must round-trip exactly.
+    """
+
+    def register(cls: type) -> type:
+        c = _Codec(name, cls, encode, decode)
+        _BY_NAME[name] = c
+        _BY_CLASS[cls] = c
+        return cls
+
+    return register
+
+
+def exporter(type_name: str):
+    """Register ``fn(obj, directory, stem, **options) -> list[Path]`` for a type name."""
+
+    def register(fn: Callable[..., list[Path]]) -> Callable[..., list[Path]]:
+        _EXPORTERS[type_name] = fn
+        return fn
+
+    return register
+
+
+def find_exporter(type_name: str) -> Callable[..., list[Path]] | None:
+    """The exporter registered for ``type_name`` (``None`` if there is none)."""
+    return _EXPORTERS.get(type_name)
+
+
+def _is_json(x: Any) -> bool:
+    if x is None or isinstance(x, (bool, int, str)):
+        return True
+    if isinstance(x, float):
+        return True
+    if isinstance(x, (list, tuple)):
+        return all(_is_json(v) for v in x)
+    if isinstance(x, dict):
+        return all(isinstance(k, str) and _is_json(v) for k, v in x.items())
+    return False
+
+
+def to_jsonable(x: Any) -> Any:
+    """Convert numpy scalars / small arrays / tuples to plain JSON values.
+
+    Non-finite floats are encoded as the strings ``"NaN"``, ``"Infinity"``,
+    ``"-Infinity"`` so the attrs stay strict JSON.
+    """
+    if isinstance(x, dict):
+        return {str(k): to_jsonable(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [to_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return to_jsonable(x.tolist())
+    if isinstance(x, np.generic):
+        return to_jsonable(x.item())
+    if isinstance(x, float) and not math.isfinite(x):
+        return "NaN" if math.isnan(x) else ("Infinity" if x > 0 else "-Infinity")
+    if isinstance(x, Path):
+        return str(x)
+    return x
+
+
+def encode(value: Any) -> Encoded:
+    """Encode one stage output for storage (see module docstring)."""
+    c = _BY_CLASS.get(type(value))
+    if c is None:
+        for cls, cand in _BY_CLASS.items():
+            if isinstance(value, cls):
+                c = cand
+                break
+    if c is not None:
+        enc = c.encode(value)
+        enc.type = c.name
+        enc.attrs = to_jsonable(enc.attrs)
+        return enc
+    if isinstance(value, np.ndarray):
+        return Encoded("ndarray", {"data": (value, tuple(f"dim_{i}" for i in range(value.ndim)))})
+    if isinstance(value, dict) and any(isinstance(v, np.ndarray) for v in value.values()):
+        arrays = {}
+        attrs = {}
+        for k, v in value.items():
+            if isinstance(v, np.ndarray):
+                arrays[str(k)] = (v, tuple(f"{k}_dim_{i}" for i in range(v.ndim)))
+            else:
+                attrs[str(k)] = to_jsonable(v)
+        return Encoded("record", arrays, attrs)
+    j = to_jsonable(value)
+    if _is_json(j):
+        return Encoded("json", {}, {"value": j})
+    raise TypeError(
+        f"cannot store a {type(value).__name__}: register a codec for it with "
+        "mocapflow.pipeline.codecs.codec, or return arrays / JSON values"
+    )
+
+
+def decode(enc: Encoded) -> Any:
+    """Inverse of :func:`encode`."""
+    if enc.type == "ndarray":
+        return enc.arrays["data"][0]
+    if enc.type == "json":
+        return enc.attrs.get("value")
+    if enc.type == "record":
+        out: dict[str, Any] = dict(enc.attrs)
+        out.update({k: a for k, (a, _) in enc.arrays.items()})
+        return out
+    c = _BY_NAME.get(enc.type)
+    if c is None:
+        raise TypeError(
+            f"no codec registered for stored type {enc.type!r} (is the stage family installed?)"
+        )
+    return c.decode(enc)
+
+
+def canonical_json(obj: Any) -> bytes:
+    """Canonical JSON bytes (sorted keys, no spaces, UTF-8)."""
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), ensure_ascii=False).encode()
+
+
+def digest_encoded(enc: Encoded) -> str:
+    """Content digest (blake2b-256 hex) of an encoded output.
+
+    Covers the type name, the canonical attrs and, per array in name order, its
+    name, dtype, shape, dims and C-order bytes.
+    """
+    h = hashlib.blake2b(digest_size=32)
+    h.update(canonical_json({"type": enc.type, "attrs": enc.attrs}))
+    for name in sorted(enc.arrays):
+        arr, dims = enc.arrays[name]
+        arr = np.ascontiguousarray(arr)
+        h.update(canonical_json([name, arr.dtype.str, list(arr.shape), list(dims)]))
+        h.update(arr.tobytes())
+    return h.hexdigest()

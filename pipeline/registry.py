@@ -1,0 +1,315 @@
+"""Stage registry: the ``@stage`` decorator, parameter validation and discovery.
+
+A *stage* is a plain function.  Its positional parameters are **inputs** (wired
+from the graph); its keyword-only parameters are **params** (validated from the
+type hints, defaults filled).  A keyword-only parameter named ``ctx`` is not a
+param: the engine passes a :class:`~mocapflow.pipeline.context.Context` there.
+The function returns a mapping of named outputs (the names declared in
+``outputs=``).
+
+The engine never imports the domain package.  Built-in stage families are found
+through the ``mocapflow.stages`` entry-point group (the project declares its own
+``mocapflow.stages`` package there), so third-party families plug in the same way.
+"""
+
+from __future__ import annotations
+
+import inspect
+import types
+import typing
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from importlib import metadata
+from typing import Any, Literal, NewType, get_args, get_origin
+
+__all__ = [
+    "FilePath",
+    "ParamError",
+    "StageSpec",
+    "discover",
+    "get_stage",
+    "registered_stages",
+    "stage",
+    "validate_params",
+]
+
+#: Annotation for an input that is a raw file on disk (a part's file).  The engine
+#: passes its path as a ``str`` and keys the task on the file's *content*.
+FilePath = NewType("FilePath", str)
+
+ENTRY_POINT_GROUP = "mocapflow.stages"
+
+
+class ParamError(ValueError):
+    """A param value does not fit the stage's signature."""
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """What the engine knows about one registered stage.
+
+    Attributes
+    ----------
+    name : str
+        Registry name used in graph configs (``stage: clean``).
+    func : callable
+        The stage function.
+    inputs : tuple of str
+        Positional parameter names, in order.
+    input_types : dict
+        Annotation of each input (resolved where possible).
+    params : dict
+        ``name -> (annotation, default)``; default is ``inspect.Parameter.empty``
+        for a required param.
+    outputs : tuple of str
+        Names of the outputs the function returns.
+    version : str or None
+        Manual version pin: when set it replaces the code fingerprint in the key.
+    wants_ctx : bool
+        Whether the function takes the keyword-only ``ctx``.
+    module : str
+        Module in which the function is defined (for code fingerprints).
+    description : str
+        First line of the docstring.
+    """
+
+    name: str
+    func: Callable[..., Mapping[str, Any]]
+    inputs: tuple[str, ...]
+    input_types: dict[str, Any]
+    params: dict[str, tuple[Any, Any]]
+    outputs: tuple[str, ...]
+    version: str | None
+    wants_ctx: bool
+    module: str
+    description: str = ""
+    retries: int = 0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def file_inputs(self) -> tuple[str, ...]:
+        """Names of inputs annotated as :data:`FilePath`."""
+        return tuple(n for n in self.inputs if self.input_types.get(n) is FilePath)
+
+
+_REGISTRY: dict[str, StageSpec] = {}
+_DISCOVERED = False
+
+
+def stage(
+    name: str | None = None,
+    *,
+    outputs: tuple[str, ...] | list[str],
+    version: str | None = None,
+    retries: int = 0,
+) -> Callable[[Callable[..., Mapping[str, Any]]], Callable[..., Mapping[str, Any]]]:
+    """Register a function as a stage.
+
+    Parameters
+    ----------
+    name : str, optional
+        Registry name; defaults to the function name.
+    outputs : sequence of str
+        Names of the outputs in the mapping the function returns.
+    version : str, optional
+        Manual version pin; when given, the code fingerprint is replaced by it
+        (bump it to invalidate, or keep it to survive a refactor).
+    retries : int
+        How many times the engine retries a failed task of this stage.
+
+    Returns
+    -------
+    decorator
+        Returns the function unchanged (it stays directly callable).
+    """
+
+    def decorate(func: Callable[..., Mapping[str, Any]]) -> Callable[..., Mapping[str, Any]]:
+        spec = _build_spec(func, name or func.__name__, tuple(outputs), version, retries)
+        previous = _REGISTRY.get(spec.name)
+        if previous is not None and (
+            previous.module != spec.module or previous.func.__qualname__ != func.__qualname__
+        ):
+            raise ValueError(
+                f"stage name {spec.name!r} registered twice: {previous.module}.{previous.func.__qualname__}"
+                f" and {spec.module}.{func.__qualname__}"
+            )
+        _REGISTRY[spec.name] = spec
+        func.__mocapflow_stage__ = spec  # type: ignore[attr-defined]
+        return func
+
+    return decorate
+
+
+def _build_spec(func, name, outputs, version, retries) -> StageSpec:
+    sig = inspect.signature(func)
+    try:
+        hints = typing.get_type_hints(func)
+    except Exception:  # unresolved forward references: fall back to raw annotations
+        hints = {k: v.annotation for k, v in sig.parameters.items()}
+    inputs: list[str] = []
+    input_types: dict[str, Any] = {}
+    params: dict[str, tuple[Any, Any]] = {}
+    wants_ctx = False
+    for p in sig.parameters.values():
+        if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD):
+            inputs.append(p.name)
+            input_types[p.name] = hints.get(p.name, Any)
+        elif p.kind == p.KEYWORD_ONLY:
+            if p.name == "ctx":
+                wants_ctx = True
+                continue
+            params[p.name] = (hints.get(p.name, Any), p.default)
+        else:
+            raise TypeError(f"stage {name!r}: *args/**kwargs are not allowed ({p.name})")
+    doc = inspect.getdoc(func) or ""
+    return StageSpec(
+        name=name,
+        func=func,
+        inputs=tuple(inputs),
+        input_types=input_types,
+        params=params,
+        outputs=outputs,
+        version=version,
+        wants_ctx=wants_ctx,
+        module=func.__module__,
+        description=doc.splitlines()[0] if doc else "",
+        retries=retries,
+    )
+
+
+def discover() -> None:
+    """Import every stage family registered under the ``mocapflow.stages`` entry points."""
+    global _DISCOVERED
+    if _DISCOVERED:
+        return
+    _DISCOVERED = True
+    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        ep.load()
+
+
+def registered_stages() -> dict[str, StageSpec]:
+    """All registered stages, after discovery, by name."""
+    discover()
+    return dict(sorted(_REGISTRY.items()))
+
+
+def get_stage(name: str) -> StageSpec:
+    """Look a stage up by name; ``KeyError`` with close matches when unknown."""
+    discover()
+    try:
+        return _REGISTRY[name]
+    except KeyError:
+        import difflib
+
+        close = difflib.get_close_matches(name, list(_REGISTRY), n=3)
+        hint = f" (did you mean {', '.join(close)}?)" if close else ""
+        raise KeyError(f"unknown stage {name!r}{hint}") from None
+
+
+# --------------------------------------------------------------------------- params
+
+
+def validate_params(spec: StageSpec, given: Mapping[str, Any]) -> dict[str, Any]:
+    """Check ``given`` against the stage's keyword-only params and fill defaults.
+
+    Parameters
+    ----------
+    spec : StageSpec
+    given : mapping
+        Params from the graph config / command line.
+
+    Returns
+    -------
+    dict
+        Every param of the stage, in signature order, with defaults filled.
+
+    Raises
+    ------
+    ParamError
+        Unknown param, missing required param, or a value of the wrong type
+        (the message names the param).
+    """
+    unknown = sorted(set(given) - set(spec.params))
+    if unknown:
+        import difflib
+
+        hints = []
+        for u in unknown:
+            close = difflib.get_close_matches(u, list(spec.params), n=1)
+            hints.append(f"{u!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+        raise ParamError(f"unknown param {', '.join(hints)} for stage {spec.name!r}")
+    out: dict[str, Any] = {}
+    for pname, (ann, default) in spec.params.items():
+        if pname in given:
+            out[pname] = coerce(given[pname], ann, where=f"{spec.name}.{pname}")
+        elif default is inspect.Parameter.empty:
+            raise ParamError(f"missing required param {pname!r} for stage {spec.name!r}")
+        else:
+            out[pname] = default
+    return out
+
+
+def coerce(value: Any, ann: Any, *, where: str) -> Any:
+    """Validate ``value`` against annotation ``ann`` (lenient int→float only).
+
+    Supported annotations: ``Any``, ``bool``, ``int``, ``float``, ``str``,
+    ``None``, ``Literal[...]``, ``X | Y`` / ``Optional``, ``list[T]``,
+    ``tuple[T, ...]``, ``dict[K, V]``.
+    """
+    if ann is Any or ann is inspect.Parameter.empty:
+        return value
+    origin = get_origin(ann)
+    args = get_args(ann)
+    if origin in (typing.Union, types.UnionType):
+        errors = []
+        for a in args:
+            try:
+                return coerce(value, a, where=where)
+            except ParamError as e:
+                errors.append(str(e))
+        raise ParamError(f"param {where}: {value!r} does not fit {_fmt(ann)}")
+    if origin is Literal:
+        if value in args and type(value) in {type(a) for a in args}:
+            return value
+        raise ParamError(f"param {where}: {value!r} is not one of {list(args)}")
+    if ann is type(None) or ann is None:
+        if value is None:
+            return None
+        raise ParamError(f"param {where}: expected null, got {value!r}")
+    if ann is bool:
+        if isinstance(value, bool):
+            return value
+        raise ParamError(f"param {where}: expected a boolean, got {value!r}")
+    if ann is int:
+        if isinstance(value, int) and not isinstance(value, bool):
+            return value
+        raise ParamError(f"param {where}: expected an integer, got {value!r}")
+    if ann is float:
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            return float(value)
+        raise ParamError(f"param {where}: expected a number, got {value!r}")
+    if ann is str:
+        if isinstance(value, str):
+            return value
+        raise ParamError(f"param {where}: expected a string, got {value!r}")
+    if origin in (list, tuple) or ann in (list, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise ParamError(f"param {where}: expected a list, got {value!r}")
+        if origin is tuple and args and not (len(args) == 2 and args[1] is Ellipsis):
+            if len(args) != len(value):
+                raise ParamError(f"param {where}: expected {len(args)} items, got {len(value)}")
+            return [coerce(v, a, where=f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args))]
+        item = args[0] if args else Any
+        return [coerce(v, item, where=f"{where}[{i}]") for i, v in enumerate(value)]
+    if origin is dict or ann is dict:
+        if not isinstance(value, Mapping):
+            raise ParamError(f"param {where}: expected a mapping, got {value!r}")
+        kt, vt = args if args else (Any, Any)
+        return {
+            coerce(k, kt, where=f"{where} key"): coerce(v, vt, where=f"{where}.{k}")
+            for k, v in value.items()
+        }
+    return value
+
+
+def _fmt(ann: Any) -> str:
+    return getattr(ann, "__name__", None) or str(ann).replace("typing.", "")
