@@ -128,10 +128,9 @@ def stage(
         if previous is not None and (
             previous.module != spec.module or previous.func.__qualname__ != func.__qualname__
         ):
-            raise ValueError(
-                f"stage name {spec.name!r} registered twice: {previous.module}.{previous.func.__qualname__}"
-                f" and {spec.module}.{func.__qualname__}"
-            )
+            first = f"{previous.module}.{previous.func.__qualname__}"
+            second = f"{spec.module}.{func.__qualname__}"
+            raise ValueError(f"stage name {spec.name!r} registered twice: {first} and {second}")
         _REGISTRY[spec.name] = spec
         func.__mocapflow_stage__ = spec  # type: ignore[attr-defined]
         return func
@@ -297,7 +296,8 @@ def coerce(value: Any, ann: Any, *, where: str) -> Any:
         if origin is tuple and args and not (len(args) == 2 and args[1] is Ellipsis):
             if len(args) != len(value):
                 raise ParamError(f"param {where}: expected {len(args)} items, got {len(value)}")
-            return [coerce(v, a, where=f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args))]
+            pairs = enumerate(zip(value, args))
+            return [coerce(v, a, where=f"{where}[{i}]") for i, (v, a) in pairs]
         item = args[0] if args else Any
         return [coerce(v, item, where=f"{where}[{i}]") for i, v in enumerate(value)]
     if origin is dict or ann is dict:

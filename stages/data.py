@@ -353,9 +353,8 @@ def _encode_motion(m: Motion) -> Encoded:
     arrays["rotations"] = (m.rotations, ("frame", "joint", "wxyz"))
     if m.translations is not None:
         arrays["translations"] = (m.translations, ("frame", "joint", "xyz"))
-    return Encoded(
-        "motion", arrays, {"skeleton": _skeleton_attrs(m.skeleton), "rate": m.rate, "attrs": m.attrs}
-    )
+    attrs = {"skeleton": _skeleton_attrs(m.skeleton), "rate": m.rate, "attrs": m.attrs}
+    return Encoded("motion", arrays, attrs)
 
 
 def _decode_motion(e: Encoded) -> Motion:
