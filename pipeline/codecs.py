@@ -208,5 +208,5 @@ def digest_encoded(enc: Encoded) -> str:
         arr, dims = enc.arrays[name]
         arr = np.ascontiguousarray(arr)
         h.update(canonical_json([name, arr.dtype.str, list(arr.shape), list(dims)]))
-        h.update(arr.tobytes())
+        h.update(arr.reshape(-1).view(np.uint8).data)
     return h.hexdigest()
