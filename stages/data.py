@@ -37,6 +37,7 @@ UNIT_SCALE: dict[str, float] = {
     "in": 0.0254,
     "inch": 0.0254,
     "ft": 0.3048,
+    "cmu": 0.0254 / 0.45,  # CMU BVH/ASF length unit: inches / 0.45
 }
 
 
