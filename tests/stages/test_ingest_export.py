@@ -1,0 +1,180 @@
+"""Ingest stages (direct calls, exact codec round trip) and exporters."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mocapflow.pipeline import Context
+from mocapflow.pipeline.codecs import decode, digest_encoded, encode, find_exporter
+from mocapflow.pipeline.registry import get_stage, validate_params
+from mocapflow.stages.data import Markers, Motion, Strokes
+from mocapflow.stages.formats.c3d import read_c3d
+from mocapflow.stages.formats.strokes import StrokesFileError, StrokesSet, read_strokes_csv
+from mocapflow.stages.ingest import (
+    amc_skeleton_path,
+    ingest_amc,
+    ingest_bvh,
+    ingest_c3d,
+    ingest_strokes,
+    ingest_strokes_set,
+)
+
+ROOT = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+
+
+@pytest.fixture(scope="module")
+def ingest_data() -> Path:
+    if not ROOT.is_dir():
+        pytest.skip("shared data not available")
+    return ROOT
+
+
+def ctx() -> Context:
+    return Context(part="test")
+
+
+def _round_trip(value):
+    enc = encode(value)
+    back = decode(enc)
+    assert digest_encoded(encode(back)) == digest_encoded(enc)
+    return back
+
+
+def _same_markers(a: Markers, b: Markers) -> None:
+    np.testing.assert_array_equal(a.positions, b.positions)
+    np.testing.assert_array_equal(a.fragments, b.fragments)
+    np.testing.assert_array_equal(a.residuals, b.residuals)
+    assert (a.labels, a.fragment_labels, a.rate, a.first_frame) == (
+        b.labels, b.fragment_labels, b.rate, b.first_frame,
+    )  # fmt: skip
+    assert a.attrs == b.attrs
+
+
+def _same_motion(a: Motion, b: Motion) -> None:
+    np.testing.assert_array_equal(a.rotations, b.rotations)
+    np.testing.assert_array_equal(a.root_position, b.root_position)
+    np.testing.assert_array_equal(a.skeleton.offsets, b.skeleton.offsets)
+    assert a.skeleton.names == b.skeleton.names and a.skeleton.channels == b.skeleton.channels
+    assert a.rate == b.rate and a.attrs == b.attrs
+
+
+C3D_FILES = [
+    "btkdata_PiG_Calibration-FlatFoot-Hole.c3d",
+    "btkdata_c3dorg_Eb015pr.c3d",
+    "ezc3d-testFiles_Qualisys.c3d",
+    "ktk_kinematics_basket_sprint.c3d",
+    "ktk_kinematics_racing_full.c3d",
+    "pyomeca_markers_analogs.c3d",
+]
+
+
+@pytest.mark.parametrize("name", C3D_FILES)
+def test_ingest_c3d_round_trip(ingest_data, name):
+    c = ctx()
+    out = ingest_c3d(str(ingest_data / "c3d" / name), ctx=c)
+    assert set(out) == set(get_stage("ingest_c3d").outputs) == {"markers", "report"}
+    _same_markers(out["markers"], _round_trip(out["markers"]))
+    assert _round_trip(out["report"]) == out["report"]
+    rep = out["report"]
+    if name.startswith("ktk_kinematics_racing"):
+        assert rep["never_seen"] == [f"Probe{i}" for i in range(1, 7)]
+        assert any("never seen" in w for w in c.warnings)
+    elif name.startswith("btkdata_PiG"):
+        assert (rep["markers"], rep["fragments"], rep["points_in_file"]) == (35, 66, 203)
+        assert rep["excluded"] == {"virtual_segment": 76, "model_output": 26}
+        assert len(rep["fragment_lengths"]) == 66
+    else:
+        assert rep["fragments"] == 0 and rep["excluded"] == {} and not c.warnings
+
+
+def test_markers_exporter(ingest_data, tmp_path):
+    m = ingest_c3d(str(ingest_data / "c3d" / "ktk_kinematics_racing_full.c3d"), ctx=ctx())[
+        "markers"
+    ]
+    paths = find_exporter("markers")(m, tmp_path, "racing")
+    assert paths == [tmp_path / "racing.c3d"]
+    back = read_c3d(paths[0])
+    assert back.attrs["source_unit"] == "m"  # the source unit is kept
+    assert back.labels == m.labels and back.n_frames == 700
+    np.testing.assert_allclose(back.positions, m.positions, atol=1e-6, rtol=0)
+    np.testing.assert_array_equal(back.visible, m.visible)
+
+
+def test_ingest_strokes_selection(ingest_data):
+    csv = str(ingest_data / "strokes" / "uci_chartraj_mv_subset.csv")
+    s = ingest_strokes(csv, letter="a", example=3, ctx=ctx())["strokes"]
+    assert isinstance(s, Strokes) and len(s.points) == 138
+    assert s.attrs["letter"] == "a" and s.attrs["example"] == 3
+    back = _round_trip(s)
+    np.testing.assert_array_equal(back.points, s.points)
+    np.testing.assert_array_equal(back.times, s.times)
+    assert back.attrs == s.attrs and back.rate == 200.0
+    with pytest.raises(StrokesFileError, match=r"5 examples match letter 'a'.*ingest_strokes_set"):
+        ingest_strokes(csv, letter="a", ctx=ctx())
+    with pytest.raises(StrokesFileError, match=r"no example 9 of letter 'a' \(examples: \[1, 2"):
+        ingest_strokes(csv, letter="a", example=9, ctx=ctx())
+    omni = ingest_data / "strokes" / "omniglot_latin" / "character05" / "0687_03.txt"
+    o = ingest_strokes(str(omni), ctx=ctx())["strokes"]
+    assert o.attrs["letter"] == "e" and len(o.stroke_starts) >= 1
+
+
+def test_ingest_strokes_set_and_exporters(ingest_data, tmp_path):
+    csv = str(ingest_data / "strokes" / "uci_chartraj_mv_subset.csv")
+    ex = ingest_strokes_set(csv, letter="a", ctx=ctx())["examples"]
+    assert isinstance(ex, StrokesSet) and [len(s.points) for s in ex] == [138, 143, 138, 136, 139]
+    back = _round_trip(ex)
+    assert all(np.array_equal(a.points, b.points) and a.attrs == b.attrs for a, b in zip(ex, back))
+    (p,) = find_exporter("strokes_set")(ex, tmp_path, "a")
+    again = read_strokes_csv(p)
+    assert [s.attrs for s in again] == [s.attrs for s in ex]
+    assert all(np.array_equal(a.points, b.points) for a, b in zip(ex, again))
+    (q,) = find_exporter("strokes")(ex[0], tmp_path, "a1")
+    assert q.suffix == ".csv" and np.array_equal(read_strokes_csv(q)[0].points, ex[0].points)
+    # the exported CSV is itself an ingestable part
+    s = ingest_strokes(str(p), example=2, ctx=ctx())["strokes"]
+    np.testing.assert_array_equal(s.points, ex[1].points)
+
+
+def test_param_validation():
+    spec = get_stage("ingest_amc")
+    assert validate_params(spec, {}) == {"asf": None, "rate": None}
+    assert validate_params(get_stage("ingest_bvh"), {"rate": 30}) == {"rate": 30.0, "unit": "auto"}
+    assert get_stage("ingest_strokes_set").outputs == ("examples",)
+
+
+def test_amc_skeleton_path():
+    assert amc_skeleton_path("/d/cmu_01_01.amc") == Path("/d/cmu_01.asf")
+    assert amc_skeleton_path("01_01.amc") == Path("01.asf")
+    assert amc_skeleton_path("walk.amc") == Path("walk.asf")
+
+
+def test_ingest_bvh(ingest_data, tmp_path):
+    pytest.importorskip("mocapflow.stages.formats.bvh")
+    path = str(ingest_data / "bvh" / "cmu_131_01.bvh")
+    m = ingest_bvh(path, ctx=ctx())["motion"]
+    assert m.n_frames == 994 and m.rate == pytest.approx(120.0)
+    _same_motion(m, _round_trip(m))
+    half = ingest_bvh(path, rate=60.0, ctx=ctx())["motion"]
+    assert half.rate == 60.0 and half.n_frames == 497  # floor(993 / 2) + 1
+    np.testing.assert_allclose(half.root_position, m.root_position[::2], atol=1e-12)
+    (out,) = find_exporter("motion")(m, tmp_path, "walk")
+    again = ingest_bvh(str(out), ctx=ctx())["motion"]
+    assert again.n_frames == 994 and again.skeleton.names == m.skeleton.names
+    np.testing.assert_allclose(again.root_position, m.root_position, atol=1e-5)
+
+
+def test_ingest_amc(ingest_data, tmp_path):
+    pytest.importorskip("mocapflow.stages.formats.asf")
+    amc = ingest_data / "bvh" / "cmu_11_01.amc"
+    m = ingest_amc(str(amc), ctx=ctx())["motion"]  # cmu_11.asf found beside it
+    assert m.n_frames == 597 and m.rate == 120.0
+    _same_motion(m, _round_trip(m))
+    explicit = ingest_amc(str(amc), asf=str(ingest_data / "bvh" / "cmu_11.asf"), ctx=ctx())
+    np.testing.assert_array_equal(explicit["motion"].rotations, m.rotations)
+    lonely = tmp_path / "cmu_99_01.amc"
+    lonely.write_bytes(amc.read_bytes())
+    with pytest.raises(FileNotFoundError, match=r"cmu_99\.asf"):
+        ingest_amc(str(lonely), ctx=ctx())
