@@ -1,0 +1,940 @@
+"""Neighbourhood matching, meeting points and son selection (Moradoff §3.5–3.7).
+
+The output of every pyramid level is a *source track*: for each output node the
+index of the input node (same level) it copies.  A node is chosen by comparing
+its neighbourhood in the output with the neighbourhood of each candidate in the
+input, on three levels of the tree:
+
+* the **ancestor** level (``l + 1``, already synthesised) around the parent,
+* the **current** level (``l``) around the node, only the slots filled so far,
+* the **finer** level (``l - 1``) around the node's children, where every
+  filled node provisionally brings the children of its source.
+
+Every level contributes ``±slots`` slots, weighted by ``level_weights``.  A slot
+pair ``(s, s+1)`` is compared on the *velocities* between the two nodes: the
+joint-position velocities of the 3-D pose representation (so a jump of pose
+shows as a wrong velocity) and the root's rate features (horizontal velocity,
+yaw rate × 1 m).  The per-slot distance of the vector ``d`` of per-joint
+velocity errors is ``‖d‖∞ + ‖d‖₀.₅`` with ``‖d‖₀.₅ = (mean_j √d_j)²`` (the
+normalised 0.5-norm).  Empty slots (not yet synthesised, or outside the input)
+have weight 0 and the weights are renormalised; a candidate without input where
+the output next to it is already filled is rejected, and so is one that would
+freeze or rewind the motion (``≤ slots`` nodes back from a filled neighbour).
+
+Coarsest level (:class:`LevelSearch`): gaps between anchors (constraints) are
+grown from both sides, alternating one node of the left front and one of the
+right front, each node searched exhaustively over the input; the two sequences
+are joined at the *meeting point*, searched exhaustively over every position
+of the gap and every input node.  Gaps with one anchor grow from it.
+
+Finer levels (:func:`refine_level`): every node takes the child (same parity)
+of its parent's source (son selection) and every transition of the parent
+level — meeting points and the random jumps — is searched again around twice
+its position (``±meeting_window`` nodes), among the lines through the children
+of the parent's 3 best matches ``±candidate_range`` nodes (candidate
+acceleration).
+
+Randomisation: at every level but the finest, the node (or join) is drawn at
+random (seeded) among the ``k_best`` best *distinct* candidates (closer than
+``slots`` nodes counts as the same match) within ``tolerance`` cost units of
+the best; the unit is the input's median frame-to-frame velocity change.  At
+the coarsest level a new draw only happens once the previous transition has
+``slots`` verbatim nodes behind it, and less used input regions are preferred.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "Gap",
+    "LevelResult",
+    "LevelSearch",
+    "LevelView",
+    "SearchParams",
+    "SynthesisError",
+    "gaps_of",
+    "level_view",
+    "refine_level",
+    "slot_distance",
+    "window_cost",
+]
+
+#: Length (metres) turning a yaw rate (rad per frame) into a velocity.
+YAW_LEVER = 1.0
+
+
+class SynthesisError(ValueError):
+    """The synthesis cannot satisfy its inputs (message names the gap / constraint)."""
+
+
+@dataclass
+class SearchParams:
+    """Parameters of the neighbourhood search (Moradoff's names).
+
+    Attributes
+    ----------
+    slots : int
+        Half width of a neighbourhood on each level (±3).
+    level_weights : tuple of float
+        Relative weights of the (ancestor, current, finer) levels.
+    candidate_range : int
+        ± nodes around the children of the parent's best matches (±4).
+    n_parent_matches : int
+        Parent matches whose children are candidates (3).
+    k_best : int
+        Random choice among the ``k_best`` best (2–3) at all but the finest level.
+    tolerance : float
+        Only candidates within ``tolerance`` cost units of the best are drawn
+        (the unit: the input's median frame-to-frame velocity change).  The
+        knob of variety: 0 plays the input through, 0.5 (default) jumps only
+        between near-equivalent moments, 0.75+ jumps more often.
+    meeting_window : int
+        ± nodes around the previous level's transitions searched at finer levels.
+    coherence : float
+        Cost units subtracted, below the coarsest level, for a candidate that
+        continues a neighbour's source in node-by-node growth (0 disables).
+    """
+
+    slots: int = 3
+    level_weights: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    candidate_range: int = 4
+    n_parent_matches: int = 3
+    k_best: int = 3
+    tolerance: float = 0.5
+    meeting_window: int = 4
+    coherence: float = 0.25
+
+
+@dataclass
+class LevelView:
+    """What the search compares at one level of the input pyramid.
+
+    Attributes
+    ----------
+    P : (n, K, 3) float ndarray
+        Joint positions of the heading-free pose.
+    R : (n, E, 3) float ndarray
+        Rate features per fine frame (root velocity, yaw rate × 1 m).
+    spacing : float
+        Fine frames between consecutive nodes (``2**l``).
+    unit : float
+        Cost unit: median per-slot distance between consecutive velocities.
+    V : (n - 1, K, 3) float ndarray
+        Input joint velocities ``P[i+1] - P[i]`` (derived).
+    """
+
+    P: np.ndarray
+    R: np.ndarray
+    spacing: float
+    unit: float = 1.0
+
+    def __post_init__(self) -> None:
+        self.V = np.diff(self.P, axis=0) if self.P.shape[0] > 1 else np.zeros_like(self.P)
+
+    @property
+    def n(self) -> int:
+        """Number of input nodes."""
+        return self.P.shape[0]
+
+
+def slot_distance(d: np.ndarray) -> np.ndarray:
+    """``‖d‖∞ + ‖d‖₀.₅`` over the last axis (``‖d‖₀.₅ = (mean √d)²``).
+
+    Parameters
+    ----------
+    d : (..., K) float ndarray
+        Non-negative per-joint errors.
+
+    Returns
+    -------
+    (...) float ndarray
+    """
+    return d.max(axis=-1) + np.square(np.sqrt(d).mean(axis=-1))
+
+
+def level_view(level, spacing: float) -> LevelView:
+    """Comparison features of one pyramid level.
+
+    Parameters
+    ----------
+    level : PyramidLevel
+    spacing : float
+        ``2**l``.
+
+    Returns
+    -------
+    LevelView
+    """
+    n = level.n_nodes
+    R = np.zeros((n, 2, 3))
+    R[:, 0, 0] = level.velocity[:, 0]
+    R[:, 0, 2] = level.velocity[:, 1]
+    R[:, 1, 0] = level.yaw_rate * YAW_LEVER
+    view = LevelView(np.asarray(level.positions, dtype=np.float64), R, float(spacing))
+    if n >= 3:
+        v = np.diff(view.P, axis=0) / spacing
+        dv = np.linalg.norm(np.diff(v, axis=0), axis=-1)
+        dr = np.linalg.norm(np.diff(R, axis=0), axis=-1)[1:]
+        unit = float(np.median(slot_distance(np.concatenate([dv, dr, dr], axis=-1))))
+        view.unit = unit if unit > 0 else 1.0
+    return view
+
+
+def window_cost(
+    view: LevelView,
+    ov: np.ndarray,
+    iv: np.ndarray,
+    block: np.ndarray,
+    pair_weights: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted velocity distance between output windows and input windows.
+
+    Parameters
+    ----------
+    view : LevelView
+    ov : (m, W) int ndarray
+        Input node copied at each output slot (-1: empty).
+    iv : (m, W) int ndarray
+        Input node at each slot of the candidate's input window (may fall
+        outside ``[0, n)``: then empty).
+    block : (W,) bool ndarray
+        Slots holding the candidate itself.
+    pair_weights : (W - 1,) float ndarray
+        Weight of each slot pair.
+
+    Returns
+    -------
+    num : (m,) float ndarray
+        Weighted sum of per-pair distances over valid pairs.
+    den : (m,) float ndarray
+        Sum of the weights of valid pairs.
+    reject : (m,) bool ndarray
+        A pair touching the candidate is filled in the output but missing in the input.
+    """
+    n = view.n
+    out_ok = ov >= 0
+    in_ok = (iv >= 0) & (iv < n)
+    o = np.clip(ov, 0, n - 1)
+    i = np.clip(iv, 0, n - 1)
+    both_out = out_ok[:, 1:] & out_ok[:, :-1]
+    valid = both_out & in_ok[:, 1:] & in_ok[:, :-1]
+    touch = block[1:] | block[:-1]
+    reject = np.any(both_out & ~valid & touch[None, :], axis=1)
+    P, R, V = view.P, view.R, view.V
+    dv = (P[o[:, 1:]] - P[o[:, :-1]]) - V[np.minimum(i[:, :-1], n - 2)]
+    d = np.sqrt(np.einsum("...k,...k->...", dv, dv)) / view.spacing
+    ra = R[o[:, :-1]] - R[i[:, :-1]]
+    rb = R[o[:, 1:]] - R[i[:, 1:]]
+    ra = np.sqrt(np.einsum("...k,...k->...", ra, ra))
+    rb = np.sqrt(np.einsum("...k,...k->...", rb, rb))
+    dist = slot_distance(np.concatenate([d, ra, rb], axis=-1))
+    w = pair_weights[None, :] * valid
+    return np.sum(w * dist, axis=1), np.sum(w, axis=1), reject
+
+
+def _pair_weights(offsets: np.ndarray, centre: float, sigma: float) -> np.ndarray:
+    mid = 0.5 * (offsets[1:] + offsets[:-1]) - centre
+    return np.exp(-0.5 * (mid / sigma) ** 2)
+
+
+# --------------------------------------------------------------------------- gaps
+
+
+@dataclass
+class Gap:
+    """A run of output nodes between two anchors (positions unwrapped).
+
+    Attributes
+    ----------
+    lo, hi : int
+        Anchor positions (``lo = -1``: no left anchor; ``hi = n``: no right anchor).
+    key : tuple
+        Identity of the bounding anchors, stable across levels.
+    """
+
+    lo: int
+    hi: int
+    key: tuple
+    left: bool = True
+    right: bool = True
+
+    @property
+    def interior(self) -> range:
+        """Positions to fill."""
+        return range(self.lo + 1, self.hi)
+
+
+def gaps_of(anchor_pos: list[int], anchor_keys: list, n: int, cyclic: bool) -> list[Gap]:
+    """Gaps between sorted anchors.
+
+    Parameters
+    ----------
+    anchor_pos : list of int
+        Sorted anchor positions in ``[0, n)`` (at least one).
+    anchor_keys : list
+        Identity of each anchor.
+    n : int
+        Output nodes.
+    cyclic : bool
+        Loop mode: the last gap wraps to the first anchor (positions ``>= n``).
+
+    Returns
+    -------
+    list of Gap
+    """
+    gaps = []
+    for a, b, ka, kb in zip(anchor_pos[:-1], anchor_pos[1:], anchor_keys[:-1], anchor_keys[1:]):
+        gaps.append(Gap(a, b, (ka, kb)))
+    if cyclic:
+        gaps.append(Gap(anchor_pos[-1], anchor_pos[0] + n, (anchor_keys[-1], anchor_keys[0])))
+    else:
+        if anchor_pos[0] > 0:
+            gaps.append(Gap(-1, anchor_pos[0], ("start", anchor_keys[0]), left=False))
+        if anchor_pos[-1] < n - 1:
+            gaps.append(Gap(anchor_pos[-1], n, (anchor_keys[-1], "end"), right=False))
+    return gaps
+
+
+# --------------------------------------------------------------------------- one level
+
+
+@dataclass
+class LevelResult:
+    """Source track of one output level.
+
+    Attributes
+    ----------
+    src : (n_out,) int ndarray
+        Input node copied at each output node.
+    ranked : (n_out, 3) int ndarray
+        Best candidates of each node (-1 padded), best first.
+    meetings : dict
+        Gap key -> meeting position (unwrapped).
+    """
+
+    src: np.ndarray
+    ranked: np.ndarray
+    meetings: dict = field(default_factory=dict)
+
+
+class LevelSearch:
+    """Neighbourhood search on one output level.
+
+    Parameters
+    ----------
+    views : list of LevelView
+        Input pyramid, finest first.
+    level : int
+    n_out : list of int
+        Output nodes per level.
+    cyclic : bool
+    upper : LevelResult or None
+        The synthesised coarser level (``None`` at the coarsest).
+    params : SearchParams
+    rng : numpy.random.Generator
+    """
+
+    def __init__(self, views, level, n_out, cyclic, upper, params, rng):
+        self.views = views
+        self.l = level
+        self.n_out = n_out
+        self.n = n_out[level]
+        self.cyclic = cyclic
+        self.upper = upper
+        self.p = params
+        self.rng = rng
+        self.view = views[level]
+        self._usage: np.ndarray | None = None
+        #: cost unit of every level: natural frame-to-frame velocity change of the input
+        self.unit = views[0].unit
+        self.coarsest = level == len(views) - 1
+        self.randomize = level > 0
+        S = params.slots
+        self.off = np.arange(-S, S + 1)
+        self.pw = _pair_weights(self.off, 0.0, max(S, 1))
+        self.blk = self.off == 0
+        self.off_f = np.arange(-S, S + 2)
+        self.pw_f = _pair_weights(self.off_f, 0.5, max(S, 1))
+        self.blk_f = (self.off_f == 0) | (self.off_f == 1)
+
+    # ----------------------------------------------------------- positions
+    def _wrap(self, pos: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Map positions to ``[0, n)``; second value marks positions that exist."""
+        if self.cyclic:
+            return np.mod(pos, n), np.ones(pos.shape, dtype=bool)
+        return np.clip(pos, 0, n - 1), (pos >= 0) & (pos < n)
+
+    def _out_values(self, src: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        p, ok = self._wrap(pos, src.shape[0])
+        return np.where(ok, src[p], -1)
+
+    # ----------------------------------------------------------- costs
+    def cost(self, src: np.ndarray, t: int, cands: np.ndarray) -> np.ndarray:
+        """Total neighbourhood cost of placing each candidate at output node ``t``.
+
+        Parameters
+        ----------
+        src : (n_out,) int ndarray
+            Current source track of the level (-1: empty).
+        t : int
+            Output position (unwrapped in loop mode).
+        cands : (m,) int ndarray
+
+        Returns
+        -------
+        (m,) float ndarray
+            ``inf`` for rejected candidates; ``nan`` when no slot could be compared.
+        """
+        m = cands.shape[0]
+        ov = np.broadcast_to(self._out_values(src, t + self.off), (m, self.off.size)).copy()
+        ov[:, self.blk] = cands[:, None]
+        return self.cost_rows(ov, t)
+
+    def cost_rows(
+        self, ov: np.ndarray, t: int, *, coherence: bool = True, strict: bool = True
+    ) -> np.ndarray:
+        """Neighbourhood cost of output windows around node ``t``, one context per row.
+
+        Parameters
+        ----------
+        ov : (m, 2 slots + 1) int ndarray
+            Input node at output positions ``t - slots … t + slots`` (-1: empty);
+            the centre column is the candidate.
+        t : int
+            Output position (unwrapped in loop mode).
+        coherence : bool
+            Apply the coherence bonus.
+        strict : bool
+            Reject candidates whose input lacks a slot next to them that the
+            output has (False: just leave that slot out).
+
+        Returns
+        -------
+        (m,) float ndarray
+        """
+        la, lc, lf = self.p.level_weights
+        S = self.p.slots
+        cands = ov[:, S]
+        iv = cands[:, None] + self.off[None, :]
+        num, den, reject = window_cost(self.view, ov, iv, self.blk, self.pw)
+        num, den = lc * num, lc * den
+        if self.upper is not None and la > 0:
+            a_num, a_den = self._ancestor_cost(t, cands)
+            num, den = num + la * a_num, den + la * a_den
+        if self.l > 0 and lf > 0:
+            f_num, f_den = self._finer_cost(ov, t)
+            num, den = num + lf * f_num, den + lf * f_den
+        with np.errstate(invalid="ignore", divide="ignore"):
+            total = num / den
+        a, b = ov[:, S - 1], ov[:, S + 1]
+        stall = ((a >= 0) & (cands <= a) & (cands >= a - S)) | (
+            (b >= 0) & (cands >= b) & (cands <= b + S)
+        )
+        total[(reject & strict) | stall] = np.inf
+        if coherence and self.p.coherence > 0 and not self.coarsest:
+            coherent = ((cands == a + 1) & (a >= 0)) | ((cands == b - 1) & (b >= 0))
+            total = np.where(coherent, total - self.p.coherence * self.unit, total)
+        return total
+
+    def _ancestor_cost(self, t: int, cands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        view = self.views[self.l + 1]
+        up = self.upper.src
+        T = t // 2 if not self.cyclic else (t % self.n) // 2
+        C, inv = np.unique(cands // 2, return_inverse=True)
+        ov = np.broadcast_to(self._out_values(up, T + self.off), (C.size, self.off.size)).copy()
+        ov[:, self.blk] = C[:, None]
+        iv = C[:, None] + self.off[None, :]
+        num, den, _ = window_cost(view, ov, iv, self.blk, self.pw)
+        return num[inv], den[inv]
+
+    def _finer_cost(self, ov: np.ndarray, t: int) -> tuple[np.ndarray, np.ndarray]:
+        """Finer level: every filled node brings the children of its source."""
+        view = self.views[self.l - 1]
+        nf = self.n_out[self.l - 1]
+        S = self.p.slots
+        rel = self.off_f // 2
+        parity = self.off_f - 2 * rel
+        pv = ov[:, S + rel]
+        prov = np.where(pv >= 0, 2 * pv + parity[None, :], -1)
+        if not self.cyclic:
+            u = 2 * t + self.off_f
+            prov[:, (u < 0) | (u >= nf)] = -1
+        prov[prov >= view.n] = -1
+        iv = 2 * ov[:, S : S + 1] + self.off_f[None, :]
+        num, den, _ = window_cost(view, prov, iv, self.blk_f, self.pw_f)
+        return num, den
+
+    # ----------------------------------------------------------- candidates
+    def candidates(self, src: np.ndarray, t: int) -> np.ndarray:
+        """Candidate input nodes for output node ``t``.
+
+        All input nodes at the coarsest level; otherwise the children (same
+        parity) of the parent's best matches ``±candidate_range`` and the natural
+        continuations of filled neighbours.
+        """
+        n_in = self.view.n
+        if self.coarsest:
+            return np.arange(n_in)
+        tt = t % self.n if self.cyclic else t
+        T = tt // 2
+        T = min(T, self.upper.src.shape[0] - 1)
+        par = self.upper.ranked[T]
+        par = par[par >= 0][: self.p.n_parent_matches]
+        r = self.p.candidate_range
+        kids = (2 * par[:, None] + (tt - 2 * T) + np.arange(-r, r + 1)[None, :]).ravel()
+        nb = self._out_values(src, np.array([t - 1, t + 1]))
+        cont = [nb[0] + 1] if nb[0] >= 0 else []
+        if nb[1] >= 0:
+            cont.append(nb[1] - 1)
+        c = np.unique(np.concatenate([kids, np.asarray(cont, dtype=np.int64)]))
+        return c[(c >= 0) & (c < n_in)]
+
+    # ----------------------------------------------------------- choice
+    def choose(
+        self, cands: np.ndarray, cost: np.ndarray, where: str, *, draw: bool = True
+    ) -> tuple[int, np.ndarray]:
+        """Pick a node: the best at the finest level, else random among the k best.
+
+        Parameters
+        ----------
+        cands, cost : (m,) ndarray
+        where : str
+            Node description for error messages.
+        draw : bool
+            Allow the random draw (False: take the best).
+
+        Returns
+        -------
+        node : int
+        ranked : (3,) int ndarray
+            The best three distinct candidates (-1 padded).
+        """
+        cost = np.where(np.isnan(cost), 0.0, cost)
+        perm = self.rng.permutation(cands.size)  # random tie-breaking
+        cands, cost = cands[perm], cost[perm]
+        order = np.argsort(cost, kind="stable")
+        order = order[np.isfinite(cost[order])]
+        if order.size == 0:
+            raise SynthesisError(f"no input node fits {where} (every candidate was rejected)")
+        ranked = cands[order]
+        node = int(ranked[0])
+        if draw and self.randomize and self.p.k_best > 1:
+            pick = self._draw(ranked, cost[order])
+            node = int(ranked[pick])
+        top = np.full(3, -1, dtype=np.int64)
+        top[: min(3, ranked.size)] = ranked[:3]
+        return node, top
+
+    def _draw(self, ranked: np.ndarray, sorted_cost: np.ndarray) -> int:
+        """Index (into ``ranked``) drawn among the ``k_best`` distinct best matches.
+
+        Matches closer than ``slots`` nodes to a better one are the same match
+        shifted in time, not another one; they are skipped.  Only matches within
+        ``tolerance`` cost units of the best are drawn.
+        """
+        lim = sorted_cost[0] + self.p.tolerance * self.unit
+        chosen = [0]
+        for i in range(1, ranked.size):
+            if len(chosen) >= self.p.k_best or sorted_cost[i] > lim:
+                break
+            if np.all(np.abs(ranked[i] - ranked[chosen]) >= self.p.slots):
+                chosen.append(i)
+        if self._usage is None:
+            return int(self.rng.choice(chosen))
+        # less used input regions are drawn more often (coverage of the input)
+        w = 1.0 / (1.0 + self._usage[np.clip(ranked[chosen], 0, self._usage.size - 1)])
+        return int(self.rng.choice(chosen, p=w / w.sum()))
+
+    def _settled(self, src: np.ndarray, t: int) -> bool:
+        """Whether the ``slots`` filled nodes on one side of ``t`` form one verbatim run.
+
+        A new random transition is only drawn once the last one has a full
+        neighbourhood of verbatim nodes behind it; otherwise a second jump would
+        land inside the first one's neighbourhood (and often jump straight back).
+        """
+        S = self.p.slots
+        for side in (-1, 1):
+            v = self._out_values(src, t + side * np.arange(1, S + 1))
+            if v[0] < 0:
+                continue
+            if (v >= 0).all() and np.all(np.diff(v) == side):
+                return True
+            return False
+        return True
+
+    def fill(self, src, ranked, t: int, where: str) -> None:
+        """Choose and write the node at position ``t`` (in place)."""
+        if self.coarsest:
+            used = src[src >= 0]
+            counts = np.bincount(used, minlength=self.view.n).astype(np.float64)
+            self._usage = np.convolve(counts, np.ones(2 * self.p.slots + 1), mode="same")
+        cands = self.candidates(src, t)
+        cost = self.cost(src, t, cands)
+        if not np.isfinite(cost).any():  # accelerated set exhausted: search everything
+            cands = np.arange(self.view.n)
+            cost = self.cost(src, t, cands)
+        node, top = self.choose(cands, cost, where, draw=self._settled(src, t))
+        p = t % self.n if self.cyclic else t
+        src[p] = node
+        ranked[p] = top
+        if self.coarsest:
+            self._jump_earlier(src, ranked, t, where)
+
+    def _jump_earlier(self, src, ranked, t: int, where: str) -> None:
+        """A front that ran into the end of the input jumps where the jump fits best.
+
+        When the node just placed at ``t`` had to jump because its neighbour is
+        the input's last (first, for a right front) node, the jump is searched
+        again at the ``slots`` positions before ``t`` (inside the same verbatim
+        run), exhaustively over the input; the run then continues verbatim.
+        """
+        n_in, S = self.view.n, self.p.slots
+        a, b = self._out_values(src, np.array([t - 1, t + 1]))
+        here = self._out_values(src, np.array([t]))[0]
+        if a == n_in - 1 and here != a + 1 and b < 0:
+            side = -1  # left front: move back into the run behind
+        elif b == 0 and here != b - 1 and a < 0:
+            side = 1  # right front
+        else:
+            return
+        best = (np.inf, t, here)
+        every = np.arange(n_in)
+        for d in range(1, S + 1):
+            m = t + side * d  # candidate jump position; m+side .. t-side must stay verbatim
+            run = self._out_values(src, np.array([m, m + side]))
+            if run[1] < 0 or run[0] != run[1] - side:
+                break
+            trial = src.copy()
+            trial[self._positions(min(m, t), max(m, t))] = -1
+            c = self.cost(trial, m, every)
+            i = int(np.argmin(c))
+            if c[i] < best[0]:
+                best = (float(c[i]), m, int(every[i]))
+        _, m, node = best
+        if m == t or not np.isfinite(best[0]):
+            return
+        span = np.arange(min(m, t), max(m, t) + 1)
+        vals = node - side * (span - m)  # verbatim from the new jump on
+        if vals.min() < 0 or vals.max() >= n_in:
+            return
+        pos = self._positions(span[0], span[-1])
+        src[pos] = vals
+        ranked[pos] = -1
+        ranked[pos, 0] = vals
+
+    # ----------------------------------------------------------- gaps
+    def fill_gap(self, src, ranked, gap: Gap, window: tuple[int, int] | None) -> int | None:
+        """Fill a gap in place; returns the meeting position (two-sided gaps).
+
+        Parameters
+        ----------
+        src, ranked : ndarray
+            Level state, anchors already written.
+        gap : Gap
+        window : (int, int) or None
+            Inclusive range searched for the meeting point (whole gap when None).
+        """
+        lo, hi = gap.lo, gap.hi
+        if hi - lo <= 1:
+            return None
+        name = f"gap {gap.key}"
+        if not gap.right:
+            for t in range(lo + 1, hi):
+                self.fill(src, ranked, t, f"{name}, node {t}")
+            return None
+        if not gap.left:
+            for t in range(hi - 1, lo, -1):
+                self.fill(src, ranked, t, f"{name}, node {t}")
+            return None
+        ws, we = window if window is not None else (lo + 1, hi - 1)
+        ws, we = max(ws, lo + 1), min(we, hi - 1)
+        if ws > we:
+            ws, we = lo + 1, hi - 1
+        L_src, L_rk = src.copy(), ranked.copy()
+        R_src, R_rk = src.copy(), ranked.copy()
+        left = iter(range(lo + 1, we + 1))
+        right = iter(range(hi - 1, ws - 1, -1))
+        done_l = done_r = False
+        while not (done_l and done_r):  # alternate sides
+            t = next(left, None)
+            if t is None:
+                done_l = True
+            else:
+                self.fill(L_src, L_rk, t, f"{name}, node {t} (left front)")
+            t = next(right, None)
+            if t is None:
+                done_r = True
+            else:
+                self.fill(R_src, R_rk, t, f"{name}, node {t} (right front)")
+        return self._meet(src, ranked, L_src, L_rk, R_src, R_rk, gap, ws, we)
+
+    def _positions(self, a: int, b: int) -> np.ndarray:
+        """Wrapped array positions of unwrapped ``a … b`` (inclusive)."""
+        pos = np.arange(a, b + 1)
+        return np.mod(pos, self.n) if self.cyclic else pos
+
+    def _meet(self, src, ranked, L_src, L_rk, R_src, R_rk, gap, ws, we) -> int:
+        """Exhaustive meeting-point search over ``[ws, we]`` and the candidates."""
+        best: list[tuple[float, int, int]] = []
+        states = {}
+        for m in range(ws, we + 1):
+            joined = src.copy()
+            lp = self._positions(gap.lo + 1, m - 1)
+            rp = self._positions(m + 1, gap.hi - 1)
+            joined[lp] = L_src[lp]
+            joined[rp] = R_src[rp]
+            joined[self._positions(m, m)] = -1
+            here = self._positions(m, m)
+            if self.coarsest:
+                cands = np.arange(self.view.n)
+            else:
+                # continue one side: a single seam, never a bridge of a few frames
+                nb = self._out_values(joined, np.array([m - 1, m + 1]))
+                cont = np.array([nb[0] + 1, nb[1] - 1, L_src[here][0], R_src[here][0]])
+                cands = np.unique(cont[(cont >= 0) & (cont < self.view.n)])
+            if cands.size == 0:
+                continue
+            cost = self.cost(joined, m, cands)
+            cost = np.where(np.isnan(cost), 0.0, cost)
+            for c, v in zip(cands, cost):
+                if np.isfinite(v):
+                    best.append((float(v), m, int(c)))
+            states[m] = joined
+        if not best:
+            raise SynthesisError(
+                f"gap {gap.key}: no input node joins the two sides anywhere in nodes {ws}-{we}"
+            )
+        costs = np.array([b[0] for b in best])
+        perm = self.rng.permutation(costs.size)
+        order = perm[np.argsort(costs[perm], kind="stable")]
+        pick = order[0]
+        if self.randomize and self.p.k_best > 1:
+            # distinct joins: other meeting positions, or other nodes at one position
+            key = np.array([best[i][1] * 1_000_000 + best[i][2] for i in order])
+            pick = order[self._draw(key, costs[order])]
+        _, m, node = best[pick]
+        joined = states[m]
+        lp = self._positions(gap.lo + 1, m - 1)
+        rp = self._positions(m + 1, gap.hi - 1)
+        here = self._positions(m, m)
+        src[:] = joined
+        src[here] = node
+        ranked[lp] = L_rk[lp]
+        ranked[rp] = R_rk[rp]
+        same_m = [b for b in (best[i] for i in order) if b[1] == m]
+        top = np.full(3, -1, dtype=np.int64)
+        seen: list[int] = [node]
+        for b in same_m:
+            if b[2] not in seen:
+                seen.append(b[2])
+        top[: min(3, len(seen))] = seen[:3]
+        ranked[here] = top
+        return m
+
+
+# --------------------------------------------------------------------------- finer levels
+
+
+def _runs(val: np.ndarray, valid: np.ndarray, cyclic: bool) -> tuple[int, list[list[int]]]:
+    """Verbatim runs of a track as ``[start, end]`` (unwrapped, inclusive) from ``p0``."""
+    n = val.size
+    cont = np.zeros(n, dtype=bool)  # position continues the previous one
+    cont[1:] = valid[1:] & valid[:-1] & (val[1:] == val[:-1] + 1)
+    if cyclic:
+        cont[0] = valid[0] and valid[-1] and val[0] == val[-1] + 1
+    starts = np.flatnonzero(valid & ~cont)
+    if starts.size == 0:
+        return 0, ([[0, n - 1]] if valid.all() else [])
+    p0 = int(starts[0])
+    runs: list[list[int]] = []
+    for u in range(p0, p0 + n):
+        i = u % n if cyclic else u
+        if i >= n:
+            break
+        if not valid[i]:
+            continue
+        if runs and cont[i] and runs[-1][1] == u - 1:
+            runs[-1][1] = u
+        else:
+            runs.append([u, u])
+    return p0, runs
+
+
+def _join_rows(search, val, starts, lo, hi, a1, b1, a2, b2, L_end, strict=True):
+    """Costs of joining the left line to right lines ``starts`` at ``m`` in ``[lo, hi]``."""
+    n_in = search.view.n
+    rows, keys, ms = [], [], []
+    for m in range(lo, hi + 1):
+        ss = starts[(starts + (m - a2) >= 0) & (starts + (m - a2) < n_in)]
+        if ss.size == 0:
+            continue
+        u = m + search.off
+        ov = np.broadcast_to(search._out_values(val, u), (ss.size, u.size)).copy()
+        left = (u < m) & (u >= a1)
+        right = (u >= m) & (u <= b2)
+        ov[:, left] = (L_end + (u[left] - b1))[None, :]
+        ov[:, right] = ss[:, None] + (u[right] - a2)[None, :]
+        ov[(ov < 0) | (ov >= n_in)] = -1
+        c = search.cost_rows(ov, m, coherence=False, strict=strict)
+        c = np.where(np.isnan(c), 0.0, c)
+        for s_, v in zip(ss, c):
+            if np.isfinite(v):
+                rows.append(float(v))
+                keys.append(int(s_) * 1_000_000 + m)
+                ms.append((m, int(s_)))
+    return rows, keys, ms
+
+
+def refine_level(search: LevelSearch, anchors: dict[int, int]) -> LevelResult:
+    """Son selection with refinement of every transition (finer levels).
+
+    Every output node first takes the child (same parity) of its parent's
+    source; runs holding a constraint are shifted to pass through it.  Each
+    transition between two runs — a seam or meeting point of the parent level
+    — is then searched again around twice its parent position: the left run is
+    extended forwards, the right run backwards, and the join position ``m``
+    (``±meeting_window`` nodes) and the right run's line (the children of the
+    parent's 3 best matches ``±candidate_range`` nodes) are chosen by the
+    three-level neighbourhood cost at the join.  Lines that merely continue
+    the left run are only taken when nothing else fits, so the coarse plan's
+    transitions survive refinement.
+
+    Parameters
+    ----------
+    search : LevelSearch
+        Level ``l`` with its synthesised parent level.
+    anchors : dict
+        Output position -> input node at this level (constraints).
+
+    Returns
+    -------
+    LevelResult
+    """
+    up = search.upper
+    n, n_in, cyclic = search.n, search.view.n, search.cyclic
+    S, r, w = search.p.slots, search.p.candidate_range, search.p.meeting_window
+    t = np.arange(n)
+    T = np.minimum(t // 2, up.src.size - 1)
+    val = 2 * up.src[T] + (t - 2 * T)
+    # align the runs holding anchors
+    valid = (val >= 0) & (val < n_in)
+    p0, runs = _runs(val, valid, cyclic)
+    for a, b in runs:
+        pos = np.arange(a, b + 1)
+        wp = np.mod(pos, n) if cyclic else pos
+        inside = [(u, anchors[int(i)]) for u, i in zip(pos, wp) if int(i) in anchors]
+        if not inside:
+            continue
+        au = np.array([u for u, _ in inside])
+        nearest = np.abs(pos[:, None] - au[None, :]).argmin(axis=1)
+        off = np.array([v - val[np.mod(u, n) if cyclic else u] for u, v in inside])
+        val[wp] = val[wp] + off[nearest]
+    for p, v in anchors.items():
+        val[p] = v
+    valid = (val >= 0) & (val < n_in)
+    p0, runs = _runs(val, valid, cyclic)
+    ranked = np.full((n, 3), -1, dtype=np.int64)
+    anchor_u = np.array(sorted(anchors), dtype=np.int64)
+    if len(runs) <= 1 and valid.all():
+        ranked[:, 0] = val
+        return LevelResult(val, ranked, {})
+    if cyclic and runs:
+        runs.append([runs[0][0] + n, runs[0][1] + n])  # the wrap joins the last run to the first
+
+    def at(u):
+        return np.mod(u, n) if cyclic else u
+
+    def anchored(a: int, b: int) -> list[int]:
+        if anchor_u.size == 0:
+            return []
+        us = np.arange(a, b + 1)
+        return [int(u) for u in us if at(int(u)) in anchors]
+
+    prev_join = None
+    for k in range(len(runs) - 1):
+        (a1, b1), (a2, b2) = runs[k], runs[k + 1]
+        if not cyclic and k == len(runs) - 2 and b2 >= n:
+            b2 = n - 1
+        left_anchor = anchored(a1, b1)
+        right_anchor = anchored(a2, b2)
+        lo = max(a1 + 1, b1 + 1 - w, (prev_join + 1) if prev_join is not None else a1 + 1)
+        if left_anchor:
+            lo = max(lo, max(left_anchor) + 1)
+        hi = min(b2, a2 + w)
+        if right_anchor:
+            hi = min(hi, min(right_anchor))
+        L_end = int(val[at(b1)])  # left line: L(u) = L_end + (u - b1)
+        lo = max(lo, a1 + 1)
+        hi_left = b1 + (n_in - 1 - L_end) + 1  # m - 1 must keep L in range
+        hi = min(hi, hi_left)
+        lo_f = max([a1 + 1] + [x + 1 for x in left_anchor])
+        hi_f = min([b2, hi_left] + right_anchor)
+        q_val = int(val[at(a2)])
+        L_at_q = L_end + (a2 - b1)
+        if q_val == L_at_q and a2 == b1 + 1 and not right_anchor:
+            runs[k + 1] = [a1, b2]  # a previous join made the two runs one
+            continue
+        if right_anchor:
+            starts = np.array([q_val])
+        else:
+            Tq = min(int(at(a2)) // 2, up.src.size - 1)
+            par = up.ranked[Tq]
+            par = par[par >= 0][: search.p.n_parent_matches]
+            par = np.unique(np.concatenate([par, [up.src[Tq]]]))
+            lines = 2 * par + (int(at(a2)) - 2 * Tq)
+            starts = np.unique((lines[:, None] + np.arange(-r, r + 1)[None, :]).ravel())
+            starts = np.unique(np.concatenate([starts, [q_val]]))
+        # right line R_s(u) = s + (u - a2); where it runs past the input's end the
+        # run is cut short and the next join covers the rest
+        novel = starts[np.abs(starts - L_at_q) >= S]
+        rows: list = []
+        for ss_all, (m_lo, m_hi), strict in (
+            (novel, (lo, hi), True),
+            (starts, (lo, hi), True),
+            (starts, (lo_f, hi_f), True),
+            (starts, (lo_f, hi_f), False),
+            (np.arange(-w - (a2 - b1), n_in), (lo_f, hi_f), False),  # any line at all
+        ):
+            rows, keys, ms = _join_rows(
+                search, val, ss_all, m_lo, m_hi, a1, b1, a2, b2, L_end, strict
+            )
+            if rows:
+                break
+        if not rows:
+            raise SynthesisError(
+                f"level {search.l}: no join between output nodes {b1} and {a2} "
+                f"(input runs ending at {L_end} and starting at {q_val})"
+            )
+        cost = np.array(rows)
+        perm = search.rng.permutation(cost.size)
+        order = perm[np.argsort(cost[perm], kind="stable")]
+        pick = order[0]
+        if search.randomize and search.p.k_best > 1:
+            pick = order[search._draw(np.array(keys)[order], cost[order])]
+        m, s_ = ms[pick]
+        span_l = np.arange(a1, m)
+        span_r = np.arange(m, b2 + 1)
+        val[at(span_l)] = L_end + (span_l - b1)
+        val[at(span_r)] = s_ + (span_r - a2)
+        runs[k + 1] = [m, min(b2, m + (n_in - 1 - (s_ + m - a2)))]
+        best_here = [ms[i][1] + (m - a2) for i in order if ms[i][0] == m]
+        top = list(dict.fromkeys(best_here))[:3]
+        ranked[at(m), : len(top)] = top
+        prev_join = m
+    ranked[:, 0] = val
+    bad = (val < 0) | (val >= n_in)
+    if bad.any() and not cyclic and not bad.all():  # free ends: grow them node by node
+        src = np.where(bad, -1, val)
+        first = int(np.argmin(bad))
+        for u in range(first - 1, -1, -1):
+            search.fill(src, ranked, u, f"output node {u}")
+        for u in np.flatnonzero(src < 0):
+            search.fill(src, ranked, int(u), f"output node {u}")
+        val = src
+    if not ((val >= 0) & (val < n_in)).all():
+        bad = np.flatnonzero((val < 0) | (val >= n_in))
+        raise SynthesisError(f"level {search.l}: output nodes {bad[:5].tolist()} left unfilled")
+    return LevelResult(val.astype(np.int64), ranked, {})

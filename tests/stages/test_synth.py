@@ -1,0 +1,318 @@
+"""Constrained multi-resolution texture synthesis (Moradoff 2002, chapter 3)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mocapflow.pipeline import Context
+from mocapflow.stages import metrics as M
+from mocapflow.stages.data import Motion
+from mocapflow.stages.kinematics import quat_angle
+from mocapflow.stages.pyramid import build_pyramid, heading_split, level_positions, root_features
+from mocapflow.stages.simulate.motion import procedural_walk
+from mocapflow.stages.synth import (
+    ConstraintError,
+    UnreachableGapError,
+    assemble_motion,
+    synth,
+    synthesize,
+)
+from mocapflow.stages.synth_graph import graph_path
+from mocapflow.stages.synth_root import PathCurve, figure_eight
+from mocapflow.stages.synth_search import SearchParams
+
+RATE = 30.0
+
+
+@pytest.fixture(scope="module")
+def walk() -> Motion:
+    return procedural_walk(300, rate=RATE, seed=3, variation=0.08)
+
+
+@pytest.fixture(scope="module")
+def pyr(walk):
+    return build_pyramid(walk, levels=3)
+
+
+def _run(pyr, walk, seed=0, **kw):
+    return synthesize(pyr, walk, rng=np.random.default_rng(seed), **kw)
+
+
+def _local_pose(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
+    """Heading-free local rotations and root-relative FK positions."""
+    rot = motion.rotations.copy()
+    _, rot[:, 0] = heading_split(rot[:, 0])
+    pos = level_positions(motion.skeleton, rot, motion.root_position[:, 1], motion.translations)
+    return rot, pos
+
+
+# --------------------------------------------------------------------------- constraints
+
+
+def test_constrained_frames_exact_before_and_within_tolerance_after_smoothing(pyr, walk):
+    cons = [[10, 5], [150, 200], [40, 333], [290, 397]]
+    r = _run(pyr, walk, length=400, constraints=cons)
+    src = r.source_index
+    assert src.shape == (400,) and src.dtype == np.int64
+    for i, j in cons:
+        assert src[j] == i  # exact before smoothing
+    assert r.report["n_seams"] > 0 and any(k > 0 for k in r.report["smoothing"]["widening"])
+    rot_o, pos_o = _local_pose(r.motion)
+    rot_i, pos_i = _local_pose(walk)
+    i = np.array([c[0] for c in cons])
+    j = np.array([c[1] for c in cons])
+    angle = np.degrees(quat_angle(rot_o[j], rot_i[i]))
+    assert angle.max() <= 1.0
+    assert np.linalg.norm(pos_o[j] - pos_i[i], axis=-1).max() <= 0.01
+    assert r.report["constraint_max_angle_deg"] <= 1.0
+    assert r.report["constraint_max_fk_m"] <= 0.01
+    # the first constraint is placed where its input frame was in the world
+    np.testing.assert_allclose(r.motion.root_position[5], walk.root_position[10], atol=1e-9)
+
+
+def test_any_output_length_and_the_output_is_a_motion_on_the_input_skeleton(pyr, walk):
+    r = _run(pyr, walk, length=333)
+    m = r.motion
+    assert m.n_frames == 333 and m.skeleton is walk.skeleton and m.rate == RATE
+    assert r.source_index.min() >= 0 and r.source_index.max() < walk.n_frames
+    norms = np.linalg.norm(m.rotations, axis=-1)
+    np.testing.assert_allclose(norms, 1.0, atol=1e-9)
+    assert r.report["meetings"] == {}  # no constraint: no two-sided gap
+
+
+def test_seeds_give_different_variants_and_the_same_seed_the_same(pyr, walk):
+    a = _run(pyr, walk, seed=1, length=360).source_index
+    b = _run(pyr, walk, seed=1, length=360).source_index
+    c = _run(pyr, walk, seed=2, length=360).source_index
+    np.testing.assert_array_equal(a, b)
+    assert np.mean(a != c) > 0.3
+
+
+def test_adaptive_smoothing_removes_the_jerk_of_bad_seams(pyr, walk):
+    # random 30-frame chunks: every transition is a real discontinuity
+    starts = np.random.default_rng(0).integers(0, 270, size=8)
+    src = (starts[:, None] + np.arange(30)).ravel()
+    seams = M.seams_from_source(src)
+    mask = M.seam_mask(src.size, seams)
+    jerk_in = M.jerk_p99(M.motion_positions(walk), RATE)
+    raw, _ = assemble_motion(pyr, walk, src, smoothing=False)
+    smooth, rep = assemble_motion(pyr, walk, src)
+    assert M.jerk_p99(M.motion_positions(raw), RATE, mask=mask) / jerk_in > 5.0
+    assert M.jerk_p99(M.motion_positions(smooth), RATE, mask=mask) / jerk_in < 1.3
+    sm = rep["smoothing"]
+    assert all(sm["passed"]) and min(sm["widening"]) >= 1  # each seam needed widening
+    # frames far from every seam are untouched
+    far = ~M.seam_mask(src.size, seams, radius=20)
+    assert far.any()
+    np.testing.assert_allclose(smooth.rotations[far, 1:], raw.rotations[far, 1:], atol=1e-12)
+
+
+def test_synthesized_seams_stay_below_the_jerk_target(pyr, walk):
+    r = _run(pyr, walk, length=400, constraints=[[20, 10], [200, 300]])
+    seams = M.seams_from_source(r.source_index)
+    assert seams.size
+    mask = M.seam_mask(400, seams)
+    jerk_in = M.jerk_p99(M.motion_positions(walk), RATE)
+    raw, _ = assemble_motion(pyr, walk, r.source_index, smoothing=False)
+    jerk_raw = M.jerk_p99(M.motion_positions(raw), RATE, mask=mask) / jerk_in
+    jerk_out = M.jerk_p99(M.motion_positions(r.motion), RATE, mask=mask) / jerk_in
+    assert jerk_out < 1.3 and jerk_out < jerk_raw
+    assert np.mean(r.report["smoothing"]["passed"]) >= 0.9
+
+
+@pytest.mark.parametrize(
+    ("kw", "match"),
+    [
+        (dict(constraints=[[300, 10]]), r"input frame 300 is outside the input \(frames 0-299\)"),
+        (dict(constraints=[[-1, 10]]), "input frame -1 is outside"),
+        (dict(constraints=[[10, 400]]), r"output \(400 frames\) is shorter than the constraints"),
+        (dict(constraints=[[10, 8], [50, 10]]), "closer than the coarsest level can separate"),
+        (dict(constraints=[[10, 8], [50, 8]]), "two constraints on output frame 8"),
+        (dict(constraints=[[10]]), r"expected \[input_frame, output_frame\]"),
+    ],
+)
+def test_bad_constraints_raise_clear_errors(pyr, walk, kw, match):
+    with pytest.raises(ConstraintError, match=match):
+        _run(pyr, walk, length=400, **kw)
+
+
+def test_pyramid_mismatches_raise(pyr, walk):
+    other = procedural_walk(200, rate=RATE, seed=1)
+    with pytest.raises(ValueError, match="pyramid has 300 frames but the motion has 200"):
+        _run(pyr, other, length=100)
+    with pytest.raises(ValueError, match="filter_size 6 differs"):
+        _run(pyr, walk, length=100, filter_size=6)
+    with pytest.raises(ValueError, match="levels must be in 1-3"):
+        _run(pyr, walk, length=100, levels=4)
+
+
+# --------------------------------------------------------------------------- graph path
+
+
+def test_graph_path_fills_gaps_exactly_and_keeps_constraints(pyr, walk):
+    cons = [[10, 5], [150, 200], [60, 380]]
+    r = _run(pyr, walk, length=400, method="graph_path", constraints=cons)
+    for i, j in cons:
+        assert r.source_index[j] == i
+    assert r.report["constraint_max_angle_deg"] <= 1.0
+
+
+def test_graph_path_unreachable_gap_names_the_gap(pyr, walk):
+    # two output frames 12 apart but 200 input frames apart, and almost no jump edges
+    gap = r"gap between output frame ~0 and output frame ~12"
+    with pytest.raises(UnreachableGapError, match=gap):
+        _run(
+            pyr,
+            walk,
+            length=100,
+            method="graph_path",
+            constraints=[[0, 0], [200, 12]],
+            graph_threshold=0.0,
+        )
+
+
+def test_graph_path_dfs_respects_length_ends_and_edges():
+    rng = np.random.default_rng(0)
+    n = 12
+    E = np.full((n, n), np.inf)
+    E[np.arange(n - 1), np.arange(1, n)] = 0.0
+    E[9, 2] = 0.5  # one jump back: the loop 2 … 9 → 2 has 8 edges
+    p = graph_path(E, 16, rng, start=0, end=8)  # 8 straight + one loop
+    assert p.size == 17 and p[0] == 0 and p[-1] == 8
+    assert np.isfinite(E[p[:-1], p[1:]]).all()
+    assert list(p).count(2) == 2
+    for steps in (3, 12):  # too short; no loop of 4 edges
+        with pytest.raises(UnreachableGapError, match="my gap: unreachable"):
+            graph_path(E, steps, rng, start=0, end=8, where="my gap")
+    free = graph_path(E, 20, rng, start=None, end=None)  # free ends: any walk of 20 edges
+    assert free.size == 21 and np.isfinite(E[free[:-1], free[1:]]).all()
+
+
+# --------------------------------------------------------------------------- loop, path
+
+
+def _wrap_jerk(m: Motion, walk: Motion) -> float:
+    """Jerk across the loop's wrap (relative to the input's p99).
+
+    The loop is played twice, the second copy placed where the first one's last
+    step leads (heading and position continued).
+    """
+    heading, _ = heading_split(m.rotations[:, 0])
+    yaw, _, _ = root_features(m.root_position, heading)
+    turn = heading[-1] + yaw[-1] - heading[0]
+    c, s = np.cos(turn), np.sin(turn)
+    R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    step = m.root_position[-1] - m.root_position[-2]
+    step[1] = 0.0
+    p1 = M.motion_positions(m)
+    p2 = (p1 - m.root_position[0] * [1, 0, 1]) @ R.T + (m.root_position[-1] + step) * [1, 0, 1]
+    both = np.concatenate([p1[-12:], p2[:12]])
+    jerk = M.jerk_per_frame(both, RATE)[7:16]  # frames around the wrap
+    return float(np.nanmax(jerk) / M.jerk_p99(M.motion_positions(walk), RATE))
+
+
+def test_loop_last_to_first_seam_passes_the_smoothing_test(pyr, walk):
+    L = 360
+    # constraints on both sides of the wrap force a transition into the 5 frames
+    # between them: 66 → … must reach 50 (a jump back by ~20 frames)
+    r = _run(pyr, walk, seed=0, length=L, loop=True, constraints=[[50, 2], [66, L - 4]])
+    assert r.source_index[2] == 50 and r.source_index[L - 4] == 66
+    seams = r.report["seams"]
+    near_wrap = [t for t in seams if t >= L - 3 or t <= 2]
+    assert near_wrap  # this seed puts a transition at the wrap
+    sm = r.report["smoothing"]
+    assert all(sm["passed"][seams.index(t)] for t in near_wrap)
+    assert _wrap_jerk(r.motion, walk) <= 1.3
+    raw, _ = assemble_motion(pyr, walk, r.source_index, loop=True, smoothing=False)
+    assert _wrap_jerk(raw, walk) > 2.0  # without smoothing the wrap is a visible pop
+
+
+def test_figure_eight_path_error_and_heading(pyr, walk):
+    pts = figure_eight(2.0)
+    curve = PathCurve.from_points(pts, mode="spline")
+    r = _run(pyr, walk, length=540, path=pts.tolist(), path_mode="spline")
+    ground = r.motion.root_position[:, [0, 2]]
+    d, s = curve.closest(ground)
+    assert d.mean() <= 0.05 * curve.length
+    inner = slice(15, -15)
+    heading, _ = heading_split(r.motion.rotations[:, 0])
+    tangent = curve.tangent_angle(s)
+    err = np.degrees(np.abs(np.angle(np.exp(1j * (heading - tangent)))))[inner]
+    assert err.mean() <= 10.0
+    # travel direction (1 s window) along the tangent too
+    v = np.gradient(ground, axis=0)
+    from scipy.ndimage import uniform_filter1d
+
+    v = uniform_filter1d(v, 30, axis=0)
+    travel = np.arctan2(v[:, 0], v[:, 1])
+    err_t = np.degrees(np.abs(np.angle(np.exp(1j * (travel - tangent)))))[inner]
+    assert err_t.mean() <= 10.0
+    assert r.report["path"]["path_length"] == pytest.approx(curve.length)
+
+
+def test_bad_path_raises(pyr, walk):
+    with pytest.raises(ValueError, match="at least|>= 2 points"):
+        _run(pyr, walk, length=100, path=[[0.0, 0.0]])
+
+
+# --------------------------------------------------------------------------- stage
+
+
+def test_stage_outputs_and_randomness_from_ctx(pyr, walk):
+    out = synth(pyr, walk, length=200, seed=4, ctx=Context(part="walk#seed=4", seed=4))
+    assert set(out) == {"motion", "source_index", "report"}
+    assert out["motion"].n_frames == 200 and out["source_index"].shape == (200,)
+    assert out["report"]["seed"] == 4 and out["report"]["seconds"]["total"] > 0
+    again = synth(pyr, walk, length=200, seed=4, ctx=Context(part="walk#seed=4", seed=4))
+    np.testing.assert_array_equal(out["source_index"], again["source_index"])
+
+
+def test_search_params_are_exposed_under_the_papers_names():
+    p = SearchParams()
+    assert (p.slots, p.candidate_range, p.n_parent_matches) == (3, 4, 3)
+    assert 2 <= p.k_best <= 3
+
+
+# --------------------------------------------------------------------------- config, strip
+
+
+def test_texture_config_wires_ingest_pyramid_synth():
+    from pathlib import Path
+
+    from mocapflow.pipeline.config import load_config
+
+    root = Path(__file__).parents[2]
+    data = root / ".." / "shared" / "data"
+    if not (data / "bvh" / "cmu_131_02.bvh").exists():
+        pytest.skip("shared data not available")
+    cfg = load_config(
+        root / "configs" / "texture.yaml",
+        env={"MOCAPFLOW_DATA": str(data)},
+        sets=["synth.constraints=[[10, 5]]", "synth.method=graph_path"],
+    )
+    assert {"ingest", "pyramid", "synth"} <= set(cfg.nodes)
+    synth_node = cfg.nodes["synth"]
+    assert synth_node.stage == "synth" and synth_node.seeds == [0, 1, 2, 3, 4]
+    for key in ("length", "constraints", "path", "loop", "levels", "filter_size", "method"):
+        assert key in synth_node.params
+    assert synth_node.params["constraints"] == [[10, 5]]
+    assert synth_node.params["method"] == "graph_path"
+    assert cfg.nodes["ingest"].stage == "ingest_bvh" and cfg.nodes["ingest"].params["rate"] == 30
+
+
+def test_stickfigure_strip_and_export(tmp_path, walk):
+    from mocapflow.pipeline.codecs import decode, encode, find_exporter
+    from mocapflow.stages.stickfigure import StickStrip, stickfigure
+
+    short = walk.replace(root_position=walk.root_position[:20], rotations=walk.rotations[:20])
+    out = stickfigure(short, n_panels=4, video=True, video_step=5, ctx=Context())["strip"]
+    assert isinstance(out, StickStrip) and out.frames == [0, 6, 13, 19]
+    assert out.image.dtype == np.uint8 and out.image.ndim == 3 and out.image.shape[2] == 3
+    assert out.image.min() < 50 and out.image.max() > 200  # dark bones on a light background
+    assert out.video.shape[0] == 4
+    back = decode(encode(out))
+    np.testing.assert_array_equal(back.image, out.image)
+    files = find_exporter("stickstrip")(out, tmp_path, "walk")
+    assert [f.suffix for f in files] == [".png", ".mp4"]
+    assert all(f.stat().st_size > 1000 for f in files)
