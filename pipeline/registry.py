@@ -28,6 +28,7 @@ __all__ = [
     "StageSpec",
     "discover",
     "get_stage",
+    "lookup",
     "registered_stages",
     "stage",
     "validate_params",
@@ -189,6 +190,11 @@ def registered_stages() -> dict[str, StageSpec]:
     """All registered stages, after discovery, by name."""
     discover()
     return dict(sorted(_REGISTRY.items()))
+
+
+def lookup(name: str) -> StageSpec | None:
+    """The stage registered under ``name`` so far, without discovery (``None`` if none yet)."""
+    return _REGISTRY.get(name)
 
 
 def get_stage(name: str) -> StageSpec:

@@ -1,0 +1,312 @@
+"""Nodes × parts → tasks: fan-out, gather, part matching, topological order, selection.
+
+Rules (see the README's config format):
+
+* A node wired to ``part`` runs once per file part; its part id is the path as given.
+* Any other node takes its parts from its inputs: the finest part list among
+  them (a node below ``seeds:`` has ``"<part>#seed=<s>"`` ids).  The task for part
+  ``q`` reads, from an upstream node, the task whose part is ``q`` or a prefix of
+  ``q`` before a ``#``; a node with a single task (a gather, or a source without
+  file input) is broadcast to every part.
+* ``seeds: [..]`` or ``seeds: {count: N}`` fans a node out one task per (part,
+  seed), sets its ``seed`` param and gives ``"<part>#seed=<s>"`` (``"seed=<s>"`` for
+  a node with a single part).
+* ``gather: true`` makes one task over all parts; each input becomes a list
+  ordered by part.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+from mocapflow.pipeline.config import ConfigError, GraphConfig, NodeConfig
+
+__all__ = ["Graph", "Task", "build_graph", "part_label"]
+
+
+@dataclass(frozen=True)
+class Task:
+    """One (node, part) of a graph.
+
+    Attributes
+    ----------
+    index : int
+        Position in :attr:`Graph.tasks` (a topological order).
+    node, stage : str
+    part : str or None
+        Part id; ``None`` for a node with a single task.
+    params : dict
+        Validated params of the node, ``seed`` set for seed fan-out (when the
+        stage has a ``seed`` param).
+    seed : int
+        Seed of the context (the fan-out seed, else the ``seed`` param, else 0).
+    inputs : dict
+        ``input -> ("file", path)``, ``("files", [paths])``,
+        ``("task", index, output)`` or ``("tasks", [(index, output), ...])``.
+    """
+
+    index: int
+    node: str
+    part: str | None
+    stage: str
+    params: dict[str, Any]
+    inputs: dict[str, tuple]
+    seed: int = 0
+
+    @property
+    def name(self) -> str:
+        """``node`` or ``node/part``."""
+        return self.node if self.part is None else f"{self.node}/{self.part}"
+
+    def deps(self) -> list[int]:
+        """Indices of the upstream tasks (unique, sorted)."""
+        out: set[int] = set()
+        for w in self.inputs.values():
+            if w[0] == "task":
+                out.add(w[1])
+            elif w[0] == "tasks":
+                out.update(i for i, _ in w[1])
+        return sorted(out)
+
+    def files(self) -> list[str]:
+        """Raw input files of the task (file inputs only)."""
+        out: list[str] = []
+        for w in self.inputs.values():
+            if w[0] == "file":
+                out.append(w[1])
+            elif w[0] == "files":
+                out.extend(w[1])
+        return out
+
+
+@dataclass
+class Graph:
+    """The tasks of a config for a set of targets.
+
+    Attributes
+    ----------
+    config : GraphConfig
+    targets : list of str
+        Target nodes; the graph holds them and their ancestors only.
+    nodes : list of str
+        Selected nodes in topological order.
+    node_parts : dict
+        ``node -> list of part ids`` (for every node of the config).
+    tasks : list of Task
+        Topological order (upstream before downstream).
+    """
+
+    config: GraphConfig
+    targets: list[str]
+    nodes: list[str]
+    node_parts: dict[str, list[str | None]]
+    tasks: list[Task] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._by_id = {(t.node, t.part): t for t in self.tasks}
+
+    def task(self, node: str, part: str | None) -> Task:
+        """The task of ``(node, part)``."""
+        return self._by_id[(node, part)]
+
+    def node_tasks(self, node: str) -> list[Task]:
+        """Tasks of one node, in part order."""
+        return [t for t in self.tasks if t.node == node]
+
+    def downstream(self, indices: Iterable[int]) -> set[int]:
+        """Indices of every task downstream of ``indices`` (excluded)."""
+        children: dict[int, list[int]] = {}
+        for t in self.tasks:
+            for d in t.deps():
+                children.setdefault(d, []).append(t.index)
+        out: set[int] = set()
+        stack = list(indices)
+        while stack:
+            for c in children.get(stack.pop(), []):
+                if c not in out:
+                    out.add(c)
+                    stack.append(c)
+        return out
+
+    def find(self, spec: str) -> list[Task]:
+        """Tasks named by ``NODE`` or ``NODE/PART`` (PART: id, unique suffix or stem).
+
+        Raises
+        ------
+        KeyError
+            Unknown node or no / ambiguous part (the message lists candidates).
+        """
+        node, _, part = spec.partition("/")
+        if node not in self.nodes:
+            import difflib
+
+            close = difflib.get_close_matches(node, self.nodes, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise KeyError(f"unknown node {node!r}{hint}")
+        tasks = self.node_tasks(node)
+        if not part:
+            return tasks
+        exact = [t for t in tasks if t.part == part]
+        if exact:
+            return exact
+        cands = [t for t in tasks if t.part is not None and (
+            t.part.endswith(part) or part_label(t.part) == part or part in t.part)]
+        if len(cands) == 1:
+            return cands
+        if not cands:
+            raise KeyError(f"node {node!r} has no part {part!r} (parts: "
+                           f"{', '.join(str(t.part) for t in tasks[:5])}"
+                           f"{', …' if len(tasks) > 5 else ''})")
+        raise KeyError(f"part {part!r} of node {node!r} is ambiguous: "
+                       f"{', '.join(str(t.part) for t in cands[:5])}")
+
+
+def part_label(part: str | None) -> str:
+    """A short, file-system-safe label of a part id.
+
+    ``data/cmu_131_02.bvh#seed=3`` → ``cmu_131_02.seed3``; ``seed=2`` → ``seed2``;
+    ``None`` → ``all``.
+    """
+    if part is None:
+        return "all"
+    head, *rest = part.split("#seed=")
+    if head.startswith("seed="):
+        label = "seed" + head[len("seed="):]
+    else:
+        name = head.replace("\\", "/").rstrip("/").rsplit("/", 1)[-1]
+        label = name.rsplit(".", 1)[0] if "." in name[1:] else name
+    for s in rest:
+        label += f".seed{s}"
+    return label
+
+
+# --------------------------------------------------------------------------- matching
+
+
+def _matcher(parts: Sequence[str | None]):
+    """``q -> p``: the upstream part for ``q`` (exact, prefix before ``#``, or broadcast)."""
+    if len(parts) == 1 and parts[0] is None:
+        return lambda q: None
+    index = {p: p for p in parts}
+
+    def match(q: str | None) -> str | None | bool:
+        if q is None:
+            return False
+        cur = q
+        while True:
+            if cur in index:
+                return cur
+            cut = cur.rfind("#")
+            if cut < 0:
+                return False
+            cur = cur[:cut]
+
+    return match
+
+
+def _covers(fine: Sequence[str | None], coarse: Sequence[str | None]) -> bool:
+    match = _matcher(coarse)
+    return all(match(q) is not False for q in fine)
+
+
+def _node_parts(node: NodeConfig, config: GraphConfig,
+                known: dict[str, list[str | None]]) -> list[str | None]:
+    if node.gather:
+        base: list[str | None] = [None]
+    else:
+        cands: list[list[str | None]] = []
+        for w in node.inputs.values():
+            cands.append(list(config.parts) if w == "part" else known[w[0]])
+        if not cands:
+            base = [None]
+        else:
+            base = None  # type: ignore[assignment]
+            for cand in sorted(cands, key=len, reverse=True):
+                if all(_covers(cand, other) for other in cands):
+                    base = cand
+                    break
+            if base is None:
+                srcs = [("part" if w == "part" else w[0]) for w in node.inputs.values()]
+                raise ConfigError(
+                    f"inputs fan out over parts that do not match ({', '.join(srcs)})",
+                    file=config.file, line=node.line or None, key=f"nodes.{node.name}.inputs")
+    if node.seeds is None:
+        return base
+    return [f"{q}#seed={s}" if q is not None else f"seed={s}" for q in base for s in node.seeds]
+
+
+def build_graph(config: GraphConfig, targets: Sequence[str] | None = None) -> Graph:
+    """Expand a config into tasks for ``targets`` and their ancestors.
+
+    Parameters
+    ----------
+    config : GraphConfig
+    targets : sequence of str, optional
+        Target nodes (default: the config's targets).
+
+    Returns
+    -------
+    Graph
+
+    Raises
+    ------
+    ConfigError
+        Unknown target, or inputs whose part fan-outs do not match.
+    """
+    targets = list(targets) if targets else list(config.targets)
+    for t in targets:
+        if t not in config.nodes:
+            import difflib
+
+            close = difflib.get_close_matches(t, list(config.nodes), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise ConfigError(f"unknown node {t!r}{hint}", file="<command line>",
+                              key="--target")
+    needed: set[str] = set()
+    stack = list(targets)
+    while stack:
+        n = stack.pop()
+        if n not in needed:
+            needed.add(n)
+            stack.extend(config.nodes[n].upstream())
+
+    node_parts: dict[str, list[str | None]] = {}
+    for name, node in config.nodes.items():
+        node_parts[name] = _node_parts(node, config, node_parts)
+
+    tasks: list[Task] = []
+    index: dict[tuple[str, str | None], int] = {}
+    order = [n for n in config.nodes if n in needed]
+    part_match = _matcher(config.parts) if config.parts else None
+    for name in order:
+        node = config.nodes[name]
+        for part in node_parts[name]:
+            inputs: dict[str, tuple] = {}
+            for iname, w in node.inputs.items():
+                if w == "part":
+                    if node.gather:
+                        inputs[iname] = ("files", list(config.parts))
+                    else:
+                        inputs[iname] = ("file", part_match(part))  # type: ignore[misc]
+                    continue
+                up, out = w
+                up_parts = node_parts[up]
+                if node.gather:
+                    inputs[iname] = ("tasks", [(index[(up, p)], out) for p in up_parts])
+                else:
+                    p = _matcher(up_parts)(part)
+                    inputs[iname] = ("task", index[(up, p)], out)
+            params = dict(node.params)
+            seed = params.get("seed") if isinstance(params.get("seed"), int) else 0
+            if node.seeds is not None:
+                seed = int(part.rsplit("seed=", 1)[1])  # type: ignore[union-attr]
+                if "seed" in params:
+                    params["seed"] = seed
+            t = Task(index=len(tasks), node=name, part=part, stage=node.stage, params=params,
+                     inputs=inputs, seed=int(seed or 0))
+            index[(name, part)] = t.index
+            tasks.append(t)
+    return Graph(config=config, targets=targets, nodes=order, node_parts=node_parts,
+                 tasks=tasks)

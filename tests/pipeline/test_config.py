@@ -1,0 +1,178 @@
+"""Graph configs: interpolation, overrides, and one-line FILE:LINE: key: problem errors."""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from mocapflow.pipeline.config import ConfigError, load_config, parse_config
+from mocapflow.pipeline.testing import write_config
+
+
+def _load(tmp_path, text, **kw):
+    return load_config(write_config(tmp_path / "g.yaml", text), **kw)
+
+
+def test_flow_mapping_interpolation_keeps_type(tmp_path, data_dir, monkeypatch):
+    monkeypatch.setenv("TOY_N", "7")
+    monkeypatch.delenv("TOY_UNSET", raising=False)
+    cfg = _load(tmp_path, f"""\
+        graph: demo
+        params: {{n: 5, amount: 0.25, tag: run}}
+        parts: ["{data_dir}/trial00[0-2].txt"]
+        nodes:
+          src: {{stage: toy_source, params: {{n: ${{params.n}}, value: ${{env:TOY_UNSET,1.5}}}}}}
+          env: {{stage: toy_source, params: {{n: ${{env:TOY_N}}}}}}
+          add:
+            stage: toy_add
+            inputs: {{values: src.values}}
+            params: {{amount: ${{params.amount}}}}
+          flaky:
+            stage: toy_flaky
+            inputs: {{values: src.values}}
+            params: {{marker_dir: "out/${{params.tag}}-${{params.n}}"}}
+        """)
+    assert cfg.name == "demo"
+    assert cfg.nodes["src"].params["n"] == 5 and type(cfg.nodes["src"].params["n"]) is int
+    assert cfg.nodes["src"].params["value"] == 1.5
+    assert cfg.nodes["env"].params["n"] == 7  # env value parsed as YAML -> int
+    assert cfg.nodes["add"].params["amount"] == 0.25
+    assert cfg.nodes["flaky"].params["marker_dir"] == "out/run-5"
+    assert cfg.parts == [str(data_dir / f"trial00{i}.txt") for i in range(3)]
+    assert cfg.targets == list(cfg.nodes)  # no targets: every node
+
+
+def test_sets_and_parts_override(tmp_path, data_dir):
+    path = write_config(tmp_path / "g.yaml", f"""\
+        params: {{amount: 1}}
+        parts: [{data_dir}/*.txt]
+        nodes:
+          read: {{stage: toy_read_file, inputs: {{path: part}}}}
+          add: {{stage: toy_add, inputs: {{values: read.values}},
+                params: {{amount: ${{params.amount}}}}}}
+          src: {{stage: toy_source}}
+        """)
+    cfg = load_config(path, sets=["params.amount=4", "src.n=3", "src.value=2"],
+                      parts=[str(data_dir / "trial001.txt")])
+    assert cfg.nodes["add"].params["amount"] == 4.0
+    assert cfg.nodes["src"].params == {"n": 3, "value": 2.0, "noise": 0.0, "seed": 0}
+    assert cfg.parts == [str(data_dir / "trial001.txt")]
+    assert cfg.overrides["set"]["src.n"] == 3
+
+
+def test_configs_are_data_only(tmp_path):
+    with pytest.raises(ConfigError) as e:
+        _load(tmp_path, "nodes:\n  a: !!python/object/apply:os.system [echo hi]\n")
+    assert re.match(r".*g\.yaml:2: yaml: malformed YAML", str(e.value))
+
+
+BAD = [
+    # (yaml, line, key, message fragment)
+    ("graf: x\nnodes:\n  a: {stage: toy_source}\n", 1, "graf", "did you mean 'graph'"),
+    ("nodes:\n  a:\n    stage: toy_source\n    parms: {}\n", 4, "nodes.a.parms",
+     "unknown node key (did you mean 'params'?)"),
+    ("nodes:\n  a:\n    stage: toy_sourse\n", 3, "nodes.a.stage",
+     "unknown stage 'toy_sourse' (did you mean toy_source"),
+    ("nodes:\n  a:\n    stage: toy_source\n    params:\n      nn: 3\n", 5, "nodes.a.params.nn",
+     "did you mean 'n'"),
+    ("nodes:\n  a:\n    stage: toy_source\n    params:\n      n: three\n", 5, "nodes.a.params.n",
+     "expected an integer, got 'three'"),
+    ("nodes:\n  a:\n    stage: toy_add\n", 3, "nodes.a.inputs.values", "is not wired"),
+    ("nodes:\n  a:\n    stage: toy_add\n    inputs:\n      values: b.values\n", 5,
+     "nodes.a.inputs.values", "unknown node 'b'"),
+    ("nodes:\n  s: {stage: toy_source}\n  a:\n    stage: toy_add\n    inputs:\n"
+     "      values: s.valeus\n", 6, "nodes.a.inputs.values", "has no output 'valeus'"),
+    ("nodes:\n  a:\n    stage: toy_add\n    inputs: {values: b.values}\n  b:\n"
+     "    stage: toy_scale\n    inputs:\n      values: a.values\n", 4, "nodes.a.inputs.values",
+     "cycle a -> b -> a"),
+    ("parts: [/no/such/file.txt]\nnodes:\n  r: {stage: toy_read_file, inputs: {path: part}}\n",
+     1, "parts[0]", "missing input file '/no/such/file.txt'"),
+    ("parts:\n  - /no/such/dir/*.txt\nnodes:\n  r: {stage: toy_read_file, inputs: {path: part}}\n",
+     2, "parts[0]", "no file matches"),
+    ("nodes:\n  r: {stage: toy_read_file, inputs: {path: part}}\n", 2, "nodes.r.inputs.path",
+     "config has no parts"),
+    ("nodes:\n  a: {stage: toy_source\n  b: 1\n", 3, "yaml", "malformed YAML"),
+    ("nodes:\n  a: {stage: toy_source}\n  a: {stage: toy_source}\n", 3, "yaml",
+     "duplicate key 'a'"),
+    ("nodes:\n  a:\n    stage: toy_source\n    params: {n: '${params.m}'}\n", 4,
+     "nodes.a.params.n", "unknown shared param ${params.m}"),
+    ("nodes:\n  a:\n    stage: toy_add\n    inputs: {values: s.values}\n    seeds: [1, 1]\n"
+     "  s: {stage: toy_source}\n", 5, "nodes.a.seeds[1]", "duplicate seed 1"),
+    ("nodes:\n  a:\n    stage: toy_source\n    seeds: {count: 0}\n", 4, "nodes.a.seeds.count",
+     "positive integer"),
+    ("nodes:\n  a:\n    stage: toy_offset\n    inputs: {values: s.values}\n    params:\n"
+     "      offset_file: /no/such.txt\n  s: {stage: toy_source}\n", 6,
+     "nodes.a.params.offset_file", "missing input file"),
+    ("targets: [nope]\nnodes:\n  a: {stage: toy_source}\n", 1, "targets[0]", "unknown node"),
+    ("- just\n- a list\n", 1, "", "must be a YAML mapping"),
+    ("nodes:\n  off: {stage: toy_source}\n", 2, "nodes.False", "quote the name"),
+]
+
+
+@pytest.mark.parametrize("text, line, key, fragment", BAD, ids=[b[3][:30] for b in BAD])
+def test_bad_configs_name_file_line_key(tmp_path, text, line, key, fragment):
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as e:
+        load_config(path)
+    msg = str(e.value)
+    assert "\n" not in msg
+    prefix = f"{path}:{line}: " + (f"{key}: " if key else "")
+    assert msg.startswith(prefix), msg
+    assert fragment in msg, msg
+    assert (e.value.line, e.value.key) == (line, key)
+
+
+@pytest.mark.parametrize("sets, fragment", [
+    (["nope.n=1"], "--set nope.n: unknown node 'nope'"),
+    (["a.nn=1"], "--set a.nn: unknown param for stage 'toy_source' (did you mean 'n'?)"),
+    (["a.n=[1, 2]"], "--set a.n: param toy_source.n: expected an integer, got [1, 2]"),
+    (["a.n"], "--set a.n: expected NODE.PARAM=VALUE"),
+    (["params.nn=2"], "--set params.nn: unknown shared param (did you mean 'n'?)"),
+])
+def test_bad_sets_name_the_override(tmp_path, sets, fragment):
+    with pytest.raises(ConfigError) as e:
+        _load(tmp_path, "params: {n: 1}\nnodes:\n  a: {stage: toy_source}\n", sets=sets)
+    assert str(e.value).startswith("<command line>: ")
+    assert fragment in str(e.value)
+
+
+def test_parts_override_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match=r"^<command line>: --parts: missing input file"):
+        _load(tmp_path, "nodes:\n  r: {stage: toy_read_file, inputs: {path: part}}\n",
+              parts=[str(tmp_path / "none.txt")])
+
+
+def test_seeds_count_and_list(tmp_path):
+    cfg = parse_config("nodes:\n  a: {stage: toy_source, seeds: {count: 3}}\n"
+                       "  b: {stage: toy_source, seeds: [7, 9]}\n")
+    assert cfg.nodes["a"].seeds == [0, 1, 2]
+    assert cfg.nodes["b"].seeds == [7, 9]
+    with pytest.raises(ConfigError, match="seed is set per task by seeds:"):
+        parse_config("nodes:\n  a: {stage: toy_source, seeds: [1], params: {seed: 3}}\n")
+
+
+def test_stage_index_imports_only_the_named_module(tmp_path, monkeypatch):
+    import json
+    import sys
+    import uuid
+
+    from mocapflow.pipeline.config import resolve_stage
+
+    mod = f"mfidx_{uuid.uuid4().hex[:8]}"
+    (tmp_path / f"{mod}.py").write_text(
+        "from mocapflow.pipeline import stage\n\n\n"
+        f"@stage('toy_indexed_{mod}', outputs=('x',))\n"
+        "def f(*, n: int = 1):\n    return {'x': n}\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("MOCAPFLOW_CACHE", str(tmp_path / "cache"))
+    (tmp_path / "cache").mkdir()
+    (tmp_path / "cache" / "stage-index.json").write_text(json.dumps(
+        {"stages": {f"toy_indexed_{mod}": mod, "toy_gone": "no_such_module_xyz"}}))
+    assert mod not in sys.modules
+    assert resolve_stage(f"toy_indexed_{mod}").module == mod  # found through the index
+    with pytest.raises(KeyError, match="unknown stage 'toy_gone'"):
+        resolve_stage("toy_gone")  # stale entry: full discovery, then a clear error
+    index = json.loads((tmp_path / "cache" / "stage-index.json").read_text())["stages"]
+    assert index["toy_source"] == "mocapflow.pipeline.testing" and "toy_gone" not in index
