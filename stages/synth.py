@@ -10,7 +10,15 @@ filled by the neighbourhood search of :mod:`~mocapflow.stages.synth_search`
 (:mod:`~mocapflow.stages.synth_graph`).  The finest source track is stored as
 ``source_index`` so seams can be inspected; seams are smoothed adaptively
 (:mod:`~mocapflow.stages.synth_smoothing`) and the root is integrated or
-steered along a path (:mod:`~mocapflow.stages.synth_root`).
+steered along a path (:mod:`~mocapflow.stages.synth_root`); stance toes are
+then pinned by two-bone leg IK (``foot_ik``).
+
+Variety: at the coarsest level the natural successor of a run always matches
+perfectly, so drawing only among matches "close to the best" reproduces the
+input almost verbatim.  ``variety`` sets the draw window as a quantile of the
+input's own transition costs, ``max_run`` bounds the longest verbatim run, and
+``usage_weight`` spreads the output over the input (coverage); see
+:mod:`~mocapflow.stages.synth_search`.
 
 Limitations of the thesis removed here: any output length (not a multiple of
 the input's), any number of meeting points per output (one per gap), loops.
@@ -325,6 +333,54 @@ def _planted_velocity(pyramid, motion, rot, feat, src, loop) -> np.ndarray:
     return plant_feet(feat[:, 0], feat[:, 1:3], local, src, disp_in, contact, cyclic=loop)
 
 
+def _foot_ik(motion: Motion, out: Motion, src: np.ndarray, constrained, blended):
+    """Leg IK keeping every stance toe moving as in the input (see ``foot_corrections``).
+
+    Returns the new local rotations and the largest correction (metres), or
+    ``None`` when the skeleton has no usable toes or legs.
+    """
+    from mocapflow.stages.metrics import (
+        contact_thresholds,
+        foot_contacts,
+        motion_positions,
+        toe_indices,
+    )
+    from mocapflow.stages.synth_root import (
+        _rotate_xz,
+        apply_foot_ik,
+        foot_corrections,
+        leg_chains,
+    )
+
+    try:
+        toes = toe_indices(motion.skeleton)
+        chains = leg_chains(motion.skeleton, toes)
+    except ValueError:
+        return None
+    world = motion_positions(motion)
+    h, s = contact_thresholds(world, toes, motion.rate)
+    contact_in = foot_contacts(world, toes, motion.rate, height_threshold=h, speed_threshold=s)
+    heading_in, _ = heading_split(motion.rotations[:, 0])
+    ground = world[:, toes][..., [0, 2]]
+    step = np.concatenate([np.diff(ground, axis=0), np.zeros((1,) + ground.shape[1:])], axis=0)
+    if step.shape[0] > 1:
+        step[-1] = step[-2]
+    step_h = _rotate_xz(step, -heading_in[:, None])
+    heading_out, _ = heading_split(out.rotations[:, 0])
+    L = src.size
+    toe_step = _rotate_xz(step_h[src], heading_out[:, None])
+    toe_step[blended] = 0.0  # a blend of two stances keeps the stance foot still
+    pos_out = motion_positions(out)
+    fixed = np.zeros(L, dtype=bool)
+    fixed[[int(j) for j in constrained]] = True
+    corr = foot_corrections(pos_out[:, toes][..., [0, 2]], toe_step, contact_in[src], fixed=fixed)
+    rot = apply_foot_ik(
+        out.skeleton, out.rotations, out.root_position, chains, corr,
+        translations=out.translations,
+    )
+    return rot, float(np.linalg.norm(corr, axis=-1).max()) if L else 0.0
+
+
 def assemble_motion(
     pyramid: Pyramid,
     motion: Motion,
@@ -337,7 +393,9 @@ def assemble_motion(
     gaussian_width: int = 5,
     accel_tolerance: float = 1.0,
     max_widening: int = 12,
+    jerk_tolerance: float | None = 1.0,
     plant: bool = True,
+    foot_ik: bool = True,
     warn=None,
 ) -> tuple[Motion, dict[str, Any]]:
     """Turn a source track into a motion: copy, smooth the seams, integrate the root.
@@ -360,8 +418,14 @@ def assemble_motion(
     smoothing : bool
     gaussian_width, accel_tolerance, max_widening :
         See :func:`~mocapflow.stages.synth_smoothing.adaptive_smoothing`.
+    jerk_tolerance : float or None
+        A seam also fails the smoothing test while its jerk exceeds this
+        multiple of the input's p99 jerk (None: acceleration test only).
     plant : bool
         Keep stance toes moving as in the input (root velocity correction).
+    foot_ik : bool
+        Then pin the residual toe slide of every contact span with two-bone
+        leg IK (feet keep their world orientation; constrained frames untouched).
     warn : callable, optional
 
     Returns
@@ -385,10 +449,18 @@ def assemble_motion(
     seams = seams_from_source(src, cyclic=loop)
     sm_report: dict[str, Any] = {"enabled": smoothing}
     if smoothing and seams.size:
-        from mocapflow.stages.metrics import acceleration_per_frame, motion_positions
+        from mocapflow.stages.metrics import (
+            acceleration_per_frame,
+            jerk_p99,
+            motion_positions,
+        )
 
-        acc_in = acceleration_per_frame(motion_positions(motion), motion.rate)
+        world_in = motion_positions(motion)
+        acc_in = acceleration_per_frame(world_in, motion.rate)
         floor = ACCEL_FLOOR * float(np.nanmedian(acc_in)) if motion.n_frames > 2 else 0.0
+        jerk_limit = None
+        if jerk_tolerance is not None and motion.n_frames > 8:
+            jerk_limit = jerk_tolerance * jerk_p99(world_in, motion.rate)
         sm = adaptive_smoothing(
             motion.skeleton,
             rot,
@@ -401,6 +473,7 @@ def assemble_motion(
             accel_tolerance=accel_tolerance,
             accel_floor=floor,
             max_widening=max_widening,
+            jerk_limit=jerk_limit,
         )
         rot, feat = sm.rotations, sm.features
         failed = seams[~sm.passed]
@@ -443,10 +516,18 @@ def assemble_motion(
     rotations[:, 0] = quat_multiply(yaw_quaternion(heading), rot[:, 0])
     J = motion.skeleton.n_joints
     trans = feat[:, 4:].reshape(L, J, 3) if feat.shape[1] > 4 else None
-    ang, fk = _constraint_errors(motion, rot, feat, rot_in, feat_in, cons)
     attrs = dict(motion.attrs)
     attrs["synthesized_from"] = motion.attrs.get("source", motion.attrs.get("path"))
     out = Motion(motion.skeleton, root, rotations, motion.rate, trans, attrs)
+    ik_max = 0.0
+    if foot_ik and L > 2:
+        blended = np.abs(rot - rot_in[src]).max(axis=(1, 2)) > 1e-9
+        res = _foot_ik(motion, out, src, [j for _, j in cons], blended)
+        if res is not None:
+            rotations, ik_max = res
+            rot[:, 1:] = rotations[:, 1:]
+            out = out.replace(rotations=rotations)
+    ang, fk = _constraint_errors(motion, rot, feat, rot_in, feat_in, cons)
     report = {
         "seams": seams.tolist(),
         "n_seams": int(seams.size),
@@ -454,6 +535,7 @@ def assemble_motion(
         "constraint_max_angle_deg": ang,
         "constraint_max_fk_m": fk,
         "path": path_info,
+        "foot_ik_max_m": ik_max,
         "seconds_smoothing": t_smooth,
     }
     return out, report
@@ -478,6 +560,8 @@ def synthesize(
     gaussian_width: int = 5,
     accel_tolerance: float = 1.0,
     max_widening: int = 12,
+    jerk_tolerance: float | None = 1.0,
+    foot_ik: bool = True,
     rng: np.random.Generator | None = None,
     warn=None,
 ) -> SynthResult:
@@ -510,6 +594,11 @@ def synthesize(
         Adaptive local smoothing of the seams.
     gaussian_width, accel_tolerance, max_widening :
         See :func:`~mocapflow.stages.synth_smoothing.adaptive_smoothing`.
+    jerk_tolerance : float or None
+        Seams also fail the smoothing test while their jerk exceeds this
+        multiple of the input's p99 jerk.
+    foot_ik : bool
+        Pin the stance toes with leg IK after smoothing (:func:`assemble_motion`).
     rng : numpy.random.Generator, optional
     warn : callable, optional
         ``warn(message)`` for non-fatal problems.
@@ -579,6 +668,8 @@ def synthesize(
         gaussian_width=gaussian_width,
         accel_tolerance=accel_tolerance,
         max_widening=max_widening,
+        jerk_tolerance=jerk_tolerance,
+        foot_ik=foot_ik,
         warn=warn,
     )
     report = {
@@ -620,6 +711,9 @@ def synth(
     finer_weight: float = 1.0,
     candidate_range: int = 4,
     k_best: int = 3,
+    variety: float = 0.3,
+    max_run: float = 0.3,
+    usage_weight: float = 0.5,
     tolerance: float = 0.5,
     meeting_window: int = 4,
     graph_threshold: float = 0.1,
@@ -627,7 +721,9 @@ def synth(
     smoothing: bool = True,
     gaussian_width: int = 5,
     accel_tolerance: float = 1.0,
+    jerk_tolerance: float = 1.0,
     max_widening: int = 12,
+    foot_ik: bool = True,
     ctx: Context,
 ) -> dict[str, Any]:
     """Constrained multi-resolution texture synthesis (Moradoff 2002).
@@ -663,8 +759,23 @@ def synth(
         ± nodes around the children of the parent's 3 best matches (±4).
     k_best : int
         Random choice among the k best at all but the finest level (2–3).
+    variety : float
+        How new the arrangement is, 0–1 (default 0.3).  At the coarsest level
+        jumps are drawn among the k best whose cost lies within the
+        ``variety`` quantile of the input's own best-jump costs (about the
+        share of moments a drawn jump may leave): 0 keeps only the jumps the
+        input's end forces (near-verbatim copies), 1 draws among the k best at
+        every node as in the thesis.  Raise for more novelty, lower for longer
+        verbatim stretches.
+    max_run : float
+        Longest verbatim run as a fraction of the input (0.3): a run that long
+        must jump, where the jump fits best among its last positions.  0 (or
+        >= 1) disables.
+    usage_weight : float
+        Preference for input material not used yet (coverage of the input); 0
+        disables.
     tolerance : float
-        Cost units within which the k best are drawn.
+        Cost units within which the k best joins are drawn below the coarsest level.
     meeting_window : int
         ± nodes searched around the previous level's meeting point.
     graph_threshold : float
@@ -677,8 +788,14 @@ def synth(
         Taps of the smoothing Gaussian (5).
     accel_tolerance : float
         Acceleration test threshold relative to the reference frames.
+    jerk_tolerance : float
+        A seam also fails the smoothing test while its jerk exceeds this
+        multiple of the input's p99 jerk (0 disables).
     max_widening : int
         Largest smoothing half width ``k``.
+    foot_ik : bool
+        Pin the stance toes with two-bone leg IK after smoothing (no foot skate
+        at the seams; constrained frames untouched).
     ctx : Context
 
     Returns
@@ -694,6 +811,9 @@ def synth(
         k_best=k_best,
         tolerance=tolerance,
         meeting_window=meeting_window,
+        variety=variety,
+        max_run=max_run,
+        usage_weight=usage_weight,
     )
     res = synthesize(
         pyramid,
@@ -713,6 +833,8 @@ def synth(
         gaussian_width=gaussian_width,
         accel_tolerance=accel_tolerance,
         max_widening=max_widening,
+        jerk_tolerance=jerk_tolerance if jerk_tolerance > 0 else None,
+        foot_ik=foot_ik,
         rng=ctx.rng,
         warn=ctx.warn,
     )

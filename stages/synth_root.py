@@ -7,6 +7,14 @@ e.g. a figure-8) the velocities are rotated into the path's local frame: the
 motion's smoothed travel direction is turned onto the path tangent at the
 distance travelled so far, the high-frequency sway is kept in the path frame.
 ``y`` is up; ground-plane points are ``(x, z)``.
+
+Feet: smoothing a seam blends two stances, so a toe in contact slides.  The
+root correction (:func:`plant_feet`) keeps the mean stance toe moving as in
+the input; the residual slide of each toe is then removed by two-bone leg IK
+(:func:`foot_corrections`, :func:`apply_foot_ik`): within every contact span a
+toe follows the input's own toe steps (none, in blended frames), the
+correction is a smooth banded least-squares solution, and the feet keep their
+world orientation.
 """
 
 from __future__ import annotations
@@ -18,10 +26,17 @@ import numpy as np
 __all__ = [
     "PathCurve",
     "PathError",
+    "apply_foot_ik",
+    "contact_spans",
     "figure_eight",
     "follow_path",
+    "foot_corrections",
     "heading_direction",
     "integrate_root",
+    "leg_chains",
+    "plant_feet",
+    "toe_displacements",
+    "two_bone_ik",
 ]
 
 
@@ -387,3 +402,268 @@ def plant_feet(
 
         offset = gaussian_filter1d(offset, smooth, axis=0, mode="nearest")
     return velocity + np.diff(offset, axis=0)
+
+
+# --------------------------------------------------------------------------- foot contact IK
+
+
+def leg_chains(skeleton, toes: list[int] | np.ndarray) -> list[tuple[int, int, int]]:
+    """Two-bone leg chains ``(hip, knee, ankle)`` ending at (or above) each toe.
+
+    A joint named like a toe hangs below its ankle (its parent); a foot or
+    ankle joint used as the toe is the ankle itself.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    toes : sequence of int
+        Contact joints (:func:`~mocapflow.stages.metrics.toe_indices`).
+
+    Returns
+    -------
+    list of (int, int, int)
+
+    Raises
+    ------
+    ValueError
+        A toe without three ancestors.
+    """
+    chains = []
+    for t in toes:
+        t = int(t)
+        ankle = skeleton.parents[t] if "toe" in skeleton.names[t].lower() else t
+        knee = skeleton.parents[ankle] if ankle >= 0 else -1
+        hip = skeleton.parents[knee] if knee >= 0 else -1
+        if min(ankle, knee, hip) < 0:
+            raise ValueError(
+                f"joint {skeleton.names[t]!r}: no hip-knee-ankle chain above it for foot IK"
+            )
+        chains.append((int(hip), int(knee), int(ankle)))
+    return chains
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest rotations taking directions ``a`` onto ``b`` ((n, 3) -> (n, 4))."""
+    from mocapflow.stages.kinematics import quat_from_rotvec
+
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    axis = np.cross(a, b)
+    s = np.linalg.norm(axis, axis=-1, keepdims=True)
+    angle = np.arctan2(s, np.sum(a * b, axis=-1, keepdims=True))
+    rv = np.where(s > 1e-12, axis / np.maximum(s, 1e-12) * angle, 0.0)
+    return quat_from_rotvec(rv)
+
+
+def two_bone_ik(
+    hip: np.ndarray,
+    knee: np.ndarray,
+    ankle: np.ndarray,
+    target: np.ndarray,
+    *,
+    hinge: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """World rotations that bring an ankle onto a target (analytic two-bone IK).
+
+    The knee bends about the leg's plane normal until the hip–ankle distance
+    equals the hip–target distance (clamped to the leg's reach), then the
+    whole leg turns about the hip onto the target.
+
+    Parameters
+    ----------
+    hip, knee, ankle : (n, 3) float ndarray
+        Joint positions.
+    target : (n, 3) float ndarray
+        Wanted ankle positions.
+    hinge : (n, 3) float ndarray, optional
+        Knee axis used where the leg is straight (no plane).
+
+    Returns
+    -------
+    r_hip : (n, 4) float ndarray
+        World rotation about the hip (applied to thigh, shank and below).
+    r_knee : (n, 4) float ndarray
+        World rotation about the knee (applied to the shank and below, before ``r_hip``).
+    """
+    from mocapflow.stages.kinematics import quat_from_rotvec, quat_rotate
+
+    u, v = hip - knee, ankle - knee
+    l1 = np.linalg.norm(u, axis=-1)
+    l2 = np.linalg.norm(v, axis=-1)
+    reach = np.linalg.norm(target - hip, axis=-1)
+    lo, hi = np.abs(l1 - l2) + 1e-6, l1 + l2 - 1e-6
+    want = np.clip(reach, lo, hi)
+    cos_now = np.sum(u * v, axis=-1) / np.maximum(l1 * l2, 1e-12)
+    cos_want = (l1**2 + l2**2 - want**2) / np.maximum(2 * l1 * l2, 1e-12)
+    dtheta = np.arccos(np.clip(cos_want, -1, 1)) - np.arccos(np.clip(cos_now, -1, 1))
+    n = np.cross(u, v)
+    nn = np.linalg.norm(n, axis=-1, keepdims=True)
+    if hinge is not None:
+        n = np.where(nn > 1e-6 * np.maximum(l1 * l2, 1e-12)[:, None], n, hinge)
+        nn = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = n / np.maximum(nn, 1e-12)
+    r_knee = quat_from_rotvec(n * dtheta[:, None])
+    bent = knee + quat_rotate(r_knee, v)
+    r_hip = _rotation_between(bent - hip, target - hip)
+    return r_hip, r_knee
+
+
+def contact_spans(contact: np.ndarray) -> list[tuple[int, int]]:
+    """Runs of ``True`` as inclusive ``(start, end)`` pairs.
+
+    Parameters
+    ----------
+    contact : (L,) bool ndarray
+
+    Returns
+    -------
+    list of (int, int)
+    """
+    c = np.concatenate([[False], np.asarray(contact, bool), [False]])
+    d = np.diff(c.astype(np.int8))
+    return list(zip(np.flatnonzero(d == 1).tolist(), (np.flatnonzero(d == -1) - 1).tolist()))
+
+
+def foot_corrections(
+    toe_ground: np.ndarray,
+    toe_step: np.ndarray,
+    contact: np.ndarray,
+    *,
+    stiffness: float = 1.0,
+    decay: float = 0.01,
+    min_span: int = 3,
+    fixed: np.ndarray | None = None,
+) -> np.ndarray:
+    """Smooth ground-plane toe corrections that stop the slide of stance toes.
+
+    Per toe and axis the correction ``e`` minimises (a banded least squares)::
+
+        Σ_contact ‖Δ(x + e)_t − s_t‖² + stiffness Σ_t ‖Δ²e_t‖² + decay Σ_t ‖e_t‖²
+
+    where ``x`` is the output toe position, ``s`` the wanted step (the
+    input's own toe step at the source frame, usually almost none) and the
+    first sum runs over pairs of frames inside one contact span of at least
+    ``min_span`` frames.  The second-difference term keeps the legs free of
+    jerk, the small decay brings ``e`` back to zero in the swing phases.
+    Verbatim spans (which already move as in the input) get no correction.
+
+    Parameters
+    ----------
+    toe_ground : (L, T, 2) float ndarray
+        Output toe positions ``(x, z)``.
+    toe_step : (L, T, 2) float ndarray
+        Wanted displacement ``t → t+1`` of each toe while in contact.
+    contact : (L, T) bool ndarray
+    stiffness : float
+        Weight of the second differences (frames are the unit of time).
+    decay : float
+        Weight pulling the corrections to zero.
+    min_span : int
+        Shorter contact spans are left alone.
+    fixed : (L,) bool ndarray, optional
+        Frames whose pose must not change (e.g. constrained frames): ``e = 0``.
+
+    Returns
+    -------
+    (L, T, 2) float ndarray
+    """
+    from scipy.linalg import solveh_banded
+
+    L, T = contact.shape
+    corr = np.zeros((L, T, 2))
+    if L < 3:
+        return corr
+    # second-difference operator D2 (L-2, L): D2ᵀD2 is pentadiagonal
+    d2 = np.zeros((3, L))  # upper banded form (u = 2) of stiffness * D2ᵀD2 + decay * I
+    c = np.zeros(L)
+    c[:-2] += 1
+    c[1:-1] += 4
+    c[2:] += 1
+    d2[2] = stiffness * c + decay
+    c1 = np.zeros(L - 1)
+    c1[:-1] += -2
+    c1[1:] += -2
+    d2[1, 1:] = stiffness * c1
+    d2[0, 2:] = stiffness
+    pen = np.zeros(L)
+    if fixed is not None:
+        pen = np.where(np.asarray(fixed, bool), 1e6, 0.0)
+    for k in range(T):
+        pair = np.zeros(L - 1)  # weight of each step t -> t+1 (both frames in one span)
+        for a, b in contact_spans(contact[:, k]):
+            if b - a + 1 >= min_span:
+                pair[a:b] = 1.0
+        if not pair.any():
+            continue
+        ab = d2.copy()
+        # D1ᵀ W D1: tridiagonal
+        ab[2, :-1] += pair
+        ab[2, 1:] += pair
+        ab[1, 1:] += -pair
+        ab[2] += pen
+        for ax in range(2):
+            x = toe_ground[:, k, ax]
+            r = pair * (toe_step[:-1, k, ax] - np.diff(x))  # wanted change of Δe
+            rhs = np.zeros(L)
+            rhs[1:] += r
+            rhs[:-1] -= r
+            corr[:, k, ax] = solveh_banded(ab, rhs)
+    return corr
+
+
+def apply_foot_ik(
+    skeleton,
+    rotations: np.ndarray,
+    root_position: np.ndarray,
+    chains: list[tuple[int, int, int]],
+    offsets: np.ndarray,
+    *,
+    translations: np.ndarray | None = None,
+) -> np.ndarray:
+    """Move each leg's ankle by a ground-plane offset, feet keeping their world orientation.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    rotations : (L, J, 4) float ndarray
+        Local rotations (root with heading).
+    root_position : (L, 3) float ndarray
+    chains : list of (hip, knee, ankle)
+        From :func:`leg_chains`.
+    offsets : (L, T, 2) float ndarray
+        Wanted ankle (and toe) displacement ``(x, z)`` per chain.
+    translations : (L, J, 3) float ndarray, optional
+
+    Returns
+    -------
+    (L, J, 4) float ndarray
+        Local rotations with the hip, knee and ankle joints of each chain changed.
+    """
+    from mocapflow.stages.kinematics import (
+        forward_kinematics,
+        quat_inverse,
+        quat_multiply,
+        quat_normalize,
+        quat_rotate,
+    )
+
+    rot = np.array(rotations, dtype=np.float64)
+    for k, (h, kn, an) in enumerate(chains):
+        move = np.abs(offsets[:, k]).max(axis=-1) > 1e-7
+        if not move.any():
+            continue
+        idx = np.flatnonzero(move)
+        tr = None if translations is None else translations[idx]
+        pos, glob = forward_kinematics(skeleton, rot[idx], root_position[idx], translations=tr)
+        d = np.zeros((idx.size, 3))
+        d[:, [0, 2]] = offsets[idx, k]
+        hinge = quat_rotate(glob[:, kn], np.array([1.0, 0.0, 0.0]))
+        r_hip, r_knee = two_bone_ik(pos[:, h], pos[:, kn], pos[:, an], pos[:, an] + d, hinge=hinge)
+        g_hip = quat_multiply(r_hip, glob[:, h])
+        g_knee = quat_multiply(r_hip, quat_multiply(r_knee, glob[:, kn]))
+        p = skeleton.parents[h]
+        g_par = glob[:, p] if p >= 0 else np.tile([1.0, 0, 0, 0], (idx.size, 1))
+        rot[idx, h] = quat_normalize(quat_multiply(quat_inverse(g_par), g_hip))
+        rot[idx, kn] = quat_normalize(quat_multiply(quat_inverse(g_hip), g_knee))
+        rot[idx, an] = quat_normalize(quat_multiply(quat_inverse(g_knee), glob[:, an]))
+    return rot

@@ -36,10 +36,23 @@ acceleration).
 
 Randomisation: at every level but the finest, the node (or join) is drawn at
 random (seeded) among the ``k_best`` best *distinct* candidates (closer than
-``slots`` nodes counts as the same match) within ``tolerance`` cost units of
-the best; the unit is the input's median frame-to-frame velocity change.  At
-the coarsest level a new draw only happens once the previous transition has
-``slots`` verbatim nodes behind it, and less used input regions are preferred.
+``slots`` nodes counts as the same match).  At the coarsest level the natural
+successor of a run always matches perfectly (cost 0), so a window of a fixed
+number of cost units around the best admitted only the rare near-perfect jumps
+of a periodic input: the outputs were near-verbatim copies (a 512-frame salsa
+played through in one 510-frame run).  The window is therefore measured on the
+input's own transitions: the ``variety`` quantile of the best jump cost away
+from every input node (:meth:`LevelSearch.jump_threshold`) — ``variety`` is
+roughly the share of moments a drawn jump may leave.  Candidates are ranked by
+cost plus ``usage_weight`` windows per time the input they would play next is
+already in the output (coverage), a new draw happens once the previous
+transition has ``slots`` verbatim nodes behind it, and a run reaching
+``max_run`` of the input must end: its jump is searched at the last
+``relocate`` positions of the run, exhaustively over the input.  Finer levels
+keep the coarse plan — the join takes the drawn line's children before the
+other parent matches, runs stay long enough to smooth and never bridge a few
+frames into the input's end — and draw joins within ``tolerance`` cost units
+(the unit: the input's median frame-to-frame velocity change).
 """
 
 from __future__ import annotations
@@ -62,6 +75,8 @@ __all__ = [
     "window_cost",
 ]
 
+#: Shortest run (fine frames) refinement leaves between two transitions when it can.
+MIN_RUN_FRAMES = 12
 #: Length (metres) turning a yaw rate (rad per frame) into a velocity.
 YAW_LEVER = 1.0
 
@@ -87,15 +102,30 @@ class SearchParams:
     k_best : int
         Random choice among the ``k_best`` best (2–3) at all but the finest level.
     tolerance : float
-        Only candidates within ``tolerance`` cost units of the best are drawn
-        (the unit: the input's median frame-to-frame velocity change).  The
-        knob of variety: 0 plays the input through, 0.5 (default) jumps only
-        between near-equivalent moments, 0.75+ jumps more often.
+        Below the coarsest level, joins within ``tolerance`` cost units of the
+        best are drawn (the unit: the input's median frame-to-frame velocity
+        change).
     meeting_window : int
         ± nodes around the previous level's transitions searched at finer levels.
     coherence : float
         Cost units subtracted, below the coarsest level, for a candidate that
         continues a neighbour's source in node-by-node growth (0 disables).
+    variety : float
+        The knob of novelty, 0–1: at the coarsest level alternatives are drawn
+        within the ``variety`` quantile of the input's own best-jump costs
+        (0: only the forced jumps; 0.3 default; 1: the thesis' plain draw
+        among the ``k_best``).
+    max_run : float
+        Longest verbatim run at the coarsest level, as a fraction of the input
+        (0.3; refinement may lengthen it by a few frames); ``0`` or ``>= 1``
+        disables.
+    usage_weight : float
+        Windows (``variety`` window, at least one cost unit) added to a
+        candidate's rank per time the input it would play next is already in
+        the output (0.5; 0 disables).
+    relocate : int
+        Positions, back into the run, where a forced jump (end of the input,
+        ``max_run``) is searched.
     """
 
     slots: int = 3
@@ -106,6 +136,10 @@ class SearchParams:
     tolerance: float = 0.5
     meeting_window: int = 4
     coherence: float = 0.25
+    variety: float = 0.3
+    max_run: float = 0.3
+    usage_weight: float = 0.5
+    relocate: int = 6
 
 
 @dataclass
@@ -240,6 +274,29 @@ def _pair_weights(offsets: np.ndarray, centre: float, sigma: float) -> np.ndarra
     return np.exp(-0.5 * (mid / sigma) ** 2)
 
 
+def _ahead_usage(counts: np.ndarray, span: int, side: int) -> np.ndarray:
+    """Mean use of the ``span`` input nodes a candidate would play next.
+
+    Parameters
+    ----------
+    counts : (n,) float ndarray
+        Times each input node is already in the output.
+    span : int
+    side : {1, -1}
+        1: the output grows forwards (nodes ``b … b+span-1``); -1: backwards.
+
+    Returns
+    -------
+    (n,) float ndarray
+    """
+    n = counts.size
+    c = np.concatenate([[0.0], np.cumsum(counts)])
+    b = np.arange(n)
+    lo = b if side > 0 else np.maximum(b - span + 1, 0)
+    hi = np.minimum(b + span, n) if side > 0 else b + 1
+    return (c[hi] - c[lo]) / (hi - lo)
+
+
 # --------------------------------------------------------------------------- gaps
 
 
@@ -348,10 +405,16 @@ class LevelSearch:
         self.rng = rng
         self.view = views[level]
         self._usage: np.ndarray | None = None
+        self._tau: float | None = None
         #: cost unit of every level: natural frame-to-frame velocity change of the input
         self.unit = views[0].unit
         self.coarsest = level == len(views) - 1
         self.randomize = level > 0
+        #: longest verbatim run (coarsest nodes) before a jump is forced
+        self.max_run_nodes: int | None = None
+        if self.coarsest and 0 < params.max_run < 1:
+            # one node of margin: refinement may lengthen a run by a few frames
+            self.max_run_nodes = max(2 * params.slots, int(params.max_run * self.view.n) - 1)
         S = params.slots
         self.off = np.arange(-S, S + 1)
         self.pw = _pair_weights(self.off, 0.0, max(S, 1))
@@ -522,31 +585,101 @@ class LevelSearch:
         ranked = cands[order]
         node = int(ranked[0])
         if draw and self.randomize and self.p.k_best > 1:
-            pick = self._draw(ranked, cost[order])
+            pick = self._draw(ranked, cost[order], ranked)
             node = int(ranked[pick])
         top = np.full(3, -1, dtype=np.int64)
         top[: min(3, ranked.size)] = ranked[:3]
         return node, top
 
-    def _draw(self, ranked: np.ndarray, sorted_cost: np.ndarray) -> int:
+    def jump_costs(self) -> np.ndarray:
+        """Cost of the best jump away from every input node (this level's search).
+
+        For each input node ``a`` the output holds ``a-slots+1 … a`` (verbatim)
+        and every input node ``b`` at least ``slots`` nodes from the natural
+        successor ``a + 1`` is scored as the next node with :meth:`cost_rows`.
+
+        Returns
+        -------
+        (n,) float ndarray
+            ``min_b cost`` per ``a`` (``inf`` where no jump is possible).
+        """
+        n, S = self.view.n, self.p.slots
+        t = S
+        base = np.full(2 * S + 1, -1, dtype=np.int64)
+        best = np.full(n, np.inf)
+        b = np.arange(n)
+        chunk = max(1, 20_000 // max(n, 1))
+        for a0 in range(0, n, chunk):
+            a = np.arange(a0, min(n, a0 + chunk))
+            ov = np.tile(base, (a.size * n, 1))
+            aa = np.repeat(a, n)
+            bb = np.tile(b, a.size)
+            ov[:, :S] = aa[:, None] + np.arange(-S + 1, 1)[None, :]
+            ov[:, :S][ov[:, :S] < 0] = -1
+            ov[:, S] = bb
+            c = self.cost_rows(ov, t, coherence=False).reshape(a.size, n)
+            far = np.abs(b[None, :] - (a[:, None] + 1)) >= S
+            c = np.where(far & np.isfinite(c), c, np.inf)
+            best[a] = c.min(axis=1)
+        return best
+
+    def jump_threshold(self) -> float:
+        """Cost window (cost units × unit) within which alternatives are drawn.
+
+        At the coarsest level the window is the ``variety`` quantile of
+        :meth:`jump_costs`: the natural successor always matches perfectly, so
+        a window relative to it would only admit the rare near-perfect jumps of
+        a periodic input and never one of a dance; measured on the input's own
+        transitions, ``variety`` is the share of the input's moments that can
+        be left by a drawn jump.  Finer levels use ``tolerance``.
+        """
+        if not self.coarsest:
+            return self.p.tolerance * self.unit
+        if self._tau is None:
+            q = float(np.clip(self.p.variety, 0.0, 1.0))
+            jc = self.jump_costs()
+            jc = jc[np.isfinite(jc)]
+            self._tau = float(np.quantile(jc, q)) if (jc.size and q > 0) else 0.0
+        return self._tau
+
+    def _draw(
+        self, ranked: np.ndarray, sorted_cost: np.ndarray, nodes: np.ndarray | None = None
+    ) -> int:
         """Index (into ``ranked``) drawn among the ``k_best`` distinct best matches.
 
+        Only matches within :meth:`jump_threshold` of the best are drawn.
         Matches closer than ``slots`` nodes to a better one are the same match
-        shifted in time, not another one; they are skipped.  Only matches within
-        ``tolerance`` cost units of the best are drawn.
+        shifted in time, not another one; they are skipped.  At the coarsest
+        level matches are ranked by cost plus ``usage_weight`` windows per
+        time the input nodes they would play next are already in the output,
+        so the draw spreads over the input (coverage) instead of circling
+        through its best-connected moments.
+
+        Parameters
+        ----------
+        ranked : (m,) int ndarray
+            Candidate identities (input nodes, or join keys), best first.
+        sorted_cost : (m,) float ndarray
+            Their costs, ascending.
+        nodes : (m,) int ndarray, optional
+            Input node each candidate plays next (for the usage ranking).
         """
-        lim = sorted_cost[0] + self.p.tolerance * self.unit
-        chosen = [0]
-        for i in range(1, ranked.size):
-            if len(chosen) >= self.p.k_best or sorted_cost[i] > lim:
+        if self.coarsest and self.p.variety <= 0:
+            return 0
+        tau = self.jump_threshold()
+        key = np.array(sorted_cost, dtype=np.float64)
+        if self._usage is not None and nodes is not None and self.p.usage_weight > 0:
+            u = self._usage[np.clip(nodes, 0, self._usage.size - 1)]
+            key = key + self.p.usage_weight * max(tau, self.unit) * u
+        order = np.argsort(key, kind="stable")
+        order = order[key[order] <= key[order[0]] + tau]
+        chosen: list[int] = []
+        for i in order:
+            if len(chosen) >= self.p.k_best:
                 break
-            if np.all(np.abs(ranked[i] - ranked[chosen]) >= self.p.slots):
-                chosen.append(i)
-        if self._usage is None:
-            return int(self.rng.choice(chosen))
-        # less used input regions are drawn more often (coverage of the input)
-        w = 1.0 / (1.0 + self._usage[np.clip(ranked[chosen], 0, self._usage.size - 1)])
-        return int(self.rng.choice(chosen, p=w / w.sum()))
+            if not chosen or np.all(np.abs(ranked[i] - ranked[chosen]) >= self.p.slots):
+                chosen.append(int(i))
+        return int(self.rng.choice(chosen))
 
     def _settled(self, src: np.ndarray, t: int) -> bool:
         """Whether the ``slots`` filled nodes on one side of ``t`` form one verbatim run.
@@ -570,56 +703,100 @@ class LevelSearch:
         if self.coarsest:
             used = src[src >= 0]
             counts = np.bincount(used, minlength=self.view.n).astype(np.float64)
-            self._usage = np.convolve(counts, np.ones(2 * self.p.slots + 1), mode="same")
+            a, b = self._out_values(src, np.array([t - 1, t + 1]))
+            self._usage = _ahead_usage(counts, 2 * self.p.slots + 1, -1 if b >= 0 > a else 1)
         cands = self.candidates(src, t)
         cost = self.cost(src, t, cands)
         if not np.isfinite(cost).any():  # accelerated set exhausted: search everything
             cands = np.arange(self.view.n)
             cost = self.cost(src, t, cands)
-        node, top = self.choose(cands, cost, where, draw=self._settled(src, t))
+        forced = False
+        if self.coarsest and self.max_run_nodes is not None:
+            _, nxt, run = self._run_behind(src, t)
+            if run >= self.max_run_nodes:  # the run must end: no continuation
+                keep = np.abs(cands - nxt) >= self.p.slots
+                if np.isfinite(cost[keep]).any():
+                    cands, cost, forced = cands[keep], cost[keep], True
+        node, top = self.choose(cands, cost, where, draw=forced or self._settled(src, t))
         p = t % self.n if self.cyclic else t
         src[p] = node
         ranked[p] = top
         if self.coarsest:
-            self._jump_earlier(src, ranked, t, where)
+            self._jump_earlier(src, ranked, t, where, forced=forced)
 
-    def _jump_earlier(self, src, ranked, t: int, where: str) -> None:
-        """A front that ran into the end of the input jumps where the jump fits best.
+    def _run_behind(self, src: np.ndarray, t: int) -> tuple[int, int, int]:
+        """Growth side, natural next node and length of the verbatim run behind ``t``.
 
-        When the node just placed at ``t`` had to jump because its neighbour is
-        the input's last (first, for a right front) node, the jump is searched
-        again at the ``slots`` positions before ``t`` (inside the same verbatim
-        run), exhaustively over the input; the run then continues verbatim.
+        Returns
+        -------
+        growth : int
+            1 when the output grows forwards (filled neighbour at ``t-1``), -1
+            backwards, 0 when neither neighbour is filled.
+        nxt : int
+            The node continuing that run (``-1`` when none).
+        run : int
+            Nodes in the run.
+        """
+        a, b = self._out_values(src, np.array([t - 1, t + 1]))
+        if a >= 0 and b < 0:
+            growth = 1
+        elif b >= 0 and a < 0:
+            growth = -1
+        else:
+            return 0, -1, 0
+        back = self._out_values(src, t - growth * np.arange(1, self.n + 1))
+        ok = back >= 0
+        steps = ok[1:] & ok[:-1] & (back[:-1] - back[1:] == growth)
+        run = 1 + int(np.argmin(steps)) if not steps.all() else int(steps.size + 1)
+        return growth, int(back[0] + growth), run
+
+    def _jump_earlier(self, src, ranked, t: int, where: str, *, forced: bool = False) -> None:
+        """A run that had to end jumps where the jump fits best.
+
+        When the node just placed at ``t`` had to jump — its neighbour is the
+        input's last (first, for a right front) node, or the run reached
+        ``max_run`` (``forced``) — the jump is searched again at ``t`` and the
+        ``slots`` positions before it (inside the same verbatim run),
+        exhaustively over the input (no continuation of the run), and drawn
+        like any other; the run then continues verbatim from the new jump.
         """
         n_in, S = self.view.n, self.p.slots
         a, b = self._out_values(src, np.array([t - 1, t + 1]))
         here = self._out_values(src, np.array([t]))[0]
-        if a == n_in - 1 and here != a + 1 and b < 0:
+        if a >= 0 and b < 0 and here != a + 1 and (forced or a == n_in - 1):
             side = -1  # left front: move back into the run behind
-        elif b == 0 and here != b - 1 and a < 0:
+        elif b >= 0 and a < 0 and here != b - 1 and (forced or b == 0):
             side = 1  # right front
         else:
             return
-        best = (np.inf, t, here)
         every = np.arange(n_in)
-        for d in range(1, S + 1):
+        found: list[tuple[float, int, int]] = []
+        for d in range(0, self.p.relocate + 1):
             m = t + side * d  # candidate jump position; m+side .. t-side must stay verbatim
-            run = self._out_values(src, np.array([m, m + side]))
-            if run[1] < 0 or run[0] != run[1] - side:
-                break
+            if d:
+                run = self._out_values(src, np.array([m, m + side]))
+                if run[1] < 0 or run[0] != run[1] - side:
+                    break
             trial = src.copy()
             trial[self._positions(min(m, t), max(m, t))] = -1
             c = self.cost(trial, m, every)
-            i = int(np.argmin(c))
-            if c[i] < best[0]:
-                best = (float(c[i]), m, int(every[i]))
-        _, m, node = best
-        if m == t or not np.isfinite(best[0]):
+            prev = self._out_values(trial, np.array([m + side]))[0]
+            bad = np.abs(every - (prev - side)) < S  # continuing the run is what ends here
+            bad |= (every - side * d < 0) | (every - side * d >= n_in)  # run must fit to t
+            c = np.where(bad | np.isnan(c), np.inf, c)
+            found += [(float(c[i]), m, int(i)) for i in np.flatnonzero(np.isfinite(c))]
+        if not found:
             return
+        found.sort(key=lambda f: f[0])
+        costs = np.array([f[0] for f in found])
+        nodes = np.array([f[2] for f in found])
+        pick = 0
+        if self.randomize and self.p.k_best > 1:
+            key = np.array([f[1] * 1_000_000 + f[2] for f in found])
+            pick = self._draw(key, costs, nodes)
+        _, m, node = found[pick]
         span = np.arange(min(m, t), max(m, t) + 1)
-        vals = node - side * (span - m)  # verbatim from the new jump on
-        if vals.min() < 0 or vals.max() >= n_in:
-            return
+        vals = node + (span - m)  # the output plays forwards on both sides of the jump
         pos = self._positions(span[0], span[-1])
         src[pos] = vals
         ranked[pos] = -1
@@ -714,7 +891,8 @@ class LevelSearch:
         if self.randomize and self.p.k_best > 1:
             # distinct joins: other meeting positions, or other nodes at one position
             key = np.array([best[i][1] * 1_000_000 + best[i][2] for i in order])
-            pick = order[self._draw(key, costs[order])]
+            nodes = np.array([best[i][2] for i in order])
+            pick = order[self._draw(key, costs[order], nodes)]
         _, m, node = best[pick]
         joined = states[m]
         lp = self._positions(gap.lo + 1, m - 1)
@@ -763,12 +941,17 @@ def _runs(val: np.ndarray, valid: np.ndarray, cyclic: bool) -> tuple[int, list[l
     return p0, runs
 
 
-def _join_rows(search, val, starts, lo, hi, a1, b1, a2, b2, L_end, strict=True):
-    """Costs of joining the left line to right lines ``starts`` at ``m`` in ``[lo, hi]``."""
+def _join_rows(search, val, starts, lo, hi, a1, b1, a2, b2, L_end, strict=True, min_run=1):
+    """Costs of joining the left line to right lines ``starts`` at ``m`` in ``[lo, hi]``.
+
+    A right line must stay inside the input for ``min_run`` nodes from ``m``
+    (or up to ``b2``): no bridge of a few nodes into the input's end.
+    """
     n_in = search.view.n
     rows, keys, ms = [], [], []
     for m in range(lo, hi + 1):
-        ss = starts[(starts + (m - a2) >= 0) & (starts + (m - a2) < n_in)]
+        last = min(b2, m + min_run - 1) - a2
+        ss = starts[(starts + (m - a2) >= 0) & (starts + last < n_in)]
         if ss.size == 0:
             continue
         u = m + search.off
@@ -799,8 +982,12 @@ def refine_level(search: LevelSearch, anchors: dict[int, int]) -> LevelResult:
     (``±meeting_window`` nodes) and the right run's line (the children of the
     parent's 3 best matches ``±candidate_range`` nodes) are chosen by the
     three-level neighbourhood cost at the join.  Lines that merely continue
-    the left run are only taken when nothing else fits, so the coarse plan's
-    transitions survive refinement.
+    the left run are only taken when nothing else fits, and the drawn line
+    (the children of the parent's source) is preferred to the other parent
+    matches, so the coarse plan's transitions — and its randomisation —
+    survive refinement.  Joins keep ``MIN_RUN_FRAMES`` between each other when
+    the window allows, and a new line must stay in the input for ``2 slots + 1``
+    nodes.
 
     Parameters
     ----------
@@ -870,6 +1057,13 @@ def refine_level(search: LevelSearch, anchors: dict[int, int]) -> LevelResult:
         lo = max(lo, a1 + 1)
         hi_left = b1 + (n_in - 1 - L_end) + 1  # m - 1 must keep L in range
         hi = min(hi, hi_left)
+        # keep the runs on both sides long enough to smooth: no bridge of a few frames
+        gap = max(S + 1, -(-MIN_RUN_FRAMES // 2**search.l))
+        lo_s = max(lo, (prev_join if prev_join is not None else a1) + gap)
+        last_run = k + 1 == len(runs) - 1 and not cyclic
+        hi_s = hi if last_run else min(hi, b2 + 1 - gap)
+        if lo_s <= hi_s:
+            lo, hi = lo_s, hi_s
         lo_f = max([a1 + 1] + [x + 1 for x in left_anchor])
         hi_f = min([b2, hi_left] + right_anchor)
         q_val = int(val[at(a2)])
@@ -890,16 +1084,19 @@ def refine_level(search: LevelSearch, anchors: dict[int, int]) -> LevelResult:
         # right line R_s(u) = s + (u - a2); where it runs past the input's end the
         # run is cut short and the next join covers the rest
         novel = starts[np.abs(starts - L_at_q) >= S]
+        own = novel[np.abs(novel - q_val) <= r]  # the line the coarser level drew
         rows: list = []
-        for ss_all, (m_lo, m_hi), strict in (
-            (novel, (lo, hi), True),
-            (starts, (lo, hi), True),
-            (starts, (lo_f, hi_f), True),
-            (starts, (lo_f, hi_f), False),
-            (np.arange(-w - (a2 - b1), n_in), (lo_f, hi_f), False),  # any line at all
+        span = 2 * S + 1  # a new run plays at least this long before the input ends
+        for ss_all, (m_lo, m_hi), strict, min_run in (
+            (own, (lo, hi), True, span),
+            (novel, (lo, hi), True, span),
+            (starts, (lo, hi), True, span),
+            (starts, (lo_f, hi_f), True, 1),
+            (starts, (lo_f, hi_f), False, 1),
+            (np.arange(-w - (a2 - b1), n_in), (lo_f, hi_f), False, 1),  # any line at all
         ):
             rows, keys, ms = _join_rows(
-                search, val, ss_all, m_lo, m_hi, a1, b1, a2, b2, L_end, strict
+                search, val, ss_all, m_lo, m_hi, a1, b1, a2, b2, L_end, strict, min_run
             )
             if rows:
                 break

@@ -6,12 +6,15 @@ at the two seam frames with the accelerations of frames ``i-3 … i-1`` and
 ``i+2 … i+4``; acceleration is the mean over joints of the FK joint
 acceleration, on a trajectory integrated locally around the seam.  A seam
 fails when its acceleration exceeds ``accel_tolerance`` × the mean reference
-acceleration (and an absolute floor that lets still poses pass).  A failing
+acceleration (and an absolute floor that lets still poses pass), or — an
+addition to the thesis' test — when the jerk of the frames around it exceeds
+``jerk_limit`` (the caller passes a multiple of the input's p99 jerk).  A failing
 seam is smoothed by a pass of a Gaussian of width 5 (binomial taps
-``[1, 4, 6, 4, 1] / 16``) over a window of ``±k`` frames (with a 3-frame cosine
-taper), on quaternions (taps sign-aligned, weighted sum, normalised) and on the
-root features; ``k`` widens by one per failing test until no discontinuity
-remains (or ``max_widening`` is reached).
+``[1, 4, 6, 4, 1] / 16``) over a window of ``±k`` frames (with a 5-frame cosine
+taper, whose edges stay below the input's jerk), on quaternions (taps
+sign-aligned, weighted sum, normalised) and on the root features; ``k`` widens
+by one per failing test until no discontinuity remains (or ``max_widening`` is
+reached).
 
 Constrained frames are pinned: after every pass the rotation and height offsets
 that smoothing introduced at a constrained frame are removed by a displacement
@@ -35,7 +38,7 @@ __all__ = [
 #: Frames on each side of a seam used to evaluate the acceleration test.
 _HALF = 6
 #: Taper (frames) of a smoothing window.
-_TAPER = 3
+_TAPER = 5
 
 
 def gaussian_taps(width: int = 5) -> np.ndarray:
@@ -125,6 +128,7 @@ def seam_test(
     accel_tolerance: float = 1.0,
     accel_floor: float = 0.0,
     reference: np.ndarray | None = None,
+    jerk_limit: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Acceleration test at each seam.
 
@@ -146,6 +150,9 @@ def seam_test(
         Reference accelerations to test against (default: measured here).  The
         smoothing passes the ones of the unsmoothed track, whose reference
         frames do not yet feel the smoothing window.
+    jerk_limit : float, optional
+        Largest mean joint jerk (m/s³) allowed at the three frames whose
+        jerk stencil spans the seam; a seam above it fails as well.
 
     Returns
     -------
@@ -197,6 +204,13 @@ def seam_test(
         ref_acc = np.asarray(reference, dtype=np.float64)
     passed = ~(seam_acc > np.maximum(accel_tolerance * ref_acc, accel_floor))
     passed |= ~np.isfinite(ref).any(1)
+    if jerk_limit is not None:
+        j = pos[:, 3:] - 3 * pos[:, 2:-1] + 3 * pos[:, 1:-2] - pos[:, :-3]
+        j = np.linalg.norm(j, axis=-1).mean(-1) * rate**3  # local frame f = index + 1
+        j_ok = ok[:, 3:] & ok[:, :-3]
+        jerk = np.where(j_ok, j, np.nan)[:, i - 2 : i + 1]  # frames i-1, i, i+1
+        with np.errstate(invalid="ignore"):
+            passed &= ~(np.nanmax(np.nan_to_num(jerk, nan=0.0), axis=1) > jerk_limit)
     return passed, seam_acc, ref_acc
 
 
@@ -263,6 +277,7 @@ def adaptive_smoothing(
     accel_tolerance: float = 1.0,
     accel_floor: float = 0.0,
     max_widening: int = 12,
+    jerk_limit: float | None = None,
 ) -> SmoothingResult:
     """Smooth every seam that fails the acceleration test, widening until it passes.
 
@@ -288,6 +303,8 @@ def adaptive_smoothing(
         Seam accelerations below this (m/s²) pass whatever the references.
     max_widening : int
         Largest ``k``.
+    jerk_limit : float, optional
+        Seams whose jerk exceeds this (m/s³) fail too (see :func:`seam_test`).
 
     Returns
     -------
@@ -309,6 +326,7 @@ def adaptive_smoothing(
         cyclic=cyclic,
         accel_tolerance=accel_tolerance,
         accel_floor=accel_floor,
+        jerk_limit=jerk_limit,
     )
     while not passed.all():
         fail = ~passed & (k < max_widening)
@@ -332,5 +350,6 @@ def adaptive_smoothing(
             accel_tolerance=accel_tolerance,
             accel_floor=accel_floor,
             reference=ref,
+            jerk_limit=jerk_limit,
         )
     return SmoothingResult(rot, feat, k, passed, sa, ref)

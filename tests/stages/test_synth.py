@@ -19,8 +19,21 @@ from mocapflow.stages.synth import (
     synthesize,
 )
 from mocapflow.stages.synth_graph import graph_path
-from mocapflow.stages.synth_root import PathCurve, figure_eight
-from mocapflow.stages.synth_search import SearchParams
+from mocapflow.stages.synth_root import (
+    PathCurve,
+    apply_foot_ik,
+    figure_eight,
+    foot_corrections,
+    leg_chains,
+    two_bone_ik,
+)
+from mocapflow.stages.synth_search import (
+    Gap,
+    LevelSearch,
+    SearchParams,
+    _ahead_usage,
+    level_view,
+)
 
 RATE = 30.0
 
@@ -96,8 +109,8 @@ def test_adaptive_smoothing_removes_the_jerk_of_bad_seams(pyr, walk):
     seams = M.seams_from_source(src)
     mask = M.seam_mask(src.size, seams)
     jerk_in = M.jerk_p99(M.motion_positions(walk), RATE)
-    raw, _ = assemble_motion(pyr, walk, src, smoothing=False)
-    smooth, rep = assemble_motion(pyr, walk, src)
+    raw, _ = assemble_motion(pyr, walk, src, smoothing=False, foot_ik=False)
+    smooth, rep = assemble_motion(pyr, walk, src, foot_ik=False)
     assert M.jerk_p99(M.motion_positions(raw), RATE, mask=mask) / jerk_in > 5.0
     assert M.jerk_p99(M.motion_positions(smooth), RATE, mask=mask) / jerk_in < 1.3
     sm = rep["smoothing"]
@@ -145,6 +158,201 @@ def test_pyramid_mismatches_raise(pyr, walk):
         _run(pyr, walk, length=100, filter_size=6)
     with pytest.raises(ValueError, match="levels must be in 1-3"):
         _run(pyr, walk, length=100, levels=4)
+
+
+# --------------------------------------------------------------------------- variety
+
+
+@pytest.fixture(scope="module")
+def varied() -> Motion:
+    """A 10-cycle walk whose cycles differ like a capture's: no jump is near-perfect."""
+    return procedural_walk(300, rate=RATE, seed=3, variation=0.3)
+
+
+def test_default_output_is_a_new_arrangement_not_a_copy(varied):
+    """2× the walk: short verbatim runs, the whole input used, smooth seams.
+
+    With the previous draw window (a fixed number of cost units around the
+    natural successor, which always costs 0) this input was replayed in one
+    300-frame run.
+    """
+    walk, pyr = varied, build_pyramid(varied, levels=3)
+    F, L = walk.n_frames, 2 * walk.n_frames
+    jerk_in = M.jerk_p99(M.motion_positions(walk), RATE)
+    f_in = M.rotation_features(walk, heading_free=True)
+    for seed in (0, 1):
+        r = _run(pyr, walk, seed=seed, length=L)
+        src = r.source_index
+        # the input is never replayed for more than ~1/3 of its length (max_run 0.3)
+        assert M.longest_verbatim_run(src) <= 0.35 * F
+        seams = M.seams_from_source(src)
+        assert seams.size >= 10
+        assert M.coverage(M.rotation_features(r.motion, heading_free=True), f_in) >= 0.95
+        mask = M.seam_mask(L, seams)
+        assert M.jerk_p99(M.motion_positions(r.motion), RATE, mask=mask) / jerk_in <= 1.3
+    # without the variety knobs the synthesis falls back to a near-verbatim copy
+    r0 = _run(pyr, walk, seed=0, length=L, params=SearchParams(variety=0.0, max_run=0.0))
+    assert M.longest_verbatim_run(r0.source_index) >= 0.9 * F
+
+
+def test_max_run_bounds_the_longest_verbatim_run(pyr, walk):
+    for max_run, bound in ((0.15, 0.2), (0.3, 0.35)):
+        r = _run(pyr, walk, seed=2, length=600, params=SearchParams(max_run=max_run))
+        assert M.longest_verbatim_run(r.source_index) <= bound * walk.n_frames
+
+
+def _coarse_search(pyr, params, n_out=None, seed=0):
+    views = [level_view(pyr.levels[k], 2.0**k) for k in range(pyr.n_levels)]
+    top = pyr.n_levels - 1
+    n_out = n_out or [-(-600 // 2**k) for k in range(pyr.n_levels)]
+    return LevelSearch(views, top, n_out, False, None, params, np.random.default_rng(seed))
+
+
+def test_variety_is_a_quantile_of_the_inputs_own_jump_costs(pyr):
+    s = _coarse_search(pyr, SearchParams())
+    jc = s.jump_costs()
+    n, S = s.view.n, s.p.slots
+    assert jc.shape == (n,)
+    finite = jc[np.isfinite(jc)]
+    assert finite.size >= n - 2 and finite.min() > 0  # no jump is as good as continuing
+    # ground truth: the per-node search of a verbatim left context, node a = 30
+    a, t = 30, 10
+    src = np.full(s.n, -1)
+    src[t - S : t] = np.arange(a - S + 1, a + 1)
+    c = s.cost(src, t, np.arange(n))
+    far = np.abs(np.arange(n) - (a + 1)) >= S
+    assert jc[a] == pytest.approx(np.min(np.where(far, c, np.inf)), rel=1e-9)
+    assert c[a + 1] == pytest.approx(0.0, abs=1e-12)  # the natural successor costs 0
+    taus = []
+    for q in (0.1, 0.3, 0.7):
+        sq = _coarse_search(pyr, SearchParams(variety=q))
+        taus.append(sq.jump_threshold())
+        assert taus[-1] == pytest.approx(np.quantile(finite, q), rel=1e-9)
+    assert taus[0] < taus[1] < taus[2]
+    assert _coarse_search(pyr, SearchParams(variety=0.0)).jump_threshold() == 0.0
+
+
+def test_right_front_forced_jumps_keep_the_output_playing_forwards(pyr):
+    """A start gap grows leftwards from its anchor; runs hit max_run and must jump."""
+    s = _coarse_search(pyr, SearchParams(max_run=0.2))
+    n = s.n
+    src = np.full(n, -1)
+    ranked = np.full((n, 3), -1)
+    src[n - 1] = s.view.n - 1  # anchor: the input's last node at the output's end
+    ranked[n - 1, 0] = src[n - 1]
+    s.fill_gap(src, ranked, Gap(-1, n - 1, ("start", 0), left=False), None)
+    assert (src >= 0).all() and (src < s.view.n).all()
+    d = np.diff(src)
+    assert not np.any((d <= 0) & (d >= -s.p.slots))  # never frozen or played backwards
+    runs = np.diff(np.flatnonzero(np.r_[True, d != 1, True]))
+    assert runs.max() <= s.max_run_nodes + 1
+    assert (d != 1).sum() >= n // (s.max_run_nodes + 1)  # the forced jumps happened
+
+
+def test_ahead_usage_counts_the_material_a_candidate_plays_next():
+    counts = np.array([0, 0, 3, 3, 0, 0, 0, 1], dtype=float)
+    fw = _ahead_usage(counts, 3, 1)
+    np.testing.assert_allclose(fw[[0, 1, 4, 6, 7]], [1.0, 2.0, 0.0, 0.5, 1.0])
+    bw = _ahead_usage(counts, 3, -1)
+    np.testing.assert_allclose(bw[[0, 2, 4, 7]], [0.0, 1.0, 2.0, 1 / 3])
+
+
+# --------------------------------------------------------------------------- feet
+
+
+def test_two_bone_ik_reaches_the_target_and_keeps_the_bones():
+    from mocapflow.stages.kinematics import quat_rotate
+
+    rng = np.random.default_rng(0)
+    n = 50
+    hip = rng.normal(size=(n, 3)) * 0.1 + [0, 0.9, 0]
+    knee = hip + [0, -0.42, 0.15] + rng.normal(size=(n, 3)) * 0.03  # bent: targets in reach
+    ankle = knee + [0, -0.38, -0.15] + rng.normal(size=(n, 3)) * 0.03
+    target = ankle + np.c_[rng.uniform(-0.1, 0.1, n), np.zeros(n), rng.uniform(-0.1, 0.1, n)]
+    r_hip, r_knee = two_bone_ik(hip, knee, ankle, target)
+    knee2 = hip + quat_rotate(r_hip, knee - hip)
+    ankle2 = knee2 + quat_rotate(r_hip, quat_rotate(r_knee, ankle - knee))
+    np.testing.assert_allclose(ankle2, target, atol=1e-9)
+    np.testing.assert_allclose(
+        np.linalg.norm(knee2 - hip, axis=1), np.linalg.norm(knee - hip, axis=1), atol=1e-12
+    )
+    # out of reach: the leg stretches towards the target and stops at full length
+    far = hip + (target - hip) * 3.0
+    r_hip, r_knee = two_bone_ik(hip, knee, ankle, far)
+    knee3 = hip + quat_rotate(r_hip, knee - hip)
+    ankle3 = knee3 + quat_rotate(r_hip, quat_rotate(r_knee, ankle - knee))
+    reach = np.linalg.norm(knee - hip, axis=1) + np.linalg.norm(ankle - knee, axis=1)
+    np.testing.assert_allclose(np.linalg.norm(ankle3 - hip, axis=1), reach, atol=1e-5)
+    d_want = (far - hip) / np.linalg.norm(far - hip, axis=1, keepdims=True)
+    d_got = (ankle3 - hip) / np.linalg.norm(ankle3 - hip, axis=1, keepdims=True)
+    np.testing.assert_allclose(d_got, d_want, atol=1e-9)
+
+
+def test_apply_foot_ik_moves_the_ankles_and_keeps_the_feet(walk):
+    from mocapflow.stages.kinematics import forward_kinematics, quat_angle
+
+    m = walk
+    toes = M.toe_indices(m.skeleton)
+    chains = leg_chains(m.skeleton, toes)
+    assert [m.skeleton.names[j] for j in chains[0]] == ["LeftUpLeg", "LeftLeg", "LeftFoot"]
+    offsets = np.zeros((m.n_frames, len(toes), 2))
+    offsets[:, 0] = np.random.default_rng(1).uniform(-0.05, 0.05, (m.n_frames, 2))
+    rot = apply_foot_ik(m.skeleton, m.rotations, m.root_position, chains, offsets)
+    p0, g0 = forward_kinematics(m.skeleton, m.rotations, m.root_position)
+    p1, g1 = forward_kinematics(m.skeleton, rot, m.root_position)
+    h, k, a = chains[0]
+    target = p0[:, a] + np.c_[offsets[:, 0, 0], np.zeros(m.n_frames), offsets[:, 0, 1]]
+    leg = np.linalg.norm(p0[:, k] - p0[:, h], axis=1) + np.linalg.norm(p0[:, a] - p0[:, k], axis=1)
+    ok = np.linalg.norm(target - p0[:, h], axis=1) < leg - 1e-4  # a straight leg cannot grow
+    assert ok.mean() > 0.5
+    np.testing.assert_allclose(p1[ok, a], target[ok], atol=1e-7)
+    np.testing.assert_allclose(np.linalg.norm(p1[~ok, a] - p1[~ok, h], axis=1), leg[~ok], atol=1e-5)
+    np.testing.assert_allclose(p1[:, toes[0]] - p1[:, a], p0[:, toes[0]] - p0[:, a], atol=1e-7)
+    assert np.degrees(quat_angle(g1[:, a], g0[:, a])).max() < 1e-5  # foot orientation kept
+    np.testing.assert_allclose(p1[:, chains[1][2]], p0[:, chains[1][2]], atol=1e-12)
+
+
+def test_foot_corrections_stop_the_slide_of_stance_toes():
+    L = 60
+    contact = np.zeros((L, 1), dtype=bool)
+    contact[20:36] = True  # a 16-frame stance
+    step = np.zeros((L, 1, 2))
+    step[:, 0, 0] = 0.001  # the input's own toe roll: 1 mm per frame
+    x = np.cumsum(step, axis=0)  # verbatim: the toe already moves as in the input
+    np.testing.assert_allclose(foot_corrections(x, step, contact), 0.0, atol=1e-12)
+    u = np.clip((np.arange(L) - 25) / 6, 0, 1)
+    slide = x.copy()
+    slide[:, 0, 0] += 0.03 * (3 * u**2 - 2 * u**3)  # a smoothed seam slides the toe 3 cm
+
+    def residual(e):
+        return np.abs(np.diff(slide + e, axis=0)[20:35, 0, 0] - 0.001).sum()
+
+    assert residual(0.0) == pytest.approx(0.03)
+    e = foot_corrections(slide, step, contact)
+    assert residual(e) < 0.5 * residual(0.0)
+    assert np.abs(e[50:]).max() < 0.1 * np.abs(e).max()  # fades out in the swing phase
+    # a smaller decay pins harder (and changes the legs more)
+    assert residual(foot_corrections(slide, step, contact, decay=1e-3)) < 0.3 * 0.03
+    fixed = np.zeros(L, dtype=bool)
+    fixed[28] = True
+    assert abs(foot_corrections(slide, step, contact, fixed=fixed)[28]).max() < 1e-5
+
+
+def test_foot_ik_removes_the_skate_the_seams_bring(pyr, walk):
+    pos_in = M.motion_positions(walk)
+    toes = M.toe_indices(walk.skeleton)
+    h, s = M.contact_thresholds(pos_in, toes, RATE)
+    r = _run(pyr, walk, seed=0, length=600)
+    raw, _ = assemble_motion(pyr, walk, r.source_index, foot_ik=False)
+
+    def skate(m):
+        pos = M.motion_positions(m)
+        return M.foot_skate(pos, toes, RATE, height_threshold=h, speed_threshold=s)
+
+    sk_in, sk_raw, sk_ik = skate(walk), skate(raw), skate(r.motion)
+    assert sk_ik < sk_raw and sk_ik - sk_in < 0.5 * (sk_raw - sk_in)
+    assert sk_ik < 0.05  # m/s on contact frames
+    assert r.report["foot_ik_max_m"] > 0
 
 
 # --------------------------------------------------------------------------- graph path
