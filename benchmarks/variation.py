@@ -7,7 +7,9 @@ Prints:
    scoring through ``ctx.map``); paper: 0.5-2 h, target <= 2 min;
 2. synthesis time per second of motion before IK (paper 0.1 s, target
    <= 0.01 s), wall and CPU, one variant per call and 15 per call;
-3. quality of 15 variants of the figure-8 walk (``pymo_AV_8Walk...bvh``) against
+3. quality of 15 variants of the figure-8 walk (``pymo_AV_8Walk...bvh``; k,
+   kernel width, sigma and noise correlation time from configs/variation.yaml),
+   their sigma = 0 mean motion and white-noise variants, against
    the inputs and the two noise baselines (strawman: time-warped inputs plus
    smoothed noise; Perlin noise) at matched spatial variation (noise amplitude
    bisected so the mean DTW-aligned distance to the inputs equals ours):
@@ -114,6 +116,16 @@ def _novelty_row(rep) -> str:
             f" ({100 * inside:.0f}% inside) | warp-slope std ratio {wr:.2f}")
 
 
+def _config() -> dict:
+    """``k``, ``kernel_width``, ``sigma`` and ``noise_time`` of configs/variation.yaml."""
+    from mocapflow.pipeline.config import load_config
+
+    c = load_config(Path(__file__).resolve().parents[1] / "configs" / "variation.yaml")
+    learn, sample = c.nodes["learn"].params, c.nodes["sample"].params
+    return {"k": int(learn["k"]), "kernel_width": learn["kernel_width"],
+            "sigma": float(sample["sigma"]), "noise_time": sample["noise_time"]}
+
+
 def main(quick: bool = False) -> None:
     n_var = 5 if quick else 15
     print(f"# variation benchmark ({'quick' if quick else 'full'}); data {DATA}")
@@ -152,10 +164,14 @@ def main(quick: bool = False) -> None:
     if quick:
         walk = _subset(walk, 4, None)
     t0 = time.perf_counter()
-    model = learn_structure(walk)
+    cfg = _config()
+    model = learn_structure(walk, k=cfg["k"], kernel_width=cfg["kernel_width"])
     t_learn = time.perf_counter() - t0
-    sigma = 0.5
-    ours = sample_variants(model, np.random.default_rng(1), count=n_var, sigma=sigma)
+    sigma, nt = cfg["sigma"], cfg["noise_time"]
+    mean_motion = sample_variants(model, np.random.default_rng(1), count=1, sigma=0.0)
+    white = sample_variants(model, np.random.default_rng(1), count=n_var, sigma=sigma)
+    ours = sample_variants(model, np.random.default_rng(1), count=n_var, sigma=sigma,
+                           noise_time=nt)
     L = int(np.median(walk.lengths))
     toes = toe_indices(walk.skeleton)
     pin = np.concatenate([motion_positions(m) for m in clips_to_motions(walk)])
@@ -167,7 +183,9 @@ def main(quick: bool = False) -> None:
 
     rep_ours = novelty_report(ours.trajectories, walk.trajectories, cyclic=True)
     d_ours = np.array(rep_ours["aligned_distance"])
-    rows = [("inputs", walk, None), (f"ours (sigma {sigma})", ours, None)]
+    rows = [("inputs", walk, None), ("ours mean motion (sigma 0)", mean_motion, None),
+            (f"ours, white noise as the paper (sigma {sigma})", white, None),
+            (f"ours (sigma {sigma}, noise_time {nt} s)", ours, None)]
     t0 = time.perf_counter()
     ours_ik, ik_rep = solve_ik(ours, ctx=Context())
     t_ik = time.perf_counter() - t0
@@ -180,6 +198,7 @@ def main(quick: bool = False) -> None:
         a = matched_amplitude(make, dist, float(d_ours.mean()), iterations=7 if quick else 10)
         rows.append((f"{method} (amplitude {a:.3f} std)", make(a), a))
     print(f"\n## 3. walk quality: {walk.n_clips} cycles of the figure-8 walk, {walk.n_dofs} DOFs;"
+          f" configs/variation.yaml: k {cfg['k']}, kernel_width {cfg['kernel_width']};"
           f" {n_var} variants of {L} frames; learn {t_learn:.0f} s, IK {t_ik:.1f} s")
     print("| motion | jerk p99 (m/s^3) | foot skate (m/s) | DTW dist to inputs (mean +- std) |")
     print("|---|---|---|---|")

@@ -45,6 +45,8 @@ Search
     from earlier frames, so each node's search (addition/deletion) is
     independent and runs in parallel through ``ctx.map``; each greedy step
     scores all neighbouring parent sets of the node in one vectorised batch.
+    Parallel work goes to ``ctx.map`` in ``4 × workers`` round-robin batches of
+    nodes (one task per node is too small to amortise the round trip).
     Scores are cached per (node, parent set), so an edge change re-scores only
     the one or two nodes it touches.  Candidate parents are restricted to the
     ``candidates`` most correlated nodes (the sparse candidate algorithm of
@@ -759,6 +761,29 @@ def _search_transition_node(
     }
 
 
+def _run_batch(items: list, *, fn) -> list:
+    """``[fn(x) for x in items]`` (module level for ``ctx.map``)."""
+    return [fn(x) for x in items]
+
+
+def _map_batched(ctx: Context, fn, items: list, *, per_worker: int = 4) -> list:
+    """``ctx.map(fn, items)`` over ``per_worker × workers`` round-robin batches of the items.
+
+    One task per node is too small to amortise a round trip to a worker (and
+    the pickled training data travels with every task); interleaving keeps
+    the batches balanced when the per-node cost grows along the list.
+    """
+    n = min(len(items), max(1, per_worker * int(getattr(ctx, "workers", 1) or 1)))
+    if n <= 1 or ctx.mapper is None:
+        return ctx.map(fn, items)
+    batches = [items[b::n] for b in range(n)]
+    done = ctx.map(functools.partial(_run_batch, fn=fn), batches)
+    out: list = [None] * len(items)
+    for b, res in enumerate(done):
+        out[b::n] = res
+    return out
+
+
 def _prior_single_scores(v_cands: tuple[int, list[int]], *, data: PriorData) -> dict:
     """Scores of node ``v`` with no parent and with each single candidate parent."""
     v, cands = v_cands
@@ -1021,7 +1046,7 @@ def learn_structure(
     fn = functools.partial(
         _search_transition_node, data=tdata, max_parents=max_parents, score=score
     )
-    results = ctx.map(fn, items)
+    results = _map_batched(ctx, fn, items)
     t_parents = [r["parents"] for r in results]
     t_scores = np.array([r["score"] for r in results])
     t_band = np.array([r["bandwidth"] for r in results])
@@ -1035,7 +1060,9 @@ def learn_structure(
         _top_candidates(pdata.Z[:, v], pdata.Z, [u for u in range(n2) if u != v], candidates)
         for v in range(n2)
     ]
-    singles = ctx.map(functools.partial(_prior_single_scores, data=pdata), list(enumerate(p_cands)))
+    singles = _map_batched(
+        ctx, functools.partial(_prior_single_scores, data=pdata), list(enumerate(p_cands))
+    )
     cache: dict = {}
     for v, sc in enumerate(singles):
         for P, s in sc.items():
