@@ -493,11 +493,8 @@ def solve_ik(
                         errs[sk.names[e]].append(err_k)
                         if ok:
                             reached[sk.names[e]].append(err_k)
-        for u in unreachable:
-            ctx.warn(
-                f"{clips.names[c]}: frame {u['frame']}: target of {', '.join(u['effectors'])} "
-                f"unreachable (best effort, {u['error'] * 1000:.1f} mm off)"
-            )
+        if unreachable:
+            ctx.warn(_unreachable_summary(clips.names[c], unreachable))
         out_trajs.append(new[:, clips.varying])
         report["clips"].append(
             {
@@ -595,3 +592,28 @@ def ik(
         max_iter=max_iter, ctx=ctx,
     )
     return {"variants": cleaned, "report": report}
+
+
+def _frame_ranges(frames: list[int]) -> str:
+    """``[3, 4, 5, 9]`` → ``"frames 3-5, frame 9"``."""
+    frames = sorted(set(frames))
+    runs: list[list[int]] = []
+    for f in frames:
+        if runs and f == runs[-1][-1] + 1:
+            runs[-1].append(f)
+        else:
+            runs.append([f])
+    return ", ".join(f"frame {r[0]}" if len(r) == 1 else f"frames {r[0]}-{r[-1]}" for r in runs)
+
+
+def _unreachable_summary(name: str, unreachable: list[dict[str, Any]]) -> str:
+    """One warning per clip: the unreachable frames per effector set and the worst miss."""
+    by_effectors: dict[str, list[dict[str, Any]]] = {}
+    for u in unreachable:
+        by_effectors.setdefault(", ".join(u["effectors"]), []).append(u)
+    parts = [
+        f"{eff} at {_frame_ranges([u['frame'] for u in us])} "
+        f"(up to {max(u['error'] for u in us) * 1000:.1f} mm off)"
+        for eff, us in by_effectors.items()
+    ]
+    return f"{name}: target unreachable, best effort: {'; '.join(parts)}"
