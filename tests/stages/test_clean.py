@@ -1,0 +1,322 @@
+"""The clean stage (Park & Hodgins 2006 §4): merge, PCA fill, local-frame smoothing."""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mocapflow.pipeline import Context
+from mocapflow.pipeline.codecs import decode, encode
+from mocapflow.stages.clean import (
+    STATUS,
+    CleanError,
+    _smooth_run,
+    clean,
+    clean_markers,
+    predict_missing,
+    smooth_local,
+)
+from mocapflow.stages.data import Markers, Mesh
+from mocapflow.stages.kinematics import quat_from_rotvec, quat_to_matrix
+from mocapflow.stages.simulate.capture import (
+    gap_mask,
+    region_errors,
+    score_merges,
+    simulate_dense_capture,
+)
+from mocapflow.stages.surface import SurfaceFileError, build_marker_surface
+
+DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+NOISE = 0.0003
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate_dense_capture(n_markers=120, n_frames=200, motion="walk", rng=0,
+                                  body_vertices=1500, noise=NOISE)
+
+
+@pytest.fixture(scope="module")
+def cleaned(sim):
+    ctx = Context(part="sim")
+    out, rep, surf = clean_markers(sim.markers, ctx=ctx)
+    return out, rep, surf, ctx
+
+
+def perfectly_merged(sim) -> Markers:
+    m, tr = sim.markers, sim.truth
+    obs = m.positions.copy()
+    fv = np.isfinite(m.fragments).all(-1)
+    for u in np.flatnonzero(tr["fragment_marker"] >= 0):
+        obs[fv[:, u], tr["fragment_marker"][u]] = m.fragments[fv[:, u], u]
+    return m.replace(positions=obs, fragments=np.zeros((m.n_frames, 0, 3)), fragment_labels=[])
+
+
+# --------------------------------------------------------------------------- Table 1 / 2
+
+
+def test_table1_merges_without_mistakes(sim, cleaned):
+    out, rep, surf, ctx = cleaned
+    m, tr = sim.markers, sim.truth
+    sc = score_merges(rep["merges"], m.fragment_labels, tr["fragment_marker"], m.labels)
+    assert sc["wrong"] == 0 and sc["ghosts_merged"] == 0
+    assert sc["merged"] >= 0.9 * sc["mergeable"]
+    t1 = rep["table1"]
+    U = m.fragments.shape[1]
+    assert t1["fragments_before"] == m.n_markers + U
+    assert t1["fragments_after"] == m.n_markers + U - sc["merged"]
+    assert out.fragments.shape[1] == U - sc["merged"]
+    # holes: what is still missing after merging; all of them filled
+    assert t1["holes"] == int((rep["status"] != STATUS["observed"]).sum()
+                              - (rep["status"] == STATUS["merged"]).sum())
+    assert t1["left_unfilled"] == 0 and np.isfinite(out.positions).all()
+    assert not rep["never_visible"] and not rep["too_few_neighbours"]
+    assert ctx.warnings == []
+
+
+def test_cleaned_capture_is_close_to_the_truth(sim, cleaned):
+    out, rep, surf, _ = cleaned
+    tr = sim.truth
+    st = rep["status"]
+    err = np.linalg.norm(out.positions - tr["positions"], axis=-1)
+    raw = np.linalg.norm(sim.markers.positions - tr["positions"], axis=-1)[st == 0]
+    # measured samples: the local-frame smoother removes noise (raw mean ~0.48 mm)
+    assert err[st == 0].mean() < 0.85 * raw.mean()
+    assert err[st <= 1].max() < 8 * NOISE
+    # filled occlusion holes, normalised by the mean neighbour distance (~12 cm here)
+    e = region_errors(out.positions, tr["positions"], st == STATUS["filled"], tr["region"],
+                      surf.mean_distance)["all"]
+    assert e["unfilled"] == 0 and e["mean"] < 0.1 and e["max"] < 0.4
+
+
+def test_table2_gaps_in_known_data(sim):
+    base = perfectly_merged(sim)
+    tr = sim.truth
+    rng = np.random.default_rng(5)
+    mask = gap_mask(base.visible, tr["reference_pose"], rate=base.rate, duration=0.5,
+                    fraction=0.1, clustered=False, rng=rng)
+    assert mask.sum() > 400
+    gapped = base.replace(positions=np.where(mask[..., None], np.nan, base.positions))
+    out, rep, surf = clean_markers(gapped, merge=False, ctx=Context())
+    e = region_errors(out.positions, tr["positions"], mask, tr["region"], surf.mean_distance)
+    assert e["all"]["unfilled"] == 0
+    assert e["all"]["mean"] < 0.03 and e["all"]["max"] < 0.15
+    assert e["all"]["mean_mm"] < 4.0
+
+
+# --------------------------------------------------------------------------- exact cases
+
+
+def rigid_capture(F: int = 60, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Markers on a rigid curved patch turning and translating: (F, M, 3), rest (M, 3)."""
+    rng = np.random.default_rng(seed)
+    u, v = np.meshgrid(np.linspace(-0.15, 0.15, 7), np.linspace(-0.15, 0.15, 7))
+    rest = np.stack([u.ravel(), v.ravel(), 0.5 * (u.ravel() ** 2 + v.ravel() ** 2)], 1)
+    rest += rng.normal(0, 0.004, rest.shape)
+    rv = np.cumsum(rng.normal(0, 0.05, (F, 3)), axis=0)
+    R = quat_to_matrix(quat_from_rotvec(rv))
+    t = np.cumsum(rng.normal(0, 0.01, (F, 3)), axis=0)
+    return np.einsum("fij,mj->fmi", R, rest) + t[:, None], rest
+
+
+def test_rigid_motion_is_predicted_and_filled_exactly():
+    P, rest = rigid_capture()
+    F, M, _ = P.shape
+    gapped = P.copy()
+    rng = np.random.default_rng(1)
+    holes = rng.random((F, M)) < 0.15
+    holes[0] = False  # a complete reference frame
+    gapped[holes] = np.nan
+    surf = build_marker_surface(P[0], positions=gapped)
+    E = predict_missing(gapped, P[0], surf.neighbours, rigidity=surf.rigidity)
+    ok = holes & np.isfinite(E).all(-1)
+    assert ok.sum() > 0.95 * holes.sum()
+    assert np.abs(E[ok] - P[ok]).max() < 1e-9
+    m = Markers(gapped, [f"p{i}" for i in range(M)], 100.0)
+    out, rep, _ = clean_markers(m, merge=False, smooth_iterations=0, ctx=Context())
+    assert rep["table1"]["left_unfilled"] == 0
+    assert np.abs(out.positions - P).max() < 1e-6
+
+
+def test_fragments_of_a_rigid_patch_are_merged_back():
+    P, rest = rigid_capture(F=80, seed=2)
+    F, M, _ = P.shape
+    pos = P.copy()
+    frags = []
+    truth = []
+    rng = np.random.default_rng(3)
+    starts = []
+    for m in rng.choice(M, 12, replace=False):
+        a = int(rng.integers(5, 60))
+        starts.append(a)
+        b = a + int(rng.integers(3, 15))
+        pos[a:, m] = np.nan  # labelled run ends at a
+        for lo, hi in ((a + 2, b), (b + 3, F)):  # two unlabelled pieces after short gaps
+            f = np.full((F, 3), np.nan)
+            f[lo:hi] = P[lo:hi, m]
+            frags.append(f)
+            truth.append(m)
+    ghost = np.full((F, 3), np.nan)
+    a0 = starts[0]  # in the first marker's 2-frame hole (which stays a hole), 30 cm away
+    ghost[a0:a0 + 2] = P[a0:a0 + 2, truth[0]] + [0.3, 0, 0]
+    frags.append(ghost)
+    truth.append(-1)
+    fr = np.stack(frags, axis=1)
+    labels = [f"p{i}" for i in range(M)]
+    m = Markers(pos, labels, 100.0, fragments=fr,
+                fragment_labels=[f"*{u + 1}" for u in range(fr.shape[1])])
+    out, rep, _ = clean_markers(m, smooth_iterations=0, ctx=Context())
+    sc = score_merges(rep["merges"], m.fragment_labels, np.array(truth), labels)
+    assert sc["wrong"] == 0 and sc["merged"] == len(truth) - 1
+    rej = {r["fragment"]: r["reason"] for r in rep["rejections"]}
+    assert list(rej) == [f"*{len(truth)}"] and "eps1" in rej[f"*{len(truth)}"]
+    merged = rep["status"] == STATUS["merged"]
+    assert np.abs(out.positions[merged] - P[merged]).max() < 1e-12
+    assert np.abs(out.positions - P).max() < 1e-6  # the short gaps filled exactly
+
+
+def test_smoother_keeps_lines_and_removes_noise():
+    t = np.linspace(0, 1, 50)[:, None]
+    line = np.hstack([t, 2 * t, -t])
+    assert np.abs(_smooth_run(line, 0.1, 20) - line).max() < 1e-12
+    rng = np.random.default_rng(0)
+    noisy = line + rng.normal(0, 0.01, line.shape)
+    out = _smooth_run(noisy, 0.1, 20)
+    assert np.std(out - line) < 0.7 * np.std(noisy - line)
+
+
+def test_smoothing_in_the_local_frame_keeps_fast_rigid_motion():
+    P, rest = rigid_capture(F=120)
+    # fast spin: smoothing global coordinates would cut corners, the local frame does not
+    R = quat_to_matrix(quat_from_rotvec(np.outer(np.linspace(0, 6 * np.pi, 120), [0, 0, 1])))
+    P = np.einsum("fij,fmj->fmi", R, P)
+    rng = np.random.default_rng(4)
+    noisy = P + rng.normal(0, NOISE, P.shape)
+    surf = build_marker_surface(noisy[0], positions=noisy)
+    out = smooth_local(noisy, surf, smooth_lambda=0.1, smooth_iterations=10)
+    assert np.linalg.norm(out - P, axis=-1).mean() < 0.8 * np.linalg.norm(noisy - P,
+                                                                              axis=-1).mean()
+
+
+# --------------------------------------------------------------------------- failure paths
+
+
+def test_never_visible_marker_stays_nan_with_a_warning(sim):
+    base = perfectly_merged(sim)
+    pos = base.positions.copy()
+    pos[:, 7] = np.nan
+    ctx = Context()
+    out, rep, _ = clean_markers(base.replace(positions=pos), ctx=ctx)
+    lab = base.labels[7]
+    assert rep["never_visible"] == [lab]
+    assert any("never visible" in w and lab in w for w in ctx.warnings)
+    assert not np.isfinite(out.positions[:, 7]).any()
+    assert (rep["status"][:, 7] == STATUS["missing"]).all()
+    others = np.delete(np.arange(base.n_markers), 7)
+    assert np.isfinite(out.positions[:, others]).all()
+
+
+def test_markers_with_fewer_than_three_neighbours(tmp_path):
+    P, rest = rigid_capture(F=40)
+    M = P.shape[1]
+    # the surface file: an isolated triangle (p0, p1, p2), the rest automatic-like strips
+    surf = build_marker_surface(P[0])
+    faces = [f for f in surf.faces.tolist() if not set(f) & {0, 1, 2}]
+    faces.append([0, 1, 2])
+    path = tmp_path / "surface.txt"
+    path.write_text("\n".join(" ".join(f"p{i}" for i in f) for f in faces))
+    pos = P.copy()
+    pos[10:20, 1] = np.nan
+    pos[10:20, 30] = np.nan
+    ctx = Context()
+    out, rep, _ = clean_markers(Markers(pos, [f"p{i}" for i in range(M)], 100.0),
+                                surface=str(path), smooth_iterations=0, ctx=ctx)
+    assert rep["too_few_neighbours"] == ["p0", "p1", "p2"]
+    assert any("fewer than 3" in w and "p1" in w for w in ctx.warnings)
+    assert not np.isfinite(out.positions[10:20, 1]).any()  # nothing invented
+    assert np.abs(out.positions[10:20, 30] - P[10:20, 30]).max() < 1e-6
+    assert rep["unfillable_markers"] == ["p1"] and rep["surface"]["source"] == "surface.txt"
+
+
+def test_reference_frame_with_missing_markers(sim):
+    base = perfectly_merged(sim)
+    tr = sim.truth
+    pos = base.positions.copy()
+    frame = 150
+    gone = [3, 40, 77]
+    pos[frame - 5: frame + 5, gone] = np.nan
+    ctx = Context()
+    out, rep, surf = clean_markers(base.replace(positions=pos), reference_frame=frame, ctx=ctx)
+    assert rep["reference_frame"] == frame
+    carried = [base.labels.index(lb) for lb in rep["reference_carried_over"]]
+    missing = np.flatnonzero(~np.isfinite(pos[frame]).all(1))
+    assert sorted(carried) == sorted(missing) and set(gone) <= set(carried)
+    assert any("missing in reference frame" in w and base.labels[40] in w for w in ctx.warnings)
+    # carried-over reference positions are those of the marker at that frame
+    # (a rigid fit of its 6 nearest markers from the nearest frame where it was seen)
+    d = np.linalg.norm(surf.reference[carried] - tr["positions"][frame, carried], axis=1)
+    near = np.array([abs(g - frame) <= 10 for g in rep["reference_carried_over"].values()])
+    assert d[near].max() < 0.01 and d.max() < 0.05
+    err = np.linalg.norm(out.positions[frame - 5: frame + 5, gone]
+                         - tr["positions"][frame - 5: frame + 5, gone], axis=-1)
+    assert err.max() < 0.02
+
+
+def test_bad_requests(tmp_path, sim):
+    m = sim.markers
+    with pytest.raises(CleanError, match="reference_frame 500 out of range"):
+        clean_markers(m, reference_frame=500)
+    with pytest.raises(CleanError, match="alpha1 and alpha2 must be positive"):
+        clean_markers(m, alpha1=0.0)
+    with pytest.raises(CleanError, match="variance"):
+        clean_markers(m, variance=1.5)
+    bad = tmp_path / "surf.txt"
+    bad.write_text(f"{m.labels[0]} {m.labels[1]} NOPE\n")
+    with pytest.raises(SurfaceFileError, match=r"surf\.txt:1.*'NOPE'"):
+        clean_markers(m, surface=str(bad))
+    empty = Markers(np.zeros((0, 0, 3)), [], 100.0)
+    with pytest.raises(CleanError, match="no labelled markers"):
+        clean_markers(empty)
+
+
+# --------------------------------------------------------------------------- stage contract
+
+
+def test_stage_outputs_store_and_parallel_map_agrees(sim):
+    m = sim.markers
+    seq = clean(m, ctx=Context(part="x"))
+    with ThreadPoolExecutor(2) as pool:
+        ctx = Context(part="x", mapper=lambda fn, items: list(pool.map(fn, items)), workers=2)
+        par = clean(m, ctx=ctx)
+    assert np.array_equal(seq["markers"].positions, par["markers"].positions, equal_nan=True)
+    assert seq["report"]["merges"] == par["report"]["merges"]
+    for key in ("markers", "report", "surface"):
+        back = decode(encode(seq[key]))
+        if key == "report":
+            assert np.array_equal(back["status"], seq["report"]["status"])
+            assert back["table1"] == seq["report"]["table1"]
+    surf = seq["surface"]
+    assert isinstance(surf, Mesh) and surf.attrs["labels"] == m.labels
+    assert surf.vertices.shape == (m.n_markers, 3)
+
+
+@pytest.mark.skipif(not (DATA / "c3d").exists(), reason="no shared data")
+def test_real_fragmented_pig_file():
+    from mocapflow.stages.formats.c3d import read_c3d
+
+    m = read_c3d(DATA / "c3d" / "btkdata_PiG_Calibration-FlatFoot-Hole.c3d")
+    out, rep, _ = clean_markers(m, ctx=Context())
+    # 64 fragments appear while every labelled marker is present: duplicates/ghosts;
+    # *65 and *66 (frames 292-298, during RASI's hole) lie 1.8 m from RASI's prediction
+    assert rep["merges"] == []
+    reasons = {r["fragment"]: r["reason"] for r in rep["rejections"]}
+    assert sum(r.startswith("overlaps every marker") for r in reasons.values()) == 64
+    assert reasons["*65"].startswith("entry") and "RASI" in reasons["*65"]
+    rasi = m.labels.index("RASI")
+    hole = ~m.visible[:, rasi]
+    assert hole.sum() == 9 and np.isfinite(out.positions[hole, rasi]).all()
+    # the hole sits at the end: the filled RASI continues its last measured position
+    assert np.linalg.norm(out.positions[291, rasi] - m.positions[290, rasi]) < 0.01

@@ -1,0 +1,133 @@
+"""Off-screen rendering, video and mesh exporters."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mocapflow.pipeline import Context
+from mocapflow.pipeline.codecs import decode, encode, find_exporter
+from mocapflow.stages.data import Mesh
+from mocapflow.stages.deform import deform
+from mocapflow.stages.render import (
+    RenderError,
+    Video,
+    export_mesh,
+    export_video,
+    offscreen_available,
+    render,
+    render_error,
+    render_modes,
+    write_ply,
+)
+from mocapflow.stages.segment import segment
+from tests.stages.test_segment import limb_capture
+
+OK, WHY = offscreen_available()
+needs_gl = pytest.mark.skipif(not OK, reason=f"no off-screen OpenGL context here: {WHY}")
+
+
+@pytest.fixture(scope="module")
+def limb():
+    d = limb_capture(n_frames=24, mesh=(24, 30))
+    d["markers"] = d["markers"].replace(rate=24.0)
+    d["seg"] = segment(d["markers"], d["surface"], ctx=Context())["segmentation"]
+    d["deformed"] = deform(d["markers"], d["seg"], d["mesh"], ctx=Context())["mesh"]
+    return d
+
+
+def test_module_import_is_cheap():
+    code = (
+        "import sys, mocapflow.stages.render; "
+        "print([m for m in ('pyvista', 'vtk', 'imageio', 'matplotlib') if m in sys.modules])"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_video_codec_round_trip_and_validation():
+    v = Video(np.arange(2 * 4 * 6 * 3, dtype=np.uint8).reshape(2, 4, 6, 3), 12.5, {"k": 1})
+    back = decode(encode(v))
+    assert isinstance(back, Video) and np.array_equal(back.frames, v.frames)
+    assert back.rate == 12.5 and back.attrs == {"k": 1}
+    with pytest.raises(ValueError, match="uint8"):
+        Video(np.zeros((2, 4, 6, 3)), 10.0)
+    assert find_exporter("video") is export_video and find_exporter("mesh") is export_mesh
+
+
+def test_ply_writer_round_trip(tmp_path, limb):
+    pv = pytest.importorskip("pyvista")
+    V, F = limb["mesh"].vertices, limb["mesh"].faces
+    p = write_ply(V, F, tmp_path / "m.ply")
+    back = pv.read(str(p))
+    assert np.allclose(back.points, V, atol=1e-7)
+    assert np.array_equal(back.faces.reshape(-1, 4)[:, 1:], F)
+
+
+def test_mesh_exporter_writes_series(tmp_path, limb):
+    pv = pytest.importorskip("pyvista")
+    m = limb["deformed"]
+    files = export_mesh(m, tmp_path, "skin")
+    n = m.vertices.shape[0]
+    assert files[0].name == "skin.pvd" and len(files) == 1 + 2 * n
+    series = pv.get_reader(str(tmp_path / "skin.pvd"))
+    assert len(series.time_values) == n
+    assert series.time_values[1] == pytest.approx(1 / m.rate)
+    series.set_active_time_point(5)
+    assert np.allclose(series.read()[0].points, m.vertices[5])
+    static = export_mesh(limb["mesh"], tmp_path, "rest")
+    assert sorted(p.suffix for p in static) == [".ply", ".vtp"]
+    assert np.allclose(pv.read(str(tmp_path / "rest.vtp")).points, limb["mesh"].vertices)
+
+
+@needs_gl
+def test_render_writes_png_and_mp4(tmp_path, limb):
+    imageio = pytest.importorskip("imageio.v2")
+    out = render(limb["deformed"], limb["markers"], width=160, height=128, stride=4,
+                 view="side", ctx=Context())  # fmt: skip
+    v = out["video"]
+    assert v.frames.shape == (6, 128, 160, 3) and v.rate == pytest.approx(6.0)
+    img = v.frames[2].astype(int)
+    white = (img > 245).all(-1)
+    assert 0.5 < white.mean() < 0.99  # background plus a body
+    blue = (img[..., 2] > img[..., 0] + 60) & (img[..., 2] > 120)
+    assert blue.sum() > 20  # marker overlay (blue spheres)
+    files = export_video(v, tmp_path, "skin")
+    mp4 = tmp_path / "skin.mp4"
+    assert files[0] == mp4 and mp4.stat().st_size > 1000
+    assert len(files) == 1 + 6 and all(p.stat().st_size > 100 for p in files[1:])
+    reader = imageio.get_reader(mp4)
+    frames = [f for f in reader]
+    reader.close()
+    assert len(frames) == 6 and frames[0].shape == (128, 160, 3)
+    assert np.abs(frames[2].astype(int) - v.frames[2]).mean() < 8  # lossy but the same picture
+    assert np.array_equal(imageio.imread(files[3]), v.frames[2])  # PNG is lossless
+    with pytest.raises(RenderError, match="frames"):
+        render(limb["deformed"], limb["markers"].replace(positions=limb["markers"].positions[:3]),
+               ctx=Context())  # fmt: skip
+
+
+@needs_gl
+def test_render_modes_and_error_map(limb):
+    out = render_modes(limb["markers"], limb["seg"], limb["mesh"], width=96, height=128,
+                       stride=8, ctx=Context())  # fmt: skip
+    assert out["video"].frames.shape == (3, 128, 4 * 96, 3)
+    assert out["report"]["modes"] == ["rigid", "quadratic", "rigid_residual", "quadratic_residual"]
+    panels = np.split(out["video"].frames[1].astype(int), 4, axis=1)
+    assert all((p < 200).any() for p in panels)  # every panel shows something
+    with pytest.raises(RenderError, match="unknown modes"):
+        render_modes(limb["markers"], limb["seg"], limb["mesh"], modes=["cubic"], ctx=Context())
+    truth = Mesh(limb["truth"], limb["mesh"].faces, rate=24.0)
+    err = render_error(limb["deformed"], truth, width=96, height=96, stride=12, clim_mm=2.0,
+                       ctx=Context())  # fmt: skip
+    direct = np.linalg.norm(limb["deformed"].vertices - limb["truth"], axis=-1) * 1000
+    assert err["report"]["mean_mm"] == pytest.approx(direct.mean())
+    assert err["report"]["p95_mm"] == pytest.approx(np.percentile(direct, 95))
+    assert err["video"].frames.shape == (2, 96, 96, 3)
+    # colour varies across the body: the heat map is not a flat colour
+    img = err["video"].frames[1].reshape(-1, 3).astype(int)
+    body = img[(img < 240).any(1)]
+    assert len(np.unique(body // 16, axis=0)) > 5
