@@ -1,4 +1,4 @@
-"""Marker surface (Park & Hodgins 2006 §4.1): triangulation, one-ring, local frames, override file."""
+"""Marker surface (Park & Hodgins 2006 §4.1): triangulation, one-ring, local frames, overrides."""
 
 from __future__ import annotations
 
