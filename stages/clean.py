@@ -84,6 +84,7 @@ __all__ = [
     "MAX_CORRECTION_SIGMA",
     "MIN_NEIGHBOURS",
     "NEIGHBOUR_MODEL_WEIGHT",
+    "RIGID_ANCHOR",
         "STATUS",
     "LocalPCA",
     "choose_reference_frame",
@@ -117,6 +118,10 @@ MAX_CORRECTION_SIGMA = 2.0
 #: Default weight of the neighbours' model estimates relative to the marker's own
 #: model in the §4.3 average (see :func:`fill_holes`).
 NEIGHBOUR_MODEL_WEIGHT = 0.1
+
+#: A rigid fit is trusted when its third most rigid point has at least this
+#: rigidity weight (three points that move with the marker).
+RIGID_ANCHOR = 0.2
 
 #: Codes of the ``status`` array in the clean report.
 STATUS = {"missing": -1, "observed": 0, "merged": 1, "filled": 2}
@@ -389,7 +394,8 @@ def predict_missing(
         0 for observed samples, ``1 + `` the largest depth among the neighbours
         used (1: predicted from observed neighbours only); -1 where not predicted.
     support : (F, M) float ndarray, only with ``return_depth``
-        Sum of the rigidity weights of the neighbours used.
+        The third largest rigidity weight among the neighbours used (a rigid
+        fit needs 3 points that move with the marker).
     """
     F, M, _ = positions.shape
     X = positions.copy()
@@ -423,7 +429,7 @@ def predict_missing(
         ok = np.isfinite(p).all(1)
         used = avail[f[:, None], nb[m]] & nbv[m]
         d = np.where(used, depth[f[:, None], nb[m]], 0).max(1) + 1
-        sup = (used * (1.0 if rigidity is None else rigidity[m])).sum(1)
+        sup = _third_anchor(used * (1.0 if rigidity is None else rigidity[m]))
         X[f[ok], m[ok]] = p[ok]
         est[f[ok], m[ok]] = p[ok]
         depth[f[ok], m[ok]] = d[ok]
@@ -533,7 +539,7 @@ def _judge_fragment(
     cands = np.flatnonzero(free)
     if len(cands) == 0:
         return {"reason": "overlaps every marker (no marker is missing in all its frames)"}
-    d = np.linalg.norm(frag[:, None] - E[T][:, cands], axis=-1)  # (|T|, C)
+    d = np.linalg.norm(frag[:, None] - E[T[:, None], cands[None]], axis=-1)  # (|T|, C)
     have = np.isfinite(d)
     checkable = have.sum(0) >= max(1, int(np.ceil(0.5 * len(T))))
     if not checkable.any():
@@ -579,7 +585,7 @@ def _judge_fragment(
     others = cands[cands != m]
     if len(others):
         sub = np.unique(np.linspace(0, len(T) - 1, min(len(T), 16)).round().astype(int))
-        da = np.linalg.norm(frag[sub][:, None] - E_all[T[sub]][:, others], axis=-1)
+        da = np.linalg.norm(frag[sub][:, None] - E_all[T[sub][:, None], others[None]], axis=-1)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             da_mean = np.nanmean(da, axis=0)
@@ -607,7 +613,7 @@ def merge_fragments(
     competitors: np.ndarray | None = None,
     depths: tuple[int, ...] = (1, 2, 3),
     rounds_per_level: int = 4,
-    min_support: float = 2.0,
+    min_support: float = RIGID_ANCHOR,
     ctx: Context | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Merge unlabelled fragments into labelled markers (Park & Hodgins §4.2).
@@ -647,7 +653,7 @@ def merge_fragments(
     rounds_per_level : int
         Rounds at most per depth level.
     min_support : float
-        Predictions whose neighbours' rigidity weights sum to less are not
+        Predictions whose third most rigid neighbour weighs less are not
         trusted either.
     ctx : Context, optional
         For the parallel prediction (frame chunks through ``ctx.map``).
@@ -931,8 +937,8 @@ def model_estimates(
     iterations : int
         Pose refits.
     min_support : float
-        Frames whose visible members' weights sum to less are skipped (left to
-        a later pass, when more members are available).
+        Frames whose third most rigid visible member weighs less are skipped
+        (left to a later pass, when more members are available).
     neighbour_weight : float
         Weight of the estimates of the model's neighbours (times their
         rigidity) relative to the estimate of its own marker (1).
@@ -951,7 +957,7 @@ def model_estimates(
     vis = np.isfinite(Xm).all(-1)
     tgt = targets[:, mem] & ~vis
     mw = model.weights
-    support = (vis * mw).sum(1)
+    support = _third_anchor(vis * mw)
     rows = np.flatnonzero(tgt.any(1) & (vis.sum(1) >= MIN_NEIGHBOURS) & (support >= min_support))
     if len(rows) == 0:
         return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
@@ -983,6 +989,35 @@ def model_estimates(
     return rows[f[ok]], mem[j[ok]], e[ok], wgt
 
 
+def _third_anchor(w: np.ndarray) -> np.ndarray:
+    """Third largest weight along the last axis (0 with fewer than 3)."""
+    if w.shape[-1] < 3:
+        return np.zeros(w.shape[:-1])
+    return -np.partition(-w, 2, axis=-1)[..., 2]
+
+
+def _interpolate_interior(X: np.ndarray, measured: np.ndarray, holes: np.ndarray,
+                          support: int) -> int:
+    """Cubic interpolation (in place) of interior holes still empty, from up to
+    ``support`` measured samples on each side; returns the samples filled."""
+    from scipy.interpolate import CubicSpline
+
+    obs = np.isfinite(measured).all(-1)
+    todo = holes & ~np.isfinite(X).all(-1)
+    n = 0
+    for m in np.flatnonzero(todo.any(0)):
+        d = np.diff(np.concatenate([[0], todo[:, m].astype(np.int8), [0]]))
+        for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)):
+            left = np.flatnonzero(obs[:a, m])[-support:]
+            right = b + np.flatnonzero(obs[b:, m])[:support]
+            if len(left) < 2 or len(right) < 2:
+                continue  # an edge hole: nothing to interpolate between
+            idx = np.concatenate([left, right])
+            X[a:b, m] = CubicSpline(idx, measured[idx, m], axis=0)(np.arange(a, b))
+            n += b - a
+    return n
+
+
 def _train_chunk(item: tuple) -> list[LocalPCA]:
     X, specs, reference, frames, variance = item
     return [
@@ -1006,8 +1041,10 @@ def fill_holes(
     *,
     variance: float = 0.99,
     max_passes: int = 12,
-    min_support: float = 2.0,
+    min_support: float = RIGID_ANCHOR,
+    interpolate: int = 10,
     models: list[LocalPCA] | None = None,
+    frames: np.ndarray | None = None,
     neighbour_weight: float = NEIGHBOUR_MODEL_WEIGHT,
     ctx: Context | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -1024,13 +1061,17 @@ def fill_holes(
         Passes; later passes fill the holes whose models saw too few members
         from the estimates of earlier passes.
     min_support : float
-        A model estimates a frame only when its visible members' rigidity
-        weights sum to at least this (about that many members moving rigidly
-        with the marker); once no pass makes progress, any 3 visible members
-        will do.
+        A model estimates a frame only when at least 3 visible members have a
+        rigidity weight of at least this (3 points that move with the marker).
+        When no pass makes progress any more, interior holes are interpolated
+        in time (cubic, ``interpolate`` samples on each side) and then any 3
+        visible members will do (so every sample with 3 visible neighbours is
+        filled).
     models : list of LocalPCA, optional
         Models trained before (``info["model_list"]`` of an earlier call) to
         re-use instead of training.
+    frames : (F,) bool ndarray, optional
+        Fill only these frames (e.g. where fragments wait to be judged).
     neighbour_weight : float
         Weight of a neighbour's model estimate (times the neighbour's rigidity)
         in the average, the marker's own model weighing 1.  The paper averages
@@ -1048,7 +1089,7 @@ def fill_holes(
         full one-ring saw 3), ``models`` (counts per kind, mean components),
         ``fillable`` (markers that may be filled), ``model_list`` (the models),
         ``pass`` (``(F, M)`` int8: the pass that filled each sample, 0 = not by
-        a model).
+        a model, -1 = interpolated in time), ``interpolated`` (samples).
     """
     ctx = ctx or Context()
     X = positions.copy()
@@ -1057,6 +1098,8 @@ def fill_holes(
     fillable = np.isfinite(surface.reference).all(1) & (nbc >= MIN_NEIGHBOURS)
     obs = np.isfinite(X).all(-1)
     holes = ~obs & fillable[None, :]
+    if frames is not None:
+        holes &= np.asarray(frames, bool)[:, None]
     info: dict[str, Any] = {"filled_by_pass": [], "fillable": int(fillable.sum())}
     if not holes.any():
         info["models"] = {}
@@ -1112,6 +1155,10 @@ def fill_holes(
         if n_new == 0:
             if support == 0:
                 break
+            # holes no rigid neighbourhood can reach: the marker's own trajectory
+            n_int = _interpolate_interior(X, positions, holes, interpolate)
+            info["interpolated"] = n_int
+            fill_pass[(holes & np.isfinite(X).all(-1)) & (fill_pass == 0)] = -1
             support = 0.0  # last resort: any 3 visible members
     # rigid fallback (the §4.2 predictor) where the one-ring sees >= 3 observed markers
     todo2 = holes & ~np.isfinite(X).all(-1)
@@ -1254,7 +1301,7 @@ def clean_markers(
     surface: str | None = None,
     merge: bool = True,
     fill: bool = True,
-    pca_merge_rounds: int = 2,
+    pca_merge_rounds: int = 3,
     ctx: Context | None = None,
 ) -> tuple[Markers, dict[str, Any], MarkerSurface]:
     """Clean a capture: merge, fill, smooth; see :func:`clean` for the parameters.
@@ -1330,7 +1377,9 @@ def clean_markers(
             if not len(left):
                 break
             # judge the rest against the PCA hole filling of the merged data (§4.3)
-            Xf, finfo0 = fill_holes(X, surf, variance=variance, models=models, ctx=ctx)
+            waiting = np.isfinite(frags[:, left]).all(-1).any(1)
+            Xf, finfo0 = fill_holes(X, surf, variance=variance, models=models, frames=waiting,
+                                    ctx=ctx)
             models = finfo0.get("model_list") or models
             # trust the estimates of the first pass (from measured members) only
             direct = np.where((finfo0["pass"] == 1)[..., None], Xf, np.nan)
