@@ -17,10 +17,12 @@ Rules (see the README's config format):
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from mocapflow.pipeline import registry
 from mocapflow.pipeline.config import ConfigError, GraphConfig, NodeConfig
 
 __all__ = ["Graph", "Task", "build_graph", "part_label"]
@@ -298,7 +300,7 @@ def build_graph(config: GraphConfig, targets: Sequence[str] | None = None) -> Gr
                 else:
                     p = _matcher(up_parts)(part)
                     inputs[iname] = ("task", index[(up, p)], out)
-            params = dict(node.params)
+            params = _resolve_sidecars(node.stage, dict(node.params), inputs)
             seed = params.get("seed") if isinstance(params.get("seed"), int) else 0
             if node.seeds is not None:
                 seed = int(part.rsplit("seed=", 1)[1])  # type: ignore[union-attr]
@@ -310,3 +312,24 @@ def build_graph(config: GraphConfig, targets: Sequence[str] | None = None) -> Gr
             tasks.append(t)
     return Graph(config=config, targets=targets, nodes=order, node_parts=node_parts,
                  tasks=tasks)
+
+
+def _resolve_sidecars(
+    stage: str, params: dict[str, Any], inputs: dict[str, tuple]
+) -> dict[str, Any]:
+    """Fill ``FilePath`` params left ``None`` whose stage declares a sidecar resolver.
+
+    The resolver gets the task's single input file; a resolved path that does not
+    exist is left ``None`` (the stage then reports the missing file itself).
+    """
+    spec = registry.lookup(stage)
+    resolvers = spec.extra.get("sidecars", {}) if spec is not None else {}
+    files = [w[1] for w in inputs.values() if w[0] == "file"]
+    if not resolvers or len(files) != 1:
+        return params
+    for name, resolve in resolvers.items():
+        if params.get(name) is None:
+            path = resolve(files[0])
+            if os.path.isfile(path):
+                params[name] = str(path)
+    return params

@@ -102,6 +102,7 @@ def stage(
     outputs: tuple[str, ...] | list[str],
     version: str | None = None,
     retries: int = 0,
+    sidecars: Mapping[str, Callable[[str], str]] | None = None,
 ) -> Callable[[Callable[..., Mapping[str, Any]]], Callable[..., Mapping[str, Any]]]:
     """Register a function as a stage.
 
@@ -116,6 +117,12 @@ def stage(
         (bump it to invalidate, or keep it to survive a refactor).
     retries : int
         How many times the engine retries a failed task of this stage.
+    sidecars : mapping, optional
+        ``param -> resolver(input_file) -> path`` for ``FilePath`` params whose
+        default is a file found beside the task's input file (an AMC's ASF).
+        When the param is left ``None`` the engine resolves the path while
+        building the graph, so the stage receives it explicitly and the file's
+        content enters the cache key like any declared file.
 
     Returns
     -------
@@ -125,6 +132,11 @@ def stage(
 
     def decorate(func: Callable[..., Mapping[str, Any]]) -> Callable[..., Mapping[str, Any]]:
         spec = _build_spec(func, name or func.__name__, tuple(outputs), version, retries)
+        if sidecars:
+            unknown = set(sidecars) - set(spec.params)
+            if unknown:
+                raise TypeError(f"stage {spec.name!r}: sidecars for unknown params {unknown}")
+            spec.extra["sidecars"] = dict(sidecars)
         previous = _REGISTRY.get(spec.name)
         if previous is not None and (
             previous.module != spec.module or previous.func.__qualname__ != func.__qualname__

@@ -188,7 +188,7 @@ def amc_skeleton_path(amc: str | Path) -> Path:
     return amc.with_name(f"{subject}.asf")
 
 
-@stage("ingest_amc", outputs=("motion",))
+@stage("ingest_amc", outputs=("motion",), sidecars={"asf": lambda amc: str(amc_skeleton_path(amc))})
 def ingest_amc(
     path: FilePath,
     *,

@@ -178,3 +178,34 @@ def test_ingest_amc(ingest_data, tmp_path):
     lonely.write_bytes(amc.read_bytes())
     with pytest.raises(FileNotFoundError, match=r"cmu_99\.asf"):
         ingest_amc(str(lonely), ctx=ctx())
+
+
+def test_default_asf_beside_the_amc_is_part_of_the_cache_key(tmp_path):
+    """The sidecar ASF is resolved into the task's params, so editing it recomputes."""
+    import json
+    import shutil
+    import subprocess
+    import sys
+
+    data = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "bvh"
+    if not (data / "cmu_11.asf").is_file():
+        pytest.skip("shared data not available")
+    for name in ("cmu_11.asf", "cmu_11_01.amc"):
+        shutil.copy(data / name, tmp_path / name)
+    config = tmp_path / "amc.yaml"
+    config.write_text(
+        f"graph: amc\nparts: [{tmp_path / 'cmu_11_01.amc'}]\n"
+        "nodes:\n  ingest:\n    stage: ingest_amc\n    inputs: {path: part}\n"
+    )
+    cmd = [sys.executable, "-m", "mocapflow", "run", str(config), "--store",
+           str(tmp_path / "store"), "--executor", "sync", "-q", "--json"]
+
+    def statuses():
+        out = subprocess.run(cmd, capture_output=True, text=True, check=True).stdout
+        return [t["status"] for t in json.loads(out)["tasks"]]
+
+    assert statuses() == ["computed"]
+    assert statuses() == ["hit"]
+    with open(tmp_path / "cmu_11.asf", "a") as f:
+        f.write("# an edit to the skeleton file\n")
+    assert statuses() == ["computed"]
