@@ -42,11 +42,11 @@ from mocapflow.stages.deform import (
     bind_mesh,
     deform,
     evaluate_part,
-    fit_mesh,
     fit_part,
     prepare_part,
 )
 from mocapflow.stages.kinematics import quat_from_matrix, quat_multiply, quat_rotate
+from mocapflow.stages.mesh_fit import fit_mesh
 from mocapflow.stages.segment import adjusted_rand_index, segment
 from mocapflow.stages.simulate.body import procedural_body, skin, skinning_transforms
 from mocapflow.stages.simulate.capture import SkinDynamics, capture_motion, place_markers

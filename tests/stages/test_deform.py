@@ -19,13 +19,12 @@ from mocapflow.stages.deform import (
     deform,
     dilation,
     evaluate_part,
-    fit_detailed_mesh,
-    fit_mesh,
     fit_part,
     prepare_part,
     quadratic_basis,
     rbf_matrix,
 )
+from mocapflow.stages.mesh_fit import fit_detailed_mesh, fit_mesh
 from mocapflow.stages.segment import Segmentation, part_frames, segment
 from tests.stages.test_segment import deform_limb, grid_cylinder, limb_capture, rot_x, rot_y
 
@@ -335,7 +334,7 @@ def test_quadratic_damping(limb):
 
 
 def test_template_mesh_and_template_frame(limb):
-    from mocapflow.stages.deform import template_mesh
+    from mocapflow.stages.mesh_fit import template_mesh
 
     t = template_mesh(n_vertices=1500, ctx=Context())["mesh"]
     assert 1000 < len(t.vertices) < 2500 and not t.animated

@@ -1,0 +1,311 @@
+"""Merging unlabelled fragments into missing markers (Park & Hodgins 2006, §4.2).
+
+See :mod:`mocapflow.stages.clean` for the whole procedure and where it goes
+beyond the paper.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import numpy as np
+
+from mocapflow.pipeline import Context
+from mocapflow.stages.clean_predict import (
+    MIN_NEIGHBOURS,
+    RIGID_ANCHOR,
+    _predict_parallel,
+    local_targets,
+)
+from mocapflow.stages.surface import (
+    MarkerSurface,
+)
+
+#: A fragment is merged only if every other missing marker's prediction is at
+#: least this many times farther from it (on average over its frames).
+AMBIGUITY_RATIO = 3.0
+
+# --------------------------------------------------------------------------- merging (§4.2)
+
+def nearest_marker_distance(reference: np.ndarray) -> np.ndarray:
+    """``(M,)`` distance from each marker to the nearest other one in the reference pose.
+
+    NaN for markers without reference position.
+    """
+    from scipy.spatial import cKDTree
+
+    out = np.full(len(reference), np.nan)
+    ok = np.flatnonzero(np.isfinite(reference).all(1))
+    if len(ok) >= 2:
+        d, _ = cKDTree(reference[ok]).query(reference[ok], k=2)
+        out[ok] = d[:, 1]
+    return out
+
+
+
+
+
+def _judge_fragment(
+    frag: np.ndarray,
+    T: np.ndarray,
+    free: np.ndarray,
+    E: np.ndarray,
+    E_all: np.ndarray,
+    eps1: np.ndarray,
+    eps2: np.ndarray,
+    labels: list[str],
+) -> dict[str, Any]:
+    """Decide one fragment against the predictions of the markers missing in all its frames.
+
+    Returns ``{"marker", "entry", "max", "mean"}`` for a merge, else
+    ``{"reason", ...}`` (and ``"conflict"`` for ambiguities).
+    """
+    mm = 1000.0
+    cands = np.flatnonzero(free)
+    if len(cands) == 0:
+        return {"reason": "overlaps every marker (no marker is missing in all its frames)"}
+    d = np.linalg.norm(frag[:, None] - E[T[:, None], cands[None]], axis=-1)  # (|T|, C)
+    have = np.isfinite(d)
+    checkable = have.sum(0) >= max(1, int(np.ceil(0.5 * len(T))))
+    if not checkable.any():
+        return {"reason": f"no prediction: candidate markers have fewer than {MIN_NEIGHBOURS} "
+                          "reliable neighbours in its frames"}
+    cc = np.flatnonzero(checkable)
+    dc, hc = d[:, cc], have[:, cc]
+    first = np.argmax(hc, axis=0)
+    d_entry = dc[first, np.arange(len(cc))]
+    dn = np.where(hc, dc, np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        d_max = np.nanmax(dn, axis=0)
+        d_mean = np.nanmean(dn, axis=0)
+    m_c = cands[cc]
+    e1, e2 = eps1[m_c], eps2[m_c]
+    ok = (d_entry < e1) & (d_max < e2) & (d_mean < e1)
+    if not ok.any():
+        c = int(np.argmin(d_entry / e1))
+        m = int(m_c[c])
+        if d_entry[c] >= e1[c]:
+            why = (f"entry {d_entry[c] * mm:.1f} mm from the prediction of nearest marker "
+                   f"{labels[m]} > eps1 {e1[c] * mm:.1f} mm")
+        elif d_max[c] < e2[c]:
+            why = (f"mean distance {d_mean[c] * mm:.1f} mm to the prediction of {labels[m]} "
+                   f"> eps1 {e1[c] * mm:.1f} mm")
+        else:
+            bad = int(T[np.nanargmax(dn[:, c])])
+            why = (f"leaves the eps2 tube of {labels[m]}: {d_max[c] * mm:.1f} mm > "
+                   f"{e2[c] * mm:.1f} mm at frame {bad}")
+        return {"reason": why, "nearest": labels[m], "entry_mm": round(float(d_entry[c] * mm), 2)}
+    okc = np.flatnonzero(ok)
+    okc = okc[np.argsort(d_mean[okc])]
+    c0 = okc[0]
+    m = int(m_c[c0])
+    if len(okc) > 1 and not AMBIGUITY_RATIO * d_mean[c0] < d_mean[okc[1]]:
+        return {"reason": "ambiguous between markers "
+                + ", ".join(labels[int(m_c[c])] for c in okc[:3]),
+                "conflict": {"labels": [labels[int(m_c[c])] for c in okc],
+                             "mean_mm": [round(float(d_mean[c] * mm), 2) for c in okc]}}
+    # any other missing marker, even one predicted only from estimates, that comes
+    # as close to the fragment makes it ambiguous
+    others = cands[cands != m]
+    if len(others):
+        sub = np.unique(np.linspace(0, len(T) - 1, min(len(T), 16)).round().astype(int))
+        da = np.linalg.norm(frag[sub][:, None] - E_all[T[sub][:, None], others[None]], axis=-1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            da_mean = np.nanmean(da, axis=0)
+        if np.isfinite(da_mean).any() and np.nanmin(da_mean) < AMBIGUITY_RATIO * d_mean[c0]:
+            k = int(np.nanargmin(da_mean))
+            rival = labels[int(others[k])]
+            return {"reason": f"ambiguous: {labels[m]} at {d_mean[c0] * mm:.1f} mm, {rival} at "
+                              f"{da_mean[k] * mm:.1f} mm",
+                    "conflict": {"labels": [labels[m], rival],
+                                 "mean_mm": [round(float(d_mean[c0] * mm), 2),
+                                             round(float(da_mean[k] * mm), 2)]}}
+    return {"marker": m, "entry": float(d_entry[c0]), "max": float(d_max[c0]),
+            "mean": float(d_mean[c0])}
+
+
+def merge_fragments(
+    positions: np.ndarray,
+    fragments: np.ndarray,
+    surface: MarkerSurface,
+    *,
+    alpha1: float = 0.5,
+    alpha2: float = 0.6,
+    fragment_labels: list[str] | None = None,
+    predictions: np.ndarray | None = None,
+    competitors: np.ndarray | None = None,
+    depths: tuple[int, ...] = (1, 2, 3),
+    rounds_per_level: int = 4,
+    min_support: float = RIGID_ANCHOR,
+    ctx: Context | None = None,
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Merge unlabelled fragments into labelled markers (Park & Hodgins §4.2).
+
+    Rounds: predict the missing samples (:func:`predict_missing` with the
+    markers' local targets), judge every unmerged fragment (the ε₁ entry test,
+    the ε₂ tube over its length, ambiguity tests), merge, repeat with the merged
+    data.  Fragments whose frames saw no change since they were last judged are
+    not judged again.
+
+    Parameters
+    ----------
+    positions : (F, M, 3) float ndarray
+        Labelled trajectories, NaN where missing.
+    fragments : (F, U, 3) float ndarray
+        Unlabelled trajectories, NaN outside each fragment.
+    surface : MarkerSurface
+    alpha1, alpha2 : float
+        ``ε₁ = α₁ d̄``: entry tolerance; ``ε₂ = α₂ d̄``: tolerance over the whole
+        fragment (``d̄``: the marker's mean neighbour distance, capped by its
+        distance to the nearest marker so that a closer marker — across the
+        armpit or the crotch — never falls inside the tolerance).
+    fragment_labels : list of str, optional
+        ``U`` names for the report.
+    predictions : (F, M, 3) float ndarray, optional
+        Judge against these predictions of the missing samples instead (e.g.
+        the PCA hole filling of the merged data); one round.
+    competitors : (F, M, 3) float ndarray, optional
+        With ``predictions``: the predictions used in the ambiguity test
+        (default the same).
+    depths : tuple of int
+        How far predictions may be from observed data (estimates of estimates)
+        to judge a fragment, tried in turn: rounds first trust only predictions
+        made from observed (or merged) neighbours (depth 1), and go one step
+        further when a level stops merging.  Every prediction, trusted or not,
+        takes part in the ambiguity test.
+    rounds_per_level : int
+        Rounds at most per depth level.
+    min_support : float
+        Predictions whose third most rigid neighbour weighs less are not
+        trusted either.
+    ctx : Context, optional
+        For the parallel prediction (frame chunks through ``ctx.map``).
+
+    Returns
+    -------
+    positions : (F, M, 3) float ndarray
+        With the merged fragments written in.
+    assigned : (U,) int ndarray
+        Marker each fragment was merged into, ``-1`` if none.
+    report : dict
+        ``merges``, ``rejections``, ``conflicts`` (lists of dicts naming fragment,
+        label and reason), ``merged_by_depth``.
+    """
+    ctx = ctx or Context()
+    X = positions.copy()
+    F, M, _ = X.shape
+    U = fragments.shape[1]
+    flabels = list(fragment_labels or [f"*{u + 1}" for u in range(U)])
+    labels = surface.labels
+    dbar = np.fmin(surface.mean_distance, nearest_marker_distance(surface.reference))
+    eps1, eps2 = alpha1 * dbar, alpha2 * dbar
+    fvis = np.isfinite(fragments).all(-1)
+    frames_of = [np.flatnonzero(fvis[:, u]) for u in range(U)]
+    assigned = np.full(U, -1, dtype=np.int64)
+    verdict: dict[int, dict[str, Any]] = {u: {"reason": "empty fragment"} for u in range(U)
+                                          if not len(frames_of[u])}
+    merges: list[dict[str, Any]] = []
+    conflicts: list[dict[str, Any]] = []
+    order = sorted((u for u in range(U) if len(frames_of[u])), key=lambda u: -len(frames_of[u]))
+    mm = 1000.0
+    n_by_depth: dict[str, int] = {}
+    E = np.full_like(X, np.nan)
+    E_all = np.full_like(X, np.nan)
+    Y = np.full_like(X, np.nan)
+    levels: list[Any] = ["given"] if predictions is not None else list(depths)
+    level, rounds_here = 0, 0
+    dirty = np.ones(F, dtype=bool)  # frames whose predictions / data changed
+    stale = np.arange(F)
+    for rnd in range(len(levels) * rounds_per_level):
+        todo = [u for u in order if assigned[u] < 0]
+        if not todo:
+            break
+        key = levels[level]
+        if predictions is not None:
+            E = np.where(np.isfinite(X), np.nan, predictions)
+            E_all = E if competitors is None else np.where(np.isfinite(X), np.nan, competitors)
+        else:
+            Y_new = local_targets(X, surface.reference, surface.neighbours,
+                                  rigidity=surface.rigidity)
+            changed = ~((Y_new == Y) | (np.isnan(Y_new) & np.isnan(Y))).all((1, 2))
+            frames = np.union1d(stale, np.flatnonzero(changed))
+            Y = Y_new
+            if len(frames):
+                e, ea = _predict_parallel(X, surface, Y, frames, ctx, key, min_support)
+                diff = ~(((e == E[frames]) | (np.isnan(e) & np.isnan(E[frames])))
+                         & ((ea == E_all[frames]) | (np.isnan(ea) & np.isnan(E_all[frames])))
+                         ).all((1, 2))
+                dirty[frames[diff]] = True
+                E[frames], E_all[frames] = e, ea
+        stale = np.zeros(0, dtype=np.int64)
+        avail = np.isfinite(X).all(-1)
+        claims: dict[int, list[tuple[float, int, dict]]] = {}
+        for u in todo:
+            T = frames_of[u]
+            if u in verdict and not dirty[T].any():
+                continue  # nothing it depends on changed
+            v = _judge_fragment(fragments[T, u], T, ~avail[T].any(0) & np.isfinite(dbar),
+                                E, E_all, eps1, eps2, labels)
+            if "marker" in v:
+                claims.setdefault(v["marker"], []).append((v["mean"], u, v))
+                verdict.pop(u, None)
+            else:
+                if "conflict" in v and verdict.get(u, {}).get("reason") != v["reason"]:
+                    conflicts.append({"fragment": flabels[u], **v["conflict"],
+                                      "resolution": "ambiguous: not merged"})
+                verdict[u] = {k: x for k, x in v.items() if k != "conflict"}
+        dirty[:] = False
+        # resolve claims per marker: overlapping fragments conflict, closest first
+        n_new = 0
+        for m, cl in claims.items():
+            cl.sort(key=lambda c: c[0])
+            taken = np.zeros(F, dtype=bool)
+            winner: dict[int, str] = {}
+            for _, u, v in cl:
+                T = frames_of[u]
+                if taken[T].any():
+                    w = next(flabels[w_] for w_, _ in winner.items() if taken[frames_of[w_]].any())
+                    conflicts.append({
+                        "fragment": flabels[u], "labels": [labels[m]],
+                        "resolution": f"overlaps fragment {w} merged into {labels[m]} (closer): "
+                                      "not merged"})
+                    verdict[u] = {"reason": f"conflict with {w} for {labels[m]}"}
+                    continue
+                taken[T] = True
+                winner[u] = flabels[u]
+                X[T, m] = fragments[T, u]
+                dirty[T] = True
+                stale = np.union1d(stale, T)
+                assigned[u] = m
+                n_new += 1
+                merges.append({
+                    "fragment": flabels[u], "label": labels[m],
+                    "first_frame": int(T[0]), "last_frame": int(T[-1]), "n_frames": len(T),
+                    "entry_mm": round(v["entry"] * mm, 2), "mean_mm": round(v["mean"] * mm, 2),
+                    "max_mm": round(v["max"] * mm, 2),
+                    "eps1_mm": round(float(eps1[m] * mm), 2),
+                    "eps2_mm": round(float(eps2[m] * mm), 2), "round": rnd,
+                    "predictor": "rigid" if predictions is None else "given",
+                    "depth": key,
+                })
+        n_by_depth[str(key)] = n_by_depth.get(str(key), 0) + n_new
+        rounds_here += 1
+        if n_new == 0 or rounds_here >= rounds_per_level or predictions is not None:
+            if level + 1 >= len(levels) or predictions is not None:
+                break
+            level, rounds_here = level + 1, 0
+            stale = np.arange(F)  # trust changes: every frame is predicted again
+            dirty[:] = True
+    rejections = [
+        {"fragment": flabels[u], "n_frames": len(frames_of[u]),
+         "first_frame": int(frames_of[u][0]) if len(frames_of[u]) else None,
+         **verdict.get(u, {"reason": "not examined"})}
+        for u in range(U) if assigned[u] < 0
+    ]
+    return X, assigned, {"merges": merges, "rejections": rejections, "conflicts": conflicts,
+                         "merged_by_depth": n_by_depth}
+
+
