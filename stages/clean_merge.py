@@ -46,6 +46,100 @@ def nearest_marker_distance(reference: np.ndarray) -> np.ndarray:
 
 
 
+class PredictionIndex:
+    """Per-round look-up tables over the ``(F, M)`` sample grid for contiguous fragments.
+
+    Parameters
+    ----------
+    available : (F, M) bool ndarray
+        Samples with data (a marker is a candidate only if missing in all frames).
+    predicted : (F, M) bool ndarray
+        Samples with a (trusted) prediction.
+    """
+
+    def __init__(self, available: np.ndarray, predicted: np.ndarray) -> None:
+        F, M = predicted.shape
+        zero = np.zeros((1, M), dtype=np.int32)
+        self.n_available = np.concatenate([zero, np.cumsum(available, 0, dtype=np.int32)])
+        self.n_predicted = np.concatenate([zero, np.cumsum(predicted, 0, dtype=np.int32)])
+        nxt = np.where(predicted, np.arange(F)[:, None], F)
+        self.next_predicted = np.minimum.accumulate(nxt[::-1], axis=0)[::-1]
+
+    def free(self, first: int, last: int) -> np.ndarray:
+        """``(M,)`` bool: markers without data in frames ``first..last``."""
+        return self.n_available[last + 1] == self.n_available[first]
+
+
+def _is_run(T: np.ndarray) -> bool:
+    return len(T) > 0 and int(T[-1]) - int(T[0]) + 1 == len(T)
+
+
+def _distances(frag: np.ndarray, T: np.ndarray, m: np.ndarray, E: np.ndarray):
+    """Distances ``(|T|, len(m))`` of the fragment to predictions (NaN where none)."""
+    return np.linalg.norm(frag[:, None] - E[T[:, None], m[None]], axis=-1)
+
+
+def _nan_stats(dn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmax(dn, axis=0), np.nanmean(dn, axis=0)
+
+
+def _candidate_stats_dense(frag: np.ndarray, T: np.ndarray, cands: np.ndarray, E: np.ndarray):
+    """Entry, max and mean distance of the fragment to every candidate's predictions.
+
+    Returns ``None`` when no candidate has predictions in at least half of the
+    fragment's frames, else ``(cc, d_entry, d_max, d_mean, column)``: indices
+    into ``cands`` of the checkable candidates, their ``(C,)`` statistics, and
+    ``column(c)`` the ``(|T|,)`` distances (NaN where not predicted).
+    """
+    d = _distances(frag, T, cands, E)  # (|T|, C)
+    have = np.isfinite(d)
+    checkable = have.sum(0) >= max(1, int(np.ceil(0.5 * len(T))))
+    if not checkable.any():
+        return None
+    cc = np.flatnonzero(checkable)
+    dc, hc = d[:, cc], have[:, cc]
+    first = np.argmax(hc, axis=0)
+    d_entry = dc[first, np.arange(len(cc))]
+    dn = np.where(hc, dc, np.nan)
+    d_max, d_mean = _nan_stats(dn)
+    return cc, d_entry, d_max, d_mean, lambda c: dn[:, c]
+
+
+def _candidate_stats(frag: np.ndarray, T: np.ndarray, cands: np.ndarray, E: np.ndarray,
+                     eps1: np.ndarray, index: PredictionIndex):
+    """:func:`_candidate_stats_dense` for a fragment over contiguous frames ``T``.
+
+    Counts and entry samples come from ``index``; the whole-fragment statistics
+    are computed only for candidates that pass the entry test (``d_entry <
+    ε₁``, a condition of every merge and of the later rejection reasons), the
+    others get NaN.  Same values as the dense version.
+    """
+    if not _is_run(T):
+        return _candidate_stats_dense(frag, T, cands, E)
+    a, b = int(T[0]), int(T[-1])
+    count = index.n_predicted[b + 1, cands] - index.n_predicted[a, cands]
+    checkable = count >= max(1, int(np.ceil(0.5 * len(T))))
+    if not checkable.any():
+        return None
+    cc = np.flatnonzero(checkable)
+    m_c = cands[cc]
+    first = index.next_predicted[a, m_c]
+    d_entry = np.linalg.norm(frag[first - a] - E[first, m_c], axis=-1)
+    d_max = np.full(len(cc), np.nan)
+    d_mean = np.full(len(cc), np.nan)
+    near = np.flatnonzero(d_entry < eps1[m_c])
+    if len(near):
+        d = np.linalg.norm(frag[:, None] - E[a:b + 1, m_c[near]], axis=-1)
+        d_max[near], d_mean[near] = _nan_stats(d)
+
+    def column(c: int) -> np.ndarray:
+        return np.linalg.norm(frag - E[a:b + 1, m_c[c]], axis=-1)
+
+    return cc, d_entry, d_max, d_mean, column
+
+
 def _judge_fragment(
     frag: np.ndarray,
     T: np.ndarray,
@@ -55,8 +149,12 @@ def _judge_fragment(
     eps1: np.ndarray,
     eps2: np.ndarray,
     labels: list[str],
+    index: PredictionIndex | None = None,
 ) -> dict[str, Any]:
     """Decide one fragment against the predictions of the markers missing in all its frames.
+
+    ``index`` (for fragments over contiguous frames) avoids computing distances
+    to candidates that cannot pass the entry test.
 
     Returns ``{"marker", "entry", "max", "mean"}`` for a merge, else
     ``{"reason", ...}`` (and ``"conflict"`` for ambiguities).
@@ -65,21 +163,12 @@ def _judge_fragment(
     cands = np.flatnonzero(free)
     if len(cands) == 0:
         return {"reason": "overlaps every marker (no marker is missing in all its frames)"}
-    d = np.linalg.norm(frag[:, None] - E[T[:, None], cands[None]], axis=-1)  # (|T|, C)
-    have = np.isfinite(d)
-    checkable = have.sum(0) >= max(1, int(np.ceil(0.5 * len(T))))
-    if not checkable.any():
+    stats = (_candidate_stats(frag, T, cands, E, eps1, index) if index is not None
+             else _candidate_stats_dense(frag, T, cands, E))
+    if stats is None:
         return {"reason": f"no prediction: candidate markers have fewer than {MIN_NEIGHBOURS} "
                           "reliable neighbours in its frames"}
-    cc = np.flatnonzero(checkable)
-    dc, hc = d[:, cc], have[:, cc]
-    first = np.argmax(hc, axis=0)
-    d_entry = dc[first, np.arange(len(cc))]
-    dn = np.where(hc, dc, np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        d_max = np.nanmax(dn, axis=0)
-        d_mean = np.nanmean(dn, axis=0)
+    cc, d_entry, d_max, d_mean, column = stats
     m_c = cands[cc]
     e1, e2 = eps1[m_c], eps2[m_c]
     ok = (d_entry < e1) & (d_max < e2) & (d_mean < e1)
@@ -93,7 +182,7 @@ def _judge_fragment(
             why = (f"mean distance {d_mean[c] * mm:.1f} mm to the prediction of {labels[m]} "
                    f"> eps1 {e1[c] * mm:.1f} mm")
         else:
-            bad = int(T[np.nanargmax(dn[:, c])])
+            bad = int(T[np.nanargmax(column(c))])
             why = (f"leaves the eps2 tube of {labels[m]}: {d_max[c] * mm:.1f} mm > "
                    f"{e2[c] * mm:.1f} mm at frame {bad}")
         return {"reason": why, "nearest": labels[m], "entry_mm": round(float(d_entry[c] * mm), 2)}
@@ -148,7 +237,8 @@ def merge_fragments(
     markers' local targets), judge every unmerged fragment (the ε₁ entry test,
     the ε₂ tube over its length, ambiguity tests), merge, repeat with the merged
     data.  Fragments whose frames saw no change since they were last judged are
-    not judged again.
+    not judged again, and predictions are only made in frames that hold an
+    unmerged fragment (frames are predicted independently of each other).
 
     Parameters
     ----------
@@ -232,6 +322,8 @@ def merge_fragments(
                                   rigidity=surface.rigidity)
             changed = ~((Y_new == Y) | (np.isnan(Y_new) & np.isnan(Y))).all((1, 2))
             frames = np.union1d(stale, np.flatnonzero(changed))
+            # predictions are only read in the frames of fragments still unmerged
+            frames = frames[fvis[frames][:, todo].any(1)]
             Y = Y_new
             if len(frames):
                 e, ea = _predict_parallel(X, surface, Y, frames, ctx, key, min_support)
@@ -242,13 +334,15 @@ def merge_fragments(
                 E[frames], E_all[frames] = e, ea
         stale = np.zeros(0, dtype=np.int64)
         avail = np.isfinite(X).all(-1)
+        index = PredictionIndex(avail, np.isfinite(E).all(-1))
         claims: dict[int, list[tuple[float, int, dict]]] = {}
         for u in todo:
             T = frames_of[u]
             if u in verdict and not dirty[T].any():
                 continue  # nothing it depends on changed
-            v = _judge_fragment(fragments[T, u], T, ~avail[T].any(0) & np.isfinite(dbar),
-                                E, E_all, eps1, eps2, labels)
+            free = index.free(T[0], T[-1]) if _is_run(T) else ~avail[T].any(0)
+            v = _judge_fragment(fragments[T, u], T, free & np.isfinite(dbar),
+                                E, E_all, eps1, eps2, labels, index)
             if "marker" in v:
                 claims.setdefault(v["marker"], []).append((v["mean"], u, v))
                 verdict.pop(u, None)
