@@ -1,0 +1,213 @@
+"""Hole filling of the clean stage (Park & Hodgins 2006 §4.3 and the wide regression)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mocapflow.pipeline import Context
+from mocapflow.stages.clean import clean_markers
+from mocapflow.stages.clean_fill import (
+    _rigid_fit,
+    fill_holes,
+    predictor_ranking,
+    regress_gap,
+    regression_estimates,
+)
+from mocapflow.stages.data import Markers
+from mocapflow.stages.kinematics import quat_from_rotvec, quat_to_matrix
+from mocapflow.stages.surface import build_marker_surface
+
+RATE = 120.0
+
+
+def deforming_patch(F: int = 360, *, seed: int = 0, bulge: float = 0.01,
+                    drift: float = 0.0) -> np.ndarray:
+    """A curved 7 x 7 marker patch (24 cm, 4 cm spacing) moving rigidly while two
+    smooth shape modes (a bulge, a shear) deform it, plus an optional slow drift
+    of marker 24 (the centre) that nothing else explains: (F, 49, 3) metres."""
+    rng = np.random.default_rng(seed)
+    u, v = (g.ravel() for g in np.meshgrid(np.linspace(-0.12, 0.12, 7),
+                                          np.linspace(-0.12, 0.12, 7)))
+    rest = np.stack([u, v, 0.8 * (u**2 + v**2)], 1) + rng.normal(0, 0.003, (49, 3))
+    mode1 = np.zeros((49, 3))
+    mode1[:, 2] = np.exp(-((u - 0.03) ** 2 + v**2) / (2 * 0.06**2))
+    mode2 = np.stack([u * v / 0.12, np.zeros(49), np.zeros(49)], 1)
+    t = np.arange(F) / RATE
+    a1 = bulge * (np.sin(2 * np.pi * 0.7 * t) + 0.5 * np.sin(2 * np.pi * 1.3 * t + 1))
+    a2 = bulge * np.sin(2 * np.pi * 0.45 * t + 2)
+    shape = rest + a1[:, None, None] * mode1 + a2[:, None, None] * mode2
+    shape[:, 24, 0] += drift * t / t[-1]
+    rv = np.stack([0.6 * np.sin(2 * np.pi * 0.2 * t), 0.4 * np.sin(2 * np.pi * 0.3 * t + 1),
+                   2.0 * t / t[-1]], 1)
+    R = quat_to_matrix(quat_from_rotvec(rv))
+    trans = np.stack([0.8 * t, 0.1 * np.sin(2 * np.pi * t), 1.0 + 0.05 * t], 1)
+    return np.einsum("fij,fmj->fmi", R, shape) + trans[:, None]
+
+
+def rms(a: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum(a**2, -1))))
+
+
+# --------------------------------------------------------------------------- pieces
+
+
+def test_rigid_fit_recovers_rotations():
+    rng = np.random.default_rng(0)
+    src = rng.normal(0, 0.1, (12, 3))
+    R = quat_to_matrix(quat_from_rotvec(rng.normal(0, 1.5, (50, 3))))
+    t = rng.normal(0, 1, (50, 3))
+    Rf, tf = _rigid_fit(src, np.einsum("bij,nj->bni", R, src) + t[:, None])
+    assert np.abs(Rf - R).max() < 1e-10 and np.abs(tf - t).max() < 1e-10
+    assert np.allclose(np.linalg.det(Rf), 1.0)
+    # a planar set never comes back as a reflection
+    flat = src * [1, 1, 0]
+    Rp, _ = _rigid_fit(flat, np.einsum("bij,nj->bni", R, flat))
+    assert np.allclose(np.linalg.det(Rp), 1.0) and np.abs(Rp - R).max() < 1e-8
+
+
+def test_predictor_ranking_puts_a_loose_marker_last():
+    P = deforming_patch(200)
+    rng = np.random.default_rng(1)
+    P[:, 23] += rng.normal(0, 0.02, (200, 3))  # marker 23 wanders by ~2 cm
+    ranking = predictor_ranking(P, P[0], np.array([24, 0]))
+    assert len(ranking[0]) == 48 and 24 not in ranking[0]
+    assert ranking[0][-1] == 23 and ranking[1][-1] == 23
+    # a candidate seen with the marker in too few frames is dropped
+    Q = P.copy()
+    Q[10:, 30] = np.nan
+    assert 30 not in predictor_ranking(Q, P[0], np.array([24]))[0]
+
+
+def test_regression_is_exact_for_rigid_motion():
+    P = deforming_patch(240, bulge=0.0)
+    X = P.copy()
+    X[100:160, 24] = np.nan
+    vis = np.isfinite(X).all(-1)
+    S = np.array([17, 18, 23, 25, 30, 31, 10, 38])
+    est = regress_gap(X, vis, 24, S, [(100, 160)], P[0])
+    assert est.shape == (60, 3) and np.abs(est - P[100:160, 24]).max() < 1e-9
+    # too few training frames (marker measured in 6 frames only): nothing
+    Y = X.copy()
+    Y[6:, 24] = np.nan
+    assert regress_gap(Y, np.isfinite(Y).all(-1), 24, S, [(100, 160)], P[0]) is None
+    # a predictor missing inside the gap: refused
+    Y = X.copy()
+    Y[130, 17] = np.nan
+    assert regress_gap(Y, np.isfinite(Y).all(-1), 24, S, [(100, 160)], P[0]) is None
+
+
+def test_regression_recovers_a_deforming_gap():
+    P = deforming_patch(360)
+    rng = np.random.default_rng(2)
+    noisy = P + rng.normal(0, 0.0003, P.shape)
+    X = noisy.copy()
+    X[150:210, 24] = np.nan  # 0.5 s
+    surf = build_marker_surface(P[0], positions=X)
+    ranking = predictor_ranking(X, surf.reference, np.array([24]))[0]
+    f, e = regression_estimates(X, 24, ranking, ~np.isfinite(X[:, 24]).all(1), surf.reference)
+    assert np.array_equal(f, np.arange(150, 210))
+    err = rms(e - P[150:210, 24])
+    # the bulge moves the marker by up to 15 mm in its local frame; the regression on
+    # 32 neighbours follows it to well under a millimetre (noise 0.3 mm per axis)
+    assert err < 0.4e-3
+    rigid = rms(P[150:210, 24] - P[150:210, 24].mean(0))
+    assert rigid > 10e-3
+    # the paper's one-ring PCA on the same gap, for comparison
+    Xp, _ = fill_holes(X, surf, model="pca")
+    assert err < 0.8 * rms(Xp[150:210, 24] - P[150:210, 24])
+
+
+def test_offset_correction_removes_an_unexplained_drift():
+    P = deforming_patch(360, bulge=0.0, drift=0.03)  # the centre slides 3 cm over 3 s
+    X = P.copy()
+    X[150:270, 24] = np.nan  # 1 s gap: 1 cm of drift inside it
+    surf = build_marker_surface(P[0], positions=X)
+    plain, _ = fill_holes(X, surf, offset_correction=False)
+    fixed, _ = fill_holes(X, surf, offset_correction=True)
+    e0 = np.linalg.norm(plain[150:270, 24] - P[150:270, 24], axis=-1)
+    e1 = np.linalg.norm(fixed[150:270, 24] - P[150:270, 24], axis=-1)
+    assert e0.max() > 4e-3
+    assert e1.max() < 0.5e-3 and e1.mean() < 0.15 * e0.mean()
+
+
+# --------------------------------------------------------------------------- fill_holes
+
+
+def test_no_complete_frame_still_fills_everything():
+    P = deforming_patch(300)
+    F, M, _ = P.shape
+    rng = np.random.default_rng(3)
+    X = P + rng.normal(0, 0.0003, P.shape)
+    holes = rng.random((F, M)) < 0.05
+    holes[np.arange(F), np.arange(F) % M] = True  # every frame misses a marker
+    for m in rng.choice(M, 8, replace=False):  # and 8 markers lose 0.5 s each
+        s0 = int(rng.integers(0, F - 60))
+        holes[s0:s0 + 60, m] = True
+    X[holes] = np.nan
+    assert not np.isfinite(X).all((1, 2)).any()
+    surf = build_marker_surface(P[0] + 0, positions=X)
+    out, info = fill_holes(X, surf)
+    assert np.isfinite(out).all()
+    assert info["regression"] == holes.sum()  # everything by the regression
+    assert info["pass"][holes].min() == 1 and info["filled_by_pass"] == [int(holes.sum())]
+    err = np.linalg.norm(out - P, axis=-1)[holes]
+    assert err.mean() < 0.6e-3 and err.max() < 3e-3
+
+
+def test_clustered_gap_without_any_visible_one_ring():
+    P = deforming_patch(360)
+    X = P + np.random.default_rng(4).normal(0, 0.0003, P.shape)
+    surf = build_marker_surface(P[0], positions=X)
+    ring = surf.neighbours[24][surf.neighbours[24] >= 0]
+    gone = np.concatenate([[24], ring])
+    X[120:240, gone] = np.nan  # the centre and its whole one-ring for 1 s
+    out, info = fill_holes(X, surf)
+    assert np.isfinite(out).all() and info["regression"] == 120 * len(gone)
+    err = np.linalg.norm(out[120:240, gone] - P[120:240, gone], axis=-1)
+    assert err.mean() < 1.0e-3
+    pca, pinfo = fill_holes(X, surf, model="pca")  # the paper's: passes from estimates
+    assert np.isfinite(pca).all()
+    assert err.mean() < 0.5 * np.linalg.norm(pca[120:240, gone] - P[120:240, gone],
+                                             axis=-1).mean()
+
+
+def test_too_few_predictors_go_to_the_pca_passes():
+    P = deforming_patch(200)
+    X = P.copy()
+    X[50:80, 24] = np.nan
+    X[60:70, :] = np.nan  # the whole patch disappears for 10 frames
+    X[60:70, [17, 18, 23]] = P[60:70, [17, 18, 23]]  # but three neighbours
+    surf = build_marker_surface(P[0], positions=X)
+    out, info = fill_holes(X, surf)
+    reg = info["pass"][50:80, 24] == 1
+    assert reg.sum() == 20 and not reg[10:20].any()  # 3 < 4 predictors there
+    assert np.isfinite(out[50:80, 24]).all()
+    assert np.abs(out[60:70, 24] - P[60:70, 24]).max() < 0.01
+
+
+def test_fill_holes_rejects_an_unknown_model():
+    P = deforming_patch(60)
+    X = P.copy()
+    X[10:20, 3] = np.nan
+    with pytest.raises(ValueError, match="model must be 'regression' or 'pca'"):
+        fill_holes(X, build_marker_surface(P[0]), model="spline")
+
+
+def test_clean_markers_fill_model_param():
+    P = deforming_patch(240)
+    X = P.copy()
+    X[100:160, 24] = np.nan
+    m = Markers(X, [f"p{i}" for i in range(49)], RATE)
+    out, rep, _ = clean_markers(m, merge=False, smooth_iterations=0, ctx=Context())
+    assert rep["params"]["fill_model"] == "regression" and rep["fill"]["regression"] == 60
+    assert np.abs(out.positions[100:160, 24] - P[100:160, 24]).max() < 1e-3
+    out2, rep2, _ = clean_markers(m, merge=False, smooth_iterations=0, fill_model="pca",
+                                  ctx=Context())
+    assert "regression" not in rep2["fill"] and np.isfinite(out2.positions).all()
+    from mocapflow.stages.clean import CleanError
+
+    with pytest.raises(CleanError, match="fill_model"):
+        clean_markers(m, fill_model="nope")
+    with pytest.raises(CleanError, match="fill_predictors must be >= 4"):
+        clean_markers(m, fill_predictors=2)
