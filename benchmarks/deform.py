@@ -1,6 +1,6 @@
 """Skin deformation (Park & Hodgins 2006 §5) on a simulated dense capture with ground truth.
 
-One run prints four tables:
+One run prints five tables:
 
 1. segmentation of a range-of-motion trial against the simulator's parts
    (each marker's dominant skin-weight joint): adjusted Rand index over all
@@ -11,7 +11,11 @@ One run prints four tables:
    different (dynamic) trial; mean and p95 error in mm for the four modes and
    for baselines run in the same process: linear-blend skinning and
    dual-quaternion skinning driven by the same part transforms and weights, and
-   one global thin-plate RBF (scipy ``RBFInterpolator``) on displacements;
+   one global thin-plate RBF (scipy ``RBFInterpolator``) on displacements; plus
+   the paper's exact settings and one-change ablations of the stage defaults
+   (β sharpness, quadratic damping, residual kernel), then the same errors
+   broken down by how the held-out marker binds (one part or a part boundary;
+   distance to its marker-surface triangle);
 3. detailed mesh against the simulator's true mesh, per vertex over the trial:
    the true reference-pose mesh bound directly, and a perturbed template fitted
    with ``fit_mesh``;
@@ -29,6 +33,7 @@ Run: ``python benchmarks/deform.py`` (``--quick`` for a small run).
 from __future__ import annotations
 
 import argparse
+import inspect
 import time
 from concurrent.futures import ProcessPoolExecutor
 
@@ -202,17 +207,31 @@ def global_rbf(ref, x, query):
     return out.reshape(len(query), F, 3).transpose(1, 0, 2) + query[None]
 
 
-def ours(seg, x, points, beta, mode, damping=0.0):
-    """Our prediction of rest ``points`` (mesh vertices) for one mode."""
+_DEFAULTS = {k: v.default for k, v in inspect.signature(deform).parameters.items()}
+DEFAULT = {"sharpness": _DEFAULTS["beta_sharpness"], "damping": _DEFAULTS["quadratic_damping"],
+           "kernel": _DEFAULTS["residual_kernel"]}  # the stage's defaults
+PAPER = {"sharpness": 1.0, "damping": 0.0, "kernel": "cubic_bspline"}  # Park & Hodgins exactly
+
+
+def ours(seg, x, points, mode, *, sharpness, damping, kernel):
+    """Our prediction of rest ``points`` (mesh vertices) for one mode and settings."""
+    beta = bind_mesh(points, seg, min_overlap=0.0, sharpness=sharpness).beta
     out = np.zeros((x.shape[0], len(points), 3))
     for p in range(seg.n_parts):
         sel = np.flatnonzero(beta[:, p] > 0)
         if sel.size == 0:
             continue
-        m = prepare_part(seg, p, vertices=points, beta=beta)
+        m = prepare_part(seg, p, vertices=points, beta=beta, residual_kernel=kernel)
         fit = fit_part(m, x[:, m.members], mode=mode, damping=damping)
         out[:, sel] += beta[sel, p][None, :, None] * evaluate_part(m, fit)
     return out
+
+
+def settings_label(st):
+    """Short description of the settings that differ from the stage's defaults."""
+    diff = [f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}"
+            for k, v in st.items() if v != DEFAULT[k]]  # fmt: skip
+    return ", ".join(diff) or "defaults"
 
 
 # --------------------------------------------------------------------------- tables
@@ -279,29 +298,47 @@ def main() -> None:
     folds = 1 if q else 3
     x_test_all = sim["test"]["observed"]
     true_test = sim["test"]["true"]
-    methods = [*MODES, "quadratic_residual, damping 0.03", "LBS (same parts)",
-               "DQS (same parts)", "global thin-plate RBF"]
+    other_kernel = "thin_plate" if DEFAULT["kernel"] == "cubic_bspline" else "cubic_bspline"
+    variants = {  # name -> (mode, settings)
+        **{m: (m, DEFAULT) for m in MODES},
+        "quadratic_residual, paper (barycentric beta, Eq. 6 pinv, B-spline)":
+            ("quadratic_residual", PAPER),
+        "quadratic_residual, beta sharpness 1 (barycentric)":
+            ("quadratic_residual", {**DEFAULT, "sharpness": 1.0}),
+        "quadratic_residual, damping 0 (Eq. 6 pinv)":
+            ("quadratic_residual", {**DEFAULT, "damping": 0.0}),
+        f"quadratic_residual, {other_kernel} kernel":
+            ("quadratic_residual", {**DEFAULT, "kernel": other_kernel}),
+        f"rigid_residual, {other_kernel} kernel":
+            ("rigid_residual", {**DEFAULT, "kernel": other_kernel}),
+    }  # fmt: skip
+    methods = [*variants, "LBS (same parts)", "DQS (same parts)",
+               "LBS (same parts, barycentric beta)", "global thin-plate RBF"]  # fmt: skip
     errs = {m: [] for m in methods}
     times = {m: 0.0 for m in methods}
+    n_parts, bind_d = [], []  # per held-out marker: parts it binds to, distance to its triangle
     for _ in range(folds):
         held = choose_held_out(full_faces, n_markers, n_markers // 10, rng)
         keep = np.setdiff1d(allm, held)
         seg, _, _ = segment_markers(rom_obs, keep, surface_without(full_faces, held))
         ref_h = rom_obs[0, held]  # held-out "vertices" in the reference pose
-        beta = bind_mesh(ref_h, seg, min_overlap=0.0).beta
+        b1 = bind_mesh(ref_h, seg, min_overlap=0.0, sharpness=1.0)
+        n_parts.append((b1.beta > 0).sum(1))
+        bind_d.append(b1.distance)
         x = x_test_all[:, keep]
-        for name in methods[:5]:
-            mode, damping = (name, 0.0) if name in MODES else ("quadratic_residual", 0.03)
+        for name, (mode, st) in variants.items():
             t = time.perf_counter()
-            pred = ours(seg, x, ref_h, beta, mode, damping)
+            pred = ours(seg, x, ref_h, mode, **st)
             times[name] += time.perf_counter() - t
             errs[name].append(np.linalg.norm(pred - true_test[:, held], axis=-1))
         t = time.perf_counter()
         M, b = part_world_transforms(seg, x)
         t_tr = time.perf_counter() - t
-        for name, fn in (("LBS (same parts)", lbs), ("DQS (same parts)", dqs)):
+        beta = bind_mesh(ref_h, seg, min_overlap=0.0, sharpness=DEFAULT["sharpness"]).beta
+        for name, fn, bt in (("LBS (same parts)", lbs, beta), ("DQS (same parts)", dqs, beta),
+                             ("LBS (same parts, barycentric beta)", lbs, b1.beta)):
             t = time.perf_counter()
-            pred = fn(ref_h, beta, M, b)
+            pred = fn(ref_h, bt, M, b)
             times[name] += time.perf_counter() - t + t_tr
             errs[name].append(np.linalg.norm(pred - true_test[:, held], axis=-1))
         t = time.perf_counter()
@@ -316,8 +353,29 @@ def main() -> None:
     best = min(methods, key=lambda m: float(rows[methods.index(m)][1]))
     print_table(
         f"Held-out markers ({n_markers // 10} per fold x {folds} folds, predicted on the run "
-        f"trial; lowest mean: {best})",
+        f"trial; defaults: beta sharpness {DEFAULT['sharpness']:g}, quadratic damping "
+        f"{DEFAULT['damping']:g}, {DEFAULT['kernel']} residual; lowest mean: {best})",
         ["method", "mean mm", "p95 mm", "max mm", "s"], rows)
+    # where the error is: markers binding to one part vs across a part boundary, and by
+    # the distance to the marker-surface triangle they bind to (holes -> far triangles)
+    n_parts, bind_d = np.concatenate(n_parts), np.concatenate(bind_d) * 1000
+    groups = {
+        "binds to 1 part": n_parts == 1, "binds to >= 2 parts": n_parts >= 2,
+        "triangle < 5 mm away": bind_d < 5, "triangle 5-15 mm away": (bind_d >= 5) & (bind_d < 15),
+        "triangle >= 15 mm away": bind_d >= 15,
+    }  # fmt: skip
+    cols = ["quadratic_residual, paper (barycentric beta, Eq. 6 pinv, B-spline)",
+            "quadratic_residual", "rigid", "global thin-plate RBF"]  # fmt: skip
+    rows = []
+    for g, sel in groups.items():
+        row = [g, int(sel.sum())]
+        for m in cols:
+            e = np.concatenate(errs[m], axis=1)[:, sel] * 1000
+            row.append(f"{e.mean():.2f} / {np.percentile(e, 95):.2f}" if e.size else "-")
+        rows.append(row)
+    print_table("Held-out error by binding (mean / p95 mm)",
+                ["held-out markers", "n", "paper q+r", "q+r (defaults)", "rigid (defaults)",
+                 "global TPS"], rows)  # fmt: skip
 
     # 3. detailed mesh vs true mesh -------------------------------------------------------------
     seg = seg_default
@@ -333,12 +391,17 @@ def main() -> None:
         dt = time.perf_counter() - t
         rows.append([f"true rest mesh, {mode}", *(f"{v:.2f}" for v in
                      err_stats(out["mesh"].vertices, true_mesh)), f"{dt:.1f}"])  # fmt: skip
-    out = deform(mk_test, seg, Mesh(rest_true, faces), quadratic_damping=0.03, ctx=Context())
-    rows.append(["true rest mesh, quadratic_residual, damping 0.03",
-                 *(f"{v:.2f}" for v in err_stats(out["mesh"].vertices, true_mesh)), ""])
+    for label, st in (("paper (barycentric beta, Eq. 6 pinv, B-spline)", PAPER),
+                      ("beta sharpness 1", {**DEFAULT, "sharpness": 1.0}),
+                      (f"{other_kernel} kernel", {**DEFAULT, "kernel": other_kernel})):
+        out = deform(mk_test, seg, Mesh(rest_true, faces), beta_sharpness=st["sharpness"],
+                     quadratic_damping=st["damping"], residual_kernel=st["kernel"],
+                     ctx=Context())  # fmt: skip
+        rows.append([f"true rest mesh, quadratic_residual, {label}",
+                     *(f"{v:.2f}" for v in err_stats(out["mesh"].vertices, true_mesh)), ""])
     beta = bind_mesh(rest_true, seg).beta
     M, b = part_world_transforms(seg, x_test_all)
-    rows.append(["true rest mesh, DQS (same parts)",
+    rows.append(["true rest mesh, DQS (same parts; LBS = the rigid mode)",
                  *(f"{v:.2f}" for v in err_stats(dqs(rest_true, beta, M, b), true_mesh)), ""])
     t = time.perf_counter()
     tps = np.concatenate([global_rbf(seg.reference, x_test_all[a : a + 100], rest_true)
@@ -391,28 +454,33 @@ def main() -> None:
         ]
         for mode in ("quadratic_residual", "rigid"):
             for label, procs, mp, chunk in setups:
-                best_t = np.inf
+                best_t = best_c = np.inf
                 for _ in range(3):
                     ctx = Context(mapper=mp)
-                    t = time.perf_counter()
+                    t, c = time.perf_counter(), time.process_time()
                     deform(mk, seg, mesh13, mode=mode, chunk_frames=chunk, ctx=ctx)
                     best_t = min(best_t, time.perf_counter() - t)
-                rows.append([f"ours, {mode}, {label}", procs, f"{frames / best_t:.0f}"])
+                    best_c = min(best_c, time.process_time() - c)
+                rows.append([f"ours, {mode}, {label}", procs, f"{frames / best_t:.0f}",
+                             f"{frames / best_c:.0f}" if mp is None else ""])  # fmt: skip
     beta = bind_mesh(big_rest, seg).beta
-    best_t = np.inf
+    best_t = best_c = np.inf
     for _ in range(3):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         M, b = part_world_transforms(seg, mk.positions)
         out = np.empty((frames, len(big.vertices), 3))
         for a in range(0, frames, 16):
             out[a : a + 16] = lbs(big_rest, beta, M[a : a + 16], b[a : a + 16])
         best_t = min(best_t, time.perf_counter() - t)
-    rows.append(["NumPy LBS baseline (dense weights)", 1, f"{frames / best_t:.0f}"])
+        best_c = min(best_c, time.process_time() - c)
+    rows.append(["NumPy LBS baseline (dense weights)", 1, f"{frames / best_t:.0f}",
+                 f"{frames / best_c:.0f}"])  # fmt: skip
     print_table(
         f"Throughput: {len(big_rest)}-vertex mesh from {n_markers} markers, {frames} frames "
         "(best of 3, whole stage incl. binding; 2 = two worker processes behind ctx.map; "
-        "target >= 500 fps on 2 cores)",
-        ["method", "processes", "frames/s"], rows)
+        "target >= 500 fps on 2 cores; frames per CPU-second of this process shows the cost "
+        "independently of other load on the machine)",
+        ["method", "processes", "frames/s", "frames/CPU-s"], rows)
     print(f"\ntotal {time.perf_counter() - t0:.0f} s")
 
 

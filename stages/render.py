@@ -38,15 +38,7 @@ import numpy as np
 from mocapflow.pipeline import Context, stage
 from mocapflow.pipeline.codecs import Encoded, codec, exporter
 from mocapflow.stages.data import Markers, Mesh
-from mocapflow.stages.deform import (
-    MODES,
-    align_markers,
-    bind_mesh,
-    closest_points_on_triangles,
-    deform_positions,
-    fit_part,
-    prepare_part,
-)
+from mocapflow.stages.deform import MODES, align_markers, closest_points_on_triangles, deform
 from mocapflow.stages.segment import Segmentation
 
 __all__ = [
@@ -553,11 +545,13 @@ def render_modes(
     max_frames: int = 300,
     view: View = "front",
     follow: bool = True,
-    min_quadratic_markers: int = 10,
-    quadratic_damping: float = 0.0,
+    deform_params: dict[str, Any] | None = None,
     ctx: Context,
 ) -> dict[str, Any]:
     """Figure 7 of the paper: the deformation modes side by side on the same frames.
+
+    Every panel is the ``deform`` stage itself on the rendered frames, with
+    ``mode`` set per panel and everything else from ``deform_params``.
 
     Parameters
     ----------
@@ -574,8 +568,9 @@ def render_modes(
         Frame subsampling of the rendering.
     view : {"front", "back", "side", "iso"}
     follow : bool
-    min_quadratic_markers, quadratic_damping
-        As in :func:`mocapflow.stages.deform.deform`.
+    deform_params : dict, optional
+        Params of :func:`mocapflow.stages.deform.deform` other than ``mode``
+        (e.g. ``quadratic_damping``); default: the stage's defaults.
 
     Returns
     -------
@@ -586,25 +581,23 @@ def render_modes(
     bad = [m for m in modes if m not in MODES]
     if bad:
         raise RenderError(f"render_modes: unknown modes {bad}; choose from {list(MODES)}")
+    params = dict(deform_params or {})
+    if "mode" in params:
+        raise RenderError("render_modes: deform_params must not set 'mode' (one panel per mode)")
     x = align_markers(markers, segmentation)
-    binding = bind_mesh(mesh.vertices, segmentation, name="detailed mesh")
-    models = [
-        prepare_part(segmentation, p, vertices=mesh.vertices, beta=binding.beta,
-                     min_quadratic_markers=min_quadratic_markers)
-        for p in range(segmentation.n_parts)
-    ]  # fmt: skip
     idx = _frame_indices(x.shape[0], stride, max_frames)
-    panels, messages = [], [msg for m in models for msg in m.messages]
+    shown = markers.replace(positions=markers.positions[idx])
+    panels, messages = [], []
     for mode in modes:
-        fits = [
-            fit_part(m, x[idx][:, m.members], mode=mode,
-                     min_quadratic_markers=min_quadratic_markers, damping=quadratic_damping)
-            for m in models
-        ]  # fmt: skip
-        messages += [msg for f in fits for msg in f.messages]
+        sub = Context(part=ctx.part, mapper=ctx.mapper, workers=ctx.workers)
+        try:
+            out = deform(shown, segmentation, mesh, mode=mode, **params, ctx=sub)
+        except TypeError as e:
+            raise RenderError(f"render_modes: bad deform_params: {e}") from None
+        messages += sub.warnings  # fallbacks, reported once below
         panels.append({
-            "vertices": deform_positions(models, fits, len(mesh.vertices)),
-            "faces": mesh.faces, "markers": markers.positions[idx],
+            "vertices": out["mesh"].vertices,
+            "faces": mesh.faces, "markers": shown.positions,
             "title": mode.replace("_", " + "),
         })  # fmt: skip
     for msg in sorted(set(messages)):

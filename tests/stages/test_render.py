@@ -120,6 +120,12 @@ def test_render_modes_and_error_map(limb):
     assert all((p < 200).any() for p in panels)  # every panel shows something
     with pytest.raises(RenderError, match="unknown modes"):
         render_modes(limb["markers"], limb["seg"], limb["mesh"], modes=["cubic"], ctx=Context())
+    with pytest.raises(RenderError, match="must not set 'mode'"):
+        render_modes(limb["markers"], limb["seg"], limb["mesh"], deform_params={"mode": "rigid"},
+                     ctx=Context())  # fmt: skip
+    with pytest.raises(RenderError, match="bad deform_params"):
+        render_modes(limb["markers"], limb["seg"], limb["mesh"], deform_params={"dampng": 0.1},
+                     ctx=Context())  # fmt: skip
     truth = Mesh(limb["truth"], limb["mesh"].faces, rate=24.0)
     err = render_error(limb["deformed"], truth, width=96, height=96, stride=12, clim_mm=2.0,
                        ctx=Context())  # fmt: skip
