@@ -416,6 +416,8 @@ def cmd_explain(args: argparse.Namespace) -> int:
 
 
 def cmd_dag(args: argparse.Namespace) -> int:
+    from mocapflow.pipeline.graph import file_overrides
+
     graph = _load(args)
     cfg = graph.config
     if args.dot:
@@ -438,8 +440,11 @@ def cmd_dag(args: argparse.Namespace) -> int:
     rows = []
     for n in graph.nodes:
         node = cfg.nodes[n]
-        wires = ", ".join(f"{i}={'part' if w == 'part' else '.'.join(w)}"
-                          for i, w in node.inputs.items())
+        over = file_overrides(node)  # part inputs replaced by one file: read once
+        wires = ", ".join(
+            f"{i}=file:{Path(over[i]).name}" if i in over
+            else f"{i}={'part' if w == 'part' else '.'.join(w)}"
+            for i, w in node.inputs.items())
         fan = "gather" if node.gather else f"×{len(graph.node_parts[n])}"
         if node.seeds is not None and len(node.seeds) > 1:
             fan += f" (seeds {node.seeds[0]}..{node.seeds[-1]})"

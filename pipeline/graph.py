@@ -13,6 +13,11 @@ Rules (see the README's config format):
   a node with a single part).
 * ``gather: true`` makes one task over all parts; each input becomes a list
   ordered by part.
+* A stage may declare *file overrides* (``StageSpec.extra["file_overrides"] =
+  {input: param}``): when the node sets ``param`` (a ``FilePath`` param), its
+  input wired to ``part`` reads that file instead of each part's file, so the
+  node has a single task, broadcast to every part (a range-of-motion trial read
+  once for all trials).  Left ``None``, the node runs per part as usual.
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from typing import Any
 from mocapflow.pipeline import registry
 from mocapflow.pipeline.config import ConfigError, GraphConfig, NodeConfig
 
-__all__ = ["Graph", "Task", "build_graph", "part_label"]
+__all__ = ["Graph", "Task", "build_graph", "file_overrides", "part_label"]
 
 
 @dataclass(frozen=True)
@@ -213,13 +218,31 @@ def _covers(fine: Sequence[str | None], coarse: Sequence[str | None]) -> bool:
     return all(match(q) is not False for q in fine)
 
 
+def file_overrides(node: NodeConfig) -> dict[str, str]:
+    """``input -> file`` for the node's ``part`` inputs that a set param replaces.
+
+    The stage declares ``extra["file_overrides"] = {input: param}``; an entry
+    applies when the input is wired to ``part`` and the node's ``param`` is set.
+    """
+    spec = registry.lookup(node.stage)
+    declared = spec.extra.get("file_overrides", {}) if spec is not None else {}
+    return {
+        iname: str(node.params[param])
+        for iname, param in declared.items()
+        if node.inputs.get(iname) == "part" and node.params.get(param) is not None
+    }
+
+
 def _node_parts(node: NodeConfig, config: GraphConfig,
                 known: dict[str, list[str | None]]) -> list[str | None]:
+    overridden = file_overrides(node)
     if node.gather:
         base: list[str | None] = [None]
     else:
         cands: list[list[str | None]] = []
-        for w in node.inputs.values():
+        for iname, w in node.inputs.items():
+            if iname in overridden:
+                continue
             cands.append(list(config.parts) if w == "part" else known[w[0]])
         if not cands:
             base = [None]
@@ -284,9 +307,13 @@ def build_graph(config: GraphConfig, targets: Sequence[str] | None = None) -> Gr
     part_match = _matcher(config.parts) if config.parts else None
     for name in order:
         node = config.nodes[name]
+        overridden = file_overrides(node)
         for part in node_parts[name]:
             inputs: dict[str, tuple] = {}
             for iname, w in node.inputs.items():
+                if iname in overridden:
+                    inputs[iname] = ("file", overridden[iname])
+                    continue
                 if w == "part":
                     if node.gather:
                         inputs[iname] = ("files", list(config.parts))

@@ -103,6 +103,7 @@ def stage(
     version: str | None = None,
     retries: int = 0,
     sidecars: Mapping[str, Callable[[str], str]] | None = None,
+    file_overrides: Mapping[str, str] | None = None,
 ) -> Callable[[Callable[..., Mapping[str, Any]]], Callable[..., Mapping[str, Any]]]:
     """Register a function as a stage.
 
@@ -123,6 +124,11 @@ def stage(
         When the param is left ``None`` the engine resolves the path while
         building the graph, so the stage receives it explicitly and the file's
         content enters the cache key like any declared file.
+    file_overrides : mapping, optional
+        ``input -> param``: when a node sets ``param`` (a ``FilePath`` param),
+        its ``input`` wired to ``part`` reads that file instead of each part's
+        file, so the node runs once and is broadcast to every part (a
+        range-of-motion trial shared by all trials).
 
     Returns
     -------
@@ -137,6 +143,13 @@ def stage(
             if unknown:
                 raise TypeError(f"stage {spec.name!r}: sidecars for unknown params {unknown}")
             spec.extra["sidecars"] = dict(sidecars)
+        if file_overrides:
+            bad = {i for i in file_overrides if i not in spec.inputs} | {
+                p for p in file_overrides.values() if p not in spec.params}
+            if bad:
+                raise TypeError(f"stage {spec.name!r}: file_overrides name unknown inputs or "
+                                f"params {sorted(bad)}")
+            spec.extra["file_overrides"] = dict(file_overrides)
         previous = _REGISTRY.get(spec.name)
         if previous is not None and (
             previous.module != spec.module or previous.func.__qualname__ != func.__qualname__

@@ -67,6 +67,7 @@ __all__ = [
     "SimulatedCapture",
     "SurfacePoints",
     "SkinDynamics",
+    "calibration_cameras",
     "camera_ring",
     "capture_motion",
     "crowded",
@@ -848,6 +849,44 @@ class SimulatedCapture:
     body: Body = field(repr=False)
 
 
+def _layout_rng(rng: np.random.Generator) -> np.random.Generator:
+    """A generator for the marker layout, derived from ``rng``'s seed, not its state.
+
+    The layout stream is a fixed child of ``rng``'s seed sequence, so it neither
+    depends on what the motion draws before it nor changes the main stream (a
+    generator without a seed sequence gives up 4 draws instead, before the motion).
+    """
+    seq = getattr(rng.bit_generator, "seed_seq", None)
+    if not isinstance(seq, np.random.SeedSequence):
+        return np.random.default_rng(rng.bit_generator.random_raw(4))
+    child = np.random.SeedSequence(seq.entropy, spawn_key=(*seq.spawn_key, 0x5EED1A))
+    return np.random.default_rng(child)
+
+
+def calibration_cameras(
+    vertices: np.ndarray, root: np.ndarray, *, n_cameras: int = 12
+) -> np.ndarray:
+    """Cameras for the marker layout: a ring around the calibration pose itself.
+
+    The ring is centred under the calibration root, on the floor the pose stands
+    on, so the layout does not depend on where the rest of the motion goes.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float ndarray
+        Skin in the calibration pose.
+    root : (3,) float ndarray
+        Root position of the calibration pose.
+    n_cameras : int
+
+    Returns
+    -------
+    (n_cameras, 3) float ndarray
+    """
+    offset = np.array([root[0], np.min(vertices[:, 1]), root[2]])
+    return camera_ring(np.zeros((1, 3)), n_cameras=n_cameras) + offset
+
+
 def simulate_dense_capture(
     *,
     n_markers: int = 350,
@@ -881,6 +920,7 @@ def simulate_dense_capture(
 
     ctx = ctx or Context()
     rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    layout_rng = _layout_rng(rng)
     if n_markers < 4:
         raise ValueError(f"simulate_capture: n_markers must be >= 4, got {n_markers}")
     if n_frames < 2 or rate <= 0:
@@ -893,11 +933,14 @@ def simulate_dense_capture(
     R, p = skinning_transforms(body, mot)
     nb = body.normals
     cams = camera_ring(mot.root_position, n_cameras=n_cameras)
-    # markers go where the calibration pose (frame 0) shows them, so all can be labelled
+    # markers go where the calibration pose (frame 0) shows them, so all can be labelled;
+    # the layout depends on the body and the seed only, never on the motion (a
+    # range-of-motion trial and a dynamic trial of one seed share their markers)
     v0 = skin(body, R[:1], p[:1])
     n0 = vertex_normals(v0, body.faces)
-    seen0 = marker_visibility(v0 + marker_radius * n0, n0, body, R[:1], p[:1], cams)[0]
-    sites = place_markers(body, n_markers, rng=rng, eligible=seen0 >= min_cameras + 1)
+    cams0 = calibration_cameras(v0[0], mot.root_position[0], n_cameras=n_cameras)
+    seen0 = marker_visibility(v0 + marker_radius * n0, n0, body, R[:1], p[:1], cams0)[0]
+    sites = place_markers(body, n_markers, rng=layout_rng, eligible=seen0 >= min_cameras + 1)
     # markers: bind-pose points above the skin, with the skin's weights and fields
     skin_pts, skin_n, skin_w = sites.points(body), sites.normals(body), sites.weights(body)
     skin_part = np.argmax(skin_w, axis=1)
@@ -995,7 +1038,11 @@ def simulate_capture(
     motion : {"dynamic", "walk", "range_of_motion"}
         Treadmill run, treadmill walk, or joint groups flexed in turn.
     seed : int
-        Seeds ``ctx.rng`` (motion variation, layout, noise, fragmentation).
+        Seeds ``ctx.rng`` (motion variation, layout, noise, fragmentation).  The
+        marker layout comes from its own stream of that seed and from the
+        calibration pose only, so trials of one seed and part id with different
+        ``motion`` (a range-of-motion trial and a dynamic one) share the body,
+        the marker labels and their placement.
     bvh : FilePath, optional
         Drive the body with this BVH instead of a procedural motion.
     body_mesh : FilePath, optional
