@@ -18,7 +18,9 @@ One run prints:
    the simulated dense capture (with its real occlusion, perfectly merged), on
    the same capture without occlusion (so the whole-body PCA has complete
    frames), and on the real C3D files.  Methods: ours (``clean`` without
-   merging: local PCA fill + local-frame smoothing), cubic spline
+   merging: local ridge-regression fill (``fill_model="regression"``, the
+   default; the paper's local PCA is ``fill_model="pca"``) + local-frame
+   smoothing), cubic spline
    interpolation, the whole-body PCA of Gløersen & Federolf 2016 (strategy R2,
    implemented from the paper), and Vicon-style rigid-body fill (PyPI
    ``gapfill``, 3 nearest donors visible through the gap).  Per configuration:
@@ -34,7 +36,8 @@ One run prints:
 5. **The real fragmented file** ``btkdata_PiG_Calibration-FlatFoot-Hole.c3d``:
    which fragments were merged into which labels, and why the others were not.
 
-Run: ``python benchmarks/clean.py --quick`` (a small run of every section), or
+Run: ``python benchmarks/clean.py --quick`` (a small run of every section),
+``--tables-only`` (sections 1, 2, 4, 5), or
 the gap protocol alone, cached and resumable (one JSON line per case and
 method; the datasets, masks and normalisers are frozen in
 ``<results>.datasets.npz`` on the first run, so later runs of other methods
@@ -1125,6 +1128,8 @@ def main() -> None:
     ap.add_argument("--placements", type=str, default="independent,clustered")
     ap.add_argument("--gaps-only", action="store_true",
                     help="run only the gap protocol (no tables 1-2, throughput, PiG report)")
+    ap.add_argument("--tables-only", action="store_true",
+                    help="run only tables 1-2, throughput and the PiG report (no gap protocol)")
     ap.add_argument("--results", type=str, default=None,
                     help="JSON-lines cache of the gap-protocol cases (one line per case and "
                          "method; cases already there are skipped; the datasets are frozen "
@@ -1156,6 +1161,11 @@ def main() -> None:
         sims = {mo: simulated(350, 900, mo, args.seed) for mo in motions}
         cleaned = table1(sims)
         table2(sims["dynamic"], cleaned["dynamic"], reps=3 if quick else 10)
+    if args.tables_only:
+        throughput(args.seed)
+        pig_report()
+        print(f"\ntotal {time.perf_counter() - t_all:.0f} s")
+        return
     datasets = protocol_datasets(args, sims)
     cases = protocol_cases(datasets, durations=durations, fractions=fractions,
                            placements=placements, reps=reps)
