@@ -136,6 +136,19 @@ class Markers:
         kw.update(changes)
         return Markers(**kw)
 
+    def take_frames(self, frames: np.ndarray | slice) -> Markers:
+        """A copy with only these frames (positions, residuals and fragments alike).
+
+        Parameters
+        ----------
+        frames : (K,) int ndarray or slice
+        """
+        return self.replace(
+            positions=self.positions[frames],
+            residuals=None if self.residuals is None else self.residuals[frames],
+            fragments=self.fragments[frames],
+        )
+
 
 def _encode_markers(m: Markers) -> Encoded:
     arrays = {

@@ -586,7 +586,7 @@ def render_modes(
         raise RenderError("render_modes: deform_params must not set 'mode' (one panel per mode)")
     x = align_markers(markers, segmentation)
     idx = _frame_indices(x.shape[0], stride, max_frames)
-    shown = markers.replace(positions=markers.positions[idx])
+    shown = markers.take_frames(idx)
     panels, messages = [], []
     for mode in modes:
         sub = Context(part=ctx.part, mapper=ctx.mapper, workers=ctx.workers)

@@ -38,6 +38,11 @@ def test_markers_round_trip_keeps_nan_fragments_and_attrs():
     assert back.fragment_labels == ["*1", "*2"] and back.attrs == {"source_unit": "mm"}
     assert digest_encoded(encode(back)) == digest_encoded(encode(m))
     assert m.visible.sum() == 7 * 4 - 1
+    sub = m.take_frames(np.array([1, 3, 4]))
+    np.testing.assert_array_equal(sub.positions, pos[[1, 3, 4]])
+    np.testing.assert_array_equal(sub.residuals, m.residuals[[1, 3, 4]])
+    np.testing.assert_array_equal(sub.fragments, frag[[1, 3, 4]])
+    assert sub.fragment_labels == ["*1", "*2"] and m.take_frames(slice(2, 5)).n_frames == 3
 
 
 def test_motion_round_trip_and_rotation_order():
