@@ -20,10 +20,19 @@ for every method, mean error after the clean stage's smoothing (independent /
 clustered placement, 2 repetitions): 0.5 s gaps in 10 % of the markers 0.33 /
 0.36 mm (paper's PCA 1.38 / 6.47 mm, Gløersen & Federolf 2016 R2 1.02 / 0.40
 mm), 2 s gaps 0.32 / 0.72 mm (PCA 0.98 / 21.2 mm, G&F 0.61 / 0.86 mm);
-Table 2 (0.5 s gaps, 10 %): mean 0.004 / max 0.05 of the mean neighbour
-distance (PCA: 0.019 / 0.47).  Shifting each gap by the model's residual at its
-measured ends (``offset_correction``) measured worse (+10–15 %: it adds the end
-frames' noise to an estimate that is already unbiased), so it is off.
+Table 2 (0.5 s gaps, 10 %, 10 repetitions): mean 0.0045 / max 0.26 of the mean
+neighbour distance (before the rarely-seen-marker fix of :func:`train_local_pca`
+0.0048 / 0.93).  The largest errors are not the regression's: they are edge
+holes of markers measured in only 4–12 frames of the whole capture (16–17 mm,
+30–50 frames after the last measurement), which only the rigid model can fill;
+the regression's worst is 7 mm (a back marker, also 7–8 mm with 16 predictors,
+other ridges or more training frames).  Sending gaps whose predictor leverage
+``h = zᵀ(ZᵀZ + λI)⁻¹z`` exceeds 1.5× the training frames' largest to the PCA
+passes measured much worse (mean 0.0077, max 0.37, 5× slower): high leverage
+here does not mean the regression is wrong, and the PCA is worse.  Shifting
+each gap by the model's residual at its measured ends (``offset_correction``)
+measured worse (+10–15 %: it adds the end frames' noise to an estimate that is
+already unbiased), so it is off.
 
 See :mod:`mocapflow.stages.clean` for the whole procedure and where it goes
 beyond the paper.
@@ -87,6 +96,13 @@ REGRESSION_MIN_TRAIN = 100
 #: predictor remain (see :func:`choose_predictors`).
 REGRESSION_FRAMES_PER_PREDICTOR = 4
 
+#: With ``model="regression"``, a local PCA of ``n`` members needs at least this
+#: many complete frames per coordinate (``3 n``): the markers left to the PCA
+#: passes are those measured too rarely for the regression, whose PCA from a
+#: handful of frames (12 frames, 10 components for 21 coordinates) extrapolated
+#: the start of a motion by 20–30 mm (see :func:`train_local_pca`).
+PCA_FRAMES_PER_COORDINATE = 3
+
 # --------------------------------------------------------------------------- PCA fill (§4.3)
 
 
@@ -142,6 +158,7 @@ def train_local_pca(
     min_frames: int = 10,
     max_frames: int = 300,
     noise_floor: float = (2e-4) ** 2,
+    frames_per_coordinate: int = 0,
 ) -> LocalPCA:
     """Train the local PCA model of one marker (Park & Hodgins §4.3).
 
@@ -170,17 +187,28 @@ def train_local_pca(
         Complete frames are subsampled evenly to at most this many.
     noise_floor : float
         Lower bound of the residual variance (m²).
+    frames_per_coordinate : int
+        A PCA of ``n`` members also needs ``frames_per_coordinate × 3n``
+        complete frames (0: only ``min_frames``, the paper's setting); from
+        fewer its components fit the few frames' noise and their start of a
+        motion, and extrapolate them (:data:`PCA_FRAMES_PER_COORDINATE`).
 
     Returns
     -------
     LocalPCA
+        Without enough complete frames even for a reduced ring, a rigid model
+        of the whole one-ring (it needs no complete frame; the neighbours the
+        reduction keeps are chosen for co-visibility, not rigidity, and three
+        of them may straddle a joint).
     """
     members = np.concatenate([[marker], neighbours]).astype(np.int64)
     mw = np.concatenate([[1.0], np.ones(len(neighbours)) if weights is None else weights])
+    ring, ring_w = members, mw
     vis = np.isfinite(X[:, members]).all(-1)  # (F, n)
     kind = "pca"
     complete = vis.all(1)
-    while complete.sum() < min_frames and len(members) > 1 + MIN_NEIGHBOURS:
+    while (complete.sum() < max(min_frames, frames_per_coordinate * 3 * len(members))
+           and len(members) > 1 + MIN_NEIGHBOURS):
         # drop the neighbour whose removal gains the most complete frames
         gains = [(vis[:, np.r_[0:j, j + 1:len(members)]].all(1).sum(), j)
                  for j in range(1, len(members))]
@@ -190,12 +218,15 @@ def train_local_pca(
         complete = vis.all(1)
         kind = "reduced"
     origin = reference[marker]
-    ref_local = (reference[members] - origin) @ frame.T
     idx = np.flatnonzero(complete)
-    n = len(members)
-    if len(idx) < min_frames:
-        return LocalPCA(marker, members, mw, ref_local, np.zeros((3 * n, 0)), np.zeros(0),
+    if len(idx) < max(min_frames, frames_per_coordinate * 3 * len(members)):
+        # no PCA: the rigid model keeps the whole one-ring
+        n = len(ring)
+        ref_local = (reference[ring] - origin) @ frame.T
+        return LocalPCA(marker, ring, ring_w, ref_local, np.zeros((3 * n, 0)), np.zeros(0),
                         noise_floor, "rigid", int(len(idx)))
+    n = len(members)
+    ref_local = (reference[members] - origin) @ frame.T
     if len(idx) > max_frames:
         idx = idx[np.linspace(0, len(idx) - 1, max_frames).round().astype(int)]
     Xt = X[idx][:, members]
@@ -648,9 +679,10 @@ def _interpolate_interior(X: np.ndarray, measured: np.ndarray, holes: np.ndarray
 
 
 def _train_chunk(item: tuple) -> list[LocalPCA]:
-    X, specs, reference, frames, variance = item
+    X, specs, reference, frames, variance, per_coordinate = item
     return [
-        train_local_pca(X, m, nb, reference, frames[m], weights=w, variance=variance)
+        train_local_pca(X, m, nb, reference, frames[m], weights=w, variance=variance,
+                        frames_per_coordinate=per_coordinate)
         for m, nb, w in specs
     ]
 
@@ -783,8 +815,9 @@ def fill_holes(
             markers = markers[t0[markers] | ((nbr >= 0) & t0[np.maximum(nbr, 0)]).any(1)]
         specs = [(int(m), surface.neighbours[m][surface.neighbours[m] >= 0],
                   surface.rigidity[m][surface.neighbours[m] >= 0]) for m in markers]
-        items = [(positions, [specs[i] for i in c], surface.reference, surface.frames, variance)
-                 for c in _chunks(len(specs), parts)]
+        per_coordinate = PCA_FRAMES_PER_COORDINATE if model == "regression" else 0
+        items = [(positions, [specs[i] for i in c], surface.reference, surface.frames, variance,
+                  per_coordinate) for c in _chunks(len(specs), parts)]
         model_chunks = ctx.map(_train_chunk, items) if len(specs) else []
     else:
         model_chunks = [[models[i] for i in c] for c in _chunks(len(models), parts)]
