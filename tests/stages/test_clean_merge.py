@@ -6,7 +6,12 @@
   collinear, coincident, planar, mirrored and half-turn sets;
 * the fragment judge with its per-round index against the dense judge (every
   candidate's distances over the whole fragment);
-* ``merge_fragments`` with and without the index on a small simulated capture.
+* ``merge_fragments`` with and without the index on a small simulated capture;
+* judging against hole-filled estimates (``predictions``) on a 6×6 grid with
+  ε₁ = 20 mm: a fragment 4 mm from a wrong marker's estimate while the true,
+  adjacent marker's estimate is 18–25 mm off is not merged (the plain ratio-3
+  ambiguity test merges it), 50 mm off it is merged; a mean distance of
+  14 mm (0.7 ε₁) is rejected (> 0.6 ε₁).
 """
 
 from __future__ import annotations
@@ -263,3 +268,71 @@ def test_merge_with_index_equals_dense_merge(monkeypatch):
     truth = sim.truth["fragment_marker"]
     merged = fast[1] >= 0
     np.testing.assert_array_equal(fast[1][merged], truth[merged])  # no wrong merge
+
+
+# --------------------------------------------------------------------------- hole-filled estimates
+
+
+def grid_case(offset_true, offset_wrong=0.004):
+    """A 6×6 marker grid (40 mm); markers 14 and 15 missing in frames 5..12.
+
+    The fragment is marker 15's true trajectory there.  Hole-filled estimates:
+    marker 14's lies ``offset_wrong`` from the fragment; marker 15's (trusted
+    only as a competitor) ``offset_true`` from it.
+    """
+    from mocapflow.stages.surface import build_marker_surface
+
+    F, n = 20, 6
+    gx, gy = np.meshgrid(np.arange(n) * 0.04, np.arange(n) * 0.04)
+    ref = np.stack([gx.ravel(), gy.ravel(), 0.01 * np.sin(gx.ravel() * 20)], 1)
+    X = np.repeat(ref[None], F, 0) + np.linspace(0, 0.1, F)[:, None, None]
+    surf = build_marker_surface(ref, positions=X)
+    T = np.arange(5, 13)
+    frags = np.full((F, 1, 3), np.nan)
+    frags[T, 0] = X[T, 15]
+    X[T, 14] = X[T, 15] = np.nan
+    direct = np.full_like(X, np.nan)
+    direct[T, 14] = frags[T, 0] + [offset_wrong, 0, 0]
+    competitors = direct.copy()
+    competitors[T, 15] = frags[T, 0] + [0, offset_true, 0]
+    return X, frags, surf, direct, competitors
+
+
+def test_grid_case_geometry():
+    X, frags, surf, direct, comp = grid_case(0.018)
+    dbar = np.fmin(surf.mean_distance, cm.nearest_marker_distance(surf.reference))
+    assert dbar[14] == pytest.approx(0.04, rel=0.05)  # ε₁ = 20 mm
+    assert cm.NEAR_RADIUS * surf.mean_distance[14] > 0.04  # 15 is near 14
+
+
+@pytest.mark.parametrize("offset_true", [0.018, 0.022, 0.025])
+def test_pca_merge_with_a_close_marker_far_off_its_estimate_is_ambiguous(offset_true):
+    """The true marker's estimate (a competitor only) is 4.5–6.25× farther than the
+    wrong one's: the plain ambiguity ratio (3) merges into the wrong marker, the
+    rule for hole-filled estimates (ratio 6.5 for markers within one d̄) does not."""
+    X, frags, surf, direct, comp = grid_case(offset_true)
+    plain = cm.merge_fragments(X, frags, surf, predictions=direct, competitors=comp,
+                               mean_tolerance=1.0, near_ratio=cm.AMBIGUITY_RATIO)
+    assert plain[1][0] == 14  # the wrong merge the rule prevents
+    _, assigned, rep = cm.merge_fragments(X, frags, surf, predictions=direct,
+                                          competitors=comp)
+    assert assigned[0] == -1
+    assert rep["rejections"][0]["reason"].startswith("ambiguous: M")
+    assert rep["conflicts"][0]["labels"] == [surf.labels[14], surf.labels[15]]
+
+
+def test_pca_merge_without_close_rival_still_merges():
+    X, frags, surf, direct, comp = grid_case(0.05)  # 12.5× farther: not a rival
+    _, assigned, rep = cm.merge_fragments(X, frags, surf, predictions=direct, competitors=comp)
+    assert assigned[0] == 14
+    assert rep["merges"][0]["mean_mm"] == pytest.approx(4.0, abs=1e-6)
+
+
+def test_pca_merge_needs_a_tighter_mean_distance():
+    X, frags, surf, direct, comp = grid_case(0.2, offset_wrong=0.014)  # 0.7 ε₁
+    rigid_rule = cm.merge_fragments(X, frags, surf, predictions=direct, competitors=comp,
+                                    mean_tolerance=1.0)
+    assert rigid_rule[1][0] == 14
+    _, assigned, rep = cm.merge_fragments(X, frags, surf, predictions=direct, competitors=comp)
+    assert assigned[0] == -1
+    assert rep["rejections"][0]["reason"].startswith("mean distance 14.0 mm")
