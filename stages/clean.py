@@ -333,6 +333,7 @@ def clean_markers(
                                          source=str(surface).rsplit("/", 1)[-1])
     else:
         surf = build_marker_surface(reference, positions=P, labels=labels)
+    surf.reference_frame = ref_frame  # carried into the exported surface mesh's attrs
     few = np.flatnonzero(np.isfinite(reference).all(1) & (surf.n_neighbours < MIN_NEIGHBOURS))
     if len(few):
         ctx.warn(

@@ -309,6 +309,8 @@ def test_stage_outputs_store_and_parallel_map_agrees(sim):
     surf = seq["surface"]
     assert isinstance(surf, Mesh) and surf.attrs["labels"] == m.labels
     assert surf.vertices.shape == (m.n_markers, 3)
+    ref_frame = seq["report"]["reference_frame"]
+    assert surf.attrs["reference_frame"] == ref_frame == int(np.argmax(m.visible.sum(1)))
 
 
 @pytest.mark.skipif(not (DATA / "c3d").exists(), reason="no shared data")
