@@ -198,6 +198,23 @@ def _gf_solve(y: np.ndarray, g: np.ndarray, gap_rows: np.ndarray, *,
     return (gap_rows @ v_z) @ (v_z.T @ v) @ v[g].T
 
 
+def _gf_moving_origin(positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gapped markers and the mean trajectory of the gap-free ones (G&F's moving origin).
+
+    Raises
+    ------
+    GFFailure
+        Every marker has gaps.
+    """
+    gap_markers = np.flatnonzero(np.isnan(positions).any((0, 2)))
+    if len(gap_markers) == 0:
+        return gap_markers, np.zeros((len(positions), 3))
+    full = np.setdiff1d(np.arange(positions.shape[1]), gap_markers)
+    if len(full) == 0:
+        raise GFFailure("every marker has gaps: no mean trajectory")
+    return gap_markers, positions[:, full].mean(1)
+
+
 def fill_gloersen_federolf(positions: np.ndarray, *, sigma: float = 0.2, mm_weight: float = 0.02,
                            distal_threshold: float = 0.5, min_cum_sv: float = 0.99,
                            only: np.ndarray | None = None) -> np.ndarray:
@@ -232,13 +249,9 @@ def fill_gloersen_federolf(positions: np.ndarray, *, sigma: float = 0.2, mm_weig
         No marker without gaps (the moving coordinate system) or no complete frame.
     """
     F, M, _ = positions.shape
-    gap_markers = np.flatnonzero(np.isnan(positions).any((0, 2)))
+    gap_markers, mean_traj = _gf_moving_origin(positions)
     if len(gap_markers) == 0:
         return positions.copy()
-    full = np.setdiff1d(np.arange(M), gap_markers)
-    if len(full) == 0:
-        raise GFFailure("every marker has gaps: no mean trajectory")
-    mean_traj = positions[:, full].mean(1)  # (F, 3)
     x = positions - mean_traj[:, None]
     out = x.copy()
     sub_f = np.unique(np.linspace(0, F - 1, min(F, 500)).round().astype(int))
@@ -321,13 +334,9 @@ def fill_gloersen_federolf_direct(positions: np.ndarray, *, sigma: float = 0.2,
     """The literal R2 implementation (full matrices, float32 SVDs): the reference that
     ``--check-gf`` compares :func:`fill_gloersen_federolf` with (~3-10x slower)."""
     F, M, _ = positions.shape
-    gap_markers = np.flatnonzero(np.isnan(positions).any((0, 2)))
+    gap_markers, mean_traj = _gf_moving_origin(positions)
     if len(gap_markers) == 0:
         return positions.copy()
-    full = np.setdiff1d(np.arange(M), gap_markers)
-    if len(full) == 0:
-        raise GFFailure("every marker has gaps: no mean trajectory")
-    mean_traj = positions[:, full].mean(1)  # (F, 3)
     D = (positions - mean_traj[:, None]).reshape(F, 3 * M)
     out = D.copy()
     sub_f = np.unique(np.linspace(0, F - 1, min(F, 500)).round().astype(int))

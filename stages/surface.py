@@ -26,7 +26,7 @@ automatically from surface neighbourhoods, and a manual override file is accepte
    candidates.  It is then wound consistently and outward
    (:func:`orient_faces`), tiny detached pieces are dropped, boundary loops are
    closed by minimum-area triangulation without stretching, over-long or
-   folding edges (:func:`fill_holes`; the gaps at the armpits and the crotch,
+   folding edges (:func:`fill_surface_holes`; the gaps at the armpits and the crotch,
    whose bridges stretch over the capture, stay open), markers left on no
    triangle split their nearest triangle (:func:`insert_markers`) and edges
    are flipped towards Delaunay (:func:`flip_edges`).
@@ -73,7 +73,7 @@ __all__ = [
     "SurfaceInputError",
     "build_marker_surface",
     "edge_stretch",
-    "fill_holes",
+    "fill_surface_holes",
     "flip_edges",
     "insert_markers",
     "local_frames",
@@ -531,7 +531,7 @@ def triangulate_markers(
         on at most two triangles and do not fold over a neighbour
         (:func:`manifold_triangles`), the result is wound consistently and the
         remaining holes of at most ``max_hole`` edges are closed by minimum-area
-        triangulation without stretching edges (:func:`fill_holes`).
+        triangulation without stretching edges (:func:`fill_surface_holes`).
         ``False``: the plain vote (triangles in the umbrellas of two corners, plus
         islands' own umbrellas and once-voted bridges), which may leave holes and
         edges on three or more triangles.
@@ -557,7 +557,7 @@ def triangulate_markers(
         faces = manifold_triangles(reference, votes, normals=normals)
         faces = _drop_misoriented(orient_faces(reference, faces))
         faces = _drop_small_pieces(faces, min_piece)
-        faces = fill_holes(reference, faces, positions=positions, max_stretch=max_stretch,
+        faces = fill_surface_holes(reference, faces, positions=positions, max_stretch=max_stretch,
                            max_hole=max_hole)
         faces = insert_markers(reference, faces)
         faces = flip_edges(reference, faces, positions=positions, max_stretch=max_stretch)
@@ -965,7 +965,7 @@ def _spacing(reference: np.ndarray) -> np.ndarray:
     return out
 
 
-def fill_holes(
+def fill_surface_holes(
     reference: np.ndarray,
     faces: np.ndarray,
     *,

@@ -12,7 +12,7 @@ from mocapflow.stages.surface import (
     SurfaceInputError,
     build_marker_surface,
     edge_stretch,
-    fill_holes,
+    fill_surface_holes,
     insert_markers,
     local_frames,
     marker_surface_from_faces,
@@ -280,18 +280,18 @@ def test_fill_holes_closes_a_hole_unless_it_stretches():
     holed = faces[~(faces == 0).any(1)]
     top = surface_topology(holed)
     assert top["boundary_loops"] == 1 and top["boundary_edges"] == len(ring0) - 1
-    closed = fill_holes(ref, holed)
+    closed = fill_surface_holes(ref, holed)
     assert len(closed) == len(faces) - 2  # n-gon: n - 2 triangles
     top = surface_topology(closed)
     assert top["boundary_edges"] == 0 and top["euler"] == 2 and top["misoriented_edges"] == 0
     assert outward_fraction(ref, closed) == 1.0
-    assert surface_topology(fill_holes(ref, holed, max_hole=3))["boundary_edges"] > 0
+    assert surface_topology(fill_surface_holes(ref, holed, max_hole=3))["boundary_edges"] > 0
     # one rim marker slides against the others: no new edge may end on it
     F = 40
     pos = np.repeat(ref[None], F, axis=0)
     k = int(ring0[ring0 != 0][0])
     pos[:, k] += np.outer(np.sin(np.linspace(0, 6, F)), [0.1, 0.1, 0.0])
-    left = fill_holes(ref, holed, positions=pos)
+    left = fill_surface_holes(ref, holed, positions=pos)
     assert len(left) == len(closed)
 
     def edges(f):
@@ -306,7 +306,7 @@ def test_fill_holes_closes_a_hole_unless_it_stretches():
     pos = np.repeat(ref[None], F, axis=0)
     phase = np.linspace(0, 2 * np.pi, len(ring0), endpoint=False)
     pos[:, ring0] += 0.04 * np.sin(np.linspace(0, 6, F)[:, None, None] + phase[None, :, None])
-    assert len(fill_holes(ref, holed, positions=pos)) == len(holed)
+    assert len(fill_surface_holes(ref, holed, positions=pos)) == len(holed)
     # ... and with it put back, one split triangle: a closed surface again, marker 0 on it
     back = insert_markers(ref, closed)
     top = surface_topology(back)
