@@ -386,22 +386,6 @@ def predictor_ranking(
     return out
 
 
-def _rigid_fit(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares rotation and translation of one complete point set onto many.
-
-    ``source (N, 3)``, ``target (B, N, 3)`` without NaN → ``R (B, 3, 3)``,
-    ``t (B, 3)`` with ``target ≈ source @ R.T + t`` (Kabsch, no reflection).
-    """
-    cs = source.mean(0)
-    ct = target.mean(1)
-    H = np.matmul((source - cs).T[None], target - ct[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.matmul(U, Vt)))
-    Vt[:, 2] *= d[:, None]
-    R = np.matmul(U, Vt).transpose(0, 2, 1)
-    return R, ct - R @ cs
-
-
 def regress_gap(
     X: np.ndarray,
     visible: np.ndarray,
@@ -462,7 +446,10 @@ def regress_gap(
     n = len(train)
     frames = np.concatenate([train, gap])
     P = X[frames[:, None], S[None]]
-    R, t = _rigid_fit(reference[S] - reference[marker], P)
+    local = np.broadcast_to(reference[S] - reference[marker], P.shape)
+    R, t = absolute_orientation_batch(local, P)  # P ≈ local @ R.T + t per frame
+    if not np.isfinite(R).all():
+        return None  # degenerate (collinear) predictor set in some frame
     Z = np.matmul(P - t[:, None], R).reshape(len(frames), -1)  # R^T (x - t), row-wise
     y = np.matmul((X[train, marker] - t[:n])[:, None], R[:n])[:, 0]
     mz, my = Z[:n].mean(0), y.mean(0)

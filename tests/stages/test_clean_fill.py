@@ -9,7 +9,6 @@ from mocapflow.pipeline import Context
 from mocapflow.stages.clean import clean_markers
 from mocapflow.stages.clean_fill import (
     PCA_FRAMES_PER_COORDINATE,
-    _rigid_fit,
     fill_holes,
     model_estimates,
     predictor_ranking,
@@ -18,7 +17,11 @@ from mocapflow.stages.clean_fill import (
     train_local_pca,
 )
 from mocapflow.stages.data import Markers
-from mocapflow.stages.kinematics import quat_from_rotvec, quat_to_matrix
+from mocapflow.stages.kinematics import (
+    absolute_orientation_batch,
+    quat_from_rotvec,
+    quat_to_matrix,
+)
 from mocapflow.stages.surface import build_marker_surface
 
 RATE = 120.0
@@ -53,6 +56,11 @@ def rms(a: np.ndarray) -> float:
 
 
 # --------------------------------------------------------------------------- pieces
+
+
+def _rigid_fit(source, target):
+    # the regression's per-frame fit of the predictors' reference shape (Horn, batched)
+    return absolute_orientation_batch(np.broadcast_to(source, target.shape), target)
 
 
 def test_rigid_fit_recovers_rotations():
