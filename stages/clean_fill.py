@@ -40,7 +40,8 @@ beyond the paper.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -304,11 +305,11 @@ def model_estimates(
         B = model.basis
         w3 = np.repeat(w, 3, axis=1)  # (N, 3n)
         prior = np.diag(1.0 / np.maximum(model.eigenvalues, 1e-12))
-        A = np.einsum("ri,nr,rj->nij", B, w3, B) / model.noise + prior
+        A = np.matmul(B.T[None] * w3[:, None, :], B) / model.noise + prior  # (N, k, k)
         mu = model.mean.reshape(-1)
         for it in range(iterations + 1):
             z = _apply_inv(R, t, np.nan_to_num(Xr)).reshape(len(rows), 3 * n)
-            rhs = np.einsum("ri,nr->ni", B, w3 * np.nan_to_num(z - mu)) / model.noise
+            rhs = (w3 * np.nan_to_num(z - mu)) @ B / model.noise
             a = np.linalg.solve(A, rhs[..., None])[..., 0]
             shape = (mu + a @ B.T).reshape(len(rows), n, 3)
             if it < iterations:
@@ -665,22 +666,52 @@ def _interpolate_interior(X: np.ndarray, measured: np.ndarray, holes: np.ndarray
     return n
 
 
+def _train_item(X: np.ndarray, specs: list[tuple], reference: np.ndarray, frames: np.ndarray,
+                variance: float, per_coordinate: int) -> tuple:
+    """The work of one :func:`_train_chunk`, cut down to the columns its models read."""
+    cols = np.unique(np.concatenate([np.concatenate([[m], nb]) for m, nb, _ in specs]))
+    remap = np.full(X.shape[1], -1, dtype=np.int64)
+    remap[cols] = np.arange(len(cols))
+    local = [(int(remap[m]), remap[nb], w) for m, nb, w in specs]
+    return (X[:, cols], local, reference[cols], frames[cols], variance, per_coordinate, cols)
+
+
 def _train_chunk(item: tuple) -> list[LocalPCA]:
-    X, specs, reference, frames, variance, per_coordinate = item
-    return [
+    X, specs, reference, frames, variance, per_coordinate, cols = item
+    models = [
         train_local_pca(X, m, nb, reference, frames[m], weights=w, variance=variance,
                         frames_per_coordinate=per_coordinate)
         for m, nb, w in specs
     ]
+    return [replace(md, marker=int(cols[md.marker]), members=cols[md.members]) for md in models]
+
+
+def _estimate_item(X: np.ndarray, models: list[LocalPCA], targets: np.ndarray,
+                   min_support: float, neighbour_weight: float) -> tuple:
+    """The work of one :func:`_estimate_chunk`, cut down to what its models read.
+
+    Only the members' columns and the frames where a member is a target are
+    sent (a worker process receives a copy): the models are re-indexed onto
+    the columns, and the results carry the frame and marker maps back.
+    """
+    cols = np.unique(np.concatenate([md.members for md in models]))
+    rows = np.flatnonzero(targets[:, cols].any(1))
+    remap = np.full(X.shape[1], -1, dtype=np.int64)
+    remap[cols] = np.arange(len(cols))
+    local = [replace(md, marker=int(remap[md.marker]), members=remap[md.members])
+             for md in models]
+    return (X[rows][:, cols], local, targets[rows][:, cols], min_support, neighbour_weight,
+            rows, cols)
 
 
 def _estimate_chunk(item: tuple) -> tuple[np.ndarray, ...]:
-    X, models, targets, min_support, neighbour_weight = item
+    X, models, targets, min_support, neighbour_weight, rows, cols = item
     out = [model_estimates(md, X, targets, min_support=min_support,
                            neighbour_weight=neighbour_weight) for md in models]
     if not out:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
-    return tuple(np.concatenate(a) for a in zip(*out))
+    f, m, e, w = (np.concatenate(a) for a in zip(*out))
+    return rows[f], cols[m], e, w
 
 
 def fill_holes(
@@ -803,8 +834,8 @@ def fill_holes(
         specs = [(int(m), surface.neighbours[m][surface.neighbours[m] >= 0],
                   surface.rigidity[m][surface.neighbours[m] >= 0]) for m in markers]
         per_coordinate = PCA_FRAMES_PER_COORDINATE if model == "regression" else 0
-        items = [(positions, [specs[i] for i in c], surface.reference, surface.frames, variance,
-                  per_coordinate) for c in _chunks(len(specs), parts)]
+        items = [_train_item(positions, [specs[i] for i in c], surface.reference, surface.frames,
+                             variance, per_coordinate) for c in _chunks(len(specs), parts)]
         model_chunks = ctx.map(_train_chunk, items) if len(specs) else []
     else:
         model_chunks = [[models[i] for i in c] for c in _chunks(len(models), parts)]
@@ -818,13 +849,15 @@ def fill_holes(
             comps.append(md.basis.shape[1])
     info["models"] = {"by_kind": kinds, "mean_components": float(np.mean(comps)) if comps else 0}
     support = min_support
+    info["pass_seconds"] = []
     for _ in range(max_passes):
+        t_pass = time.perf_counter()
         todo = holes & ~np.isfinite(X).all(-1)
         if not todo.any():
             break
         need = todo.any(0)  # only models with a member still to fill
         active = [[md for md in ch if need[md.members].any()] for ch in model_chunks]
-        res = ctx.map(_estimate_chunk, [(X, ch, todo, support, neighbour_weight)
+        res = ctx.map(_estimate_chunk, [_estimate_item(X, ch, todo, support, neighbour_weight)
                                         for ch in active if ch])
         if not res:
             break
@@ -843,6 +876,7 @@ def fill_holes(
             n_new = int(new.sum())
             fill_pass[new] = len(info["filled_by_pass"]) + 1
         info["filled_by_pass"].append(n_new)
+        info["pass_seconds"].append(round(time.perf_counter() - t_pass, 3))
         if n_new == 0:
             if support == 0:
                 break

@@ -40,15 +40,15 @@ def _chunks(n: int, parts: int) -> list[np.ndarray]:
 def _apply(R: np.ndarray, t: np.ndarray, x: np.ndarray) -> np.ndarray:
     """``R x + t`` for batches: R (B,3,3), t (B,3), x (B,N,3) or (B,3)."""
     if x.ndim == 2:
-        return np.einsum("bij,bj->bi", R, x) + t
-    return np.einsum("bij,bnj->bni", R, x) + t[:, None]
+        return np.matmul(R, x[..., None])[..., 0] + t
+    return np.matmul(x, np.swapaxes(R, 1, 2)) + t[:, None]
 
 
 def _apply_inv(R: np.ndarray, t: np.ndarray, x: np.ndarray) -> np.ndarray:
     """``R^T (x - t)`` for batches."""
     if x.ndim == 2:
-        return np.einsum("bji,bj->bi", R, x - t)
-    return np.einsum("bji,bnj->bni", R, x - t[:, None])
+        return np.matmul((x - t)[:, None], R)[:, 0]
+    return np.matmul(x - t[:, None], R)
 
 
 def fragment_runs(visible: np.ndarray) -> list[tuple[int, int]]:
