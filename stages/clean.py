@@ -352,6 +352,7 @@ def clean_markers(
             fragment_labels=markers.fragment_labels, depths=(1,), ctx=ctx,
         )
         models = None
+        fill_cache: dict = {}  # the rounds' data differ only where fragments were merged
         for k in range(pca_merge_rounds if fill else 0):
             left = np.flatnonzero(assigned < 0)
             if not len(left):
@@ -359,7 +360,7 @@ def clean_markers(
             # judge the rest against the PCA hole filling of the merged data (§4.3)
             waiting = np.isfinite(frags[:, left]).all(-1).any(1)
             Xf, finfo0 = fill_holes(X, surf, variance=variance, models=models, frames=waiting,
-                                    model="pca", ctx=ctx)
+                                    model="pca", cache=fill_cache, ctx=ctx)
             models = finfo0.get("model_list") or models
             # trust the estimates of the first pass (from measured members) only
             direct = np.where((finfo0["pass"] == 1)[..., None], Xf, np.nan)

@@ -687,31 +687,53 @@ def _train_chunk(item: tuple) -> list[LocalPCA]:
 
 
 def _estimate_item(X: np.ndarray, models: list[LocalPCA], targets: np.ndarray,
-                   min_support: float, neighbour_weight: float) -> tuple:
+                   min_support: float, neighbour_weight: float,
+                   dirty: list[np.ndarray | None] | None = None) -> tuple:
     """The work of one :func:`_estimate_chunk`, cut down to what its models read.
 
     Only the members' columns and the frames where a member is a target are
     sent (a worker process receives a copy): the models are re-indexed onto
     the columns, and the results carry the frame and marker maps back.
+    ``dirty`` (per model, ``(F,)`` bool or None for all) limits each model to
+    the frames whose estimates must be recomputed.
     """
     cols = np.unique(np.concatenate([md.members for md in models]))
-    rows = np.flatnonzero(targets[:, cols].any(1))
+    dirty = dirty or [None] * len(models)
+    need = [targets[:, md.members].any(1) if d is None else targets[:, md.members].any(1) & d
+            for md, d in zip(models, dirty)]
+    rows = np.flatnonzero(np.logical_or.reduce(need))
     remap = np.full(X.shape[1], -1, dtype=np.int64)
     remap[cols] = np.arange(len(cols))
     local = [replace(md, marker=int(remap[md.marker]), members=remap[md.members])
              for md in models]
+    masks = [None if d is None else n[rows] for d, n in zip(dirty, need)]
     return (X[rows][:, cols], local, targets[rows][:, cols], min_support, neighbour_weight,
-            rows, cols)
+            masks, rows, cols)
 
 
-def _estimate_chunk(item: tuple) -> tuple[np.ndarray, ...]:
-    X, models, targets, min_support, neighbour_weight, rows, cols = item
-    out = [model_estimates(md, X, targets, min_support=min_support,
-                           neighbour_weight=neighbour_weight) for md in models]
-    if not out:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
-    f, m, e, w = (np.concatenate(a) for a in zip(*out))
-    return rows[f], cols[m], e, w
+def _estimate_chunk(item: tuple) -> list[tuple[np.ndarray, ...]]:
+    X, models, targets, min_support, neighbour_weight, masks, rows, cols = item
+    out = []
+    for md, mask in zip(models, masks):
+        tg = targets if mask is None else targets & mask[:, None]
+        f, m, e, w = model_estimates(md, X, tg, min_support=min_support,
+                                     neighbour_weight=neighbour_weight)
+        out.append((rows[f], cols[m], e, w))
+    return out
+
+
+def _changed_samples(X: np.ndarray, todo: np.ndarray, X0: np.ndarray,
+                     todo0: np.ndarray) -> np.ndarray:
+    """``(F, M)`` bool: samples whose value, presence or target flag differ."""
+    a, b = np.isfinite(X).all(-1), np.isfinite(X0).all(-1)
+    with np.errstate(invalid="ignore"):
+        same = (X == X0).all(-1)
+    return (a != b) | (a & ~same) | (todo != todo0)
+
+
+#: Passes of :func:`fill_holes` whose per-model estimates a ``cache`` keeps
+#: (they hold most of the work; later passes fill few samples).
+CACHED_PASSES = 4
 
 
 def fill_holes(
@@ -729,6 +751,7 @@ def fill_holes(
     n_predictors: int = REGRESSION_PREDICTORS,
     ridge: float = REGRESSION_RIDGE,
     offset_correction: bool = False,
+    cache: dict | None = None,
     ctx: Context | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Hole filling in the local frame (Park & Hodgins §4.3, or a wider regression).
@@ -775,6 +798,13 @@ def fill_holes(
         Shift each regressed gap by the model's residual at its measured ends,
         blended linearly across it (off: it adds the end frames' noise and
         measured slightly worse on simulated captures).
+    cache : dict, optional
+        Kept between calls with the same ``models`` on data that changed in
+        few samples (the merge rounds): each of the first
+        :data:`CACHED_PASSES` passes re-uses a model's estimates in the frames
+        where none of its members changed value, presence or target flag
+        since the previous call (an estimate depends on its frame only), and
+        computes the rest.  The result is the same as without it.
     ctx : Context, optional
         Models are trained and evaluated per marker chunk through ``ctx.map``.
 
@@ -850,21 +880,48 @@ def fill_holes(
     info["models"] = {"by_kind": kinds, "mean_components": float(np.mean(comps)) if comps else 0}
     support = min_support
     info["pass_seconds"] = []
-    for _ in range(max_passes):
+    ids = [list(range(a, a + len(ch)))
+           for a, ch in zip(np.cumsum([0] + [len(ch) for ch in model_chunks]), model_chunks)]
+    all_models = info["model_list"]
+    if cache is not None and cache.get("models") != [id(md) for md in all_models]:
+        cache.clear()  # other models: nothing to re-use
+        cache["models"] = [id(md) for md in all_models]
+    for p in range(max_passes):
         t_pass = time.perf_counter()
         todo = holes & ~np.isfinite(X).all(-1)
         if not todo.any():
             break
         need = todo.any(0)  # only models with a member still to fill
-        active = [[md for md in ch if need[md.members].any()] for ch in model_chunks]
-        res = ctx.map(_estimate_chunk, [_estimate_item(X, ch, todo, support, neighbour_weight)
-                                        for ch in active if ch])
+        active = [[i for i in ch if need[all_models[i].members].any()] for ch in ids]
+        active = [ch for ch in active if ch]
+        key = (p, support, neighbour_weight)
+        prev = cache.get(key) if cache is not None and p < CACHED_PASSES else None
+        dirty: list[list[np.ndarray | None]] = [[None] * len(ch) for ch in active]
+        if prev is not None:
+            changed = _changed_samples(X, todo, prev["X"], prev["todo"])
+            dirty = [[changed[:, all_models[i].members].any(1) if i in prev["out"] else None
+                      for i in ch] for ch in active]
+        res = ctx.map(_estimate_chunk, [
+            _estimate_item(X, [all_models[i] for i in ch], todo, support, neighbour_weight, d)
+            for ch, d in zip(active, dirty)])
         if not res:
             break
-        f = np.concatenate([r[0] for r in res])
-        m = np.concatenate([r[1] for r in res])
-        e = np.concatenate([r[2] for r in res])
-        wt = np.concatenate([r[3] for r in res])
+        outs: dict[int, tuple[np.ndarray, ...]] = {}
+        for ch, d, r in zip(active, dirty, res):
+            for i, di, o in zip(ch, d, r):
+                if di is not None:  # cached estimates in the unchanged frames
+                    old = prev["out"][i]
+                    keep = ~di[old[0]]
+                    o = tuple(np.concatenate([a[keep], b]) for a, b in zip(old, o))
+                    order = np.argsort(o[0], kind="stable")
+                    o = tuple(a[order] for a in o)
+                outs[i] = o
+        if cache is not None and p < CACHED_PASSES:
+            cache[key] = {"X": X.copy(), "todo": todo, "out": outs}
+        f = np.concatenate([o[0] for o in outs.values()])
+        m = np.concatenate([o[1] for o in outs.values()])
+        e = np.concatenate([o[2] for o in outs.values()])
+        wt = np.concatenate([o[3] for o in outs.values()])
         n_new = 0
         if len(f):
             s = np.zeros((F, M, 3))

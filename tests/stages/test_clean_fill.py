@@ -197,6 +197,49 @@ def test_too_few_predictors_go_to_the_pca_passes():
     assert np.abs(out[60:70, 24] - P[60:70, 24]).max() < 0.01
 
 
+def test_cache_between_calls_changes_nothing_but_the_work():
+    """The merge rounds' cache: a second call on data where a few samples came
+    back re-uses the unchanged frames' estimates and equals an uncached call."""
+    P = deforming_patch(240)
+    rng = np.random.default_rng(5)
+    X = P + rng.normal(0, 0.0003, P.shape)
+    holes = rng.random(X.shape[:2]) < 0.15
+    for m in (10, 24, 31):
+        holes[100:160, m] = True
+    X[holes] = np.nan
+    surf = build_marker_surface(P[0], positions=X)
+    cache: dict = {}
+    first, info = fill_holes(X, surf, model="pca", cache=cache)
+    models = info["model_list"]
+    X2 = X.copy()
+    back = holes & (rng.random(holes.shape) < 0.1)  # "merged" samples
+    X2[back] = P[back]
+    plain, pinfo = fill_holes(X2, surf, model="pca", models=models)
+    calls = []
+    import mocapflow.stages.clean_fill as cf
+
+    real = cf.model_estimates
+
+    def counting(model, X, targets, **kw):
+        calls.append(int(targets.any(1).sum()))
+        return real(model, X, targets, **kw)
+
+    cf.model_estimates = counting
+    try:
+        cached, cinfo = fill_holes(X2, surf, model="pca", models=models, cache=cache)
+        n_cached = sum(calls)
+        calls.clear()
+        fill_holes(X2, surf, model="pca", models=models)
+        n_plain = sum(calls)
+    finally:
+        cf.model_estimates = real
+    np.testing.assert_array_equal(cached, plain)
+    assert cinfo["filled_by_pass"] == pinfo["filled_by_pass"]
+    assert n_cached < 0.8 * n_plain  # frames with a changed member only
+    other, _ = fill_holes(X2, surf, model="pca", cache=cache)  # new models: cache reset
+    np.testing.assert_array_equal(other, fill_holes(X2, surf, model="pca")[0])
+
+
 def test_fill_holes_rejects_an_unknown_model():
     P = deforming_patch(60)
     X = P.copy()
