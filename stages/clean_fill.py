@@ -287,42 +287,123 @@ def model_estimates(
         Share of each estimate in the average: 1 for the model's own marker,
         ``neighbour_weight`` times the rigidity for its neighbours.
     """
-    mem = model.members
-    n = len(mem)
-    Xm = X[:, mem]
-    vis = np.isfinite(Xm).all(-1)
-    tgt = targets[:, mem] & ~vis
-    mw = model.weights
-    support = _third_anchor(vis * mw)
-    rows = np.flatnonzero(tgt.any(1) & (vis.sum(1) >= MIN_NEIGHBOURS) & (support >= min_support))
-    if len(rows) == 0:
-        return (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
-    Xr, w = Xm[rows], vis[rows] * mw
-    shape = np.broadcast_to(model.mean, (len(rows), n, 3))
-    R, t = absolute_orientation_batch(shape, np.where(w[..., None] > 0, Xr, np.nan), weights=w)
-    k = model.basis.shape[1]
-    if k:
-        B = model.basis
-        w3 = np.repeat(w, 3, axis=1)  # (N, 3n)
-        prior = np.diag(1.0 / np.maximum(model.eigenvalues, 1e-12))
-        A = np.matmul(B.T[None] * w3[:, None, :], B) / model.noise + prior  # (N, k, k)
-        mu = model.mean.reshape(-1)
+    return model_estimates_batch([model], X, targets, iterations=iterations,
+                                 min_support=min_support, neighbour_weight=neighbour_weight)[0]
+
+
+#: Model-frame pairs per batched pose solve of :func:`model_estimates_batch`
+#: (larger batches stop fitting in cache and run slower).
+BATCH_PAIRS = 8000
+
+
+def model_estimates_batch(
+    models: list[LocalPCA],
+    X: np.ndarray,
+    targets: np.ndarray,
+    *,
+    masks: list[np.ndarray | None] | None = None,
+    iterations: int = 1,
+    min_support: float = 0.0,
+    neighbour_weight: float = 1.0,
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`model_estimates` of several models at once.
+
+    The pose fits of every model and frame are one batched Horn solve over
+    the members padded to the largest model (padding weighs 0); only the
+    coefficient solves run per model.  A pass of the fill calls this once per
+    chunk of models instead of once per model.
+
+    Parameters
+    ----------
+    models : list of LocalPCA
+    X : (F, M, 3) float ndarray
+    targets : (F, M) bool ndarray
+    masks : list of ((F,) bool ndarray or None), optional
+        Per model, the only frames it estimates (None: all).
+    iterations, min_support, neighbour_weight
+        As for :func:`model_estimates`.
+
+    Returns
+    -------
+    list of (frames, markers, estimates, weights)
+        Per model, what :func:`model_estimates` returns.
+    """
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
+    if not models:
+        return []
+    n_max = max(len(md.members) for md in models)
+    nm = len(models)
+    mem = np.zeros((nm, n_max), dtype=np.int64)
+    real = np.zeros((nm, n_max), dtype=bool)
+    mw = np.zeros((nm, n_max))
+    mean = np.zeros((nm, n_max, 3))
+    for i, md in enumerate(models):
+        n = len(md.members)
+        mem[i, :n], real[i, :n], mw[i, :n], mean[i, :n] = md.members, True, md.weights, md.mean
+    vis_all = np.isfinite(X).all(-1)
+    vis = vis_all[:, mem] & real[None]  # (F, m, n)
+    tgt = targets[:, mem] & real[None] & ~vis
+    if masks is not None:
+        for i, mk in enumerate(masks):
+            if mk is not None:
+                tgt[~mk, i] = False
+    support = _third_anchor(vis * mw[None])
+    pick = tgt.any(-1) & (vis.sum(-1) >= MIN_NEIGHBOURS) & (support >= min_support)  # (F, m)
+    n_pick = pick.sum(0)
+    if n_pick.sum() > BATCH_PAIRS and nm > 1:  # blocks of models that fit in cache
+        block = np.cumsum(n_pick) // BATCH_PAIRS
+        out: list = []
+        for b in np.unique(block):
+            sel = np.flatnonzero(block == b)
+            out += model_estimates_batch(
+                [models[i] for i in sel], X, targets,
+                masks=None if masks is None else [masks[i] for i in sel],
+                iterations=iterations, min_support=min_support,
+                neighbour_weight=neighbour_weight)
+        return out
+    model_of, row = np.nonzero(pick.T)  # model-major, frames ascending (as per model)
+    if not len(row):
+        return [empty] * nm
+    w = vis[row, model_of] * mw[model_of]  # (P, n)
+    Xr = X[row[:, None], mem[model_of]]  # (P, n, 3)
+    Xw = np.where(w[..., None] > 0, Xr, np.nan)
+    shape = mean[model_of]
+    R, t = absolute_orientation_batch(shape, Xw, weights=w)
+    starts = np.searchsorted(model_of, np.arange(nm + 1))
+    solvable = [i for i, md in enumerate(models)
+                if md.basis.shape[1] and starts[i + 1] > starts[i]]
+    if solvable:
+        shape = shape.copy()
+        Xr0 = np.nan_to_num(Xr)
         for it in range(iterations + 1):
-            z = _apply_inv(R, t, np.nan_to_num(Xr)).reshape(len(rows), 3 * n)
-            rhs = (w3 * np.nan_to_num(z - mu)) @ B / model.noise
-            a = np.linalg.solve(A, rhs[..., None])[..., 0]
-            shape = (mu + a @ B.T).reshape(len(rows), n, 3)
+            for i in solvable:
+                md = models[i]
+                sl = slice(starts[i], starts[i + 1])
+                n = len(md.members)
+                B = md.basis
+                w3 = np.repeat(w[sl, :n], 3, axis=1)
+                prior = np.diag(1.0 / np.maximum(md.eigenvalues, 1e-12))
+                A = np.matmul(B.T[None] * w3[:, None, :], B) / md.noise + prior
+                mu = md.mean.reshape(-1)
+                z = _apply_inv(R[sl], t[sl], Xr0[sl, :n]).reshape(-1, 3 * n)
+                rhs = (w3 * np.nan_to_num(z - mu)) @ B / md.noise
+                a = np.linalg.solve(A, rhs[..., None])[..., 0]
+                shape[sl, :n] = (mu + a @ B.T).reshape(-1, n, 3)
             if it < iterations:
-                R2, t2 = absolute_orientation_batch(
-                    shape, np.where(w[..., None] > 0, Xr, np.nan), weights=w)
+                sel = np.concatenate([np.arange(starts[i], starts[i + 1]) for i in solvable])
+                R2, t2 = absolute_orientation_batch(shape[sel], Xw[sel], weights=w[sel])
                 good = np.isfinite(R2).all((1, 2))
-                R[good], t[good] = R2[good], t2[good]
-    est = _apply(R, t, shape)  # (N, n, 3)
-    f, j = np.nonzero(tgt[rows])
-    e = est[f, j]
+                R[sel[good]], t[sel[good]] = R2[good], t2[good]
+    est = _apply(R, t, shape)  # (P, n, 3)
+    p, j = np.nonzero(tgt[row, model_of])  # pair-major, members in order
+    e = est[p, j]
     ok = np.isfinite(e).all(1)
-    wgt = np.where(j[ok] == 0, 1.0, neighbour_weight * model.weights[j[ok]])
-    return rows[f[ok]], mem[j[ok]], e[ok], wgt
+    p, j, e = p[ok], j[ok], e[ok]
+    mi = model_of[p]
+    wgt = np.where(j == 0, 1.0, neighbour_weight * mw[mi, j])
+    cut = np.searchsorted(mi, np.arange(nm + 1))
+    f_all, m_all = row[p], mem[mi, j]
+    return [(f_all[a:b], m_all[a:b], e[a:b], wgt[a:b]) for a, b in zip(cut[:-1], cut[1:])]
 
 
 # --------------------------------------------------------------------------- wide regression
@@ -713,13 +794,9 @@ def _estimate_item(X: np.ndarray, models: list[LocalPCA], targets: np.ndarray,
 
 def _estimate_chunk(item: tuple) -> list[tuple[np.ndarray, ...]]:
     X, models, targets, min_support, neighbour_weight, masks, rows, cols = item
-    out = []
-    for md, mask in zip(models, masks):
-        tg = targets if mask is None else targets & mask[:, None]
-        f, m, e, w = model_estimates(md, X, tg, min_support=min_support,
-                                     neighbour_weight=neighbour_weight)
-        out.append((rows[f], cols[m], e, w))
-    return out
+    out = model_estimates_batch(models, X, targets, masks=masks, min_support=min_support,
+                                neighbour_weight=neighbour_weight)
+    return [(rows[f], cols[m], e, w) for f, m, e, w in out]
 
 
 def _changed_samples(X: np.ndarray, todo: np.ndarray, X0: np.ndarray,
@@ -924,10 +1001,10 @@ def fill_holes(
         wt = np.concatenate([o[3] for o in outs.values()])
         n_new = 0
         if len(f):
-            s = np.zeros((F, M, 3))
-            c = np.zeros((F, M))
-            np.add.at(s, (f, m), e * wt[:, None])
-            np.add.at(c, (f, m), wt)
+            flat = f * M + m  # weighted average of the estimates per sample
+            c = np.bincount(flat, weights=wt, minlength=F * M).reshape(F, M)
+            s = np.stack([np.bincount(flat, weights=e[:, k] * wt, minlength=F * M)
+                          for k in range(3)], -1).reshape(F, M, 3)
             new = (c > 0) & todo
             X[new] = s[new] / c[new][:, None]
             n_new = int(new.sum())

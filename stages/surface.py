@@ -230,10 +230,19 @@ def edge_stretch(positions: np.ndarray, pairs: np.ndarray, *, min_frames: int = 
     n = np.isfinite(d).sum(0)
     ok = n >= min_frames
     with _quiet():
-        med = np.nanmedian(d[:, ok], axis=0)
         sd = np.nanstd(d[:, ok], axis=0)
-    out[ok] = sd / np.maximum(med, 1e-12)
+    out[ok] = sd / np.maximum(_nanmedian_columns(d[:, ok]), 1e-12)
     return out
+
+
+def _nanmedian_columns(d: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(d, axis=0)`` of a ``(F, P)`` array with a value in every
+    column, by one sort (NaN sorts last); numpy's is ~10x slower on many columns."""
+    s = np.sort(d, axis=0)
+    n = np.isfinite(d).sum(0)
+    lo, hi = (n - 1) // 2, n // 2
+    cols = np.arange(d.shape[1])
+    return 0.5 * (s[lo, cols] + s[hi, cols])
 
 
 def rigidity_weights(

@@ -11,6 +11,7 @@ from mocapflow.stages.clean_fill import (
     PCA_FRAMES_PER_COORDINATE,
     fill_holes,
     model_estimates,
+    model_estimates_batch,
     predictor_ranking,
     regress_gap,
     regression_estimates,
@@ -218,13 +219,14 @@ def test_cache_between_calls_changes_nothing_but_the_work():
     calls = []
     import mocapflow.stages.clean_fill as cf
 
-    real = cf.model_estimates
+    real = cf.model_estimates_batch
 
-    def counting(model, X, targets, **kw):
-        calls.append(int(targets.any(1).sum()))
-        return real(model, X, targets, **kw)
+    def counting(models, X, targets, **kw):  # estimates computed (not re-used)
+        out = real(models, X, targets, **kw)
+        calls.append(sum(len(o[0]) for o in out))
+        return out
 
-    cf.model_estimates = counting
+    cf.model_estimates_batch = counting
     try:
         cached, cinfo = fill_holes(X2, surf, model="pca", models=models, cache=cache)
         n_cached = sum(calls)
@@ -232,12 +234,42 @@ def test_cache_between_calls_changes_nothing_but_the_work():
         fill_holes(X2, surf, model="pca", models=models)
         n_plain = sum(calls)
     finally:
-        cf.model_estimates = real
+        cf.model_estimates_batch = real
     np.testing.assert_array_equal(cached, plain)
     assert cinfo["filled_by_pass"] == pinfo["filled_by_pass"]
     assert n_cached < 0.8 * n_plain  # frames with a changed member only
     other, _ = fill_holes(X2, surf, model="pca", cache=cache)  # new models: cache reset
     np.testing.assert_array_equal(other, fill_holes(X2, surf, model="pca")[0])
+
+
+def test_batched_estimates_equal_one_model_at_a_time(monkeypatch):
+    """Models of different sizes (a full ring, reduced rings, a rigid one) padded
+    into one batch, and cut into blocks, give each model's own estimates."""
+    P = deforming_patch(200, seed=2)
+    rng = np.random.default_rng(6)
+    X = P + rng.normal(0, 0.0003, P.shape)
+    X[rng.random(X.shape[:2]) < 0.2] = np.nan
+    surf = build_marker_surface(P[0], positions=X)
+    models = []
+    for m in (24, 0, 10, 31, 48):
+        nb = surf.neighbours[m][surf.neighbours[m] >= 0]
+        models.append(train_local_pca(X, m, nb[:3 + m % 4], surf.reference, surf.frames[m]))
+    models.append(train_local_pca(X[:8], 17, surf.neighbours[17][surf.neighbours[17] >= 0],
+                                  surf.reference, surf.frames[17]))
+    assert models[-1].kind == "rigid" and len({len(md.members) for md in models}) > 2
+    targets = ~np.isfinite(X).all(-1)
+    rows = rng.random(len(X)) < 0.5
+    masks = [None, rows, None, ~rows, None, rows]
+    for pairs in (8000, 50):  # one batch; blocks of a few models
+        monkeypatch.setattr("mocapflow.stages.clean_fill.BATCH_PAIRS", pairs)
+        batch = model_estimates_batch(models, X, targets, masks=masks, min_support=0.2,
+                                      neighbour_weight=0.1)
+        for md, mk, got in zip(models, masks, batch):
+            tg = targets if mk is None else targets & mk[:, None]
+            want = model_estimates(md, X, tg, min_support=0.2, neighbour_weight=0.1)
+            assert len(want[0]) > 0
+            for a, b in zip(got, want):
+                np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
 
 
 def test_fill_holes_rejects_an_unknown_model():
