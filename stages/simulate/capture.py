@@ -1100,6 +1100,7 @@ def gap_mask(
     fraction: float,
     clustered: bool,
     rng: np.random.Generator,
+    first_frame: int = 0,
 ) -> np.ndarray:
     """Samples to delete for a gap-filling benchmark (only originally visible ones).
 
@@ -1121,16 +1122,26 @@ def gap_mask(
         Share of the markers gapped at once.
     clustered : bool
     rng : numpy.random.Generator
+    first_frame : int
+        Gaps lie in frames ``first_frame`` and later (e.g. after a
+        calibration pose that is not part of the motion under test).
 
     Returns
     -------
     (F, M) bool ndarray
     """
     F, M = visible.shape
+    if not 0 <= first_frame < F:
+        raise ValueError(f"gap_mask: first_frame {first_frame} outside the {F} frames")
+    mask = np.zeros((F, M), dtype=bool)
+    if first_frame:
+        mask[first_frame:] = gap_mask(visible[first_frame:], reference, rate=rate,
+                                      duration=duration, fraction=fraction,
+                                      clustered=clustered, rng=rng)
+        return mask
     L = int(min(F, max(1, round(duration * rate))))
     ok = np.flatnonzero(np.isfinite(reference).all(1) & visible.any(0))
     k = int(min(len(ok), max(1, np.ceil(fraction * M))))
-    mask = np.zeros((F, M), dtype=bool)
     if k == 0:
         return mask
     if clustered:

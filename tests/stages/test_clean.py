@@ -115,6 +115,22 @@ def test_table2_gaps_in_known_data(sim):
     assert ep["mean"] < 0.03 and e["all"]["mean"] < 0.95 * ep["mean"]
 
 
+def test_gap_mask_places_gaps_after_first_frame():
+    rng = np.random.default_rng(0)
+    vis = rng.random((300, 40)) < 0.9
+    ref = rng.normal(size=(40, 3))
+    for clustered in (False, True):
+        mask = gap_mask(vis, ref, rate=100.0, duration=0.5, fraction=0.25, clustered=clustered,
+                        rng=np.random.default_rng(1), first_frame=120)
+        assert not mask[:120].any() and (mask <= vis).all()
+        assert len(np.flatnonzero(mask.any(0))) == 10  # ceil(25 % of 40) markers
+        runs = mask[120:].sum(0)
+        assert runs.max() <= 50 and runs[runs > 0].mean() > 35  # 0.5 s, minus occlusion
+    with pytest.raises(ValueError, match="first_frame"):
+        gap_mask(vis, ref, rate=100.0, duration=0.5, fraction=0.1, clustered=False,
+                 rng=rng, first_frame=300)
+
+
 # --------------------------------------------------------------------------- exact cases
 
 
