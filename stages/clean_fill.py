@@ -829,6 +829,7 @@ def fill_holes(
     ridge: float = REGRESSION_RIDGE,
     offset_correction: bool = False,
     cache: dict | None = None,
+    rigid_fallback: bool = True,
     ctx: Context | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Hole filling in the local frame (Park & Hodgins §4.3, or a wider regression).
@@ -882,6 +883,9 @@ def fill_holes(
         where none of its members changed value, presence or target flag
         since the previous call (an estimate depends on its frame only), and
         computes the rest.  The result is the same as without it.
+    rigid_fallback : bool
+        Finally estimate what the passes left by the rigid one-ring fit (off:
+        those samples stay NaN).
     ctx : Context, optional
         Models are trained and evaluated per marker chunk through ``ctx.map``.
 
@@ -1021,6 +1025,8 @@ def fill_holes(
             support = 0.0  # last resort: any 3 visible members
     # rigid fallback (the §4.2 predictor) where the one-ring sees >= 3 observed markers
     todo2 = holes & ~np.isfinite(X).all(-1)
+    if not rigid_fallback:
+        todo2[:] = False
     nb = np.maximum(surface.neighbours, 0)
     seen = (obs[:, nb] & (surface.neighbours >= 0)[None]).sum(-1) >= MIN_NEIGHBOURS
     f2, m2 = np.nonzero(todo2 & seen)
