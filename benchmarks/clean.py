@@ -1054,16 +1054,21 @@ def throughput(seed: int) -> None:
     dt = time.perf_counter() - t0
     print(f"| in process (1 worker) | {dt:.1f} | {rep['table1']['merged']} | "
           f"{rep['table1']['left_unfilled']} |")
+    runs = []
     with ProcessPoolExecutor(2) as pool:
         pool.submit(int, 0).result()  # workers up
         ctx = Context(mapper=_pool_mapper(pool), workers=2)
-        t0 = time.perf_counter()
-        _, rep2, _ = clean_markers(m, ctx=ctx)
-        dt2 = time.perf_counter() - t0
-    print(f"| 2 worker processes (ctx.map) | {dt2:.1f} | {rep2['table1']['merged']} | "
-          f"{rep2['table1']['left_unfilled']} |")
-    print(f"target: <= 10 s on this 2-core machine; stage timings (2 workers): "
-          f"{rep2['timings_s']}")
+        for _ in range(3):  # a shared 2-core machine: wall times vary by ~10 %
+            t0 = time.perf_counter()
+            _, rep2, _ = clean_markers(m, ctx=ctx)
+            runs.append((time.perf_counter() - t0, rep2))
+    for k, (dt2, rep2) in enumerate(runs):
+        print(f"| 2 worker processes (ctx.map), run {k + 1} | {dt2:.1f} | "
+              f"{rep2['table1']['merged']} | {rep2['table1']['left_unfilled']} |")
+    times = sorted(dt for dt, _ in runs)
+    print(f"2 workers: median {times[1]:.1f} s, best {times[0]:.1f} s, worst {times[-1]:.1f} s "
+          f"(target <= 10 s on this 2-core machine); stage timings of the median run: "
+          f"{next(r for dt, r in runs if dt == times[1])['timings_s']}")
 
 
 def pig_report() -> None:
