@@ -54,7 +54,8 @@ captures with ground truth, see ``benchmarks/clean.py``):
   missing marker predicted within :data:`AMBIGUITY_RATIO` times the distance
   makes it ambiguous, ``d̄`` is capped by the distance to the nearest marker,
   and fragments still unmerged are judged again against the PCA hole filling
-  of the merged data (``pca_merge_rounds``);
+  of the merged data (``pca_merge_rounds``; :data:`MERGE_FILL_PASSES` passes,
+  estimates re-used between rounds where no member changed);
 * in the §4.3 average a neighbour's model weighs :data:`NEIGHBOUR_MODEL_WEIGHT`
   of the marker's own model (the paper: equal weights);
 * ``fill_model="regression"`` (default): per gap, the marker's local
@@ -62,10 +63,11 @@ captures with ground truth, see ``benchmarks/clean.py``):
   ``fill_predictors`` (32) most rigid nearby markers visible through the gap,
   in the predictors' local frame, trained on the 250 frames nearest the gap
   where the marker and those predictors are measured (no complete frame
-  needed; :func:`mocapflow.stages.clean_fill.regression_estimates`).  On the
-  simulated 350-marker capture it cuts the Table 2 error (0.5 s gaps, 10 % of
-  the markers) from mean 0.019 / max 0.47 to mean 0.004 / max 0.05 of the
-  mean neighbour distance; ``fill_model="pca"`` is the paper's model;
+  needed; :func:`mocapflow.stages.clean_regress.regression_estimates`).  On
+  the simulated 350-marker capture (Table 2: 0.5 s gaps in 10 % of the
+  markers, in the motion) it gives mean 0.004 of the mean neighbour distance
+  and max 0.036 over the paper's regions (abdomen, elbow, thigh, knee);
+  ``fill_model="pca"`` is the paper's model;
 * the smoother treats runs of measured and of filled samples separately and
   moves a measurement by at most :data:`MAX_CORRECTION_SIGMA` noise deviations.
 """
@@ -80,9 +82,6 @@ import numpy as np
 from mocapflow.pipeline import Context, FilePath, stage
 from mocapflow.stages.clean_fill import (
     NEIGHBOUR_MODEL_WEIGHT,
-    REGRESSION_MIN_PREDICTORS,
-    REGRESSION_PREDICTORS,
-    REGRESSION_RIDGE,
     LocalPCA,
     fill_holes,
     train_local_pca,
@@ -102,6 +101,11 @@ from mocapflow.stages.clean_predict import (
     predict_missing,
     reference_pose,
     rigid_estimates,
+)
+from mocapflow.stages.clean_regress import (
+    REGRESSION_MIN_PREDICTORS,
+    REGRESSION_PREDICTORS,
+    REGRESSION_RIDGE,
 )
 from mocapflow.stages.data import Markers
 from mocapflow.stages.kinematics import absolute_orientation_batch

@@ -1,4 +1,5 @@
-"""Hole filling of the clean stage (Park & Hodgins 2006 §4.3 and the wide regression)."""
+"""Hole filling of the clean stage (Park & Hodgins 2006 §4.3, clean_fill, and the wide
+regression, clean_regress)."""
 
 from __future__ import annotations
 
@@ -12,11 +13,9 @@ from mocapflow.stages.clean_fill import (
     fill_holes,
     model_estimates,
     model_estimates_batch,
-    predictor_ranking,
-    regress_gap,
-    regression_estimates,
     train_local_pca,
 )
+from mocapflow.stages.clean_regress import predictor_ranking, regress_gap, regression_estimates
 from mocapflow.stages.data import Markers
 from mocapflow.stages.kinematics import (
     absolute_orientation_batch,
