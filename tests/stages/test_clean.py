@@ -16,6 +16,7 @@ from mocapflow.stages.clean import (
     _smooth_run,
     clean,
     clean_markers,
+    frame_weights,
     predict_missing,
     smooth_local,
 )
@@ -223,6 +224,40 @@ def test_smoothing_in_the_local_frame_keeps_fast_rigid_motion():
     out = smooth_local(noisy, surf, smooth_lambda=0.1, smooth_iterations=10)
     assert np.linalg.norm(out - P, axis=-1).mean() < 0.8 * np.linalg.norm(noisy - P,
                                                                               axis=-1).mean()
+
+
+def test_smoothing_frame_leaves_out_a_rarely_measured_neighbour():
+    """A neighbour measured in few frames and badly estimated elsewhere (here
+    jumping by 7 cm) must not bend the frame a filled run is smoothed in."""
+    P, rest = rigid_capture(F=200)
+    rng = np.random.default_rng(6)
+    X = P + rng.normal(0, NOISE, P.shape)
+    surf = build_marker_surface(rest, positions=X)
+    m = 24
+    ring = surf.neighbours[m][surf.neighbours[m] >= 0]
+    bad = int(ring[0])
+    measured = np.ones(X.shape[:2], bool)
+    measured[60:200, bad] = False  # "filled" in 70 % of the frames...
+    X[110:, bad] += [0.05, -0.04, 0.02]  # ...and wrong there: a jump
+    measured[80:140, m] = False  # the marker's own filled run
+    w = frame_weights(surf.neighbours, surf.rigidity, measured.mean(0))
+    k = int(np.flatnonzero(surf.neighbours[m] == bad)[0])
+    assert w[m, k] == 0 and (w[m][surf.neighbours[m] >= 0] > 0).sum() == len(ring) - 1
+    out = smooth_local(X, surf, measured=measured)
+    err = np.linalg.norm(out[80:140, m] - P[80:140, m], axis=-1)
+    assert err.max() < 1.2e-3  # noise level (0.3 mm), not the neighbour's 7 cm jump
+    # without the rule the jump leaks into the smoothed run
+    keep_all = surf.rigidity
+    from mocapflow.stages.clean import _smooth_chunk
+
+    _, leak = _smooth_chunk((X, np.array([m]), surf.neighbours[[m]], keep_all[[m]],
+                             surf.reference, 0.1, 10, measured))
+    assert np.linalg.norm(leak[80:140, 0] - P[80:140, m], axis=-1).max() > 2 * err.max()
+    # a marker with only 3 neighbours keeps them all
+    few = np.array([[1, 2, 3, -1]])
+    np.testing.assert_array_equal(
+        frame_weights(few, np.array([[1.0, 0.5, 1.0, 0.0]]), np.array([1, 0.1, 1, 1])),
+        [[1.0, 0.5, 1.0, 0.0]])
 
 
 # --------------------------------------------------------------------------- failure paths
