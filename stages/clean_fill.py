@@ -21,16 +21,15 @@ clustered placement, 2 repetitions): 0.5 s gaps in 10 % of the markers 0.33 /
 0.36 mm (paper's PCA 1.38 / 6.47 mm, Gløersen & Federolf 2016 R2 1.02 / 0.40
 mm), 2 s gaps 0.32 / 0.72 mm (PCA 0.98 / 21.2 mm, G&F 0.61 / 0.86 mm);
 Table 2 (0.5 s gaps in 10 % of the markers, 10 masks, gaps in the motion
-after the calibration pose, seeds 0/1/2): mean 0.0040 / 0.0042 / 0.0040 of
-the mean neighbour distance, max over the paper's regions (abdomen, elbow,
-thigh, knee) 0.036 / 0.046 / 0.020, over all regions 0.078 / 0.072 / 0.128
-(a shoulder marker whose local frame leans on a badly filled neighbour; the
-one marker per foot, whose ankle angle no shank marker shows).  With gaps
-anywhere (seed 0) the max is 0.26: markers measured only in the calibration
-pose, extrapolated from 4–12 frames into the start of the run (16–17 mm),
-which only the rigid model can fill.  More predictors (40–64), other ridges,
-more training frames or an ensemble of 16/32/64 predictors move single worst
-cases but not the tail.  Sending gaps whose predictor leverage
+after the calibration pose, seeds 0/1/2): mean 0.0040 / 0.0043 / 0.0040 of
+the mean neighbour distance; max over the paper's regions (abdomen, elbow,
+thigh, knee) 0.020 / 0.046 / 0.020, over every region but the foot 0.048 /
+0.046 / 0.025; the foot 0.050 / 0.072 / 0.128 (one marker per foot: no shank
+marker shows the ankle angle).  With gaps anywhere the max is 0.26 / 0.20 /
+0.10: markers measured only in the calibration pose and the first frames of
+the run, extrapolated from 4–12 frames (16–17 mm), which only the rigid model
+can fill.  More predictors (40–64), other ridges, more training frames or an
+ensemble of 16/32/64 predictors move single worst cases but not the tail.  Sending gaps whose predictor leverage
 ``h = zᵀ(ZᵀZ + λI)⁻¹z`` exceeds 1.5× the training frames' largest to the PCA
 passes measured much worse (mean 0.0077, max 0.37, 5× slower): high leverage
 here does not mean the regression is wrong, and the PCA is worse.  Shifting
