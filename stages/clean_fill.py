@@ -29,7 +29,8 @@ marker shows the ankle angle).  With gaps anywhere the max is 0.26 / 0.20 /
 0.10: markers measured only in the calibration pose and the first frames of
 the run, extrapolated from 4–12 frames (16–17 mm), which only the rigid model
 can fill.  More predictors (40–64), other ridges, more training frames or an
-ensemble of 16/32/64 predictors move single worst cases but not the tail.  Sending gaps whose predictor leverage
+ensemble of 16/32/64 predictors move single worst cases but not the tail.
+Sending gaps whose predictor leverage
 ``h = zᵀ(ZᵀZ + λI)⁻¹z`` exceeds 1.5× the training frames' largest to the PCA
 passes measured much worse (mean 0.0077, max 0.37, 5× slower): high leverage
 here does not mean the regression is wrong, and the PCA is worse.  Shifting
