@@ -325,7 +325,6 @@ def model_estimates_batch(
     list of (frames, markers, estimates, weights)
         Per model, what :func:`model_estimates` returns.
     """
-    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
     if not models:
         return []
     n_max = max(len(md.members) for md in models)
@@ -346,20 +345,26 @@ def model_estimates_batch(
                 tgt[~mk, i] = False
     support = _third_anchor(vis * mw[None])
     pick = tgt.any(-1) & (vis.sum(-1) >= MIN_NEIGHBOURS) & (support >= min_support)  # (F, m)
-    n_pick = pick.sum(0)
-    if n_pick.sum() > BATCH_PAIRS and nm > 1:  # blocks of models that fit in cache
-        block = np.cumsum(n_pick) // BATCH_PAIRS
-        out: list = []
-        for b in np.unique(block):
-            sel = np.flatnonzero(block == b)
-            out += model_estimates_batch(
-                [models[i] for i in sel], X, targets,
-                masks=None if masks is None else [masks[i] for i in sel],
-                iterations=iterations, min_support=min_support,
-                neighbour_weight=neighbour_weight)
-        return out
+    # blocks of models that fit in cache, each one batched pose solve
+    block = np.cumsum(pick.sum(0)) // BATCH_PAIRS
+    out: list = []
+    for b in np.unique(block):
+        sel = np.flatnonzero(block == b)
+        out += _estimate_block([models[i] for i in sel], X, vis[:, sel], tgt[:, sel],
+                               pick[:, sel], mem[sel], mw[sel], mean[sel],
+                               iterations=iterations, neighbour_weight=neighbour_weight)
+    return out
+
+
+def _estimate_block(models: list[LocalPCA], X: np.ndarray, vis: np.ndarray, tgt: np.ndarray,
+                    pick: np.ndarray, mem: np.ndarray, mw: np.ndarray, mean: np.ndarray, *,
+                    iterations: int, neighbour_weight: float) -> list[tuple[np.ndarray, ...]]:
+    """One block of :func:`model_estimates_batch`: ``vis, tgt (F, m, n)``, ``pick
+    (F, m)`` frames to estimate, padded ``mem, mw (m, n)`` and ``mean (m, n, 3)``."""
+    nm = len(models)
     model_of, row = np.nonzero(pick.T)  # model-major, frames ascending (as per model)
     if not len(row):
+        empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
         return [empty] * nm
     w = vis[row, model_of] * mw[model_of]  # (P, n)
     Xr = X[row[:, None], mem[model_of]]  # (P, n, 3)
