@@ -72,15 +72,15 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from mocapflow.pipeline import Context
-from mocapflow.stages.clean import choose_reference_frame, clean_markers, reference_pose
-from mocapflow.stages.data import Markers
-from mocapflow.stages.simulate.capture import (
+from mocapflow.stages.motion.datatypes import Markers
+from mocapflow.stages.motion.simulate.capture import (
     gap_mask,
     region_errors,
     score_merges,
     simulate_dense_capture,
 )
-from mocapflow.stages.surface import build_marker_surface
+from mocapflow.stages.skin.clean import choose_reference_frame, clean_markers, reference_pose
+from mocapflow.stages.skin.surface import build_marker_surface
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "c3d"
 REAL = [
@@ -457,7 +457,7 @@ def gap_datasets(sim, quick: bool) -> list[dict]:
         {"name": "sim dense (no occlusion)", "markers": base.replace(positions=noisy_full),
          "truth": sim.truth["positions"]},
     ]
-    from mocapflow.stages.formats.c3d import read_c3d
+    from mocapflow.stages.motion.formats.c3d import read_c3d
 
     for name in REAL[:3] if quick else REAL:
         p = DATA / name
@@ -1076,7 +1076,7 @@ def pig_report() -> None:
     if not p.exists():
         print("\n## 5. PiG fragmented file: not found (../shared/data absent)")
         return
-    from mocapflow.stages.formats.c3d import read_c3d
+    from mocapflow.stages.motion.formats.c3d import read_c3d
 
     m = read_c3d(p)
     ctx = Context(part=p.name)

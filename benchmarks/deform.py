@@ -41,8 +41,11 @@ import numpy as np
 from scipy.interpolate import RBFInterpolator
 
 from mocapflow.pipeline import Context
-from mocapflow.stages.data import Markers, Mesh
-from mocapflow.stages.deform import (
+from mocapflow.stages.motion.datatypes import Markers, Mesh
+from mocapflow.stages.motion.kinematics import quat_from_matrix, quat_multiply, quat_rotate
+from mocapflow.stages.motion.simulate.body import procedural_body, skin, skinning_transforms
+from mocapflow.stages.motion.simulate.capture import SkinDynamics, capture_motion, place_markers
+from mocapflow.stages.skin.deform import (
     MODES,
     bind_mesh,
     deform,
@@ -50,12 +53,9 @@ from mocapflow.stages.deform import (
     fit_part,
     prepare_part,
 )
-from mocapflow.stages.kinematics import quat_from_matrix, quat_multiply, quat_rotate
-from mocapflow.stages.mesh_fit import fit_mesh
-from mocapflow.stages.segment import adjusted_rand_index, segment
-from mocapflow.stages.simulate.body import procedural_body, skin, skinning_transforms
-from mocapflow.stages.simulate.capture import SkinDynamics, capture_motion, place_markers
-from mocapflow.stages.surface import build_marker_surface
+from mocapflow.stages.skin.mesh_fit import fit_mesh
+from mocapflow.stages.skin.segment import adjusted_rand_index, segment
+from mocapflow.stages.skin.surface import build_marker_surface
 
 RATE = 120.0
 

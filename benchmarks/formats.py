@@ -41,8 +41,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from mocapflow.stages.data import Markers  # noqa: E402
-from mocapflow.stages.formats.c3d import read_c3d, write_c3d  # noqa: E402
+from mocapflow.stages.motion.datatypes import Markers  # noqa: E402
+from mocapflow.stages.motion.formats.c3d import read_c3d, write_c3d  # noqa: E402
 
 DATA = Path(os.environ.get("MOCAPFLOW_DATA", Path(__file__).parents[1] / ".." / "shared" / "data"))
 C3D_FILE = "c3d/ktk_kinematics_basket_sprint.c3d"
@@ -112,7 +112,7 @@ def _rows_c3d(path: Path, frames: int, repeat: int, tmp: Path) -> list[tuple]:
 def _rows_bvh(path: Path, repeat: int, tmp: Path) -> list[tuple]:
     import bvhio
 
-    from mocapflow.stages.formats.bvh import read_bvh, write_bvh
+    from mocapflow.stages.motion.formats.bvh import read_bvh, write_bvh
 
     motion = read_bvh(path)
     frames = motion.n_frames

@@ -37,12 +37,12 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from mocapflow.stages import metrics as M  # noqa: E402
-from mocapflow.stages.formats.bvh import read_bvh  # noqa: E402
-from mocapflow.stages.kinematics import resample_motion  # noqa: E402
-from mocapflow.stages.pyramid import build_pyramid  # noqa: E402
-from mocapflow.stages.synth import assemble_motion, synthesize  # noqa: E402
-from mocapflow.stages.synth_search import SearchParams  # noqa: E402
+from mocapflow.stages.metrics import quality as M  # noqa: E402
+from mocapflow.stages.motion.formats.bvh import read_bvh  # noqa: E402
+from mocapflow.stages.motion.kinematics import resample_motion  # noqa: E402
+from mocapflow.stages.texture.pyramid import build_pyramid  # noqa: E402
+from mocapflow.stages.texture.search import SearchParams  # noqa: E402
+from mocapflow.stages.texture.synth import assemble_motion, synthesize  # noqa: E402
 
 DATA = Path(os.environ.get("MOCAPFLOW_DATA", Path(__file__).parents[1] / ".." / "shared" / "data"))
 INPUTS = {

@@ -32,27 +32,32 @@ from pathlib import Path
 import numpy as np
 
 from mocapflow.pipeline import Context
-from mocapflow.stages.clips import clips as clips_stage
-from mocapflow.stages.clips import clips_to_motions
-from mocapflow.stages.ik import solve_ik
-from mocapflow.stages.learn import learn_structure
-from mocapflow.stages.metrics import (
+from mocapflow.stages.metrics.novelty import novelty_report
+from mocapflow.stages.metrics.quality import (
     contact_thresholds,
     foot_skate,
     jerk_p99,
     motion_positions,
     toe_indices,
 )
-from mocapflow.stages.novelty import novelty_report
-from mocapflow.stages.sample import Sampler, matched_amplitude, noise_variants, sample_variants
+from mocapflow.stages.variation.clips import clips as clips_stage
+from mocapflow.stages.variation.clips import clips_to_motions
+from mocapflow.stages.variation.ik import solve_ik
+from mocapflow.stages.variation.learn import learn_structure
+from mocapflow.stages.variation.sample import (
+    Sampler,
+    matched_amplitude,
+    noise_variants,
+    sample_variants,
+)
 
 DATA = Path(os.environ.get("MOCAPFLOW_DATA", Path(__file__).resolve().parents[1] / ".."
                            / "shared" / "data"))
 
 
 def _take_clips(name: str, rate: float, n: int | None):
-    from mocapflow.stages.formats.bvh import read_bvh
-    from mocapflow.stages.kinematics import resample_motion
+    from mocapflow.stages.motion.formats.bvh import read_bvh
+    from mocapflow.stages.motion.kinematics import resample_motion
 
     m = resample_motion(read_bvh(DATA / "bvh" / name), rate)
     return clips_stage(m, max_clips=n, ctx=Context())["clips"]
@@ -219,7 +224,7 @@ def main(quick: bool = False) -> None:
 
     # 4. strokes ------------------------------------------------------------------------
     if not quick:
-        from mocapflow.stages.formats.strokes import read_uci_chartraj
+        from mocapflow.stages.motion.formats.strokes import read_uci_chartraj
 
         ss = read_uci_chartraj(DATA / "strokes" / "uci_chartraj_mv_subset.csv", letter="a")
         sc = clips_stage(ss, ctx=Context())["clips"]

@@ -40,7 +40,6 @@ EPILOG = """examples:
 environment:
   MOCAPFLOW_STORE          default --store (else ./.mocapflow)
   MOCAPFLOW_STAGE_MODULES  comma-separated modules to import for their @stage registrations
-  MOCAPFLOW_CACHE          folder of the stage-name index cache (default ~/.cache/mocapflow)
 """
 
 
@@ -622,7 +621,7 @@ def export_results(graph, store, records: Sequence[dict[str, Any]], directory: s
         labels = [part_label(r["part"]) for r in recs]
         for r, label in zip(recs, labels):
             if labels.count(label) > 1:  # same stem in two folders: add a short part digest
-                from mocapflow.pipeline.hashing import digest
+                from mocapflow.pipeline.keys import digest
 
                 label = f"{label}-{digest(str(r['part']))[:6]}"
             for out, enc in store.load_outputs(r["stage"], r["key"]).items():

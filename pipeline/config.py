@@ -285,39 +285,8 @@ class GraphConfig:
 # --------------------------------------------------------------------------- helpers
 
 
-def _index_path() -> Path:
-    base = os.environ.get("MOCAPFLOW_CACHE") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "mocapflow")
-    return Path(base) / "stage-index.json"
-
-
-def _read_index() -> dict[str, str]:
-    try:
-        data = json.loads(_index_path().read_text())
-    except (OSError, ValueError):
-        return {}
-    stages = data.get("stages") if isinstance(data, dict) else None
-    return stages if isinstance(stages, dict) else {}
-
-
-def _write_index() -> None:
-    path = _index_path()
-    index = {n: s.module for n, s in registry.registered_stages().items()}
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}")
-        tmp.write_text(json.dumps({"stages": index}, indent=0, sort_keys=True))
-        os.replace(tmp, path)
-    except OSError:
-        pass
-
-
 def resolve_stage(name: str) -> StageSpec:
-    """The stage registered as ``name``, importing as little as possible.
-
-    Looks in the registry, then imports the module a cached index (``stage name ->
-    module``, rewritten after every full discovery) names for it, and only then
-    discovers every installed family.  A stale index costs one full discovery.
+    """The stage registered as ``name``, discovering the installed families if needed.
 
     Raises
     ------
@@ -325,21 +294,7 @@ def resolve_stage(name: str) -> StageSpec:
         Unknown stage (the message has close matches).
     """
     spec = registry.lookup(name)
-    if spec is not None:
-        return spec
-    module = _read_index().get(name)
-    if module:
-        try:
-            importlib.import_module(module)
-        except Exception:  # a stale index: fall back to discovery
-            pass
-        spec = registry.lookup(name)
-        if spec is not None:
-            return spec
-    try:
-        return registry.get_stage(name)  # full discovery; KeyError with hints when unknown
-    finally:
-        _write_index()
+    return spec if spec is not None else registry.get_stage(name)
 
 
 def load_stage_modules(modules: Iterable[str] | None = None, *, discover: bool = False) -> None:

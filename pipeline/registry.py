@@ -14,6 +14,9 @@ through the ``mocapflow.stages`` entry-point group (the project declares its own
 
 from __future__ import annotations
 
+import difflib
+import functools
+import importlib
 import inspect
 import types
 import typing
@@ -21,6 +24,8 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from importlib import metadata
 from typing import Any, Literal, NewType, get_args, get_origin
+
+from mocapflow.pipeline.context import Context
 
 __all__ = [
     "FilePath",
@@ -133,7 +138,12 @@ def stage(
     Returns
     -------
     decorator
-        Returns the function unchanged (it stays directly callable).
+        Returns the stage itself, callable from Python exactly as the engine
+        calls it: inputs positional (or by name), params by keyword, validated
+        and defaults filled as in a graph (:func:`validate_params`); ``ctx``
+        may be left out (a :class:`~mocapflow.pipeline.context.Context` seeded
+        from the ``seed`` param is made).  It returns the mapping of outputs.
+        The undecorated function is ``StageSpec.func`` (and ``__wrapped__``).
     """
 
     def decorate(func: Callable[..., Mapping[str, Any]]) -> Callable[..., Mapping[str, Any]]:
@@ -158,10 +168,55 @@ def stage(
             second = f"{spec.module}.{func.__qualname__}"
             raise ValueError(f"stage name {spec.name!r} registered twice: {first} and {second}")
         _REGISTRY[spec.name] = spec
-        func.__mocapflow_stage__ = spec  # type: ignore[attr-defined]
-        return func
+
+        @functools.wraps(func)
+        def call_stage(*args: Any, **kwargs: Any) -> Mapping[str, Any]:
+            return call(spec, *args, **kwargs)
+
+        call_stage.__mocapflow_stage__ = spec  # type: ignore[attr-defined]
+        return call_stage
 
     return decorate
+
+
+def call(spec: StageSpec, *args: Any, **kwargs: Any) -> Mapping[str, Any]:
+    """Call a stage from Python as the engine does: params validated, a context made.
+
+    Parameters
+    ----------
+    spec : StageSpec
+    *args
+        Inputs, in the stage's order.
+    **kwargs
+        Inputs by name, params, and optionally ``ctx``.
+
+    Returns
+    -------
+    mapping
+        The stage's outputs.
+
+    Raises
+    ------
+    TypeError
+        A missing or unexpected input (as for any Python call).
+    ParamError
+        A param that does not validate (the message names it).
+    """
+    ctx = kwargs.pop("ctx", None)
+    if len(args) > len(spec.inputs):
+        raise TypeError(f"stage {spec.name!r} takes {len(spec.inputs)} inputs "
+                        f"({', '.join(spec.inputs) or 'none'}), got {len(args)}")
+    inputs = dict(zip(spec.inputs, args))
+    for name in spec.inputs[len(args):]:
+        if name not in kwargs:
+            raise TypeError(f"stage {spec.name!r}: missing input {name!r}")
+        inputs[name] = kwargs.pop(name)
+    params = validate_params(spec, kwargs)
+    if spec.wants_ctx:
+        if ctx is None:
+            ctx = Context(seed=int(params.get("seed", 0) or 0))
+        params["ctx"] = ctx
+    return spec.func(*(inputs[n] for n in spec.inputs), **params)
 
 
 def _build_spec(func, name, outputs, version, retries) -> StageSpec:
@@ -208,7 +263,26 @@ def discover() -> None:
         return
     _DISCOVERED = True
     for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
-        ep.load()
+        load_family(ep.value)
+
+
+def load_family(target: str) -> None:
+    """Import one stage family named like an entry point value.
+
+    Parameters
+    ----------
+    target : str
+        ``"package.module"`` (imported for its registrations) or
+        ``"package:ATTR"`` where ``ATTR`` is a tuple of submodule names of
+        ``package`` that register stages, codecs or exporters (each imported).
+    """
+    module, _, attr = target.partition(":")
+    mod = importlib.import_module(module.strip())
+    if not attr:
+        return
+    names = getattr(mod, attr.strip())
+    for name in names:
+        importlib.import_module(f"{mod.__name__}.{name}")
 
 
 def registered_stages() -> dict[str, StageSpec]:
@@ -228,8 +302,6 @@ def get_stage(name: str) -> StageSpec:
     try:
         return _REGISTRY[name]
     except KeyError:
-        import difflib
-
         close = difflib.get_close_matches(name, list(_REGISTRY), n=3)
         hint = f" (did you mean {', '.join(close)}?)" if close else ""
         raise KeyError(f"unknown stage {name!r}{hint}") from None
@@ -260,8 +332,6 @@ def validate_params(spec: StageSpec, given: Mapping[str, Any]) -> dict[str, Any]
     """
     unknown = sorted(set(given) - set(spec.params))
     if unknown:
-        import difflib
-
         hints = []
         for u in unknown:
             close = difflib.get_close_matches(u, list(spec.params), n=1)

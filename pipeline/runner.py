@@ -32,7 +32,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from mocapflow.pipeline import codecs, hashing, registry
+from mocapflow.pipeline import codecs, fingerprint, keys, registry
 from mocapflow.pipeline.config import ConfigError, filepath_params
 from mocapflow.pipeline.config import resolve_stage as find_stage
 from mocapflow.pipeline.context import Context
@@ -73,18 +73,22 @@ def new_run_id() -> str:
 
 
 def stage_fingerprint(spec: registry.StageSpec) -> str:
-    """``"pin:<version>"`` for a pinned stage, else the code fingerprint of its module.
+    """``"pin:<version>"`` for a pinned stage, else the fingerprint of the code it reaches.
 
-    In-project modules are those of the top-level package of the stage's module
+    :func:`~mocapflow.pipeline.fingerprint.code_fingerprint` of the stage function:
+    every definition its source statically reaches.  In-project modules are those
+    of the top-level package of the stage's module
     (``mocapflow`` for the built-in families).  The engine's own modules are left
     out: a stage imports ``mocapflow.pipeline`` for its decorator and context, and
     an engine edit must not invalidate every entry.  Engine changes that alter what
-    a stage computes (RNG seeding, output encoding) bump ``hashing.KEY_FORMAT``.
+    a stage computes (RNG seeding, output encoding) bump ``keys.KEY_FORMAT``.
     """
     if spec.version is not None:
         return f"pin:{spec.version}"
-    return hashing.code_fingerprint(
-        spec.module, package=spec.module.split(".", 1)[0], exclude=("mocapflow.pipeline",)
+    return fingerprint.code_fingerprint(
+        f"{spec.module}:{spec.func.__qualname__}",
+        package=spec.module.split(".", 1)[0],
+        exclude=("mocapflow.pipeline",),
     )
 
 
@@ -155,13 +159,13 @@ def compute_key(spec: registry.StageSpec, *, params: Mapping[str, Any], part: st
                 inputs: Mapping[str, Any], kinds: Mapping[str, str],
                 file_digests: Mapping[str, str | None]) -> tuple[str, dict]:
     """Key and components of a task (identical on the driver and in workers)."""
-    return hashing.task_key(
+    return keys.task_key(
         stage=spec.name,
         fingerprint=stage_fingerprint(spec),
         params=_key_params(params, filepath_params(spec), file_digests),
         part=part,
         inputs=inputs,
-        versions=hashing.package_versions(),
+        versions=keys.package_versions(),
         input_kinds=kinds,
     )
 
@@ -186,7 +190,7 @@ def hash_files(graph: Graph, store: Store) -> dict[str, str | None]:
     out: dict[str, str | None] = {}
     for p in dict.fromkeys(paths):
         try:
-            out[p] = hashing.file_digest(p, memo)
+            out[p] = keys.file_digest(p, memo)
         except OSError:
             out[p] = None
     if memo != before:
@@ -328,7 +332,7 @@ def execute_task(store: Store, spec: TaskSpec, known: Mapping[int, dict], *dep_r
     base = {"key": key, "components": comps}
     exp = spec.expected
     if exp is not None and exp.get("key") != key:
-        why = "; ".join(hashing.diff_components(exp.get("components"), comps)) or "key differs"
+        why = "; ".join(keys.diff_components(exp.get("components"), comps)) or "key differs"
         return _record(spec, "failed", error=f"frozen: key differs from the lock ({why})",
                        seconds=time.perf_counter() - t0, **base)
     man = store.manifest(spec.stage, key)
@@ -547,7 +551,7 @@ def plan(graph: Graph, store: Store, *, force: Iterable[str] = (),
                 history = last_records(store)
             last = history.get((t.node, t.part))
             if last and last.get("components") and last.get("key") != tp.key:
-                tp.changes = hashing.diff_components(last["components"], tp.components)
+                tp.changes = keys.diff_components(last["components"], tp.components)
                 if tp.changes:
                     tp.reason = "; ".join(tp.changes)
     return out
@@ -586,14 +590,14 @@ def explain(graph: Graph, store: Store, target: str) -> list[dict[str, Any]]:
                 cur = dict(last["components"])
                 cur["params"] = _key_params(t.params, filepath_params(sspec), files)
                 cur["code"] = stage_fingerprint(sspec)
-                cur["versions"] = hashing.package_versions()
-                changes = [p.reason] + hashing.diff_components(last["components"], cur)
+                cur["versions"] = keys.package_versions()
+                changes = [p.reason] + keys.diff_components(last["components"], cur)
         elif last is None:
             changes = ["no previous run of this task"]
         elif last.get("key") == p.key:
             changes = []
         else:
-            changes = hashing.diff_components(last.get("components"), p.components)
+            changes = keys.diff_components(last.get("components"), p.components)
         item["changes"] = changes
         out.append(item)
     return out
@@ -690,7 +694,7 @@ def _frozen_precheck(graph: Graph, plans: Sequence[TaskPlan],
         if want is None:
             problems.append(f"{_name(p.node, p.part)}: not in the lock file")
         elif p.key is not None and p.key != want["key"]:
-            why = "; ".join(hashing.diff_components(want.get("components"), p.components or {}))
+            why = "; ".join(keys.diff_components(want.get("components"), p.components or {}))
             problems.append(f"{_name(p.node, p.part)}: key differs from the lock ({why})")
         elif p.status == "compute" and p.key is None:
             problems.append(f"{_name(p.node, p.part)}: {p.reason}")

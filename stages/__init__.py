@@ -1,20 +1,15 @@
-"""The motion-capture domain of mocapflow: data types, formats, kinematics, stage families.
+"""The motion-capture domain of mocapflow, one package per concern.
 
-Importing this package registers every built-in stage family with the engine (it
-is the target of the ``mocapflow.stages`` entry point): every module of the
-package and its sub-packages is imported for its ``@stage``, ``codec`` and
-``exporter`` registrations.  Modules must therefore be cheap to import: import
-heavy optional libraries (pyvista, matplotlib) inside the functions that use them.
+* :mod:`mocapflow.stages.motion` — the shared motion types, file formats,
+  kinematics, ingest/export, shared geometry and contact helpers, simulators;
+* :mod:`mocapflow.stages.skin` — Park & Hodgins 2006 (skin deformation);
+* :mod:`mocapflow.stages.texture` — Moradoff 2002 (textural motion synthesis);
+* :mod:`mocapflow.stages.variation` — Lau, Bar-Joseph & Kuffner 2009 (variation);
+* :mod:`mocapflow.stages.metrics` — motion-quality and novelty metrics.
+
+Importing a module imports only what it uses.  Each stage family registers its
+stages with the engine through its own ``mocapflow.stages`` entry point (the
+family's :func:`register`), so the engine loads a family only when it needs it.
+A paper package imports :mod:`~mocapflow.stages.motion` and
+:mod:`~mocapflow.stages.metrics`, never another paper's package.
 """
-
-import pkgutil
-from importlib import import_module
-
-
-def _import_all() -> None:
-    for info in pkgutil.walk_packages(__path__, prefix=f"{__name__}."):
-        if not info.name.rsplit(".", 1)[-1].startswith("_"):
-            import_module(info.name)
-
-
-_import_all()

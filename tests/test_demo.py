@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mocapflow.stages.formats.bvh import read_bvh
-from mocapflow.stages.formats.c3d import read_c3d
+from mocapflow.stages.motion.formats.bvh import read_bvh
+from mocapflow.stages.motion.formats.c3d import read_c3d
 
 
 def test_demo_runs_every_graph_and_a_rerun_is_all_hits(tmp_path):

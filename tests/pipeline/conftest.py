@@ -16,18 +16,6 @@ from mocapflow.pipeline.store import Store
 from mocapflow.pipeline.testing import TOY_CONFIG, write_config, write_number_files
 
 
-@pytest.fixture(autouse=True, scope="session")
-def _private_stage_index(tmp_path_factory):
-    """Keep the stage-index cache of these tests out of the user's ~/.cache."""
-    old = os.environ.get("MOCAPFLOW_CACHE")
-    os.environ["MOCAPFLOW_CACHE"] = str(tmp_path_factory.mktemp("mocapflow-cache"))
-    yield
-    if old is None:
-        os.environ.pop("MOCAPFLOW_CACHE", None)
-    else:
-        os.environ["MOCAPFLOW_CACHE"] = old
-
-
 @pytest.fixture
 def data_dir(tmp_path: Path) -> Path:
     """Five number files ``trial000.txt`` … ``trial004.txt`` (``i, i+1, …, i+4``)."""

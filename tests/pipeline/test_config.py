@@ -151,28 +151,3 @@ def test_seeds_count_and_list(tmp_path):
     assert cfg.nodes["b"].seeds == [7, 9]
     with pytest.raises(ConfigError, match="seed is set per task by seeds:"):
         parse_config("nodes:\n  a: {stage: toy_source, seeds: [1], params: {seed: 3}}\n")
-
-
-def test_stage_index_imports_only_the_named_module(tmp_path, monkeypatch):
-    import json
-    import sys
-    import uuid
-
-    from mocapflow.pipeline.config import resolve_stage
-
-    mod = f"mfidx_{uuid.uuid4().hex[:8]}"
-    (tmp_path / f"{mod}.py").write_text(
-        "from mocapflow.pipeline import stage\n\n\n"
-        f"@stage('toy_indexed_{mod}', outputs=('x',))\n"
-        "def f(*, n: int = 1):\n    return {'x': n}\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setenv("MOCAPFLOW_CACHE", str(tmp_path / "cache"))
-    (tmp_path / "cache").mkdir()
-    (tmp_path / "cache" / "stage-index.json").write_text(json.dumps(
-        {"stages": {f"toy_indexed_{mod}": mod, "toy_gone": "no_such_module_xyz"}}))
-    assert mod not in sys.modules
-    assert resolve_stage(f"toy_indexed_{mod}").module == mod  # found through the index
-    with pytest.raises(KeyError, match="unknown stage 'toy_gone'"):
-        resolve_stage("toy_gone")  # stale entry: full discovery, then a clear error
-    index = json.loads((tmp_path / "cache" / "stage-index.json").read_text())["stages"]
-    assert index["toy_source"] == "mocapflow.pipeline.testing" and "toy_gone" not in index

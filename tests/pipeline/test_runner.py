@@ -12,7 +12,7 @@ import uuid
 import numpy as np
 import pytest
 
-from mocapflow.pipeline import codecs, hashing
+from mocapflow.pipeline import codecs, fingerprint
 from mocapflow.pipeline.context import Context
 from mocapflow.pipeline.registry import stage
 from mocapflow.pipeline.runner import (
@@ -135,11 +135,11 @@ def test_helper_module_edit_invalidates_comment_edit_does_not(tmp_path, store, m
         (root / pkg / "helper.py").write_text(
             '"""Helper, reworded at length."""\n# a new comment\n\n\ndef bump(x):\n'
             '    """Add one."""\n    # inner comment\n    return x   +   1\n')
-        hashing.clear_caches()
+        fingerprint.clear_caches()
         assert [p.status for p in plan(build_graph(load_config(cfg)), store)] == ["hit"] * 3
         # a code change in the helper: the stage that imports it recomputes
         (root / pkg / "helper.py").write_text("def bump(x):\n    return x + 10\n")
-        hashing.clear_caches()
+        fingerprint.clear_caches()
         g = build_graph(load_config(cfg))
         p = plan(g, store)
         assert [x.status for x in p] == ["hit", "compute", "pending"]
@@ -154,7 +154,7 @@ def test_helper_module_edit_invalidates_comment_edit_does_not(tmp_path, store, m
             codecs.decode(store.load("toy_scale", out["key"], "values")),
             (np.arange(4.0) + 10) * 2)
     finally:
-        hashing.clear_caches()
+        fingerprint.clear_caches()
 
 
 def test_batch_with_corrupt_file_reports_part_and_continues(toy_config, data_dir, store,

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from mocapflow.stages.formats.asf import (
+from mocapflow.stages.motion.formats.asf import (
     AMCError,
     ASFError,
     amc_dofs,
@@ -13,8 +13,8 @@ from mocapflow.stages.formats.asf import (
     read_amc,
     read_asf,
 )
-from mocapflow.stages.formats.bvh import read_bvh, write_bvh
-from mocapflow.stages.kinematics import forward_kinematics, quat_angle
+from mocapflow.stages.motion.formats.bvh import read_bvh, write_bvh
+from mocapflow.stages.motion.kinematics import forward_kinematics, quat_angle
 
 #: The CMU BVH conversion's names for the ASF bones (same depth-first order).
 BVH_NAMES = [

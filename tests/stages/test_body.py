@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mocapflow.stages.data import Motion, Skeleton
-from mocapflow.stages.kinematics import quat_from_axis_angle, quat_identity
-from mocapflow.stages.simulate.body import (
+from mocapflow.stages.motion.datatypes import Motion, Skeleton
+from mocapflow.stages.motion.kinematics import quat_from_axis_angle, quat_identity
+from mocapflow.stages.motion.simulate.body import (
     BodyError,
     bind_pose,
     load_makehuman_body,
@@ -18,7 +18,7 @@ from mocapflow.stages.simulate.body import (
     skinning_transforms,
     vertex_normals,
 )
-from mocapflow.stages.simulate.motion import procedural_skeleton, procedural_walk
+from mocapflow.stages.motion.simulate.motion import procedural_skeleton, procedural_walk
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 
@@ -55,7 +55,7 @@ def test_procedural_body_is_a_closed_outward_skin(body):
 
 
 def test_occluder_capsules_stay_inside_the_skin(body):
-    from mocapflow.stages.simulate.body import _capsule_distances
+    from mocapflow.stages.motion.simulate.body import _capsule_distances
 
     d = _capsule_distances(body.vertices, body.capsules)
     assert d.min() >= 0.005  # every skin vertex at least 5 mm outside every capsule

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from mocapflow.stages.data import Motion
-from mocapflow.stages.formats.bvh import BVH_UNITS, BVHError, guess_unit, read_bvh, write_bvh
-from mocapflow.stages.kinematics import (
+from mocapflow.stages.motion.datatypes import Motion
+from mocapflow.stages.motion.formats.bvh import BVH_UNITS, BVHError, guess_unit, read_bvh, write_bvh
+from mocapflow.stages.motion.kinematics import (
     end_site_positions,
     euler_to_quat,
     forward_kinematics,

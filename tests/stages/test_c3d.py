@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mocapflow.stages.data import Markers
-from mocapflow.stages.formats.c3d import C3DError, classify_points, read_c3d, write_c3d
-from mocapflow.stages.ingest import gap_statistics, markers_report
+from mocapflow.stages.motion.datatypes import Markers
+from mocapflow.stages.motion.formats.c3d import C3DError, classify_points, read_c3d, write_c3d
+from mocapflow.stages.motion.ingest import gap_statistics, markers_report
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "c3d"
 

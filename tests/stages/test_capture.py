@@ -9,8 +9,8 @@ import pytest
 
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, encode
-from mocapflow.stages.simulate.body import procedural_body, skin, skinning_transforms
-from mocapflow.stages.simulate.capture import (
+from mocapflow.stages.motion.simulate.body import procedural_body, skin, skinning_transforms
+from mocapflow.stages.motion.simulate.capture import (
     REGIONS,
     fragment_capture,
     marker_visibility,
@@ -20,7 +20,7 @@ from mocapflow.stages.simulate.capture import (
     simulate_capture,
     simulate_dense_capture,
 )
-from mocapflow.stages.simulate.motion import procedural_skeleton
+from mocapflow.stages.motion.simulate.motion import procedural_skeleton
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 NOISE = 0.0003
@@ -115,8 +115,8 @@ def test_segment_distance_matches_brute_force():
 def test_visibility_by_ray_casting():
     sk = procedural_skeleton()
     body = procedural_body(sk, n_vertices=1500)
-    from mocapflow.stages.data import Motion
-    from mocapflow.stages.kinematics import quat_identity
+    from mocapflow.stages.motion.datatypes import Motion
+    from mocapflow.stages.motion.kinematics import quat_identity
 
     mot = Motion(sk, np.array([[0.0, 0.93, 0.0]]), quat_identity((1, sk.n_joints)), 120.0)
     R, p = skinning_transforms(body, mot)

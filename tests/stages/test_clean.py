@@ -10,7 +10,15 @@ import pytest
 
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, encode
-from mocapflow.stages.clean import (
+from mocapflow.stages.motion.datatypes import Markers, Mesh
+from mocapflow.stages.motion.kinematics import quat_from_rotvec, quat_to_matrix
+from mocapflow.stages.motion.simulate.capture import (
+    gap_mask,
+    region_errors,
+    score_merges,
+    simulate_dense_capture,
+)
+from mocapflow.stages.skin.clean import (
     STATUS,
     CleanError,
     _smooth_run,
@@ -20,15 +28,7 @@ from mocapflow.stages.clean import (
     predict_missing,
     smooth_local,
 )
-from mocapflow.stages.data import Markers, Mesh
-from mocapflow.stages.kinematics import quat_from_rotvec, quat_to_matrix
-from mocapflow.stages.simulate.capture import (
-    gap_mask,
-    region_errors,
-    score_merges,
-    simulate_dense_capture,
-)
-from mocapflow.stages.surface import SurfaceFileError, build_marker_surface
+from mocapflow.stages.skin.surface import SurfaceFileError, build_marker_surface
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 NOISE = 0.0003
@@ -248,7 +248,7 @@ def test_smoothing_frame_leaves_out_a_rarely_measured_neighbour():
     assert err.max() < 1.2e-3  # noise level (0.3 mm), not the neighbour's 7 cm jump
     # without the rule the jump leaks into the smoothed run
     keep_all = surf.rigidity
-    from mocapflow.stages.clean import _smooth_chunk
+    from mocapflow.stages.skin.clean import _smooth_chunk
 
     _, leak = _smooth_chunk((X, np.array([m]), surf.neighbours[[m]], keep_all[[m]],
                              surf.reference, 0.1, 10, measured))
@@ -366,7 +366,7 @@ def test_stage_outputs_store_and_parallel_map_agrees(sim):
 
 @pytest.mark.skipif(not (DATA / "c3d").exists(), reason="no shared data")
 def test_real_fragmented_pig_file():
-    from mocapflow.stages.formats.c3d import read_c3d
+    from mocapflow.stages.motion.formats.c3d import read_c3d
 
     m = read_c3d(DATA / "c3d" / "btkdata_PiG_Calibration-FlatFoot-Hole.c3d")
     out, rep, _ = clean_markers(m, ctx=Context())

@@ -7,22 +7,22 @@ import numpy as np
 import pytest
 
 from mocapflow.pipeline import Context
-from mocapflow.stages.clean import clean_markers
-from mocapflow.stages.clean_fill import (
+from mocapflow.stages.motion.datatypes import Markers
+from mocapflow.stages.motion.kinematics import (
+    absolute_orientation_batch,
+    quat_from_rotvec,
+    quat_to_matrix,
+)
+from mocapflow.stages.skin.clean import clean_markers
+from mocapflow.stages.skin.fill import (
     PCA_FRAMES_PER_COORDINATE,
     fill_holes,
     model_estimates,
     model_estimates_batch,
     train_local_pca,
 )
-from mocapflow.stages.clean_regress import predictor_ranking, regress_gap, regression_estimates
-from mocapflow.stages.data import Markers
-from mocapflow.stages.kinematics import (
-    absolute_orientation_batch,
-    quat_from_rotvec,
-    quat_to_matrix,
-)
-from mocapflow.stages.surface import build_marker_surface
+from mocapflow.stages.skin.regress import predictor_ranking, regress_gap, regression_estimates
+from mocapflow.stages.skin.surface import build_marker_surface
 
 RATE = 120.0
 
@@ -216,7 +216,7 @@ def test_cache_between_calls_changes_nothing_but_the_work():
     X2[back] = P[back]
     plain, pinfo = fill_holes(X2, surf, model="pca", models=models)
     calls = []
-    import mocapflow.stages.clean_fill as cf
+    import mocapflow.stages.skin.fill as cf
 
     real = cf.model_estimates_batch
 
@@ -260,7 +260,7 @@ def test_batched_estimates_equal_one_model_at_a_time(monkeypatch):
     rows = rng.random(len(X)) < 0.5
     masks = [None, rows, None, ~rows, None, rows]
     for pairs in (8000, 50):  # one batch; blocks of a few models
-        monkeypatch.setattr("mocapflow.stages.clean_fill.BATCH_PAIRS", pairs)
+        monkeypatch.setattr("mocapflow.stages.skin.fill.BATCH_PAIRS", pairs)
         batch = model_estimates_batch(models, X, targets, masks=masks, min_support=0.2,
                                       neighbour_weight=0.1)
         for md, mk, got in zip(models, masks, batch):
@@ -290,7 +290,7 @@ def test_clean_markers_fill_model_param():
     out2, rep2, _ = clean_markers(m, merge=False, smooth_iterations=0, fill_model="pca",
                                   ctx=Context())
     assert "regression" not in rep2["fill"] and np.isfinite(out2.positions).all()
-    from mocapflow.stages.clean import CleanError
+    from mocapflow.stages.skin.clean import CleanError
 
     with pytest.raises(CleanError, match="fill_model"):
         clean_markers(m, fill_model="nope")

@@ -19,9 +19,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import mocapflow.stages.clean_merge as cm
-from mocapflow.stages import kinematics as kin
-from mocapflow.stages.kinematics import (
+import mocapflow.stages.skin.merge as cm
+from mocapflow.stages.motion import kinematics as kin
+from mocapflow.stages.motion.kinematics import (
     DegenerateFitError,
     absolute_orientation,
     absolute_orientation_batch,
@@ -250,8 +250,8 @@ def test_prediction_index_counts_and_next_prediction():
 
 
 def test_merge_with_index_equals_dense_merge(monkeypatch):
-    from mocapflow.stages.simulate.capture import simulate_dense_capture
-    from mocapflow.stages.surface import build_marker_surface
+    from mocapflow.stages.motion.simulate.capture import simulate_dense_capture
+    from mocapflow.stages.skin.surface import build_marker_surface
 
     sim = simulate_dense_capture(n_markers=80, n_frames=120, motion="walk", rng=1,
                                  body_vertices=1000)
@@ -280,7 +280,7 @@ def grid_case(offset_true, offset_wrong=0.004):
     marker 14's lies ``offset_wrong`` from the fragment; marker 15's (trusted
     only as a competitor) ``offset_true`` from it.
     """
-    from mocapflow.stages.surface import build_marker_surface
+    from mocapflow.stages.skin.surface import build_marker_surface
 
     F, n = 20, 6
     gx, gy = np.meshgrid(np.arange(n) * 0.04, np.arange(n) * 0.04)

@@ -7,7 +7,10 @@ import pytest
 
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, digest_encoded, encode
-from mocapflow.stages.clips import (
+from mocapflow.stages.motion.datatypes import Strokes
+from mocapflow.stages.motion.kinematics import euler_to_quat, forward_kinematics
+from mocapflow.stages.motion.simulate.motion import procedural_walk
+from mocapflow.stages.variation.clips import (
     ClipError,
     Clips,
     autocorrelation_period,
@@ -25,9 +28,6 @@ from mocapflow.stages.clips import (
     period_cuts,
     select_similar,
 )
-from mocapflow.stages.data import Strokes
-from mocapflow.stages.kinematics import euler_to_quat, forward_kinematics
-from mocapflow.stages.simulate.motion import procedural_walk
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 
@@ -58,7 +58,7 @@ def test_heading_root_is_path_independent():
     # the same walk turned by 90° and moved: every DOF except nothing changes
     m = procedural_walk(120, rate=60.0, seed=1)
     turn = euler_to_quat(np.array([0.0, np.pi / 2, 0.0]), "XYZ")
-    from mocapflow.stages.kinematics import quat_multiply, quat_rotate
+    from mocapflow.stages.motion.kinematics import quat_multiply, quat_rotate
 
     rot = m.rotations.copy()
     rot[:, 0] = quat_multiply(turn, rot[:, 0])
@@ -75,7 +75,7 @@ def test_euler_continuity_through_gimbal_branch():
     t = np.linspace(0, 2 * np.pi, 200)
     e = np.stack([0.1 * np.sin(3 * t), 0.9 * t, 0.2 * np.cos(2 * t)], axis=1)
     q = euler_to_quat(e, "XYZ")
-    from mocapflow.stages.kinematics import quat_angle, quat_to_euler
+    from mocapflow.stages.motion.kinematics import quat_angle, quat_to_euler
 
     raw = quat_to_euler(q, "XYZ")
     cont = euler_continuity(raw[:, None, :])[:, 0]
@@ -173,7 +173,7 @@ def test_strokes_clips_round_trip():
 
 @pytest.mark.skipif(not (DATA / "strokes").is_dir(), reason="shared data absent")
 def test_uci_letter_a_gives_five_clips():
-    from mocapflow.stages.formats.strokes import read_uci_chartraj
+    from mocapflow.stages.motion.formats.strokes import read_uci_chartraj
 
     ss = read_uci_chartraj(DATA / "strokes" / "uci_chartraj_mv_subset.csv", letter="a")
     c = clips(ss, ctx=Context())["clips"]
@@ -182,8 +182,8 @@ def test_uci_letter_a_gives_five_clips():
 
 @pytest.mark.skipif(not (DATA / "bvh").is_dir(), reason="shared data absent")
 def test_shared_walk_take_cuts_into_at_least_four_cycles():
-    from mocapflow.stages.formats.bvh import read_bvh
-    from mocapflow.stages.kinematics import resample_motion
+    from mocapflow.stages.motion.formats.bvh import read_bvh
+    from mocapflow.stages.motion.kinematics import resample_motion
 
     m = resample_motion(read_bvh(DATA / "bvh" / "pymo_AV_8Walk_Meredith_HVHA_Rep1.bvh"), 60)
     c = clips(m, ctx=Context())["clips"]

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from mocapflow.pipeline.codecs import decode, digest_encoded, encode
-from mocapflow.stages.data import Markers, Mesh, Motion, Skeleton, Strokes
+from mocapflow.stages.motion.datatypes import Markers, Mesh, Motion, Skeleton, Strokes
 
 
 def _skeleton():

@@ -10,8 +10,8 @@ from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
 from mocapflow.pipeline import Context
-from mocapflow.stages.data import Markers, Mesh
-from mocapflow.stages.deform import (
+from mocapflow.stages.motion.datatypes import Markers, Mesh
+from mocapflow.stages.skin.deform import (
     MODES,
     DeformError,
     bind_mesh,
@@ -31,8 +31,8 @@ from mocapflow.stages.deform import (
     thin_plate_matrix,
     vertex_operator,
 )
-from mocapflow.stages.mesh_fit import fit_detailed_mesh, fit_mesh
-from mocapflow.stages.segment import Segmentation, part_frames, segment
+from mocapflow.stages.skin.mesh_fit import fit_detailed_mesh, fit_mesh
+from mocapflow.stages.skin.segment import Segmentation, part_frames, segment
 from tests.stages.test_segment import deform_limb, grid_cylinder, limb_capture, rot_x, rot_y
 
 
@@ -409,7 +409,7 @@ def test_quadratic_damping(limb):
 
 
 def test_template_mesh_and_template_frame(limb):
-    from mocapflow.stages.mesh_fit import template_mesh
+    from mocapflow.stages.skin.mesh_fit import template_mesh
 
     t = template_mesh(n_vertices=1500, ctx=Context())["mesh"]
     assert 1000 < len(t.vertices) < 2500 and not t.animated

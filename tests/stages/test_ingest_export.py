@@ -10,10 +10,10 @@ import pytest
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, digest_encoded, encode, find_exporter
 from mocapflow.pipeline.registry import get_stage, validate_params
-from mocapflow.stages.data import Markers, Motion, Strokes
-from mocapflow.stages.formats.c3d import read_c3d
-from mocapflow.stages.formats.strokes import StrokesFileError, StrokesSet, read_strokes_csv
-from mocapflow.stages.ingest import (
+from mocapflow.stages.motion.datatypes import Markers, Motion, Strokes
+from mocapflow.stages.motion.formats.c3d import read_c3d
+from mocapflow.stages.motion.formats.strokes import StrokesFileError, StrokesSet, read_strokes_csv
+from mocapflow.stages.motion.ingest import (
     amc_skeleton_path,
     ingest_amc,
     ingest_bvh,
@@ -152,7 +152,7 @@ def test_amc_skeleton_path():
 
 
 def test_ingest_bvh(ingest_data, tmp_path):
-    pytest.importorskip("mocapflow.stages.formats.bvh")
+    pytest.importorskip("mocapflow.stages.motion.formats.bvh")
     path = str(ingest_data / "bvh" / "cmu_131_01.bvh")
     m = ingest_bvh(path, ctx=ctx())["motion"]
     assert m.n_frames == 994 and m.rate == pytest.approx(120.0)
@@ -167,7 +167,7 @@ def test_ingest_bvh(ingest_data, tmp_path):
 
 
 def test_ingest_amc(ingest_data, tmp_path):
-    pytest.importorskip("mocapflow.stages.formats.asf")
+    pytest.importorskip("mocapflow.stages.motion.formats.asf")
     amc = ingest_data / "bvh" / "cmu_11_01.amc"
     m = ingest_amc(str(amc), ctx=ctx())["motion"]  # cmu_11.asf found beside it
     assert m.n_frames == 597 and m.rate == 120.0

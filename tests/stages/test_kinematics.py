@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from mocapflow.stages import kinematics as K
-from mocapflow.stages.data import Motion, Skeleton
+from mocapflow.stages.motion import kinematics as K
+from mocapflow.stages.motion.datatypes import Motion, Skeleton
 
 
 def _rq(rng, *shape):

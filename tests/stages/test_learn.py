@@ -8,8 +8,8 @@ from scipy.ndimage import gaussian_filter1d
 
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, digest_encoded, encode
-from mocapflow.stages.clips import make_clips
-from mocapflow.stages.learn import (
+from mocapflow.stages.variation.clips import make_clips
+from mocapflow.stages.variation.learn import (
     _DAG,
     LearnError,
     VariationModel,
@@ -23,7 +23,7 @@ from mocapflow.stages.learn import (
     transition_data,
     transition_node_fit,
 )
-from mocapflow.stages.sample import sample_variants
+from mocapflow.stages.variation.sample import sample_variants
 
 
 def _lagged(n_clips=4, T=80, seed=0):

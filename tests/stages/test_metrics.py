@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy.spatial.distance import cdist
 
-from mocapflow.stages import metrics as M
-from mocapflow.stages.simulate.motion import procedural_skeleton, procedural_walk
+from mocapflow.stages.metrics import quality as M
+from mocapflow.stages.motion.simulate.motion import procedural_skeleton, procedural_walk
 
 
 def _cubic(n: int, a: float, rate: float) -> np.ndarray:
@@ -168,8 +168,8 @@ def test_copy_scores_zero_and_noise_scores_high():
 
 
 def test_heading_free_features_ignore_the_facing():
-    from mocapflow.stages.kinematics import quat_multiply
-    from mocapflow.stages.pyramid import yaw_quaternion
+    from mocapflow.stages.motion.kinematics import quat_multiply
+    from mocapflow.stages.texture.pyramid import yaw_quaternion
 
     walk = procedural_walk(40, rate=30.0, seed=1)
     rot = walk.rotations.copy()

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from mocapflow.stages.novelty import (
+from mocapflow.stages.metrics.novelty import (
     aligned_distance,
     dtw,
     longest_copied_run,

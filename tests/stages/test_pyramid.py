@@ -7,13 +7,14 @@ import pytest
 
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, encode
-from mocapflow.stages.kinematics import (
+from mocapflow.stages.motion.kinematics import (
     forward_kinematics,
     quat_angle,
     quat_from_axis_angle,
     quat_multiply,
 )
-from mocapflow.stages.pyramid import (
+from mocapflow.stages.motion.simulate.motion import procedural_walk
+from mocapflow.stages.texture.pyramid import (
     Pyramid,
     PyramidError,
     binomial_filter,
@@ -25,8 +26,7 @@ from mocapflow.stages.pyramid import (
     root_features,
     yaw_quaternion,
 )
-from mocapflow.stages.simulate.motion import procedural_walk
-from mocapflow.stages.synth_root import integrate_root
+from mocapflow.stages.texture.root import integrate_root
 
 
 @pytest.fixture(scope="module")

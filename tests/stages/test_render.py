@@ -10,9 +10,9 @@ import pytest
 
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, encode, find_exporter
-from mocapflow.stages.data import Mesh
-from mocapflow.stages.deform import deform
-from mocapflow.stages.render import (
+from mocapflow.stages.motion.datatypes import Mesh
+from mocapflow.stages.skin.deform import deform
+from mocapflow.stages.skin.render import (
     RenderError,
     Video,
     export_mesh,
@@ -23,7 +23,7 @@ from mocapflow.stages.render import (
     render_modes,
     write_ply,
 )
-from mocapflow.stages.segment import segment
+from mocapflow.stages.skin.segment import segment
 from tests.stages.test_segment import limb_capture
 
 OK, WHY = offscreen_available()
@@ -41,7 +41,7 @@ def limb():
 
 def test_module_import_is_cheap():
     code = (
-        "import sys, mocapflow.stages.render; "
+        "import sys, mocapflow.stages.skin.render; "
         "print([m for m in ('pyvista', 'vtk', 'imageio', 'matplotlib') if m in sys.modules])"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)

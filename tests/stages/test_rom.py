@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from mocapflow.pipeline import Context
-from mocapflow.stages.data import Markers
-from mocapflow.stages.formats.c3d import read_c3d, write_c3d
-from mocapflow.stages.rom import ingest_rom, match_labels, match_markers
-from mocapflow.stages.segment import Segmentation
-from mocapflow.stages.simulate.capture import simulate_dense_capture
+from mocapflow.stages.motion.datatypes import Markers
+from mocapflow.stages.motion.formats.c3d import read_c3d, write_c3d
+from mocapflow.stages.motion.simulate.capture import simulate_dense_capture
+from mocapflow.stages.skin.rom import ingest_rom, match_labels, match_markers
+from mocapflow.stages.skin.segment import Segmentation
 
 SKIN = Path(__file__).parents[2] / "configs" / "skin.yaml"
 SMALL = dict(n_markers=40, n_frames=60, rate=60.0, body_vertices=1200, ghost_rate=0.0)
@@ -45,7 +45,7 @@ def test_same_seed_same_marker_layout_across_motions():
 
 
 def test_stage_context_rng_gives_the_same_layout_for_the_same_part_id():
-    from mocapflow.stages.simulate.capture import simulate_capture
+    from mocapflow.stages.motion.simulate.capture import simulate_capture
 
     kw = {k: v for k, v in SMALL.items()}
     a = simulate_capture(motion="walk", seed=0, ctx=Context(part="seed=0", seed=0), **kw)

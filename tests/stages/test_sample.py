@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from mocapflow.pipeline import Context
-from mocapflow.stages.clips import clips, make_clips
-from mocapflow.stages.learn import learn_structure
-from mocapflow.stages.novelty import dtw, novelty_report, warp_slope_std
-from mocapflow.stages.sample import (
+from mocapflow.stages.metrics.novelty import dtw, novelty_report, warp_slope_std
+from mocapflow.stages.variation.clips import clips, make_clips
+from mocapflow.stages.variation.learn import learn_structure
+from mocapflow.stages.variation.sample import (
     SampleError,
     matched_amplitude,
     noise_variants,
@@ -157,7 +157,7 @@ def test_noise_baselines_and_amplitude_matching(gt_model):
 
 @pytest.mark.skipif(not (DATA / "strokes").is_dir(), reason="shared data absent")
 def test_uci_letter_a_fifteen_novel_variants():
-    from mocapflow.stages.formats.strokes import read_uci_chartraj
+    from mocapflow.stages.motion.formats.strokes import read_uci_chartraj
 
     ss = read_uci_chartraj(DATA / "strokes" / "uci_chartraj_mv_subset.csv", letter="a")
     c = clips(ss, ctx=Context())["clips"]
@@ -175,7 +175,7 @@ def test_uci_letter_a_fifteen_novel_variants():
 
 def test_figures_of_inputs_and_variants(gt_model, tmp_path):
     from mocapflow.pipeline.codecs import decode, encode, find_exporter
-    from mocapflow.stages.variation_plots import Figures, variation_plots
+    from mocapflow.stages.variation.plots import Figures, variation_plots
 
     c, m = gt_model
     v = [sample_variants(m, np.random.default_rng(s), count=2) for s in range(2)]
@@ -255,9 +255,9 @@ def test_correlated_noise_is_smoother_and_validated(gt_model):
 
 
 def test_mean_motion_of_a_procedural_walk_is_as_smooth_as_the_walk():
-    from mocapflow.stages.clips import clips_to_motions
-    from mocapflow.stages.metrics import jerk_p99, motion_positions
-    from mocapflow.stages.simulate.motion import procedural_walk
+    from mocapflow.stages.metrics.quality import jerk_p99, motion_positions
+    from mocapflow.stages.motion.simulate.motion import procedural_walk
+    from mocapflow.stages.variation.clips import clips_to_motions
 
     c = clips(procedural_walk(400, rate=60.0, seed=1), ctx=Context())["clips"]
     x = np.concatenate(c.trajectories)

@@ -9,8 +9,8 @@ import pytest
 
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, encode
-from mocapflow.stages.data import Markers, Mesh
-from mocapflow.stages.segment import (
+from mocapflow.stages.motion.datatypes import Markers, Mesh
+from mocapflow.stages.skin.segment import (
     Segmentation,
     SegmentationError,
     adjusted_rand_index,

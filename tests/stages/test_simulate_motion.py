@@ -5,9 +5,9 @@ import pytest
 
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.registry import get_stage
-from mocapflow.stages.formats.bvh import read_bvh, write_bvh
-from mocapflow.stages.kinematics import end_site_positions, forward_kinematics, quat_angle
-from mocapflow.stages.simulate.motion import (
+from mocapflow.stages.motion.formats.bvh import read_bvh, write_bvh
+from mocapflow.stages.motion.kinematics import end_site_positions, forward_kinematics, quat_angle
+from mocapflow.stages.motion.simulate.motion import (
     JOINT_GROUPS,
     ROOT_HEIGHT,
     procedural_range_of_motion,

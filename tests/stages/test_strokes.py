@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from mocapflow.pipeline.codecs import decode, encode
-from mocapflow.stages.data import Strokes
-from mocapflow.stages.formats.strokes import (
+from mocapflow.stages.motion.datatypes import Strokes
+from mocapflow.stages.motion.formats.strokes import (
     StrokesFileError,
     StrokesSet,
     read_omniglot,

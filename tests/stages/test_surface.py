@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from mocapflow.stages.surface import (
+from mocapflow.stages.skin.surface import (
     SurfaceFileError,
     SurfaceInputError,
     build_marker_surface,

@@ -6,20 +6,18 @@ import numpy as np
 import pytest
 
 from mocapflow.pipeline import Context
-from mocapflow.stages import metrics as M
-from mocapflow.stages.data import Motion
-from mocapflow.stages.kinematics import quat_angle
-from mocapflow.stages.pyramid import build_pyramid, heading_split, level_positions, root_features
-from mocapflow.stages.simulate.motion import procedural_walk
-from mocapflow.stages.synth import (
-    ConstraintError,
-    UnreachableGapError,
-    assemble_motion,
-    synth,
-    synthesize,
+from mocapflow.stages.metrics import quality as M
+from mocapflow.stages.motion.datatypes import Motion
+from mocapflow.stages.motion.kinematics import quat_angle
+from mocapflow.stages.motion.simulate.motion import procedural_walk
+from mocapflow.stages.texture.graph import graph_path
+from mocapflow.stages.texture.pyramid import (
+    build_pyramid,
+    heading_split,
+    level_positions,
+    root_features,
 )
-from mocapflow.stages.synth_graph import graph_path
-from mocapflow.stages.synth_root import (
+from mocapflow.stages.texture.root import (
     PathCurve,
     apply_foot_ik,
     figure_eight,
@@ -27,12 +25,19 @@ from mocapflow.stages.synth_root import (
     leg_chains,
     two_bone_ik,
 )
-from mocapflow.stages.synth_search import (
+from mocapflow.stages.texture.search import (
     Gap,
     LevelSearch,
     SearchParams,
     _ahead_usage,
     level_view,
+)
+from mocapflow.stages.texture.synth import (
+    ConstraintError,
+    UnreachableGapError,
+    assemble_motion,
+    synth,
+    synthesize,
 )
 
 RATE = 30.0
@@ -261,7 +266,7 @@ def test_ahead_usage_counts_the_material_a_candidate_plays_next():
 
 
 def test_two_bone_ik_reaches_the_target_and_keeps_the_bones():
-    from mocapflow.stages.kinematics import quat_rotate
+    from mocapflow.stages.motion.kinematics import quat_rotate
 
     rng = np.random.default_rng(0)
     n = 50
@@ -289,7 +294,7 @@ def test_two_bone_ik_reaches_the_target_and_keeps_the_bones():
 
 
 def test_apply_foot_ik_moves_the_ankles_and_keeps_the_feet(walk):
-    from mocapflow.stages.kinematics import forward_kinematics, quat_angle
+    from mocapflow.stages.motion.kinematics import forward_kinematics, quat_angle
 
     m = walk
     toes = M.toe_indices(m.skeleton)
@@ -511,7 +516,7 @@ def test_texture_config_wires_ingest_pyramid_synth():
 
 def test_stickfigure_strip_and_export(tmp_path, walk):
     from mocapflow.pipeline.codecs import decode, encode, find_exporter
-    from mocapflow.stages.stickfigure import StickStrip, stickfigure
+    from mocapflow.stages.texture.stickfigure import StickStrip, stickfigure
 
     short = walk.replace(root_position=walk.root_position[:20], rotations=walk.rotations[:20])
     out = stickfigure(short, n_panels=4, video=True, video_step=5, ctx=Context())["strip"]

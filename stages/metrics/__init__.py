@@ -1,0 +1,1 @@
+"""Motion-quality and novelty metrics."""

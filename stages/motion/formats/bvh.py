@@ -1,0 +1,633 @@
+"""BVH (Biovision Hierarchy) read and write.
+
+Reading
+-------
+Any per-joint channel layout is accepted: position channels on any joint
+(non-root ones go to :attr:`Motion.translations`), 0-3 rotation channels in any
+order, End Sites, tabs, CRLF/CR line ends, scientific notation.  Rotations
+follow the BVH convention ``R = R_first @ R_second @ R_third`` for the rotation
+channels in file order (intrinsic), angles in degrees, and are stored as unit
+quaternions made sign-continuous along frames.  Where the root has position
+channels they give its world position (its OFFSET is kept but not added, as in
+Blender and bvhio); without them the root sits at its OFFSET.
+
+Units
+-----
+Lengths are stored in metres; ``motion.attrs["source_unit"]`` and
+``["source_scale"]`` (metres per file unit) record the file's unit so
+:func:`write_bvh` writes it back unchanged.  ``unit="auto"`` picks, among
+:data:`BVH_UNITS`, the unit that makes the rest-pose extent (largest axis-aligned
+extent of joints and End Sites at zero rotation, i.e. about the body height)
+closest to 1.7 m on a log scale.  The CMU conversions use "cmu" units
+(inches / 0.45, the ASF ``length 0.45`` convention: 0.056444 m).
+
+Frame Time
+----------
+``motion.rate`` is ``1 / Frame Time``, snapped to the nearest integer when the
+written Frame Time equals ``1 / n`` to its printed precision (``.0083333`` ->
+120).  The exact text is kept in ``attrs["frame_time_text"]`` and written back
+when the rate is unchanged.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from mocapflow.stages.motion.datatypes import UNIT_SCALE, Motion, Skeleton
+from mocapflow.stages.motion.kinematics import euler_to_quat, quat_continuity, quat_to_euler
+
+__all__ = ["BVH_UNITS", "BVHError", "guess_unit", "read_bvh", "write_bvh"]
+
+#: Metres per file unit for the units ``read_bvh`` understands (``unit=``).
+BVH_UNITS: dict[str, float] = {**UNIT_SCALE, "cmu": 0.0254 / 0.45}
+
+#: Candidates of ``unit="auto"``, checked against a 1.7 m body.
+_AUTO_UNITS = ("m", "dm", "cmu", "in", "cm", "mm")
+_TYPICAL_HEIGHT_M = 1.7
+
+_CHANNELS = {f"{a}{k}": f"{a.upper()}{k}" for a in "xyzXYZ" for k in ("position", "rotation")}
+
+
+class BVHError(ValueError):
+    """A BVH file cannot be parsed or written; the message names the file and line."""
+
+
+# --------------------------------------------------------------------------- parsing
+
+
+@dataclass
+class _Joint:
+    name: str
+    parent: int
+    line: int
+    offset: np.ndarray | None = None
+    channels: list[str] = field(default_factory=list)
+
+
+class _Tokens:
+    """Token stream over the hierarchy lines, with line numbers."""
+
+    def __init__(self, lines: list[str], path: str, start: int) -> None:
+        self.path = path
+        self.toks: list[tuple[str, int]] = []
+        for i, line in enumerate(lines):
+            for t in line.split():
+                self.toks.append((t, start + i))
+        self.i = 0
+        self.last_line = start + max(len(lines) - 1, 0)
+
+    def error(self, msg: str, line: int | None = None) -> BVHError:
+        return BVHError(f"{self.path}:{line or self.last_line}: {msg}")
+
+    def peek(self) -> tuple[str, int] | None:
+        return self.toks[self.i] if self.i < len(self.toks) else None
+
+    def next(self, what: str) -> tuple[str, int]:
+        if self.i >= len(self.toks):
+            raise self.error(f"truncated hierarchy: file ends where {what} was expected")
+        tok = self.toks[self.i]
+        self.i += 1
+        return tok
+
+    def expect(self, word: str) -> int:
+        tok, line = self.next(f"{word!r}")
+        if tok != word:
+            raise self.error(f"expected {word!r}, found {tok!r}", line)
+        return line
+
+    def rest_of_line(self, line: int) -> list[str]:
+        out = []
+        while self.i < len(self.toks) and self.toks[self.i][1] == line:
+            out.append(self.toks[self.i][0])
+            self.i += 1
+        return out
+
+    def number(self, what: str) -> float:
+        tok, line = self.next(what)
+        try:
+            return float(tok)
+        except ValueError:
+            raise self.error(f"bad number {tok!r} in {what}", line) from None
+
+
+def _parse_hierarchy(tk: _Tokens) -> tuple[list[_Joint], list[tuple[int, np.ndarray]]]:
+    tok, line = tk.next("'HIERARCHY'")
+    if tok.upper() != "HIERARCHY":
+        raise tk.error(f"expected 'HIERARCHY', found {tok!r}", line)
+    tok, line = tk.next("'ROOT'")
+    if tok.upper() != "ROOT":
+        raise tk.error(f"expected 'ROOT', found {tok!r}", line)
+    joints: list[_Joint] = []
+    ends: list[tuple[int, np.ndarray]] = []
+    _parse_joint(tk, joints, ends, parent=-1, line=line)
+    nxt = tk.peek()
+    if nxt is not None:
+        raise tk.error(f"unexpected {nxt[0]!r} after the root joint's closing brace", nxt[1])
+    return joints, ends
+
+
+def _joint_name(tk: _Tokens, line: int) -> str:
+    words = tk.rest_of_line(line)
+    if words and words[-1] == "{":  # "JOINT name {" on one line
+        tk.i -= 1
+        words = words[:-1]
+    if not words:
+        raise tk.error("joint without a name", line)
+    return " ".join(words)
+
+
+def _parse_offset(tk: _Tokens, what: str) -> np.ndarray:
+    tk.expect("OFFSET")
+    return np.array([tk.number(f"{what} OFFSET") for _ in range(3)])
+
+
+def _parse_joint(
+    tk: _Tokens, joints: list[_Joint], ends: list[tuple[int, np.ndarray]], parent: int, line: int
+) -> None:
+    name = _joint_name(tk, line)
+    j = len(joints)
+    joint = _Joint(name, parent, line)
+    joints.append(joint)
+    tk.expect("{")
+    joint.offset = _parse_offset(tk, f"joint {name!r}")
+    tok = tk.peek()
+    if tok is not None and tok[0].upper() == "CHANNELS":
+        tk.next("CHANNELS")
+        count_line = tk.peek()[1] if tk.peek() else tk.last_line
+        n = tk.number(f"joint {name!r} CHANNELS count")
+        if n != int(n) or n < 0:
+            raise tk.error(f"bad channel count {n} for joint {name!r}", count_line)
+        for _ in range(int(n)):
+            ch, ch_line = tk.next(f"a channel name of joint {name!r}")
+            if ch not in _CHANNELS:
+                raise tk.error(
+                    f"unknown channel {ch!r} of joint {name!r} "
+                    "(expected X/Y/Z position or rotation)",
+                    ch_line,
+                )
+            joint.channels.append(_CHANNELS[ch])
+        rot = "".join(c[0] for c in joint.channels if c.endswith("rotation"))
+        if len(set(rot)) != len(rot):
+            raise tk.error(
+                f"unknown rotation order {rot!r} of joint {name!r} (an axis repeats)", count_line
+            )
+        pos = [c for c in joint.channels if c.endswith("position")]
+        if len(set(pos)) != len(pos):
+            raise tk.error(f"repeated position channel in joint {name!r}", count_line)
+    while True:
+        tok, tline = tk.next(f"'}}' closing joint {name!r} (opened line {line})")
+        word = tok.upper()
+        if word == "}":
+            return
+        if word == "JOINT":
+            _parse_joint(tk, joints, ends, parent=j, line=tline)
+        elif word == "END":
+            site = tk.next("'Site'")
+            if site[0].upper() != "SITE":
+                raise tk.error(f"expected 'End Site', found 'End {site[0]}'", site[1])
+            tk.expect("{")
+            ends.append((j, _parse_offset(tk, f"End Site of {name!r}")))
+            tk.expect("}")
+        else:
+            raise tk.error(
+                f"expected 'JOINT', 'End Site' or '}}' in joint {name!r}, found {tok!r}", tline
+            )
+
+
+def _snap_rate(frame_time: float, text: str) -> float:
+    """``1 / frame_time``, snapped to an integer when the text is ``1/n`` rounded."""
+    rate = 1.0 / frame_time
+    n = round(rate)
+    if n > 0:
+        mant = text.lower().split("e")[0]
+        decimals = len(mant.split(".")[1]) if "." in mant else 0
+        exp = int(text.lower().split("e")[1]) if "e" in text.lower() else 0
+        half_ulp = 0.5 * 10.0 ** (exp - decimals)
+        if abs(frame_time - 1.0 / n) <= half_ulp * (1 + 1e-9):
+            return float(n)
+    return rate
+
+
+def _rest_extent(parents: np.ndarray, offsets: np.ndarray, ends: list[tuple[int, np.ndarray]]):
+    pos = np.zeros_like(offsets)
+    pos[0] = offsets[0]
+    for j in range(1, len(parents)):
+        pos[j] = pos[parents[j]] + offsets[j]
+    pts = [pos] + [pos[p][None] + o[None] for p, o in ends]
+    pts = np.concatenate(pts, axis=0)
+    return float(np.max(pts.max(0) - pts.min(0)))
+
+
+def guess_unit(extent: float) -> str:
+    """The :data:`BVH_UNITS` name under which ``extent`` file units is nearest 1.7 m.
+
+    Parameters
+    ----------
+    extent : float
+        Rest-pose extent (about the body height) in file units.
+
+    Returns
+    -------
+    str
+        One of ``m, dm, cmu, in, cm, mm`` (``m`` for a zero extent).
+    """
+    if not extent > 0:
+        return "m"
+    return min(
+        _AUTO_UNITS,
+        key=lambda u: abs(math.log(extent * BVH_UNITS[u] / _TYPICAL_HEIGHT_M)),
+    )
+
+
+def _resolve_unit(unit: str | float, extent: float, path: str) -> tuple[str, float]:
+    if isinstance(unit, int | float) and not isinstance(unit, bool):
+        if not unit > 0:
+            raise BVHError(f"{path}: unit scale must be > 0, got {unit}")
+        return f"{float(unit)!r} m", float(unit)
+    u = str(unit)
+    if u == "auto":
+        u = guess_unit(extent)
+    if u not in BVH_UNITS:
+        raise BVHError(
+            f"{path}: unknown unit {unit!r}; expected 'auto', a number or one of "
+            f"{', '.join(BVH_UNITS)}"
+        )
+    return u, BVH_UNITS[u]
+
+
+def _read_text(path: str) -> str:
+    with open(path, "rb") as f:
+        raw = f.read()
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return raw.decode("latin-1")
+
+
+def read_bvh(path: str | os.PathLike, *, unit: str | float = "auto") -> Motion:
+    """Read a BVH file.
+
+    Parameters
+    ----------
+    path : str or path-like
+    unit : {"auto", "m", "dm", "cm", "mm", "in", "ft", "cmu"} or float
+        Unit of the file's lengths, or metres per file unit; ``"auto"`` guesses
+        it from the rest-pose extent (see module docstring).
+
+    Returns
+    -------
+    Motion
+        ``F`` frames; ``rotations (F, J, 4)``, ``root_position (F, 3)`` in metres;
+        ``translations (F, J, 3)`` when a non-root joint has position channels
+        (joints without them hold their offset).  ``attrs``: ``source_file``,
+        ``source_format``, ``source_unit``, ``source_scale``, ``frame_time``,
+        ``frame_time_text``.
+
+    Raises
+    ------
+    BVHError
+        Empty or truncated file, bad numbers, unknown channels or rotation
+        orders, frame lines with the wrong number of values; the message names
+        the file and line.
+    """
+    p = os.fspath(path)
+    text = _read_text(p)
+    lines = text.splitlines()
+    if not text.strip():
+        raise BVHError(f"{p}:1: empty file")
+    motion_at = next(
+        (i for i, ln in enumerate(lines) if ln.strip().upper().startswith("MOTION")), None
+    )
+    hier_lines = lines if motion_at is None else lines[:motion_at]
+    tk = _Tokens(hier_lines, p, start=1)
+    joints, ends = _parse_hierarchy(tk)
+    if motion_at is None:
+        raise BVHError(f"{p}:{len(lines)}: truncated file: no MOTION section after the hierarchy")
+    if lines[motion_at].strip().upper() != "MOTION":
+        raise BVHError(f"{p}:{motion_at + 1}: expected 'MOTION', found {lines[motion_at]!r}")
+
+    # header: Frames / Frame Time (skip blank lines)
+    k = motion_at + 1
+    header: list[tuple[list[str], int]] = []
+    while len(header) < 2 and k < len(lines):
+        if lines[k].strip():
+            header.append((lines[k].split(), k + 1))
+        k += 1
+    if len(header) < 2:
+        raise BVHError(f"{p}:{len(lines)}: truncated file: 'Frames:' and 'Frame Time:' expected")
+    (ftoks, fline), (ttoks, tline) = header
+    if len(ftoks) != 2 or ftoks[0].lower() != "frames:":
+        raise BVHError(f"{p}:{fline}: expected 'Frames: <count>', found {' '.join(ftoks)!r}")
+    try:
+        n_frames = int(ftoks[1])
+        if n_frames < 0:
+            raise ValueError
+    except ValueError:
+        raise BVHError(f"{p}:{fline}: bad frame count {ftoks[1]!r}") from None
+    if len(ttoks) != 3 or [t.lower() for t in ttoks[:2]] != ["frame", "time:"]:
+        raise BVHError(f"{p}:{tline}: expected 'Frame Time: <seconds>', found {' '.join(ttoks)!r}")
+    try:
+        frame_time = float(ttoks[2])
+        if not (frame_time > 0 and math.isfinite(frame_time)):
+            raise ValueError
+    except ValueError:
+        raise BVHError(f"{p}:{tline}: bad frame time {ttoks[2]!r}") from None
+
+    n_ch = sum(len(j.channels) for j in joints)
+    data = _parse_frames(lines, k, n_frames, n_ch, p)
+
+    names = [j.name for j in joints]
+    parents = np.array([j.parent for j in joints], dtype=np.int64)
+    offsets = np.stack([j.offset for j in joints])
+    extent = _rest_extent(parents, offsets, ends)
+    unit_name, scale = _resolve_unit(unit, extent, p)
+    skeleton = Skeleton(
+        names=names,
+        parents=parents,
+        offsets=offsets * scale,
+        channels=[j.channels for j in joints],
+        end_parents=np.array([e[0] for e in ends], dtype=np.int64),
+        end_offsets=np.array([e[1] for e in ends]).reshape(-1, 3) * scale,
+        attrs={"source_unit": unit_name, "source_scale": scale},
+    )
+    root_position, rotations, translations = _channels_to_motion(skeleton, data, scale)
+    attrs = {
+        "source_file": p,
+        "source_format": "bvh",
+        "source_unit": unit_name,
+        "source_scale": scale,
+        "frame_time": frame_time,
+        "frame_time_text": ttoks[2],
+    }
+    return Motion(
+        skeleton=skeleton,
+        root_position=root_position,
+        rotations=rotations,
+        rate=_snap_rate(frame_time, ttoks[2]),
+        translations=translations,
+        attrs=attrs,
+    )
+
+
+def _parse_frames(lines: list[str], start: int, n_frames: int, n_ch: int, p: str) -> np.ndarray:
+    if n_ch == 0:
+        return np.zeros((n_frames, 0))
+    tokens: list[str] = []
+    frame_lines: list[int] = []
+    k = start
+    while len(frame_lines) < n_frames and k < len(lines):
+        toks = lines[k].split()
+        if toks:
+            if len(toks) != n_ch:
+                raise BVHError(
+                    f"{p}:{k + 1}: frame {len(frame_lines)} has {len(toks)} values, "
+                    f"expected {n_ch} (one per channel)"
+                )
+            tokens.extend(toks)
+            frame_lines.append(k + 1)
+        k += 1
+    if len(frame_lines) < n_frames:
+        raise BVHError(
+            f"{p}:{len(lines)}: truncated motion: 'Frames: {n_frames}' but only "
+            f"{len(frame_lines)} frame lines"
+        )
+    extra = sum(1 for ln in lines[k:] if ln.strip())
+    if extra:
+        warnings.warn(
+            f"{p}:{k + 1}: {extra} lines after the {n_frames} frames declared were ignored",
+            stacklevel=3,
+        )
+    try:
+        data = np.array(tokens, dtype=np.float64)
+    except ValueError:
+        for f, ln in enumerate(frame_lines):
+            for t in lines[ln - 1].split():
+                try:
+                    float(t)
+                except ValueError:
+                    raise BVHError(f"{p}:{ln}: bad number {t!r} in frame {f}") from None
+        raise
+    data = data.reshape(n_frames, n_ch)
+    if not np.isfinite(data).all():
+        f = int(np.flatnonzero(~np.isfinite(data).all(1))[0])
+        raise BVHError(f"{p}:{frame_lines[f]}: non-finite value in frame {f}")
+    return data
+
+
+def _padded_order(rot: str) -> str:
+    return rot + "".join(a for a in "XYZ" if a not in rot)
+
+
+def _channels_to_motion(
+    skeleton: Skeleton, data: np.ndarray, scale: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    F = data.shape[0]
+    J = skeleton.n_joints
+    euler = np.zeros((F, J, 3))
+    orders: list[str] = []
+    trans = np.broadcast_to(skeleton.offsets, (F, J, 3)).copy()
+    has_pos = np.zeros(J, dtype=bool)
+    col = 0
+    for j, chans in enumerate(skeleton.channels):
+        rot = "".join(c[0] for c in chans if c.endswith("rotation"))
+        order = _padded_order(rot)
+        orders.append(order)
+        for c in chans:
+            if c.endswith("position"):
+                trans[:, j, "XYZ".index(c[0])] = data[:, col] * scale
+                has_pos[j] = True
+            else:
+                euler[:, j, order.index(c[0])] = data[:, col]
+            col += 1
+    rotations = np.empty((F, J, 4))
+    for order in set(orders):
+        idx = [j for j, o in enumerate(orders) if o == order]
+        rotations[:, idx] = euler_to_quat(euler[:, idx], order, degrees=True)
+    rotations = quat_continuity(rotations, axis=0)
+    root_position = trans[:, 0].copy()
+    translations = trans if has_pos[1:].any() else None
+    return root_position, rotations, translations
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def _dfs_order(parents: np.ndarray) -> list[int]:
+    children: dict[int, list[int]] = {}
+    for j, p in enumerate(parents):
+        children.setdefault(int(p), []).append(j)
+    order: list[int] = []
+    stack = [0]
+    while stack:
+        j = stack.pop()
+        order.append(j)
+        stack.extend(reversed(children.get(j, [])))
+    return order
+
+
+def _check_positions(motion: Motion, j: int, chans: list[str], p: Path) -> None:
+    """Refuse to drop a joint translation that its position channels cannot hold."""
+    sk = motion.skeleton
+    if j == 0:
+        src = motion.root_position
+    elif motion.translations is not None:
+        src = np.where(
+            np.isfinite(motion.translations[:, j]), motion.translations[:, j], sk.offsets[j]
+        )
+    else:
+        return
+    have = {c[0] for c in chans if c.endswith("position")}
+    for k, axis in enumerate("XYZ"):
+        if axis not in have and src.shape[0]:
+            lost = np.abs(src[:, k] - sk.offsets[j, k]).max()
+            if lost > 1e-6:
+                raise BVHError(
+                    f"{p}: joint {sk.names[j]!r} moves along {axis} (up to {lost:.3g} m from "
+                    f"its offset) but has no {axis}position channel; add position channels"
+                )
+
+
+def _fmt(v: float, precision: int) -> str:
+    s = f"{v:.{precision}f}"
+    return "0" if float(s) == 0 else s
+
+
+def _frame_time_text(motion: Motion) -> str:
+    text = motion.attrs.get("frame_time_text")
+    if text is not None:
+        try:
+            ft = float(text)
+            if ft > 0 and _snap_rate(ft, str(text)) == motion.rate:
+                return str(text)
+        except ValueError:
+            pass
+    return f"{1.0 / motion.rate:.10g}"
+
+
+def write_bvh(
+    motion: Motion,
+    path: str | os.PathLike,
+    *,
+    unit: str | float | None = None,
+    precision: int = 6,
+) -> Path:
+    """Write a motion as a BVH file.
+
+    Parameters
+    ----------
+    motion : Motion
+        ``F`` frames; its skeleton's channels give the layout and rotation orders
+        (a joint without channels gets none; a skeleton with no channels at all
+        gets BVH's usual 6 root / 3 joint channels in ZXY order).
+    path : str or path-like
+    unit : str or float, optional
+        Unit written (a :data:`BVH_UNITS` name or metres per unit); default the
+        source unit in ``motion.attrs["source_scale"]``, else centimetres.
+    precision : int
+        Decimal places of every value.
+
+    Returns
+    -------
+    Path
+        The written file.
+
+    Raises
+    ------
+    BVHError
+        A joint's rotation cannot be expressed by its (fewer than 3) rotation
+        channels, or a unit is unknown.
+    """
+    p = Path(path)
+    sk = motion.skeleton
+    if unit is None:
+        scale = float(motion.attrs.get("source_scale", BVH_UNITS["cm"]))
+    else:
+        _, scale = _resolve_unit(unit, 1.0, str(p))
+    channels = sk.channels
+    if not any(channels):
+        channels = [
+            (["Xposition", "Yposition", "Zposition"] if j == 0 else [])
+            + ["Zrotation", "Xrotation", "Yrotation"]
+            for j in range(sk.n_joints)
+        ]
+    F = motion.n_frames
+    order = _dfs_order(sk.parents)
+    columns: list[np.ndarray] = []
+    trans = motion.translations
+    for j in order:
+        chans = channels[j]
+        rot = "".join(c[0] for c in chans if c.endswith("rotation"))
+        padded = _padded_order(rot)
+        if rot:
+            angles = quat_to_euler(motion.rotations[:, j], padded, degrees=True)
+            if len(rot) < 3 and F:
+                lost = np.abs(angles[:, len(rot) :]).max()
+                if lost > 1e-6:
+                    raise BVHError(
+                        f"{p}: rotation of joint {sk.names[j]!r} needs axes its channels "
+                        f"{rot!r} lack (up to {lost:.3g} deg); add rotation channels"
+                    )
+            angles = np.unwrap(angles, period=360.0, axis=0) if F else angles
+        elif F:
+            w = np.abs(motion.rotations[:, j, 0])
+            lost = np.degrees(2 * np.arccos(np.clip(w, 0.0, 1.0))).max()
+            if lost > 1e-6:
+                raise BVHError(
+                    f"{p}: joint {sk.names[j]!r} rotates (up to {lost:.3g} deg) but has no "
+                    "rotation channels; add rotation channels"
+                )
+        _check_positions(motion, j, chans, p)
+        for c in chans:
+            if c.endswith("position"):
+                if j == 0:
+                    src = motion.root_position
+                elif trans is not None:
+                    src = trans[:, j]
+                else:
+                    src = np.broadcast_to(sk.offsets[j], (F, 3))
+                columns.append(src[:, "XYZ".index(c[0])] / scale)
+            else:
+                columns.append(angles[:, padded.index(c[0])])
+    data = np.stack(columns, axis=1) if columns else np.zeros((F, 0))
+
+    ends: dict[int, list[np.ndarray]] = {}
+    for e, j in enumerate(sk.end_parents):
+        ends.setdefault(int(j), []).append(sk.end_offsets[e])
+    children: dict[int, list[int]] = {}
+    for j, par in enumerate(sk.parents):
+        children.setdefault(int(par), []).append(j)
+
+    out: list[str] = ["HIERARCHY"]
+
+    def vec(v: np.ndarray) -> str:
+        return " ".join(_fmt(x / scale, precision) for x in v)
+
+    def emit(j: int, depth: int) -> None:
+        ind = "\t" * depth
+        out.append(f"{ind}{'ROOT' if j == 0 else 'JOINT'} {sk.names[j]}")
+        out.append(f"{ind}{{")
+        out.append(f"{ind}\tOFFSET {vec(sk.offsets[j])}")
+        out.append(f"{ind}\tCHANNELS {len(channels[j])} {' '.join(channels[j])}".rstrip())
+        for c in children.get(j, []):
+            emit(c, depth + 1)
+        for off in ends.get(j, []):
+            out.extend(
+                [f"{ind}\tEnd Site", f"{ind}\t{{", f"{ind}\t\tOFFSET {vec(off)}", f"{ind}\t}}"]
+            )
+        out.append(f"{ind}}}")
+
+    emit(0, 0)
+    out += ["MOTION", f"Frames: {F}", f"Frame Time: {_frame_time_text(motion)}"]
+    with open(p, "w", newline="\n") as f:
+        f.write("\n".join(out) + "\n")
+        if F and data.shape[1]:
+            np.savetxt(f, data, fmt=f"%.{precision}f", delimiter=" ")
+        elif F:
+            f.write("\n" * F)
+    return p

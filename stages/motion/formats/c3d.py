@@ -1,0 +1,581 @@
+"""C3D marker files: read into :class:`~mocapflow.stages.motion.datatypes.Markers`, write back.
+
+Reading and writing go through ``ezc3d``.  Before ezc3d sees a file, its header
+and parameter section are walked here in pure Python and the data block size is
+checked against the file size: ezc3d silently returns fewer frames for a
+truncated data block, and can hang or crash the process on a corrupt parameter
+section, so a bad file must be rejected before it reaches it.  Every failure is
+one :class:`C3DError` naming the file.
+
+What :func:`read_c3d` makes of the points of a file
+---------------------------------------------------
+* **missing**: a sample is missing when a coordinate is NaN or its residual is
+  negative; its position and residual become NaN.
+* **units**: ``POINT:UNITS`` (``mm``, ``cm``, ``m`` …) is converted to metres;
+  the source unit stays in ``attrs["source_unit"]``.  Residuals are converted too.
+* **labels**: ``POINT:LABELS``, ``LABELS2``, ``LABELS3`` … are joined, so files
+  with more than 255 points keep every label.
+* **model outputs** are not markers: points listed in ``POINT:ANGLES``,
+  ``FORCES``, ``MOMENTS``, ``POWERS``, ``SCALARS``, ``REACTIONS`` (and in any
+  parameter named by ``POINT:TYPE_GROUPS``), points whose ``POINT:DESCRIPTIONS``
+  entry is one of those types, Plug-in-Gait output names (``…Angles``,
+  ``…Force``, ``…Moment``, ``…Power``, ``CentreOfMass``) and Plug-in-Gait virtual
+  segment points (``PELO``, ``LFEA`` …: a segment code such as ``PEL`` or ``LFE``
+  followed by ``O``/``A``/``L``/``P``, kept out only when at least three of the
+  four axes points of that segment are present).  They are listed in
+  ``attrs["excluded_points"]`` with the reason and their missing-frame count.
+* **unlabelled trajectories** (``*12`` style labels) go to ``fragments`` /
+  ``fragment_labels``; they are not dropped.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import struct
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mocapflow.stages.motion.datatypes import UNIT_SCALE, Markers
+
+__all__ = [
+    "MODEL_OUTPUT_TYPES",
+    "PIG_SEGMENTS",
+    "C3DError",
+    "classify_points",
+    "read_c3d",
+    "write_c3d",
+]
+
+
+class C3DError(ValueError):
+    """A C3D file is empty, truncated, corrupt or not supported (the message names it)."""
+
+
+#: ``POINT`` parameters that list model-output points, with the point type they hold.
+MODEL_OUTPUT_TYPES: dict[str, str] = {
+    "ANGLES": "angle",
+    "FORCES": "force",
+    "MOMENTS": "moment",
+    "POWERS": "power",
+    "SCALARS": "scalar",
+    "REACTIONS": "reaction",
+}
+
+#: Plug-in-Gait segment codes whose ``<code>O/A/L/P`` points are virtual (model output).
+PIG_SEGMENTS: frozenset[str] = frozenset(
+    "PEL HED TRX LCL RCL LHU RHU LRA RRA LHN RHN LFE RFE LTI RTI LFO RFO LTO RTO".split()
+)
+
+_FRAGMENT_RE = re.compile(r"^\*\d+$")
+_PIG_OUTPUT_RE = re.compile(
+    r"^[A-Z][A-Za-z0-9]*(Angles?|Forces?|Moments?|Powers?)$|^Cent(re|er)OfMass(Floor)?$"
+)
+_DESCRIPTION_TYPES = {
+    "angle",
+    "angles",
+    "force",
+    "forces",
+    "moment",
+    "moments",
+    "power",
+    "powers",
+    "scalar",
+    "scalars",
+    "reaction",
+    "reactions",
+}
+_BLOCK = 512
+_MAX_LABELS_PER_PARAM = 255
+
+
+# --------------------------------------------------------------------------- validation
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """What the header and parameter section say about the data block."""
+
+    n_points: int
+    n_analog_per_frame: int
+    first_frame: int
+    n_frames: int
+    word: int
+    data_start: int
+    processor: int
+
+
+def _fail(path: Path, msg: str) -> C3DError:
+    return C3DError(f"{path}: {msg}")
+
+
+def _reader(buf: bytes, processor: int):
+    """Return ``(u16, i16, f32)`` unpackers for the file's processor type."""
+    if processor == 86:  # MIPS, big-endian
+        return (
+            lambda o: struct.unpack_from(">H", buf, o)[0],
+            lambda o: struct.unpack_from(">h", buf, o)[0],
+            lambda o: struct.unpack_from(">f", buf, o)[0],
+        )
+
+    def f32(o: int) -> float:
+        if processor == 85:  # DEC (VAX F-float): swap 16-bit words, divide by 4
+            b = buf[o : o + 4]
+            return struct.unpack("<f", b[2:4] + b[0:2])[0] / 4.0
+        return struct.unpack_from("<f", buf, o)[0]
+
+    return (
+        lambda o: struct.unpack_from("<H", buf, o)[0],
+        lambda o: struct.unpack_from("<h", buf, o)[0],
+        f32,
+    )
+
+
+def _walk_parameters(buf: bytes, path: Path, start: int, end: int, processor: int) -> dict:
+    """Walk the parameter section; return ``{(GROUP, NAME): value}`` for small int/float params.
+
+    Raises :class:`C3DError` when an entry runs past the section, an offset points
+    backwards, a type or name is invalid, or a parameter names an undefined group.
+    """
+    try:
+        return _walk(buf[:end], path, start, end, processor)
+    except (IndexError, struct.error):
+        raise _fail(path, "truncated or corrupt parameter section") from None
+
+
+def _walk(buf: bytes, path: Path, start: int, end: int, processor: int) -> dict:
+    u16, i16, f32 = _reader(buf, processor)
+    groups: dict[int, str] = {}
+    raw: list[tuple[int, str, int, tuple[int, ...], int]] = []
+    pos = start + 4
+    for _ in range(100_000):
+        if pos + 2 > end:
+            raise _fail(path, f"parameter section truncated at byte {pos}")
+        nchar = struct.unpack_from("b", buf, pos)[0]
+        if nchar == 0:
+            break
+        gid = struct.unpack_from("b", buf, pos + 1)[0]
+        n = abs(nchar)
+        name_b = buf[pos + 2 : pos + 2 + n]
+        off_at = pos + 2 + n
+        if off_at + 3 > end:
+            raise _fail(path, f"parameter section truncated in entry at byte {pos}")
+        if gid == 0 or any(c < 32 for c in name_b):
+            raise _fail(path, f"corrupt parameter section: invalid entry at byte {pos}")
+        name = name_b.decode("latin-1").upper()
+        offset = u16(off_at)
+        q = off_at + 2
+        if gid < 0:
+            q += 1 + buf[q]  # description
+            if -gid in groups and groups[-gid] != name:
+                raise _fail(path, f"corrupt parameter section: group id {-gid} defined twice")
+            groups[-gid] = name
+        else:
+            ptype = struct.unpack_from("b", buf, q)[0]
+            if ptype not in (-1, 1, 2, 4):
+                raise _fail(path, f"corrupt parameter {name!r}: unknown data type {ptype}")
+            ndim = buf[q + 1]
+            if ndim > 7 or q + 2 + ndim > end:
+                raise _fail(path, f"corrupt parameter {name!r}: {ndim} dimensions")
+            dims = tuple(buf[q + 2 : q + 2 + ndim])
+            q += 2 + ndim
+            data_at = q
+            q += abs(ptype) * int(np.prod(dims, dtype=np.int64))
+            if q + 1 > end:
+                raise _fail(path, f"parameter {name!r} runs past the parameter section")
+            q += 1 + buf[q]  # description
+            raw.append((gid, name, ptype, dims, data_at))
+        if q > end:
+            raise _fail(path, f"entry at byte {pos} runs past the parameter section")
+        if offset == 0:
+            break
+        nxt = off_at + offset
+        if nxt < q or nxt > end:
+            raise _fail(path, f"corrupt parameter section: bad offset at byte {off_at}")
+        pos = nxt
+    else:  # pragma: no cover - bounded by the section size anyway
+        raise _fail(path, "corrupt parameter section: too many entries")
+    if "POINT" not in groups.values():
+        raise _fail(path, "no POINT group in the parameter section")
+    params: dict[tuple[str, str], Any] = {}
+    for gid, name, ptype, dims, at in raw:
+        if gid not in groups:
+            raise _fail(path, f"parameter {name!r} belongs to undefined group id {gid}")
+        count = int(np.prod(dims, dtype=np.int64))
+        if ptype in (1, 2, 4) and 0 < count <= 4:
+            if ptype == 1:
+                vals = [buf[at + i] for i in range(count)]
+            elif ptype == 2:
+                vals = [i16(at + 2 * i) for i in range(count)]
+            else:
+                vals = [f32(at + 4 * i) for i in range(count)]
+            params[(groups[gid], name)] = vals
+    return params
+
+
+def _check_file(path: Path) -> _Layout:
+    """Validate header, parameter section and data size of a C3D file (no ezc3d)."""
+    try:
+        buf = path.read_bytes()
+    except OSError as e:
+        raise _fail(path, f"cannot read C3D file ({e.strerror or e})") from None
+    size = len(buf)
+    if size == 0:
+        raise _fail(path, "empty file, not a C3D file")
+    if size < _BLOCK:
+        raise _fail(path, f"truncated C3D file: {size} bytes, shorter than the 512-byte header")
+    if buf[1] != 0x50:
+        raise _fail(path, "not a C3D file (header key byte is not 0x50)")
+    pblock = buf[0]
+    if pblock < 2:
+        raise _fail(path, f"not a C3D file (parameter block number {pblock})")
+    pstart = (pblock - 1) * _BLOCK
+    if pstart + 4 > size:
+        raise _fail(path, f"truncated C3D file: parameter section at byte {pstart} is missing")
+    processor = buf[pstart + 3]
+    if processor not in (84, 85, 86):
+        raise _fail(path, f"corrupt C3D file: unknown processor type {processor}")
+    u16, _, f32 = _reader(buf, processor)
+    n_points = u16(2)
+    n_analog = u16(4)
+    first, last = u16(6), u16(8)
+    scale = f32(12)
+    data_start = u16(16)
+    # ezc3d's reading of the 1-based frame numbers
+    first0 = first - 1 if first else 0
+    last0 = last - 1 if last else 0
+    n_frames = last0 - first0 + 1 if (n_points or n_analog) else 0
+    if n_frames < 0:
+        raise _fail(path, f"corrupt C3D header: last frame {last} before first frame {first}")
+    if not np.isfinite(scale) or scale == 0:
+        raise _fail(path, f"corrupt C3D header: POINT scale {scale}")
+    word = 4 if scale < 0 else 2
+    pend = min(size, (data_start - 1) * _BLOCK) if data_start > pblock else size
+    params = _walk_parameters(buf, path, pstart, pend, processor)
+    used = params.get(("POINT", "USED"))
+    if used is not None and (used[0] & 0xFFFF) != n_points:
+        raise _fail(
+            path, f"corrupt C3D file: header says {n_points} points, POINT:USED {used[0] & 0xFFFF}"
+        )
+    frames_param = params.get(("POINT", "FRAMES"))
+    if frames_param is not None and (n_points or n_analog):
+        # ezc3d (like the C3D recommendation) counts frames with POINT:FRAMES when present;
+        # an int16 holds up to 65535 frames unsigned, a float any count
+        v = frames_param[0]
+        if isinstance(v, float) and not (np.isfinite(v) and v >= 0):
+            raise _fail(path, f"corrupt POINT:FRAMES {v}")
+        n_frames = int(v) & 0xFFFF if isinstance(v, int) else int(v)
+    if data_start < 2:
+        raise _fail(path, f"corrupt C3D header: data start block {data_start}")
+    ds_param = params.get(("POINT", "DATA_START"))
+    if ds_param is not None and isinstance(ds_param[0], int):
+        data_start = max(data_start, ds_param[0] & 0xFFFF)  # check the later of the two
+    frame_bytes = (4 * n_points + n_analog) * word
+    need = (data_start - 1) * _BLOCK + n_frames * frame_bytes
+    if size < need:
+        have = max(size - (data_start - 1) * _BLOCK, 0) // frame_bytes if frame_bytes else 0
+        raise _fail(
+            path,
+            f"truncated C3D file: {size} bytes, the data block needs {need} "
+            f"({n_frames} frames of {n_points} points; only {have} complete frames present)",
+        )
+    return _Layout(n_points, n_analog, first0, n_frames, word, data_start, processor)
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _param(params: dict, group: str, name: str, default: Any = None) -> Any:
+    g = params.get(group)
+    if g is None or name not in g:
+        return default
+    return g[name]["value"]
+
+
+def _joined(params: dict, group: str, name: str) -> list[str]:
+    """``GROUP:NAME`` joined with ``NAME2``, ``NAME3`` … (C3D's > 255 entries rule)."""
+    out: list[str] = []
+    first = _param(params, group, name)
+    if first is None:
+        return out
+    out.extend(str(s).strip() for s in first)
+    k = 2
+    while True:
+        more = _param(params, group, f"{name}{k}")
+        if more is None:
+            return out
+        out.extend(str(s).strip() for s in more)
+        k += 1
+
+
+def _strip_prefix(label: str) -> str:
+    return label.rsplit(":", 1)[-1]
+
+
+def classify_points(
+    labels: list[str], descriptions: list[str], listed: dict[str, str]
+) -> list[tuple[str, str]]:
+    """Decide, per C3D point, whether it is a marker, a fragment or a model output.
+
+    Parameters
+    ----------
+    labels : list of str
+        ``P`` point labels (``POINT:LABELS`` joined).
+    descriptions : list of str
+        ``POINT:DESCRIPTIONS`` joined (may be shorter than ``labels``).
+    listed : dict
+        ``label -> "POINT:ANGLES"`` etc. for points named by a model-output parameter.
+
+    Returns
+    -------
+    list of (kind, reason)
+        ``kind`` is ``"marker"``, ``"fragment"``, ``"model_output"`` or
+        ``"virtual_segment"``; ``reason`` says why (empty for markers).
+    """
+    bare = [_strip_prefix(lb) for lb in labels]
+    axes_present: dict[str, int] = {}
+    for b in bare:
+        if len(b) == 4 and b[:3] in PIG_SEGMENTS and b[3] in "OALP":
+            axes_present[b[:3]] = axes_present.get(b[:3], 0) + 1
+    out: list[tuple[str, str]] = []
+    for i, (lb, b) in enumerate(zip(labels, bare)):
+        desc = descriptions[i].strip().lower() if i < len(descriptions) else ""
+        if lb in listed or b in listed:
+            out.append(("model_output", f"listed in {listed.get(lb) or listed[b]}"))
+        elif desc in _DESCRIPTION_TYPES:
+            out.append(("model_output", f"POINT:DESCRIPTIONS says {desc!r}"))
+        elif _PIG_OUTPUT_RE.match(b):
+            out.append(("model_output", "Plug-in-Gait model output name"))
+        elif len(b) == 4 and b[:3] in PIG_SEGMENTS and b[3] in "OALP" and axes_present[b[:3]] >= 3:
+            out.append(
+                ("virtual_segment", f"Plug-in-Gait virtual point of segment {b[:3]} (axis {b[3]})")
+            )
+        elif _FRAGMENT_RE.match(b):
+            out.append(("fragment", "unlabelled trajectory"))
+        else:
+            out.append(("marker", ""))
+    return out
+
+
+def _model_output_lists(params: dict) -> dict[str, str]:
+    names = set(MODEL_OUTPUT_TYPES)
+    tg = _param(params, "POINT", "TYPE_GROUPS")
+    if tg:
+        names.update(str(s).strip().upper() for s in tg if str(s).strip())
+    listed: dict[str, str] = {}
+    for n in sorted(names):
+        if n in {"LABELS", "DESCRIPTIONS", "UNITS", "USED"}:
+            continue
+        for lb in _joined(params, "POINT", n):
+            if lb:
+                listed.setdefault(lb, f"POINT:{n}")
+    return listed
+
+
+def _ezc3d_points(path: str) -> tuple[dict, np.ndarray, np.ndarray, int, float]:
+    """Parameters, points ``(4, P, F)``, residuals ``(1, P, F)``, first frame, header rate.
+
+    Uses ezc3d's SWIG object directly, which skips the camera masks, analogs and
+    rotations that ``ezc3d.c3d(path)`` also converts; falls back to that wrapper if
+    the SWIG layer is laid out differently.
+    """
+    import ezc3d
+
+    try:
+        sw = ezc3d.ezc3d.c3d(path)
+        params = ezc3d.c3d.Parameters(sw.parameters())
+        pts, res = sw.get_points(), sw.get_point_residuals()
+        first, rate = sw.header().firstFrame(), sw.header().frameRate()
+    except AttributeError:  # pragma: no cover - other ezc3d versions
+        c = ezc3d.c3d(path)
+        params, pts = c["parameters"], c["data"]["points"]
+        res = c["data"]["meta_points"]["residuals"]
+        first, rate = c["header"]["points"]["first_frame"], c["header"]["points"]["frame_rate"]
+    pts = np.asarray(pts, dtype=np.float64)
+    return params, pts, np.asarray(res, dtype=np.float64), int(first), float(rate)
+
+
+def _columns(a: np.ndarray, idx: list[int]) -> np.ndarray:
+    """``a[:, idx]``, as a view when ``idx`` is one contiguous run (the usual case)."""
+    if idx and idx == list(range(idx[0], idx[-1] + 1)):
+        return a[:, idx[0] : idx[-1] + 1]
+    return a[:, idx]
+
+
+def read_c3d(path: str | os.PathLike) -> Markers:
+    """Read the labelled markers, unlabelled fragments and residuals of a C3D file.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The ``.c3d`` file.
+
+    Returns
+    -------
+    Markers
+        ``positions (F, M, 3)`` in metres (NaN where missing), ``labels``,
+        ``rate`` (POINT:RATE, kept non-integer), ``first_frame`` (ezc3d's 0-based
+        header first frame), ``residuals (F, M)`` in metres (NaN where missing),
+        ``fragments (F, U, 3)`` / ``fragment_labels`` for ``*N`` points, and
+        ``attrs``: ``source``, ``source_unit``, ``n_points`` (points in the file),
+        ``excluded_points`` (list of ``{"label", "index", "kind", "reason",
+        "missing"}``, ``missing`` = missing frames), ``fragment_missing``.
+
+    Raises
+    ------
+    C3DError
+        Empty, truncated, corrupt or unsupported file; unknown POINT:UNITS.
+    """
+    path = Path(path)
+    layout = _check_file(path)
+    try:
+        params, pts, res, first_frame, header_rate = _ezc3d_points(str(path))
+    except Exception as e:  # ezc3d raises RuntimeError/OSError/IndexError …
+        raise _fail(path, f"corrupt C3D file: ezc3d could not read it ({e})") from None
+    if pts.ndim != 3 or pts.shape[1] != layout.n_points or pts.shape[2] != layout.n_frames:
+        raise _fail(
+            path,
+            f"truncated or corrupt C3D data: read {pts.shape[2] if pts.ndim == 3 else 0} frames"
+            f" of {pts.shape[1] if pts.ndim == 3 else 0} points, the header says "
+            f"{layout.n_frames} frames of {layout.n_points} points",
+        )
+    n_points, n_frames = pts.shape[1], pts.shape[2]
+    rate_v = _param(params, "POINT", "RATE")
+    rate = float(np.ravel(rate_v)[0]) if rate_v is not None and np.size(rate_v) else 0.0
+    if not rate > 0:
+        rate = header_rate
+    if not rate > 0:
+        raise _fail(path, "no positive POINT:RATE")
+    units = _param(params, "POINT", "UNITS") or [""]
+    unit = str(units[0]).strip().lower() if len(units) else ""
+    unit_assumed = unit == ""
+    if unit_assumed:
+        unit = "mm"
+    if unit not in UNIT_SCALE:
+        raise _fail(path, f"unsupported POINT:UNITS {unit!r} (known: {sorted(UNIT_SCALE)})")
+    k = UNIT_SCALE[unit]
+
+    labels = _joined(params, "POINT", "LABELS")[:n_points]
+    labels += [f"POINT{i + 1}" for i in range(len(labels), n_points)]
+    labels = [lb if lb else f"POINT{i + 1}" for i, lb in enumerate(labels)]
+    descriptions = _joined(params, "POINT", "DESCRIPTIONS")
+    kinds = classify_points(labels, descriptions, _model_output_lists(params))
+
+    xyz = np.ascontiguousarray(pts[:3].transpose(2, 1, 0))  # (F, P, 3), the one copy
+    r = np.ascontiguousarray(res[0].T) if res.size else np.zeros((n_frames, n_points))
+    missing = np.isnan(xyz).any(axis=-1)
+    missing |= ~(r >= 0)
+    if k != 1.0:
+        xyz *= k
+        r *= k
+    xyz[missing] = np.nan
+    r[missing] = np.nan
+
+    idx = {
+        kind: [i for i, (kd, _) in enumerate(kinds) if kd == kind]
+        for kind in ("marker", "fragment")
+    }
+    mk, fr = idx["marker"], idx["fragment"]
+    excluded = [
+        {
+            "label": labels[i],
+            "index": i,
+            "kind": kd,
+            "reason": why,
+            "missing": int(missing[:, i].sum()),
+        }
+        for i, (kd, why) in enumerate(kinds)
+        if kd in ("model_output", "virtual_segment")
+    ]
+    attrs = {
+        "source": path.name,
+        "source_unit": unit,
+        "n_points": n_points,
+        "excluded_points": excluded,
+        "fragment_missing": int(missing[:, fr].sum()),
+    }
+    if unit_assumed:
+        attrs["unit_assumed"] = True
+    return Markers(
+        positions=_columns(xyz, mk),
+        labels=[labels[i] for i in mk],
+        rate=rate,
+        first_frame=first_frame,
+        residuals=_columns(r, mk),
+        fragments=_columns(xyz, fr),
+        fragment_labels=[labels[i] for i in fr],
+        attrs=attrs,
+    )
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def write_c3d(markers: Markers, path: str | os.PathLike, *, unit: str = "mm") -> Path:
+    """Write markers (and their unlabelled fragments) to a float C3D file with ezc3d.
+
+    Parameters
+    ----------
+    markers : Markers
+        ``positions (F, M, 3)`` metres, NaN where missing; ``fragments (F, U, 3)``
+        are written after the markers as extra points labelled with
+        ``fragment_labels``.
+    path : str or path-like
+        Output file (``.c3d`` is appended by ezc3d when missing, so pass it).
+    unit : str
+        POINT:UNITS of the file (a key of ``UNIT_SCALE``: ``"mm"``, ``"m"`` …).
+
+    Returns
+    -------
+    Path
+        The file written.  Labels beyond 255 go to ``POINT:LABELS2``, ``LABELS3`` …
+        (ezc3d splits them); ``POINT:USED`` is ``M + U``; missing samples get
+        residual -1; ``first_frame`` and the (possibly non-integer) rate are kept.
+        Residuals are stored with ``POINT:SCALE = -max_residual / 255`` (C3D keeps
+        them in one byte), so they read back to within ``max_residual / 510``.
+    """
+    import ezc3d
+
+    if unit not in UNIT_SCALE:
+        raise ValueError(f"write_c3d: unknown unit {unit!r} (known: {sorted(UNIT_SCALE)})")
+    path = Path(path)
+    k = UNIT_SCALE[unit]
+    labels = list(markers.labels) + list(markers.fragment_labels)
+    F = markers.n_frames
+    xyz = np.concatenate([markers.positions, markers.fragments], axis=1) / k  # (F, P, 3)
+    P = xyz.shape[1]
+    missing = ~np.isfinite(xyz).all(axis=-1)
+    resid = np.zeros((F, P))
+    if markers.residuals is not None:
+        resid[:, : markers.n_markers] = np.nan_to_num(markers.residuals / k, nan=0.0)
+    resid = np.clip(resid, 0.0, None)
+    top = float(resid.max()) if resid.size else 0.0
+    scale = -(top / 255.0) * (1 + 1e-6) if top > 0 else -1.0
+    resid += 0.5 * abs(scale) if top > 0 else 0.0  # ezc3d truncates residual / |scale|
+    resid[missing] = -1.0
+    pts = np.ones((4, P, F))
+    pts[:3] = np.where(missing[..., None], np.nan, xyz).transpose(2, 1, 0)
+
+    c = ezc3d.c3d()
+    c["parameters"]["POINT"]["RATE"]["value"] = np.array([float(markers.rate)])
+    c["parameters"]["POINT"]["LABELS"]["value"] = labels
+    c["parameters"]["POINT"]["UNITS"]["value"] = [unit]
+    c["parameters"]["POINT"]["SCALE"]["value"] = np.array([scale])
+    c["header"]["points"]["first_frame"] = int(markers.first_frame)
+    c["data"]["points"] = pts
+    c["data"]["meta_points"] = {"residuals": resid.T[None].copy()}
+    c.add_parameter("MANUFACTURER", "SOFTWARE", "mocapflow")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".c3d", prefix=f".{path.stem}-", dir=path.parent)
+    os.close(fd)
+    try:
+        c.write(tmp)
+        os.replace(tmp, path)
+    except Exception:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path

@@ -1,0 +1,301 @@
+"""Ingest stages: one source file (a part) in, a stored data type out.
+
+* ``ingest_c3d``   C3D → ``markers`` (+ ``report``: counts, missing fractions, gaps,
+  excluded model-output points, fragments).
+* ``ingest_bvh``   BVH → ``motion`` (optionally resampled).
+* ``ingest_amc``   ASF/AMC → ``motion`` (the ASF defaults to ``<subject>.asf`` beside the AMC).
+* ``ingest_strokes``      UCI CSV / Omniglot / mocapflow strokes CSV → one ``strokes``.
+* ``ingest_strokes_set``  the same files → ``examples``: a :class:`StrokesSet` of
+  every selected example (e.g. the 5 examples of UCI letter ``a``), for stages
+  that learn from several examples of one file.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from mocapflow.pipeline import Context, FilePath, stage
+from mocapflow.stages.motion.datatypes import Markers, Motion
+from mocapflow.stages.motion.formats.strokes import StrokesFileError, StrokesSet, read_strokes_file
+
+__all__ = [
+    "amc_skeleton_path",
+    "gap_statistics",
+    "ingest_amc",
+    "ingest_bvh",
+    "ingest_c3d",
+    "ingest_strokes",
+    "ingest_strokes_set",
+    "markers_report",
+]
+
+
+# --------------------------------------------------------------------------- markers
+
+
+def gap_statistics(visible: np.ndarray) -> dict[str, Any]:
+    """Interior gaps of marker trajectories (runs of missing frames not touching either end).
+
+    Parameters
+    ----------
+    visible : (F, M) bool ndarray
+
+    Returns
+    -------
+    dict
+        ``count``, ``median`` and ``max`` length in frames (``None`` without gaps),
+        ``markers`` (how many markers have one), ``edge_gap_markers``.
+    """
+    F, M = visible.shape
+    pad = np.zeros((1, M), np.int8)
+    d = np.diff(np.vstack([pad, (~visible).astype(np.int8), pad]), axis=0)
+    s_m, s_f = np.nonzero(d.T == 1)  # gap starts, sorted by marker then frame
+    e_m, e_f = np.nonzero(d.T == -1)  # gap ends (exclusive), same order
+    interior = (s_f > 0) & (e_f < F)
+    lengths = (e_f - s_f)[interior]
+    return {
+        "count": int(lengths.size),
+        "median": float(np.median(lengths)) if lengths.size else None,
+        "max": int(lengths.max()) if lengths.size else None,
+        "markers": int(np.unique(s_m[interior]).size),
+        "edge_gap_markers": int(np.unique(s_m[~interior]).size),
+    }
+
+
+def markers_report(markers: Markers) -> dict[str, Any]:
+    """Summary of a C3D read: counts, missing fractions, gaps, exclusions.
+
+    Missing fractions are shares of samples (frame × point): ``missing_fraction``
+    over the labelled markers, ``missing_fraction_with_fragments`` over markers and
+    unlabelled fragments, ``missing_fraction_non_model`` over every point that is
+    not a model output (markers, fragments and Plug-in-Gait virtual segment
+    points: the PROVENANCE.md convention).
+    """
+    F, M = markers.positions.shape[:2]
+    U = markers.fragments.shape[1]
+    vis = markers.visible
+    miss_m = int((~vis).sum())
+    miss_f = int((~np.isfinite(markers.fragments).all(axis=-1)).sum())
+    excluded = markers.attrs.get("excluded_points", [])
+    virtual = [e for e in excluded if e.get("kind") == "virtual_segment"]
+    miss_v = sum(int(e.get("missing", 0)) for e in virtual)
+
+    def frac(num: int, n_points: int) -> float | None:
+        return num / (F * n_points) if F * n_points else None
+
+    kinds: dict[str, int] = {}
+    for e in excluded:
+        kinds[e.get("kind", "?")] = kinds.get(e.get("kind", "?"), 0) + 1
+    return {
+        "source": markers.attrs.get("source"),
+        "frames": F,
+        "rate": markers.rate,
+        "first_frame": markers.first_frame,
+        "source_unit": markers.attrs.get("source_unit"),
+        "points_in_file": markers.attrs.get("n_points", M + U + len(excluded)),
+        "markers": M,
+        "fragments": U,
+        "excluded": kinds,
+        "excluded_points": [
+            {"label": e["label"], "kind": e.get("kind"), "reason": e.get("reason")}
+            for e in excluded
+        ],
+        "missing_fraction": frac(miss_m, M),
+        "missing_fraction_with_fragments": frac(miss_m + miss_f, M + U),
+        "missing_fraction_non_model": frac(miss_m + miss_f + miss_v, M + U + len(virtual)),
+        "never_seen": [lb for lb, v in zip(markers.labels, vis.any(axis=0)) if not v],
+        "interior_gaps": gap_statistics(vis),
+        "fragment_lengths": (
+            [int(x) for x in np.isfinite(markers.fragments).all(axis=-1).sum(axis=0)] if U else []
+        ),
+    }
+
+
+@stage("ingest_c3d", outputs=("markers", "report"))
+def ingest_c3d(path: FilePath, *, ctx: Context) -> dict:
+    """Read a C3D file into markers (metres) and a report of what was read.
+
+    Parameters
+    ----------
+    path : FilePath
+        The ``.c3d`` part.
+
+    Returns
+    -------
+    dict
+        ``markers``: :class:`Markers` (``positions (F, M, 3)``, fragments, residuals);
+        ``report``: JSON summary (see :func:`markers_report`).
+    """
+    from mocapflow.stages.motion.formats.c3d import read_c3d
+
+    markers = read_c3d(path)
+    report = markers_report(markers)
+    if report["never_seen"]:
+        ctx.warn(f"{Path(path).name}: markers never seen: {', '.join(report['never_seen'])}")
+    return {"markers": markers, "report": report}
+
+
+# --------------------------------------------------------------------------- motion
+
+
+def _resampled(motion: Motion, rate: float | None) -> Motion:
+    if rate is None or abs(rate - motion.rate) <= 1e-9 * motion.rate:
+        return motion
+    if not rate > 0:
+        raise ValueError(f"rate must be positive, got {rate}")
+    from mocapflow.stages.motion.kinematics import resample_motion
+
+    return resample_motion(motion, rate)
+
+
+@stage("ingest_bvh", outputs=("motion",))
+def ingest_bvh(
+    path: FilePath, *, rate: float | None = None, unit: str = "auto", ctx: Context
+) -> dict:
+    """Read a BVH file into a motion (metres), optionally resampled to ``rate``.
+
+    Parameters
+    ----------
+    path : FilePath
+        The ``.bvh`` part.
+    rate : float, optional
+        Target frames per second (``None`` keeps the file's Frame Time).
+    unit : str
+        Length unit of the file (``"auto"`` guesses it from the skeleton size).
+
+    Returns
+    -------
+    dict
+        ``motion``: :class:`Motion` with ``root_position (F, 3)``, ``rotations (F, J, 4)``.
+    """
+    from mocapflow.stages.motion.formats.bvh import read_bvh
+
+    return {"motion": _resampled(read_bvh(path, unit=unit), rate)}
+
+
+def amc_skeleton_path(amc: str | Path) -> Path:
+    """The ASF that belongs to an AMC by CMU naming: ``cmu_01_01.amc`` → ``cmu_01.asf``.
+
+    The subject is the AMC stem without its last ``_<trial>`` (``01_01`` → ``01``);
+    the ASF is looked for beside the AMC.
+    """
+    amc = Path(amc)
+    stem = amc.stem
+    subject = stem.rsplit("_", 1)[0] if "_" in stem else stem
+    return amc.with_name(f"{subject}.asf")
+
+
+@stage("ingest_amc", outputs=("motion",), sidecars={"asf": lambda amc: str(amc_skeleton_path(amc))})
+def ingest_amc(
+    path: FilePath,
+    *,
+    asf: FilePath | None = None,
+    rate: float | None = None,
+    ctx: Context,
+) -> dict:
+    """Read an Acclaim AMC motion with its ASF skeleton into a motion (metres).
+
+    Parameters
+    ----------
+    path : FilePath
+        The ``.amc`` part.
+    asf : FilePath, optional
+        The skeleton file; default ``<subject>.asf`` beside the AMC
+        (``cmu_01_01.amc`` → ``cmu_01.asf``, ``01_01.amc`` → ``01.asf``).  Pass it
+        explicitly to have its content in the task key.
+    rate : float, optional
+        Target frames per second (``None`` keeps the AMC rate, 120 Hz for CMU).
+
+    Returns
+    -------
+    dict
+        ``motion``: :class:`Motion`.
+    """
+    from mocapflow.stages.motion.formats.asf import read_amc, read_asf
+
+    asf_path = Path(asf) if asf is not None else amc_skeleton_path(path)
+    if not asf_path.is_file():
+        raise FileNotFoundError(
+            f"{path}: no ASF skeleton {asf_path} beside it; pass the 'asf' param"
+        )
+    motion = read_amc(path, read_asf(asf_path))
+    return {"motion": _resampled(motion, rate)}
+
+
+# --------------------------------------------------------------------------- strokes
+
+
+def _select(path: str, items: list, letter: str | None, example: int | None) -> list:
+    if example is not None:
+        chosen = [s for s in items if s.attrs.get("example") == example]
+        if not chosen and 0 <= example < len(items) and "example" not in items[0].attrs:
+            chosen = [items[example]]
+        if not chosen:
+            have = sorted({s.attrs.get("example") for s in items}, key=str)
+            raise StrokesFileError(
+                f"{path}: no example {example}"
+                + (f" of letter {letter!r}" if letter else "")
+                + f" (examples: {have})"
+            )
+        return chosen
+    return items
+
+
+@stage("ingest_strokes", outputs=("strokes",))
+def ingest_strokes(
+    path: FilePath,
+    *,
+    letter: str | None = None,
+    example: int | None = None,
+    ctx: Context,
+) -> dict:
+    """Read one written example: a UCI character, an Omniglot drawing or a strokes CSV row set.
+
+    Parameters
+    ----------
+    path : FilePath
+        UCI CSV, Omniglot ``.txt`` or mocapflow strokes CSV (detected by content).
+    letter : str, optional
+        UCI / mocapflow CSV: the letter to take.
+    example : int, optional
+        The example number (UCI ``example`` column, 1-based; mocapflow CSV:
+        attrs ``example`` or else the 0-based position).  Required when the
+        selection holds more than one example.
+
+    Returns
+    -------
+    dict
+        ``strokes``: :class:`Strokes` (``points (N, 2)``, ``stroke_starts (S,)``).
+        Use ``ingest_strokes_set`` to get every example of a letter at once.
+    """
+    items = _select(path, read_strokes_file(path, letter=letter), letter, example)
+    if len(items) != 1:
+        have = [s.attrs.get("example", i) for i, s in enumerate(items)]
+        raise StrokesFileError(
+            f"{path}: {len(items)} examples match"
+            + (f" letter {letter!r}" if letter else "")
+            + f" (examples {have}); set 'example' (or 'letter'), or use ingest_strokes_set"
+        )
+    return {"strokes": items[0]}
+
+
+@stage("ingest_strokes_set", outputs=("examples",))
+def ingest_strokes_set(path: FilePath, *, letter: str | None = None, ctx: Context) -> dict:
+    """Read every example of a stroke file (optionally of one letter) as one set.
+
+    Parameters
+    ----------
+    path : FilePath
+        UCI CSV, Omniglot ``.txt`` or mocapflow strokes CSV.
+    letter : str, optional
+        Keep only this letter.
+
+    Returns
+    -------
+    dict
+        ``examples``: :class:`StrokesSet` (a list of :class:`Strokes`, file order).
+    """
+    return {"examples": StrokesSet(read_strokes_file(path, letter=letter))}

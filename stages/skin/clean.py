@@ -1,0 +1,586 @@
+"""Cleaning dense marker captures (Park & Hodgins 2006, §4).
+
+Steps, each in the paper's words:
+
+0. **reference pose** — the frame with the most visible markers (or the
+   ``reference_frame`` param).  Markers missing there get their reference
+   position from the nearest frame in which they are visible, carried over by a
+   rigid fit of their spatial neighbours (a warning names them); markers never
+   visible have none and are left NaN.
+1. **marker surface and local frames** (§4.1) — :mod:`mocapflow.stages.skin.surface`:
+   built automatically (or read from the ``surface`` override file), one-ring
+   neighbours, a local frame ``(t, b, n)`` per marker.
+2. **merging** (§4.2) — every missing sample of a marker is predicted from at
+   least 3 available neighbours by a rigid fit (Horn) into its local reference
+   frame.  In every frame the missing markers are processed greedily by their
+   number of available neighbours, and estimates are re-used as neighbours for
+   the next ones.  An unlabelled fragment is merged into a marker that is
+   missing over the whole fragment when its first predicted sample lies within
+   ``ε₁ = α₁·d̄`` of the prediction and every sample stays within
+   ``ε₂ = α₂·d̄`` (``d̄`` the marker's mean neighbour distance).  Ties between
+   markers or fragments are conflicts (reported, nothing merged unless one is
+   clearly closest); predictions are recomputed after every round of merges.
+3. **hole filling** (§4.3) — per marker a PCA model (``variance`` = 99 %) of the
+   marker and its one-ring in the local frame; each training frame (all members
+   present) is brought to the reference pose by the rotation that best aligns
+   the members (Eq. 5).  A missing sample is estimated from every model that
+   contains the marker (its own and its neighbours') with at least 3 visible
+   members: coefficients from the visible members, then the estimates are
+   averaged.  Only local neighbourhoods need complete frames, never the whole
+   body; a neighbourhood without enough complete frames drops its least
+   co-visible neighbours, then falls back to the rigid prediction.  Holes whose
+   models see too few members are filled in later passes from earlier
+   estimates (as the merge step does).  This is ``fill_model="pca"``; the
+   default ``"regression"`` estimates every hole first by a wider local model
+   (below) and leaves to these passes only what it cannot reach.
+4. **smoothing** (§4.4) — each trajectory is expressed in its local frame over
+   time, smoothed by ``x ← x − λ Δ⁴x`` (``smooth_iterations`` times), and moved
+   back to global coordinates.
+
+Nothing is invented: a marker never visible, or with fewer than 3 surface
+neighbours, keeps its NaNs (warning naming it, listed in the report).
+
+Where this implementation goes beyond the paper (each measured on simulated
+captures with ground truth, see ``benchmarks/clean.py``):
+
+* the surface is automatic, so one-rings may straddle a joint or the armpit:
+  every neighbour carries a *rigidity* weight (how constant its distance to the
+  marker stays over the capture) used in all rigid fits, and a marker with
+  fewer than 3 rigid neighbours borrows rigid ones from its two-ring;
+* merge predictions carry the marker's own local coordinates measured at the
+  ends of its gap (interpolated across it) instead of the reference pose's;
+  predictions derived from estimates are trusted only one step at a time
+  (``depths``), a fragment must also stay within ``ε₁`` on average, any other
+  missing marker predicted within :data:`AMBIGUITY_RATIO` times the distance
+  makes it ambiguous, ``d̄`` is capped by the distance to the nearest marker,
+  and fragments still unmerged are judged again against the PCA hole filling
+  of the merged data (``pca_merge_rounds``; :data:`MERGE_FILL_PASSES` passes,
+  estimates re-used between rounds where no member changed);
+* in the §4.3 average a neighbour's model weighs :data:`NEIGHBOUR_MODEL_WEIGHT`
+  of the marker's own model (the paper: equal weights);
+* ``fill_model="regression"`` (default): per gap, the marker's local
+  coordinates are regressed (ridge, :data:`REGRESSION_RIDGE`) on those of its
+  ``fill_predictors`` (32) most rigid nearby markers visible through the gap,
+  in the predictors' local frame, trained on the 250 frames nearest the gap
+  where the marker and those predictors are measured (no complete frame
+  needed; :func:`mocapflow.stages.skin.regress.regression_estimates`).  On
+  the simulated 350-marker capture (Table 2: 0.5 s gaps in 10 % of the
+  markers, in the motion) it gives mean 0.004 of the mean neighbour distance
+  and max 0.036 over the paper's regions (abdomen, elbow, thigh, knee);
+  ``fill_model="pca"`` is the paper's model;
+* the smoother treats runs of measured and of filled samples separately and
+  moves a measurement by at most :data:`MAX_CORRECTION_SIGMA` noise deviations.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any, Literal
+
+import numpy as np
+
+from mocapflow.pipeline import Context, FilePath, stage
+from mocapflow.stages.motion.datatypes import Markers
+from mocapflow.stages.motion.kinematics import absolute_orientation_batch
+from mocapflow.stages.skin.fill import (
+    NEIGHBOUR_MODEL_WEIGHT,
+    LocalPCA,
+    fill_holes,
+    train_local_pca,
+)
+from mocapflow.stages.skin.merge import AMBIGUITY_RATIO, merge_fragments, nearest_marker_distance
+from mocapflow.stages.skin.predict import (
+    MIN_NEIGHBOURS,
+    RIGID_ANCHOR,
+    CleanError,
+    _apply,
+    _apply_inv,
+    _chunks,
+    _names,
+    choose_reference_frame,
+    fragment_runs,
+    local_targets,
+    predict_missing,
+    reference_pose,
+    rigid_estimates,
+)
+from mocapflow.stages.skin.regress import (
+    REGRESSION_MIN_PREDICTORS,
+    REGRESSION_PREDICTORS,
+    REGRESSION_RIDGE,
+)
+from mocapflow.stages.skin.surface import (
+    MarkerSurface,
+    build_marker_surface,
+    marker_surface_from_faces,
+    read_surface_file,
+)
+
+__all__ = [
+    "AMBIGUITY_RATIO",
+    "MAX_CORRECTION_SIGMA",
+    "MIN_NEIGHBOURS",
+    "NEIGHBOUR_MODEL_WEIGHT",
+    "REGRESSION_PREDICTORS",
+    "REGRESSION_RIDGE",
+    "RIGID_ANCHOR",
+    "STATUS",
+    "CleanError",
+    "LocalPCA",
+    "choose_reference_frame",
+    "clean",
+    "clean_markers",
+    "fill_holes",
+    "fragment_runs",
+    "frame_weights",
+    "local_targets",
+    "merge_fragments",
+    "nearest_marker_distance",
+    "predict_missing",
+    "reference_pose",
+    "rigid_estimates",
+    "smooth_local",
+    "train_local_pca",
+]
+
+#: The smoother moves a measured sample by at most this many noise standard
+#: deviations per axis (noise estimated robustly from the 4th differences of
+#: the marker's measured local trajectory).  A jump of the local frame — a
+#: neighbour switching between measured and filled, skin folding — is not noise.
+MAX_CORRECTION_SIGMA = 2.0
+
+#: Fill passes of each PCA merge round.  The fragments are judged against the
+#: first pass only (estimates from measured members); later passes serve the
+#: ambiguity test.  Passes beyond the 4th and the rigid fallback changed no
+#: merge on 7 simulated captures (3 motions x 2 seeds and the 1000-frame
+#: throughput capture) and cost ~10 % of the clean; 3 passes lost 17 of 1545.
+MERGE_FILL_PASSES = 4
+
+#: A neighbour measured in fewer than this share of the frames does not define
+#: the smoothing frame of a marker (while 3 others do): its estimates elsewhere
+#: may be centimetres off, and its rigidity, judged from the few frames it
+#: shares with the marker, looks high.  A marker seen only in the calibration
+#: pose made a shoulder marker's filled gap 4.7 mm worse after smoothing
+#: (Table 2 max 0.078 -> 0.021 with this rule; means unchanged).
+SMOOTH_FRAME_MIN_MEASURED = 0.5
+
+#: Codes of the ``status`` array in the clean report.
+STATUS = {"missing": -1, "observed": 0, "merged": 1, "filled": 2}
+
+
+# --------------------------------------------------------------------------- smoothing (§4.4)
+
+
+def _smooth_run(y: np.ndarray, lam: float, iterations: int) -> np.ndarray:
+    """``y ← y − λ Δ⁴ y`` along axis 0, ends extended by odd reflection."""
+    n = len(y)
+    if n < 5 or iterations <= 0 or lam == 0:
+        return y
+    y = y.copy()
+    for _ in range(iterations):
+        pad = np.concatenate([2 * y[:1] - y[2:0:-1], y, 2 * y[-1:] - y[-2:-4:-1]])
+        d4 = pad[:-4] - 4 * pad[1:-3] + 6 * pad[2:-2] - 4 * pad[3:-1] + pad[4:]
+        y -= lam * d4
+    return y
+
+
+def _smooth_chunk(item: tuple) -> tuple[np.ndarray, np.ndarray]:
+    X, markers, neighbours, rigidity, reference, lam, iterations, measured = item
+    F = X.shape[0]
+    out = X[:, markers].copy()
+    for c, m in enumerate(markers):
+        sel = neighbours[c] >= 0
+        nb = neighbours[c][sel]
+        x = X[:, m]
+        src = np.broadcast_to(reference[nb], (F, len(nb), 3))
+        w = np.broadcast_to(rigidity[c][sel], (F, len(nb)))
+        R, t = absolute_orientation_batch(src, X[:, nb], weights=w)
+        y = _apply_inv(R, t, x)
+        ok = np.isfinite(y).all(1)
+        ys = y.copy()
+        # runs of measured samples and runs of filled ones are smoothed separately:
+        # estimates never drag measurements
+        meas = np.ones(F, dtype=bool) if measured is None else measured[:, m]
+        kind = np.where(ok, 1 + meas, 0)
+        cut = np.flatnonzero(np.diff(kind) != 0) + 1
+        d4 = []
+        for a, b in zip(np.r_[0, cut], np.r_[cut, F]):
+            if kind[a]:
+                ys[a:b] = _smooth_run(y[a:b], lam, iterations)
+                if kind[a] == 2 and b - a >= 5:
+                    d4.append(np.diff(y[a:b], n=4, axis=0))
+        if d4:  # measurements move by at most MAX_CORRECTION_SIGMA noise deviations
+            k = MAX_CORRECTION_SIGMA
+            dd = np.concatenate(d4)
+            sigma = 1.4826 * np.median(np.abs(dd - np.median(dd, 0)), 0) / np.sqrt(70.0)
+            corr = ys - y
+            ys = np.where(meas[:, None], y + np.clip(corr, -k * sigma, k * sigma), ys)
+        xs = _apply(R, t, ys)
+        out[ok, c] = xs[ok]
+    return markers, out
+
+
+def frame_weights(neighbours: np.ndarray, rigidity: np.ndarray, measured_share: np.ndarray,
+                  *, threshold: float = SMOOTH_FRAME_MIN_MEASURED) -> np.ndarray:
+    """Neighbour weights of the smoothing frames.
+
+    A neighbour measured in less than ``threshold`` of the frames weighs 0,
+    as long as at least 3 others keep a weight (else the marker keeps all).
+
+    Parameters
+    ----------
+    neighbours : (M, K) int ndarray
+        One-rings, ``-1`` padded.
+    rigidity : (M, K) float ndarray
+    measured_share : (M,) float ndarray
+        Share of the frames in which each marker was measured.
+    threshold : float
+
+    Returns
+    -------
+    (M, K) float ndarray
+    """
+    nb = np.maximum(neighbours, 0)
+    rare = (measured_share[nb] < threshold) & (neighbours >= 0)
+    w = np.where(rare, 0.0, rigidity)
+    keep = ((w > 0) & (neighbours >= 0)).sum(1) >= MIN_NEIGHBOURS
+    return np.where(keep[:, None], w, rigidity)
+
+
+def smooth_local(
+    positions: np.ndarray,
+    surface: MarkerSurface,
+    *,
+    smooth_lambda: float = 0.1,
+    smooth_iterations: int = 10,
+    measured: np.ndarray | None = None,
+    ctx: Context | None = None,
+) -> np.ndarray:
+    """Smooth trajectories in their local frames (Park & Hodgins §4.4).
+
+    Each marker's trajectory is expressed in its local frame (rigid fit of its
+    one-ring's reference positions per frame, neighbours weighted by rigidity;
+    neighbours measured in few frames left out, :func:`frame_weights`),
+    smoothed with ``x ← x − λ Δ⁴x`` iterated, and moved back to global
+    coordinates.  Runs of measured samples and runs of filled samples are
+    smoothed separately (estimates never drag measurements), and a measured
+    sample moves by at most :data:`MAX_CORRECTION_SIGMA` noise deviations.
+    Frames whose local frame cannot be fitted keep their sample unsmoothed;
+    runs shorter than 5 frames are left as they are.
+
+    Parameters
+    ----------
+    positions : (F, M, 3) float ndarray
+    surface : MarkerSurface
+    smooth_lambda : float
+        ``λ``; the iteration is stable for ``λ < 1/8``.
+    smooth_iterations : int
+    measured : (F, M) bool ndarray, optional
+        Samples that were measured (observed or merged), as opposed to filled:
+        their runs are smoothed apart from the filled runs and their corrections
+        are bounded.  Default: every available sample counts as measured.
+    ctx : Context, optional
+
+    Returns
+    -------
+    (F, M, 3) float ndarray
+    """
+    ctx = ctx or Context()
+    X = positions.copy()
+    ok = np.isfinite(surface.reference).all(1) & (surface.n_neighbours >= MIN_NEIGHBOURS)
+    markers = np.flatnonzero(ok)
+    if smooth_iterations <= 0 or smooth_lambda == 0 or len(markers) == 0:
+        return X
+    parts = max(1, ctx.workers) * 2 if ctx.mapper is not None else 1
+    weights = surface.rigidity
+    if measured is not None:
+        weights = frame_weights(surface.neighbours, surface.rigidity, measured.mean(0))
+    items = []
+    for c in _chunks(len(markers), parts):
+        ms = markers[c]
+        items.append((positions, ms, surface.neighbours[ms], weights[ms],
+                      surface.reference, smooth_lambda, smooth_iterations, measured))
+    for ms, out in ctx.map(_smooth_chunk, items):
+        X[:, ms] = out
+    return X
+
+
+# --------------------------------------------------------------------------- the stage
+
+
+def _trajectory_count(positions: np.ndarray) -> int:
+    return int(np.isfinite(positions).all(-1).any(0).sum())
+
+
+def clean_markers(
+    markers: Markers,
+    *,
+    alpha1: float = 0.5,
+    alpha2: float = 0.6,
+    variance: float = 0.99,
+    smooth_lambda: float = 0.1,
+    smooth_iterations: int = 10,
+    reference_frame: int | None = None,
+    surface: str | None = None,
+    merge: bool = True,
+    fill: bool = True,
+    fill_model: Literal["regression", "pca"] = "regression",
+    fill_predictors: int = REGRESSION_PREDICTORS,
+    pca_merge_rounds: int = 3,
+    ctx: Context | None = None,
+) -> tuple[Markers, dict[str, Any], MarkerSurface]:
+    """Clean a capture: merge, fill, smooth; see :func:`clean` for the parameters.
+
+    Returns
+    -------
+    markers : Markers
+        Cleaned; unmerged fragments kept in ``fragments``.
+    report : dict
+        JSON report plus ``status (F, M)`` int8 array (:data:`STATUS` codes).
+    surface : MarkerSurface
+    """
+    ctx = ctx or Context()
+    t0 = time.perf_counter()
+    timings: dict[str, float] = {}
+    P = markers.positions
+    F, M, _ = P.shape
+    if M == 0 or F == 0:
+        raise CleanError("clean: the capture has no labelled markers or no frames")
+    if not (0 < alpha1 and 0 < alpha2):
+        raise CleanError(f"clean: alpha1 and alpha2 must be positive (got {alpha1}, {alpha2})")
+    if not 0 < variance <= 1:
+        raise CleanError(f"clean: variance must be in (0, 1], got {variance}")
+    if fill_model not in ("regression", "pca"):
+        raise CleanError(f"clean: fill_model must be 'regression' or 'pca', got {fill_model!r}")
+    if fill_predictors < REGRESSION_MIN_PREDICTORS:
+        raise CleanError(f"clean: fill_predictors must be >= {REGRESSION_MIN_PREDICTORS}, "
+                         f"got {fill_predictors}")
+    labels = markers.labels
+    vis0 = markers.visible
+    never = np.flatnonzero(~vis0.any(0))
+    if reference_frame is None:
+        ref_frame = choose_reference_frame(P)
+    else:
+        if not -F <= reference_frame < F:
+            raise CleanError(
+                f"clean: reference_frame {reference_frame} out of range (capture has {F} frames)"
+            )
+        ref_frame = int(reference_frame) % F
+    reference, carried, unrecoverable = reference_pose(P, ref_frame)
+    if carried:
+        ctx.warn(
+            f"clean: {len(carried)} marker(s) missing in reference frame {ref_frame}; reference "
+            f"position carried over from the nearest frame where visible: "
+            + ", ".join(f"{labels[m]} (frame {g})" for m, g in list(carried.items())[:20])
+        )
+    if len(unrecoverable):
+        ctx.warn(f"clean: marker(s) never visible, left NaN: {_names(labels, unrecoverable)}")
+    timings["reference"] = time.perf_counter() - t0
+
+    t1 = time.perf_counter()
+    if surface is not None:
+        faces = read_surface_file(surface, labels)
+        surf = marker_surface_from_faces(reference, faces, labels=labels, positions=P,
+                                         source=str(surface).rsplit("/", 1)[-1])
+    else:
+        surf = build_marker_surface(reference, positions=P, labels=labels)
+    surf.reference_frame = ref_frame  # carried into the exported surface mesh's attrs
+    few = np.flatnonzero(np.isfinite(reference).all(1) & (surf.n_neighbours < MIN_NEIGHBOURS))
+    if len(few):
+        ctx.warn(
+            f"clean: marker(s) with fewer than {MIN_NEIGHBOURS} surface neighbours are neither "
+            f"merged nor filled (holes stay NaN): {_names(labels, few)}"
+        )
+    timings["surface"] = time.perf_counter() - t1
+
+    frags = markers.fragments
+    U = frags.shape[1]
+    runs_before = sum(len(fragment_runs(vis0[:, m])) for m in range(M))
+    t2 = time.perf_counter()
+    if merge and U:
+        X, assigned, mrep = merge_fragments(
+            P, frags, surf, alpha1=alpha1, alpha2=alpha2,
+            fragment_labels=markers.fragment_labels, depths=(1,), ctx=ctx,
+        )
+        models = None
+        fill_cache: dict = {}  # the rounds' data differ only where fragments were merged
+        for k in range(pca_merge_rounds if fill else 0):
+            left = np.flatnonzero(assigned < 0)
+            if not len(left):
+                break
+            # judge the rest against the PCA hole filling of the merged data (§4.3)
+            waiting = np.isfinite(frags[:, left]).all(-1).any(1)
+            Xf, finfo0 = fill_holes(X, surf, variance=variance, models=models, frames=waiting,
+                                    model="pca", cache=fill_cache, ctx=ctx,
+                                    max_passes=MERGE_FILL_PASSES, rigid_fallback=False)
+            models = finfo0.get("model_list") or models
+            # trust the estimates of the first pass (from measured members) only
+            direct = np.where((finfo0["pass"] == 1)[..., None], Xf, np.nan)
+            X, a2, rep2 = merge_fragments(
+                X, frags[:, left], surf, alpha1=alpha1, alpha2=alpha2,
+                fragment_labels=[markers.fragment_labels[u] for u in left], predictions=direct,
+                competitors=Xf, ctx=ctx,
+            )
+            assigned[left[a2 >= 0]] = a2[a2 >= 0]
+            for mg in rep2["merges"]:
+                mg["predictor"] = "pca"
+                mg["round"] = f"pca{k + 1}"
+            mrep["merges"] += rep2["merges"]
+            mrep["conflicts"] += rep2["conflicts"]
+            mrep["rejections"] = rep2["rejections"]
+            mrep["merged_by_depth"][f"pca{k + 1}"] = len(rep2["merges"])
+            if not rep2["merges"]:
+                break
+    else:
+        X, assigned = P.copy(), np.full(U, -1, dtype=np.int64)
+        mrep = {"merges": [], "rejections": [], "conflicts": [], "merged_by_depth": {}}
+    timings["merge"] = time.perf_counter() - t2
+    status = np.full((F, M), STATUS["missing"], dtype=np.int8)
+    status[vis0] = STATUS["observed"]
+    vis1 = np.isfinite(X).all(-1)
+    status[vis1 & ~vis0] = STATUS["merged"]
+    holes_after_merge = int((~vis1).sum())
+
+    t3 = time.perf_counter()
+    if fill:
+        Xf, finfo = fill_holes(X, surf, variance=variance, model=fill_model,
+                               n_predictors=fill_predictors, ctx=ctx)
+        finfo.pop("model_list", None)
+        finfo.pop("pass", None)
+    else:
+        Xf, finfo = X, {"filled_by_pass": []}
+    timings["fill"] = time.perf_counter() - t3
+    vis2 = np.isfinite(Xf).all(-1)
+    status[vis2 & ~vis1] = STATUS["filled"]
+
+    t4 = time.perf_counter()
+    Xs = smooth_local(Xf, surf, smooth_lambda=smooth_lambda,
+                      smooth_iterations=smooth_iterations, measured=vis1, ctx=ctx)
+    timings["smooth"] = time.perf_counter() - t4
+    timings["total"] = time.perf_counter() - t0
+
+    left = ~vis2
+    left_markers = np.flatnonzero(left.any(0))
+    unfillable = np.flatnonzero(left.any(0) & (surf.n_neighbours < MIN_NEIGHBOURS))
+    keep_frag = assigned < 0
+    out = markers.replace(
+        positions=Xs,
+        residuals=None if markers.residuals is None else np.where(
+            status == STATUS["observed"], markers.residuals, np.where(vis2, 0.0, np.nan)),
+        fragments=frags[:, keep_frag],
+        fragment_labels=[lb for lb, k in zip(markers.fragment_labels, keep_frag) if k],
+    )
+    out.attrs["clean"] = {
+        "reference_frame": ref_frame, "merged_fragments": int((~keep_frag).sum()),
+        "filled_samples": int((status == STATUS["filled"]).sum()),
+        "missing_samples": int(left.sum()),
+    }
+    n_traj = _trajectory_count(P)
+    report: dict[str, Any] = {
+        "reference_frame": ref_frame,
+        "reference_carried_over": {labels[m]: g for m, g in carried.items()},
+        "surface": {
+            "source": surf.source,
+            "n_faces": int(len(surf.faces)),
+            "mean_neighbours": float(np.mean(surf.n_neighbours[np.isfinite(reference).all(1)]))
+            if np.isfinite(reference).any() else 0.0,
+            "mean_neighbour_distance_mm": round(float(np.nanmean(surf.mean_distance)) * 1000, 2)
+            if np.isfinite(surf.mean_distance).any() else None,
+        },
+        "table1": {
+            "markers": M,
+            "fragments_before": n_traj + U,
+            "fragments_after": n_traj + int(keep_frag.sum()),
+            "runs_before": runs_before + U,
+            "merged": int((~keep_frag).sum()),
+            "holes": holes_after_merge,
+            "filled": int((status == STATUS["filled"]).sum()),
+            "left_unfilled": int(left.sum()),
+        },
+        **mrep,
+        "fill": finfo,
+        "never_visible": [labels[i] for i in unrecoverable],
+        "too_few_neighbours": [labels[i] for i in few],
+        "markers_with_holes_left": [labels[i] for i in left_markers],
+        "unfillable_markers": [labels[i] for i in unfillable],
+        "params": {"alpha1": alpha1, "alpha2": alpha2, "variance": variance,
+                   "smooth_lambda": smooth_lambda, "smooth_iterations": smooth_iterations,
+                   "fill_model": fill_model, "fill_predictors": fill_predictors},
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        "status": status,
+    }
+    if never.size and not len(unrecoverable):
+        report["never_visible"] = [labels[i] for i in never]
+    return out, report, surf
+
+
+@stage("clean", outputs=("markers", "report", "surface"))
+def clean(
+    markers: Markers,
+    *,
+    alpha1: float = 0.5,
+    alpha2: float = 0.6,
+    variance: float = 0.99,
+    smooth_lambda: float = 0.1,
+    smooth_iterations: int = 10,
+    reference_frame: int | None = None,
+    surface: FilePath | None = None,
+    merge: bool = True,
+    fill: bool = True,
+    fill_model: Literal["regression", "pca"] = "regression",
+    fill_predictors: int = REGRESSION_PREDICTORS,
+    ctx: Context,
+) -> dict[str, Any]:
+    """Merge fragments, fill holes and smooth a dense marker capture (Park & Hodgins 2006 §4).
+
+    Parameters
+    ----------
+    markers : Markers
+        ``positions (F, M, 3)`` labelled trajectories with NaN holes and
+        ``fragments (F, U, 3)`` unlabelled trajectories.
+    alpha1 : float
+        Entry tolerance of a fragment, ``ε₁ = α₁ · mean neighbour distance`` (0.5).
+    alpha2 : float
+        Tolerance over the whole fragment, ``ε₂ = α₂ · mean neighbour distance`` (0.6).
+    variance : float
+        Variance kept by each local PCA model (0.99).
+    smooth_lambda : float
+        ``λ`` of the local-frame smoother ``x ← x − λ Δ⁴x`` (stable below 1/8).
+    smooth_iterations : int
+        Smoother iterations (0 disables smoothing).
+    reference_frame : int, optional
+        Frame of the reference pose; default: the frame with the most visible markers.
+    surface : FilePath, optional
+        Manual marker-surface file (see :mod:`mocapflow.stages.skin.surface`); default:
+        built automatically from the reference pose.
+    merge, fill : bool
+        Run the merge / hole-filling steps.
+    fill_model : {"regression", "pca"}
+        ``"pca"``: the paper's local PCA of marker + one-ring (§4.3).
+        ``"regression"`` (default): each gap first regressed on the marker's
+        ``fill_predictors`` most rigid nearby markers visible through it (the
+        PCA passes fill the rest).  Merging always judges fragments against
+        the PCA fill.
+    fill_predictors : int
+        Predictors per regression (32).
+
+    Returns
+    -------
+    dict
+        ``markers``: the cleaned :class:`Markers` (unmerged fragments kept);
+        ``report``: record with ``status (F, M)`` int8 (-1 missing, 0 observed,
+        1 merged, 2 filled) and JSON: reference frame, surface, ``table1``
+        (fragments before/after, merges, holes, filled, left), ``merges`` /
+        ``rejections`` / ``conflicts`` (fragment, label, reason), fill passes and
+        models, never-visible and too-few-neighbour markers, timings;
+        ``surface``: the marker surface as a :class:`Mesh` (vertices = reference
+        pose of the markers, ``attrs["labels"]``).
+    """
+    out, report, surf = clean_markers(
+        markers, alpha1=alpha1, alpha2=alpha2, variance=variance, smooth_lambda=smooth_lambda,
+        smooth_iterations=smooth_iterations, reference_frame=reference_frame, surface=surface,
+        merge=merge, fill=fill, fill_model=fill_model, fill_predictors=fill_predictors,
+        ctx=ctx,
+    )
+    return {"markers": out, "report": report, "surface": surf.to_mesh()}
+

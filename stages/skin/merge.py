@@ -1,0 +1,459 @@
+"""Merging unlabelled fragments into missing markers (Park & Hodgins 2006, §4.2).
+
+See :mod:`mocapflow.stages.skin.clean` for the whole procedure and where it goes
+beyond the paper.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import numpy as np
+
+from mocapflow.pipeline import Context
+from mocapflow.stages.skin.predict import (
+    MIN_NEIGHBOURS,
+    RIGID_ANCHOR,
+    _predict_parallel,
+    local_targets,
+)
+from mocapflow.stages.skin.surface import (
+    MarkerSurface,
+)
+
+#: A fragment is merged only if every other missing marker's prediction is at
+#: least this many times farther from it (on average over its frames).
+AMBIGUITY_RATIO = 3.0
+
+#: Judging against hole-filled (PCA) estimates instead of rigid predictions: a
+#: fragment's mean distance must stay below this fraction of ε₁ ...
+PCA_MEAN_TOLERANCE = 0.6
+#: ... and every other missing marker within :data:`NEAR_RADIUS` mean neighbour
+#: distances of the chosen one (in the reference pose) must have its estimate at
+#: least this many times farther from the fragment.  The estimate of such a close
+#: marker may be far off (few members, long unobserved) while the chosen marker's
+#: lies on the fragment, so the plain :data:`AMBIGUITY_RATIO` is not enough.
+#: On simulated 350-marker captures (seed 0) the wrong merges against hole-filled
+#: estimates had mean distances of 0.71–0.86 ε₁ (correct ones: 99 % below
+#: 0.67 ε₁) or a close marker's estimate only 4.0–5.9 times farther.
+PCA_NEAR_RATIO = 6.5
+NEAR_RADIUS = 1.0
+
+# --------------------------------------------------------------------------- merging (§4.2)
+
+def nearest_marker_distance(reference: np.ndarray) -> np.ndarray:
+    """``(M,)`` distance from each marker to the nearest other one in the reference pose.
+
+    NaN for markers without reference position.
+    """
+    from scipy.spatial import cKDTree
+
+    out = np.full(len(reference), np.nan)
+    ok = np.flatnonzero(np.isfinite(reference).all(1))
+    if len(ok) >= 2:
+        d, _ = cKDTree(reference[ok]).query(reference[ok], k=2)
+        out[ok] = d[:, 1]
+    return out
+
+
+
+
+
+class PredictionIndex:
+    """Per-round look-up tables over the ``(F, M)`` sample grid for contiguous fragments.
+
+    Parameters
+    ----------
+    available : (F, M) bool ndarray
+        Samples with data (a marker is a candidate only if missing in all frames).
+    predicted : (F, M) bool ndarray
+        Samples with a (trusted) prediction.
+    """
+
+    def __init__(self, available: np.ndarray, predicted: np.ndarray) -> None:
+        F, M = predicted.shape
+        zero = np.zeros((1, M), dtype=np.int32)
+        self.n_available = np.concatenate([zero, np.cumsum(available, 0, dtype=np.int32)])
+        self.n_predicted = np.concatenate([zero, np.cumsum(predicted, 0, dtype=np.int32)])
+        nxt = np.where(predicted, np.arange(F)[:, None], F)
+        self.next_predicted = np.minimum.accumulate(nxt[::-1], axis=0)[::-1]
+
+    def free(self, first: int, last: int) -> np.ndarray:
+        """``(M,)`` bool: markers without data in frames ``first..last``."""
+        return self.n_available[last + 1] == self.n_available[first]
+
+
+def _is_run(T: np.ndarray) -> bool:
+    return len(T) > 0 and int(T[-1]) - int(T[0]) + 1 == len(T)
+
+
+def _distances(frag: np.ndarray, T: np.ndarray, m: np.ndarray, E: np.ndarray):
+    """Distances ``(|T|, len(m))`` of the fragment to predictions (NaN where none)."""
+    return np.linalg.norm(frag[:, None] - E[T[:, None], m[None]], axis=-1)
+
+
+def _nan_stats(dn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmax(dn, axis=0), np.nanmean(dn, axis=0)
+
+
+def _candidate_stats_dense(frag: np.ndarray, T: np.ndarray, cands: np.ndarray, E: np.ndarray):
+    """Entry, max and mean distance of the fragment to every candidate's predictions.
+
+    Returns ``None`` when no candidate has predictions in at least half of the
+    fragment's frames, else ``(cc, d_entry, d_max, d_mean, column)``: indices
+    into ``cands`` of the checkable candidates, their ``(C,)`` statistics, and
+    ``column(c)`` the ``(|T|,)`` distances (NaN where not predicted).
+    """
+    d = _distances(frag, T, cands, E)  # (|T|, C)
+    have = np.isfinite(d)
+    checkable = have.sum(0) >= max(1, int(np.ceil(0.5 * len(T))))
+    if not checkable.any():
+        return None
+    cc = np.flatnonzero(checkable)
+    dc, hc = d[:, cc], have[:, cc]
+    first = np.argmax(hc, axis=0)
+    d_entry = dc[first, np.arange(len(cc))]
+    dn = np.where(hc, dc, np.nan)
+    d_max, d_mean = _nan_stats(dn)
+    return cc, d_entry, d_max, d_mean, lambda c: dn[:, c]
+
+
+def _candidate_stats(frag: np.ndarray, T: np.ndarray, cands: np.ndarray, E: np.ndarray,
+                     eps1: np.ndarray, index: PredictionIndex):
+    """:func:`_candidate_stats_dense` for a fragment over contiguous frames ``T``.
+
+    Counts and entry samples come from ``index``; the whole-fragment statistics
+    are computed only for candidates that pass the entry test (``d_entry <
+    ε₁``, a condition of every merge and of the later rejection reasons), the
+    others get NaN.  Same values as the dense version.
+    """
+    if not _is_run(T):
+        return _candidate_stats_dense(frag, T, cands, E)
+    a, b = int(T[0]), int(T[-1])
+    count = index.n_predicted[b + 1, cands] - index.n_predicted[a, cands]
+    checkable = count >= max(1, int(np.ceil(0.5 * len(T))))
+    if not checkable.any():
+        return None
+    cc = np.flatnonzero(checkable)
+    m_c = cands[cc]
+    first = index.next_predicted[a, m_c]
+    d_entry = np.linalg.norm(frag[first - a] - E[first, m_c], axis=-1)
+    d_max = np.full(len(cc), np.nan)
+    d_mean = np.full(len(cc), np.nan)
+    near = np.flatnonzero(d_entry < eps1[m_c])
+    if len(near):
+        d = np.linalg.norm(frag[:, None] - E[a:b + 1, m_c[near]], axis=-1)
+        d_max[near], d_mean[near] = _nan_stats(d)
+
+    def column(c: int) -> np.ndarray:
+        return np.linalg.norm(frag - E[a:b + 1, m_c[c]], axis=-1)
+
+    return cc, d_entry, d_max, d_mean, column
+
+
+def _judge_fragment(
+    frag: np.ndarray,
+    T: np.ndarray,
+    free: np.ndarray,
+    E: np.ndarray,
+    E_all: np.ndarray,
+    eps1: np.ndarray,
+    eps2: np.ndarray,
+    labels: list[str],
+    index: PredictionIndex | None = None,
+    *,
+    mean_tolerance: float = 1.0,
+    near: np.ndarray | None = None,
+    near_ratio: float = AMBIGUITY_RATIO,
+) -> dict[str, Any]:
+    """Decide one fragment against the predictions of the markers missing in all its frames.
+
+    ``index`` (for fragments over contiguous frames) avoids computing distances
+    to candidates that cannot pass the entry test.  ``mean_tolerance``: the mean
+    distance must be below ``mean_tolerance · ε₁``.  ``near`` (``(M, M)`` bool,
+    markers close to each other in the reference pose): other missing markers
+    near the chosen one are rivals unless ``near_ratio`` times farther (instead
+    of :data:`AMBIGUITY_RATIO`).
+
+    Returns ``{"marker", "entry", "max", "mean"}`` for a merge, else
+    ``{"reason", ...}`` (and ``"conflict"`` for ambiguities).
+    """
+    mm = 1000.0
+    cands = np.flatnonzero(free)
+    if len(cands) == 0:
+        return {"reason": "overlaps every marker (no marker is missing in all its frames)"}
+    stats = (_candidate_stats(frag, T, cands, E, eps1, index) if index is not None
+             else _candidate_stats_dense(frag, T, cands, E))
+    if stats is None:
+        return {"reason": f"no prediction: candidate markers have fewer than {MIN_NEIGHBOURS} "
+                          "reliable neighbours in its frames"}
+    cc, d_entry, d_max, d_mean, column = stats
+    m_c = cands[cc]
+    e1, e2 = eps1[m_c], eps2[m_c]
+    ok = (d_entry < e1) & (d_max < e2) & (d_mean < mean_tolerance * e1)
+    if not ok.any():
+        c = int(np.argmin(d_entry / e1))
+        m = int(m_c[c])
+        if d_entry[c] >= e1[c]:
+            why = (f"entry {d_entry[c] * mm:.1f} mm from the prediction of nearest marker "
+                   f"{labels[m]} > eps1 {e1[c] * mm:.1f} mm")
+        elif d_max[c] < e2[c]:
+            why = (f"mean distance {d_mean[c] * mm:.1f} mm to the prediction of {labels[m]} "
+                   f"> {mean_tolerance:g} eps1 {mean_tolerance * e1[c] * mm:.1f} mm")
+        else:
+            bad = int(T[np.nanargmax(column(c))])
+            why = (f"leaves the eps2 tube of {labels[m]}: {d_max[c] * mm:.1f} mm > "
+                   f"{e2[c] * mm:.1f} mm at frame {bad}")
+        return {"reason": why, "nearest": labels[m], "entry_mm": round(float(d_entry[c] * mm), 2)}
+    okc = np.flatnonzero(ok)
+    okc = okc[np.argsort(d_mean[okc])]
+    c0 = okc[0]
+    m = int(m_c[c0])
+    if len(okc) > 1 and not AMBIGUITY_RATIO * d_mean[c0] < d_mean[okc[1]]:
+        return {"reason": "ambiguous between markers "
+                + ", ".join(labels[int(m_c[c])] for c in okc[:3]),
+                "conflict": {"labels": [labels[int(m_c[c])] for c in okc],
+                             "mean_mm": [round(float(d_mean[c] * mm), 2) for c in okc]}}
+    # any other missing marker, even one predicted only from estimates, that comes
+    # as close to the fragment makes it ambiguous
+    others = cands[cands != m]
+    if len(others):
+        sub = np.unique(np.linspace(0, len(T) - 1, min(len(T), 16)).round().astype(int))
+        da = np.linalg.norm(frag[sub][:, None] - E_all[T[sub][:, None], others[None]], axis=-1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            da_mean = np.nanmean(da, axis=0)
+        ratio = np.full(len(others), AMBIGUITY_RATIO)
+        if near is not None:
+            ratio[near[m, others]] = max(near_ratio, AMBIGUITY_RATIO)
+        rel = da_mean / ratio
+        if np.isfinite(rel).any() and np.nanmin(rel) < d_mean[c0]:
+            k = int(np.nanargmin(rel))
+            rival = labels[int(others[k])]
+            return {"reason": f"ambiguous: {labels[m]} at {d_mean[c0] * mm:.1f} mm, {rival} at "
+                              f"{da_mean[k] * mm:.1f} mm",
+                    "conflict": {"labels": [labels[m], rival],
+                                 "mean_mm": [round(float(d_mean[c0] * mm), 2),
+                                             round(float(da_mean[k] * mm), 2)]}}
+    return {"marker": m, "entry": float(d_entry[c0]), "max": float(d_max[c0]),
+            "mean": float(d_mean[c0])}
+
+
+def merge_fragments(
+    positions: np.ndarray,
+    fragments: np.ndarray,
+    surface: MarkerSurface,
+    *,
+    alpha1: float = 0.5,
+    alpha2: float = 0.6,
+    fragment_labels: list[str] | None = None,
+    predictions: np.ndarray | None = None,
+    competitors: np.ndarray | None = None,
+    depths: tuple[int, ...] = (1, 2, 3),
+    rounds_per_level: int = 4,
+    min_support: float = RIGID_ANCHOR,
+    mean_tolerance: float | None = None,
+    near_ratio: float | None = None,
+    ctx: Context | None = None,
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Merge unlabelled fragments into labelled markers (Park & Hodgins §4.2).
+
+    Rounds: predict the missing samples (:func:`predict_missing` with the
+    markers' local targets), judge every unmerged fragment (the ε₁ entry test,
+    the ε₂ tube over its length, ambiguity tests), merge, repeat with the merged
+    data.  Fragments whose frames saw no change since they were last judged are
+    not judged again, and predictions are only made in frames that hold an
+    unmerged fragment (frames are predicted independently of each other).
+
+    Parameters
+    ----------
+    positions : (F, M, 3) float ndarray
+        Labelled trajectories, NaN where missing.
+    fragments : (F, U, 3) float ndarray
+        Unlabelled trajectories, NaN outside each fragment.
+    surface : MarkerSurface
+    alpha1, alpha2 : float
+        ``ε₁ = α₁ d̄``: entry tolerance; ``ε₂ = α₂ d̄``: tolerance over the whole
+        fragment (``d̄``: the marker's mean neighbour distance, capped by its
+        distance to the nearest marker so that a closer marker — across the
+        armpit or the crotch — never falls inside the tolerance).
+    fragment_labels : list of str, optional
+        ``U`` names for the report.
+    predictions : (F, M, 3) float ndarray, optional
+        Judge against these predictions of the missing samples instead (e.g.
+        the PCA hole filling of the merged data); one round.
+    competitors : (F, M, 3) float ndarray, optional
+        With ``predictions``: the predictions used in the ambiguity test
+        (default the same).
+    depths : tuple of int
+        How far predictions may be from observed data (estimates of estimates)
+        to judge a fragment, tried in turn: rounds first trust only predictions
+        made from observed (or merged) neighbours (depth 1), and go one step
+        further when a level stops merging.  Every prediction, trusted or not,
+        takes part in the ambiguity test.
+    rounds_per_level : int
+        Rounds at most per depth level.
+    min_support : float
+        Predictions whose third most rigid neighbour weighs less are not
+        trusted either.
+    mean_tolerance : float, optional
+        A fragment's mean distance to the prediction must be below
+        ``mean_tolerance · ε₁``.  Default 1 (the paper) for rigid predictions,
+        :data:`PCA_MEAN_TOLERANCE` with ``predictions`` (hole-filled estimates
+        are less sure).
+    near_ratio : float, optional
+        Other missing markers within :data:`NEAR_RADIUS` mean neighbour
+        distances of the chosen marker in the reference pose make a merge
+        ambiguous unless their predictions are ``near_ratio`` times farther
+        from the fragment.  Default :data:`AMBIGUITY_RATIO` (like all other
+        markers) for rigid predictions, :data:`PCA_NEAR_RATIO` with
+        ``predictions``: a close marker's estimate may be far off (few
+        members, long unobserved) while the chosen one's lies on the fragment.
+    ctx : Context, optional
+        For the parallel prediction (frame chunks through ``ctx.map``).
+
+    Returns
+    -------
+    positions : (F, M, 3) float ndarray
+        With the merged fragments written in.
+    assigned : (U,) int ndarray
+        Marker each fragment was merged into, ``-1`` if none.
+    report : dict
+        ``merges``, ``rejections``, ``conflicts`` (lists of dicts naming fragment,
+        label and reason), ``merged_by_depth``.
+    """
+    ctx = ctx or Context()
+    X = positions.copy()
+    F, M, _ = X.shape
+    U = fragments.shape[1]
+    flabels = list(fragment_labels or [f"*{u + 1}" for u in range(U)])
+    labels = surface.labels
+    dbar = np.fmin(surface.mean_distance, nearest_marker_distance(surface.reference))
+    eps1, eps2 = alpha1 * dbar, alpha2 * dbar
+    given = predictions is not None
+    if mean_tolerance is None:
+        mean_tolerance = PCA_MEAN_TOLERANCE if given else 1.0
+    if near_ratio is None:
+        near_ratio = PCA_NEAR_RATIO if given else AMBIGUITY_RATIO
+    near = None
+    if near_ratio > AMBIGUITY_RATIO:
+        ref = surface.reference
+        gap = np.linalg.norm(ref[:, None] - ref[None], axis=-1)
+        with np.errstate(invalid="ignore"):
+            near = gap < NEAR_RADIUS * surface.mean_distance[:, None]
+    fvis = np.isfinite(fragments).all(-1)
+    frames_of = [np.flatnonzero(fvis[:, u]) for u in range(U)]
+    assigned = np.full(U, -1, dtype=np.int64)
+    verdict: dict[int, dict[str, Any]] = {u: {"reason": "empty fragment"} for u in range(U)
+                                          if not len(frames_of[u])}
+    merges: list[dict[str, Any]] = []
+    conflicts: list[dict[str, Any]] = []
+    order = sorted((u for u in range(U) if len(frames_of[u])), key=lambda u: -len(frames_of[u]))
+    mm = 1000.0
+    n_by_depth: dict[str, int] = {}
+    E = np.full_like(X, np.nan)
+    E_all = np.full_like(X, np.nan)
+    Y = np.full_like(X, np.nan)
+    levels: list[Any] = ["given"] if predictions is not None else list(depths)
+    level, rounds_here = 0, 0
+    dirty = np.ones(F, dtype=bool)  # frames whose predictions / data changed
+    stale = np.arange(F)
+    for rnd in range(len(levels) * rounds_per_level):
+        todo = [u for u in order if assigned[u] < 0]
+        if not todo:
+            break
+        key = levels[level]
+        if predictions is not None:
+            E = np.where(np.isfinite(X), np.nan, predictions)
+            E_all = E if competitors is None else np.where(np.isfinite(X), np.nan, competitors)
+        else:
+            Y_new = local_targets(X, surface.reference, surface.neighbours,
+                                  rigidity=surface.rigidity)
+            changed = ~((Y_new == Y) | (np.isnan(Y_new) & np.isnan(Y))).all((1, 2))
+            frames = np.union1d(stale, np.flatnonzero(changed))
+            # predictions are only read in the frames of fragments still unmerged
+            frames = frames[fvis[frames][:, todo].any(1)]
+            Y = Y_new
+            if len(frames):
+                e, ea = _predict_parallel(X, surface, Y, frames, ctx, key, min_support)
+                diff = ~(((e == E[frames]) | (np.isnan(e) & np.isnan(E[frames])))
+                         & ((ea == E_all[frames]) | (np.isnan(ea) & np.isnan(E_all[frames])))
+                         ).all((1, 2))
+                dirty[frames[diff]] = True
+                E[frames], E_all[frames] = e, ea
+        stale = np.zeros(0, dtype=np.int64)
+        avail = np.isfinite(X).all(-1)
+        index = PredictionIndex(avail, np.isfinite(E).all(-1))
+        claims: dict[int, list[tuple[float, int, dict]]] = {}
+        for u in todo:
+            T = frames_of[u]
+            if u in verdict and not dirty[T].any():
+                continue  # nothing it depends on changed
+            free = index.free(T[0], T[-1]) if _is_run(T) else ~avail[T].any(0)
+            v = _judge_fragment(fragments[T, u], T, free & np.isfinite(dbar),
+                                E, E_all, eps1, eps2, labels, index,
+                                mean_tolerance=mean_tolerance, near=near,
+                                near_ratio=near_ratio)
+            if "marker" in v:
+                claims.setdefault(v["marker"], []).append((v["mean"], u, v))
+                verdict.pop(u, None)
+            else:
+                if "conflict" in v and verdict.get(u, {}).get("reason") != v["reason"]:
+                    conflicts.append({"fragment": flabels[u], **v["conflict"],
+                                      "resolution": "ambiguous: not merged"})
+                verdict[u] = {k: x for k, x in v.items() if k != "conflict"}
+        dirty[:] = False
+        # resolve claims per marker: overlapping fragments conflict, closest first
+        n_new = 0
+        for m, cl in claims.items():
+            cl.sort(key=lambda c: c[0])
+            taken = np.zeros(F, dtype=bool)
+            winner: dict[int, str] = {}
+            for _, u, v in cl:
+                T = frames_of[u]
+                if taken[T].any():
+                    w = next(flabels[w_] for w_, _ in winner.items() if taken[frames_of[w_]].any())
+                    conflicts.append({
+                        "fragment": flabels[u], "labels": [labels[m]],
+                        "resolution": f"overlaps fragment {w} merged into {labels[m]} (closer): "
+                                      "not merged"})
+                    verdict[u] = {"reason": f"conflict with {w} for {labels[m]}"}
+                    continue
+                taken[T] = True
+                winner[u] = flabels[u]
+                X[T, m] = fragments[T, u]
+                dirty[T] = True
+                stale = np.union1d(stale, T)
+                assigned[u] = m
+                n_new += 1
+                merges.append({
+                    "fragment": flabels[u], "label": labels[m],
+                    "first_frame": int(T[0]), "last_frame": int(T[-1]), "n_frames": len(T),
+                    "entry_mm": round(v["entry"] * mm, 2), "mean_mm": round(v["mean"] * mm, 2),
+                    "max_mm": round(v["max"] * mm, 2),
+                    "eps1_mm": round(float(eps1[m] * mm), 2),
+                    "eps2_mm": round(float(eps2[m] * mm), 2), "round": rnd,
+                    "predictor": "rigid" if predictions is None else "given",
+                    "depth": key,
+                })
+        n_by_depth[str(key)] = n_by_depth.get(str(key), 0) + n_new
+        rounds_here += 1
+        if n_new == 0 or rounds_here >= rounds_per_level or predictions is not None:
+            if level + 1 >= len(levels) or predictions is not None:
+                break
+            level, rounds_here = level + 1, 0
+            stale = np.arange(F)  # trust changes: every frame is predicted again
+            dirty[:] = True
+    rejections = [
+        {"fragment": flabels[u], "n_frames": len(frames_of[u]),
+         "first_frame": int(frames_of[u][0]) if len(frames_of[u]) else None,
+         **verdict.get(u, {"reason": "not examined"})}
+        for u in range(U) if assigned[u] < 0
+    ]
+    return X, assigned, {"merges": merges, "rejections": rejections, "conflicts": conflicts,
+                         "merged_by_depth": n_by_depth}
+
+

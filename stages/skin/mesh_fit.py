@@ -1,0 +1,403 @@
+"""Fitting a detailed mesh to the marker surface (Park & Hodgins 2006 §5.3; Allen et al. 2003).
+
+The deformation (:mod:`mocapflow.stages.skin.deform`) moves the vertices of a detailed
+mesh bound to the marker surface; this module makes that mesh fit the subject:
+a template (the procedural body or a user mesh) is brought onto the marker
+surface of the reference pose by a similarity transform from landmarks, then a
+non-rigid, Laplacian-regularised fit to the markers (stages ``template_mesh``
+and ``fit_mesh``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import splu
+
+from mocapflow.pipeline import Context, FilePath, stage
+from mocapflow.stages.motion.datatypes import Mesh
+from mocapflow.stages.skin.deform import DeformError, closest_points_on_triangles
+
+__all__ = [
+    "fit_detailed_mesh",
+    "fit_mesh",
+    "mesh_laplacian",
+    "similarity_transform",
+    "template_mesh",
+    "vertex_normals",
+]
+from mocapflow.stages.motion.kinematics import (
+    absolute_orientation,
+)
+from mocapflow.stages.skin.segment import Segmentation
+
+# --------------------------------------------------------------------------- detailed mesh fitting
+
+
+def similarity_transform(
+    source: np.ndarray, target: np.ndarray, *, weights: np.ndarray | None = None
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity ``target ≈ s R source + t`` (Umeyama 1991).
+
+    Parameters
+    ----------
+    source, target : (N, 3) float ndarray
+    weights : (N,) float ndarray, optional
+
+    Returns
+    -------
+    s : float
+    R : (3, 3) float ndarray
+        Proper rotation.
+    t : (3,) float ndarray
+    """
+    w = np.ones(len(source)) if weights is None else np.asarray(weights, dtype=np.float64)
+    w = w / w.sum()
+    ms, mt = w @ source, w @ target
+    S, T = source - ms, target - mt
+    C = (w[:, None] * T).T @ S
+    U, sv, Vt = np.linalg.svd(C)
+    E = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    R = U @ E @ Vt
+    var = float(w @ np.sum(S**2, 1))
+    s = float(np.sum(sv * np.diag(E)) / var) if var > 0 else 1.0
+    return s, R, mt - s * R @ ms
+
+
+def mesh_laplacian(n_vertices: int, faces: np.ndarray) -> sp.csr_matrix:
+    """Uniform graph Laplacian ``L = I - D⁻¹A`` of a triangle mesh.
+
+    Parameters
+    ----------
+    n_vertices : int
+    faces : (T, 3) int ndarray
+
+    Returns
+    -------
+    (V, V) scipy.sparse.csr_matrix
+        Isolated vertices get a zero row.
+    """
+    i = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
+    j = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
+    A = sp.coo_matrix((np.ones(i.size), (i, j)), shape=(n_vertices, n_vertices)).tocsr()
+    A = ((A + A.T) > 0).astype(np.float64)
+    deg = np.asarray(A.sum(1)).ravel()
+    inv = np.where(deg > 0, 1.0 / np.maximum(deg, 1), 0.0)
+    return (sp.diags((deg > 0).astype(float)) - sp.diags(inv) @ A).tocsr()
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals ``(V, 3)`` (zero for isolated vertices)."""
+    tri = vertices[faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    vn = np.zeros_like(vertices)
+    for c in range(3):
+        np.add.at(vn, faces[:, c], fn)
+    norm = np.linalg.norm(vn, axis=1, keepdims=True)
+    return np.where(norm > 0, vn / np.where(norm > 0, norm, 1.0), 0.0)
+
+
+def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """Signed volume of a triangle mesh (> 0 when the faces wind outward)."""
+    a, b, c = vertices[faces[:, 0]], vertices[faces[:, 1]], vertices[faces[:, 2]]
+    return float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+
+
+def _marker_correspondences(Y: np.ndarray, X: np.ndarray, faces: np.ndarray, offset: float):
+    """Closest skin point of each marker, pushed ``offset`` along the skin normal.
+
+    Returns ``(triangle, barycentric, point, distance)`` with ``point`` where the
+    marker should be and ``distance = |Y - point|``.
+    """
+    tri, bary, _ = closest_points_on_triangles(Y, X, faces)
+    pt = np.einsum("mc,mci->mi", bary, X[faces[tri]])
+    if offset:
+        n = np.einsum("mc,mci->mi", bary, vertex_normals(X, faces)[faces[tri]])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        pt = pt + offset * n
+    return tri, bary, pt, np.linalg.norm(Y - pt, axis=1)
+
+
+def _barycentric_matrix(tri: np.ndarray, bary: np.ndarray, faces: np.ndarray, V: int):
+    rows = np.repeat(np.arange(len(tri)), 3)
+    return sp.csr_matrix((bary.ravel(), (rows, faces[tri].ravel())), shape=(len(tri), V))
+
+
+def fit_detailed_mesh(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    targets: np.ndarray,
+    *,
+    landmarks: dict[int, int] | None = None,
+    stiffness: tuple[float, ...] = (30.0, 10.0, 3.0, 1.0),
+    rigid_iterations: int = 20,
+    marker_offset: float = 0.0,
+    allow_scale: bool = True,
+    trim: float = 0.1,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Fit a template mesh to marker positions: affine ICP, then non-rigid ICP.
+
+    An Allen et al. (2003)-style optimisation reduced to displacements: the
+    template is first aligned by an iterated affine transform (bounding-box
+    initialisation; markers to their closest template points pushed out by
+    ``marker_offset``, the worst ``trim`` fraction ignored; rigid when
+    ``allow_scale`` is false), then a
+    displacement field ``U`` of its vertices minimises
+    ``sum_m |B_m (V0 + U) - y_m|^2 + λ |L U|^2`` (``B_m`` the barycentric
+    coordinates of marker ``m``'s closest point, ``L`` the mesh Laplacian, so
+    ``|L U|^2`` is a bending energy of the displacement that keeps the template's
+    detail), with decreasing stiffness ``λ`` and correspondences recomputed
+    between steps.  Landmarks (marker -> vertex) replace the closest point of
+    their markers in both stages.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float ndarray
+        Template in any placement of similar pose (same up axis and facing).
+    faces : (T, 3) int ndarray
+    targets : (M, 3) float ndarray
+        Marker reference positions (metres).
+    landmarks : dict, optional
+        ``{marker index: template vertex index}``.
+    stiffness : tuple of float
+        Schedule of ``λ`` (relative to the number of markers per vertex).
+    rigid_iterations : int
+    marker_offset : float
+        Markers sit this far (m) outside the skin along its normal.
+    allow_scale : bool
+        Let the alignment scale the template (unit mismatch, body size and
+        proportions: an affine map).
+    trim : float
+        Fraction of worst correspondences ignored in the alignment.
+
+    Returns
+    -------
+    vertices : (V, 3) float ndarray
+        Fitted template.
+    info : dict
+        ``scale`` (geometric mean of ``axis_scales``), ``rotation_deg``,
+        marker-to-surface RMS/median distances (mm, offset removed) after
+        alignment and after fitting.
+    """
+    V0 = np.asarray(vertices, dtype=np.float64)
+    Y = np.asarray(targets, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    nV, M = len(V0), len(Y)
+    lm = dict(landmarks or {})
+    lm_m = np.array(sorted(lm), dtype=np.int64)
+    lm_v = np.array([lm[k] for k in lm_m], dtype=np.int64)
+    if lm_m.size and (lm_v.min() < 0 or lm_v.max() >= nV or lm_m.max() >= M):
+        raise DeformError("fit_mesh: landmark indices out of range of the markers or template")
+    # initial guess: centroids and RMS radii (or landmarks)
+    if lm_m.size >= 3:
+        s, R, t = similarity_transform(V0[lm_v], Y[lm_m])
+        A_tot = (s if allow_scale else 1.0) * R
+    elif allow_scale:  # bounding boxes: the markers span the body even where they are sparse
+        lo_v, hi_v, lo_y, hi_y = V0.min(0), V0.max(0), Y.min(0), Y.max(0)
+        ratios = (hi_y - lo_y) / np.maximum(hi_v - lo_v, 1e-12)
+        A_tot = np.eye(3) * float(np.median(ratios))  # robust to markerless fingers / soles
+        t = (lo_y + hi_y) / 2 - A_tot @ (lo_v + hi_v) / 2
+    else:
+        A_tot, t = np.eye(3), Y.mean(0) - V0.mean(0)
+    t_tot = t
+    X = V0 @ A_tot.T + t_tot
+    outward = 1.0 if _signed_volume(V0, faces) >= 0 else -1.0
+    phases = ["similarity", "affine"] if allow_scale and M >= 12 else ["rigid"]
+    best: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
+    for phase in phases:  # ICP: similarity first (robust), then affine (proportions)
+        for _ in range(rigid_iterations):
+            tri, bary, src, dist = _marker_correspondences(Y, X, faces, marker_offset * outward)
+            w = (dist <= np.quantile(dist, 1 - trim)).astype(float)
+            if lm_m.size:
+                src[lm_m] = X[lm_v]
+                w[lm_m] = 1.0
+            if phase == "affine":
+                H = np.concatenate([src, np.ones((M, 1))], axis=1) * np.sqrt(w)[:, None]
+                T, *_ = np.linalg.lstsq(H, Y * np.sqrt(w)[:, None], rcond=None)  # (4, 3)
+                A, t = T[:3].T, T[3]
+            elif phase == "similarity":
+                sc, A, t = similarity_transform(src, Y, weights=w)
+                A = sc * A
+            else:
+                A, t = absolute_orientation(src, Y, weights=w)
+            X_new = X @ A.T + t
+            step = float(np.abs(X_new - X).max())
+            X = X_new
+            A_tot, t_tot = A @ A_tot, A @ t_tot + t
+            if step < 1e-7:
+                break
+        d_phase = _marker_correspondences(Y, X, faces, marker_offset * outward)[3]
+        score = float(np.mean(np.sort(d_phase)[: max(1, int(len(d_phase) * (1 - trim)))] ** 2))
+        if best is None or score < best[0]:  # keep a phase only if it fits better
+            best = (score, X.copy(), A_tot.copy(), t_tot.copy())
+    _, X, A_tot, t_tot = best
+    U_, sv, Vt_ = np.linalg.svd(A_tot)
+    R_tot = U_ @ Vt_
+    S_tot = float(np.prod(sv) ** (1 / 3))
+    dist = _marker_correspondences(Y, X, faces, marker_offset * outward)[3]
+    aligned = {"rms_mm": float(np.sqrt(np.mean(dist**2)) * 1000),
+               "median_mm": float(np.median(dist) * 1000),
+               "p90_mm": float(np.percentile(dist, 90) * 1000)}  # fmt: skip
+    L = mesh_laplacian(nV, faces)
+    LtL = (L.T @ L).tocsr()
+    ratio = nV / max(M, 1)
+    U = np.zeros_like(X)
+    for lam in stiffness:
+        tri, bary, _, _ = _marker_correspondences(Y, X + U, faces, 0.0)
+        B = _barycentric_matrix(tri, bary, faces, nV)
+        tgt = Y.copy()
+        if marker_offset:
+            n = np.einsum("mc,mci->mi", bary, vertex_normals(X + U, faces)[faces[tri]])
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+            tgt = tgt - marker_offset * outward * n
+        if lm_m.size:
+            B = B.tolil()
+            for m, v in zip(lm_m, lm_v):
+                B.rows[m], B.data[m] = [int(v)], [1.0]
+            B = B.tocsr()
+        Amat = (lam * ratio * LtL + B.T @ B + 1e-8 * sp.identity(nV)).tocsc()
+        rhs = B.T @ (tgt - B @ X)
+        U = splu(Amat).solve(np.asarray(rhs))
+    out = X + U
+    dist = _marker_correspondences(Y, out, faces, marker_offset * outward)[3]
+    info = {
+        "scale": S_tot,
+        "axis_scales": [float(v) for v in sv],
+        "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(R_tot) - 1) / 2, -1, 1)))),
+        "translation_m": [float(v) for v in t_tot],
+        "aligned": aligned,
+        "fitted": {"rms_mm": float(np.sqrt(np.mean(dist**2)) * 1000),
+                   "median_mm": float(np.median(dist) * 1000),
+                   "max_mm": float(dist.max() * 1000)},
+    }  # fmt: skip
+    return out, info
+
+
+def _closest_frame(vertices: np.ndarray, faces: np.ndarray, targets: np.ndarray) -> int:
+    """Frame of an animated mesh ``(F, V, 3)`` whose surface is nearest the targets."""
+    F = vertices.shape[0]
+    step = max(1, F // 60)
+
+    def cost(f: int) -> float:
+        return float(np.median(closest_points_on_triangles(targets, vertices[f], faces)[2]))
+
+    coarse = min(range(0, F, step), key=cost)
+    return min(range(max(0, coarse - step), min(F, coarse + step + 1)), key=cost)
+
+
+@stage("fit_mesh", outputs=("mesh", "report"))
+def fit_mesh(
+    template: Mesh,
+    segmentation: Segmentation,
+    *,
+    landmarks: dict[str, int] | None = None,
+    stiffness: list[float] | None = None,
+    marker_offset: float = 0.0,
+    allow_scale: bool = True,
+    template_frame: int | None = None,
+    ctx: Context,
+) -> dict[str, Any]:
+    """Fit a detailed template mesh to the marker surface's reference pose.
+
+    Parameters
+    ----------
+    template : Mesh
+        Detailed mesh (its first frame if animated), roughly in the markers'
+        pose, same up axis and facing; any unit (a scale is fitted).
+    segmentation : Segmentation
+        Provides the markers' reference positions and labels.
+    landmarks : dict, optional
+        ``{marker label: template vertex index}`` correspondences (Allen et al.).
+    stiffness : list of float, optional
+        Non-rigid stiffness schedule (default ``[30, 10, 3, 1]``).
+    marker_offset : float
+        Distance (m) of the marker centres from the skin.
+    allow_scale : bool
+        Fit scale and proportions (an affine alignment: template in another
+        unit or of another body); rigid alignment when false.
+    template_frame : int, optional
+        Frame of an animated template to use (its pose must match the markers'
+        reference pose); default: the frame closest to the markers' reference
+        positions (e.g. the simulator's true mesh at the reference frame).
+
+    Returns
+    -------
+    dict
+        ``mesh``: fitted rest :class:`Mesh`; ``report``: scale, rotation and
+        marker-to-surface distances in mm after alignment and after fitting.
+
+    Raises
+    ------
+    DeformError
+        Unknown landmark labels, or a template that stays far from the markers
+        after alignment (90th percentile distance > one marker spacing).
+    """
+    if template.animated and template_frame is None:
+        template_frame = _closest_frame(template.vertices, template.faces, segmentation.reference)
+    if template.animated and not 0 <= template_frame < template.vertices.shape[0]:
+        raise DeformError(
+            f"fit_mesh: template_frame {template_frame} outside the template's "
+            f"{template.vertices.shape[0]} frames"
+        )
+    V = template.vertices if not template.animated else template.vertices[template_frame]
+    index = {m: i for i, m in enumerate(segmentation.labels)}
+    unknown = [k for k in (landmarks or {}) if k not in index]
+    if unknown:
+        raise DeformError(f"fit_mesh: landmarks name unknown markers {unknown[:10]}")
+    lm = {index[k]: int(v) for k, v in (landmarks or {}).items()}
+    fitted, info = fit_detailed_mesh(
+        V, template.faces, segmentation.reference, landmarks=lm,
+        stiffness=tuple(stiffness) if stiffness else (30.0, 10.0, 3.0, 1.0),
+        marker_offset=marker_offset, allow_scale=allow_scale,
+    )  # fmt: skip
+    ref, faces = segmentation.reference, segmentation.faces
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
+    spacing = float(np.median(np.linalg.norm(ref[edges[:, 0]] - ref[edges[:, 1]], axis=1)))
+    if info["aligned"]["p90_mm"] / 1000 > spacing:
+        raise DeformError(
+            f"fit_mesh: template does not match the markers: after alignment 10 % of the "
+            f"markers are farther than {info['aligned']['p90_mm']:.0f} mm from it, more than "
+            f"the marker spacing {spacing * 1000:.0f} mm (different pose, facing or body?); "
+            "give landmarks"
+        )
+    if abs(np.log(info["scale"])) > np.log(1.25):
+        ctx.warn(f"template scaled by {info['scale']:.3g} to fit the markers")
+    report = {**info, "vertices": int(len(V)), "marker_spacing_mm": spacing * 1000,
+              "template_frame": template_frame}  # fmt: skip
+    mesh = Mesh(vertices=fitted, faces=template.faces, attrs=dict(template.attrs))
+    return {"mesh": mesh, "report": report}
+
+
+@stage("template_mesh", outputs=("mesh",))
+def template_mesh(
+    *,
+    body_mesh: FilePath | None = None,
+    n_vertices: int = 13000,
+    ctx: Context,
+) -> dict[str, Any]:
+    """A detailed body mesh to fit to the markers (the paper's scan), in its T-pose.
+
+    Parameters
+    ----------
+    body_mesh : FilePath, optional
+        The MakeHuman ``makehuman_base.obj`` (CC0; rig and weights JSON beside it,
+        see :func:`mocapflow.stages.motion.simulate.body.load_makehuman_body`); default:
+        a procedural body around the procedural CMU skeleton.
+    n_vertices : int
+        Vertex count of the procedural body.
+
+    Returns
+    -------
+    dict
+        ``mesh``: rest :class:`Mesh` in metres, y up, facing +z.
+    """
+    from mocapflow.stages.motion.simulate.body import load_makehuman_body, procedural_body
+    from mocapflow.stages.motion.simulate.motion import procedural_skeleton
+
+    if body_mesh is not None:
+        body = load_makehuman_body(body_mesh)
+    else:
+        body = procedural_body(procedural_skeleton(), n_vertices=n_vertices)
+    return {"mesh": Mesh(body.vertices, body.faces, attrs={"source": body.attrs.get("source")})}

@@ -1,0 +1,363 @@
+"""Wide local regression of marker gaps (the default hole filling of the clean stage).
+
+Per gap, the marker's coordinates in the local frame of its most rigid nearby
+markers that stay visible through the gap are regressed (ridge) on theirs,
+trained on the frames nearest the gap where the marker and those predictors
+are measured: no complete frame of the capture is needed.  What it cannot
+reach goes to the paper's local PCA passes (:mod:`mocapflow.stages.skin.fill`,
+which also gives the measurements).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mocapflow.stages.motion.kinematics import absolute_orientation_batch
+
+#: Predictors of the wide-neighbourhood regression: the marker's most rigid
+#: nearby markers (smallest spread of their distance to it) visible through a gap.
+REGRESSION_PREDICTORS = 32
+
+#: A gap (or piece of one) is regressed only on at least this many predictors.
+REGRESSION_MIN_PREDICTORS = 4
+
+#: Nearest markers (reference pose) ranked by rigidity for the regression.
+REGRESSION_POOL = 120
+
+#: Ridge penalty of the regression (m², per training frame): about the
+#: measurement noise variance, so directions the predictors hardly move in are
+#: not fitted to noise.
+REGRESSION_RIDGE = 1e-7
+
+#: Training frames of one regression: those nearest the gap in time.
+REGRESSION_TRAIN = 250
+
+#: A run of holes with fewer usable predictors than this fraction of
+#: ``n_predictors`` is split in halves (each half sees more predictors).
+REGRESSION_SPLIT_FRACTION = 0.25
+
+#: A regression needs at least half as many training frames as the holes it
+#: fills, and never more than this: a marker measured in few frames (the inner
+#: arm, the armpit) has long holes, over which a regression trained on a narrow
+#: range of poses extrapolates badly; those go to the PCA passes.
+REGRESSION_MIN_TRAIN = 100
+
+#: Predictors are chosen so that at least this many training frames per
+#: predictor remain (see :func:`choose_predictors`).
+REGRESSION_FRAMES_PER_PREDICTOR = 4
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Half-open ``(start, stop)`` runs of ``True`` in a ``(F,)`` bool array."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
+
+
+def predictor_ranking(
+    X: np.ndarray,
+    reference: np.ndarray,
+    markers: np.ndarray,
+    *,
+    pool: int = REGRESSION_POOL,
+    min_frames: int = 30,
+    max_frames: int = 300,
+) -> list[np.ndarray]:
+    """Candidate predictors of each marker, most rigid first.
+
+    Parameters
+    ----------
+    X : (F, M, 3) float ndarray
+        Measured positions, NaN where missing.
+    reference : (M, 3) float ndarray
+    markers : (n,) int ndarray
+        Markers to rank candidates for.
+    pool : int
+        The ``pool`` markers nearest in the reference pose are ranked.
+    min_frames : int
+        Candidates measured together with the marker in fewer frames are dropped.
+    max_frames : int
+        The spread is measured on at most this many frames (evenly spaced).
+
+    Returns
+    -------
+    list of (c,) int ndarray
+        Per marker, candidates by increasing standard deviation of their
+        distance to it over the frames where both are measured.
+    """
+    F = X.shape[0]
+    sub = X[np.unique(np.linspace(0, F - 1, min(F, max_frames)).round().astype(int))]
+    vis = np.isfinite(sub).all(-1)
+    good = np.flatnonzero(np.isfinite(reference).all(1) & vis.any(0))
+    need = max(3, int(min_frames * len(sub) / F))
+    out = []
+    for m in markers:
+        d = np.linalg.norm(reference[good] - reference[m], axis=1)
+        near = good[np.argsort(d, kind="stable")]
+        near = near[near != m][:pool]
+        dist = np.linalg.norm(sub[:, near] - sub[:, m:m + 1], axis=-1)  # (f, P)
+        ok = np.isfinite(dist)
+        cnt = ok.sum(0)
+        d0 = np.where(ok, dist, 0.0)
+        mean = d0.sum(0) / np.maximum(cnt, 1)
+        sd = np.sqrt((np.where(ok, dist - mean, 0.0) ** 2).sum(0) / np.maximum(cnt, 1))
+        sd[cnt < need] = np.inf
+        order = np.argsort(sd, kind="stable")
+        out.append(near[order[np.isfinite(sd[order])]])
+    return out
+
+
+def regress_gap(
+    X: np.ndarray,
+    visible: np.ndarray,
+    marker: int,
+    predictors: np.ndarray,
+    runs: list[tuple[int, int]],
+    reference: np.ndarray,
+    *,
+    ridge: float = REGRESSION_RIDGE,
+    max_train: int = REGRESSION_TRAIN,
+    offset_correction: bool = False,
+    edge: int = 6,
+) -> np.ndarray | None:
+    """Estimate gaps of a marker by ridge regression on predictors visible through them.
+
+    Every frame is brought into the predictors' local frame (rigid fit of their
+    reference positions, origin at the marker's reference position); the
+    marker's local coordinates are regressed on the predictors' (centred, ridge
+    penalty ``ridge × n``) over the ``max_train`` frames nearest the gaps where
+    the marker and every predictor are measured.
+
+    Parameters
+    ----------
+    X : (F, M, 3) float ndarray
+        Measured positions, NaN where missing.
+    visible : (F, M) bool ndarray
+        ``isfinite(X).all(-1)``.
+    marker : int
+    predictors : (k,) int ndarray
+        Visible through every gap.
+    runs : list of (int, int)
+        The gaps (half-open frame ranges, in time order).
+    reference : (M, 3) float ndarray
+    ridge : float
+        Ridge penalty per training frame (m²).
+    max_train : int
+        Training frames (nearest in time to the gaps).
+    offset_correction : bool
+        Add the model's mean residual over the ``edge`` measured frames at each
+        end of a gap, blended linearly across it (one end: constant).
+    edge : int
+
+    Returns
+    -------
+    (N, 3) float ndarray
+        The gaps' frames in order; None with too few training frames or a
+        predictor missing in a gap.
+    """
+    S = np.asarray(predictors)
+    gap = np.concatenate([np.arange(a, b) for a, b in runs])
+    train = np.flatnonzero(visible[:, marker] & visible[:, S].all(1))
+    if len(train) < max(10, 3 * len(S) // 2) or not visible[gap][:, S].all():
+        return None
+    if len(train) > max_train:
+        centre = 0.5 * (runs[0][0] + runs[-1][1] - 1)
+        near = np.argsort(np.abs(train - centre), kind="stable")[:max_train]
+        train = np.sort(train[near])
+    n = len(train)
+    frames = np.concatenate([train, gap])
+    P = X[frames[:, None], S[None]]
+    local = np.broadcast_to(reference[S] - reference[marker], P.shape)
+    R, t = absolute_orientation_batch(local, P)  # P ≈ local @ R.T + t per frame
+    if not np.isfinite(R).all():
+        return None  # degenerate (collinear) predictor set in some frame
+    Z = np.matmul(P - t[:, None], R).reshape(len(frames), -1)  # R^T (x - t), row-wise
+    y = np.matmul((X[train, marker] - t[:n])[:, None], R[:n])[:, 0]
+    mz, my = Z[:n].mean(0), y.mean(0)
+    Zc = Z - mz
+    A = Zc[:n].T @ Zc[:n]
+    A[np.diag_indices_from(A)] += ridge * n
+    W = np.linalg.solve(A, Zc[:n].T @ (y - my))
+    pred = Zc[n:] @ W + my
+    if offset_correction:
+        res = y - (Zc[:n] @ W + my)
+        i = 0
+        for a, b in runs:
+            left = (train >= a - edge) & (train < a)
+            right = (train >= b) & (train < b + edge)
+            s = ((np.arange(a, b) - a + 1) / (b - a + 1))[:, None]
+            if left.any() and right.any():
+                pred[i:i + b - a] += res[left].mean(0) * (1 - s) + res[right].mean(0) * s
+            elif left.any() or right.any():
+                pred[i:i + b - a] += res[left | right].mean(0)
+            i += b - a
+    return np.matmul(R[n:], pred[..., None])[..., 0] + t[n:]
+
+
+def _min_train(n_gap: int) -> int:
+    """Fewest training frames for a regression over ``n_gap`` frames of holes:
+    half the gap, between 20 and :data:`REGRESSION_MIN_TRAIN`."""
+    return int(max(20, min(REGRESSION_MIN_TRAIN, n_gap // 2)))
+
+
+def choose_predictors(
+    visible: np.ndarray,
+    marker: int,
+    candidates: np.ndarray,
+    *,
+    n_predictors: int = REGRESSION_PREDICTORS,
+    frames_per_predictor: int = REGRESSION_FRAMES_PER_PREDICTOR,
+    min_frames: int = 20,
+) -> np.ndarray:
+    """Predictors for one regression, so that it keeps enough training frames.
+
+    Candidates are taken in order; one that would leave fewer than
+    ``max(min_frames, frames_per_predictor × k)`` frames where the marker and
+    all ``k`` chosen predictors are measured is skipped.  Without this, many
+    predictors each missing now and then leave no training frame (the local
+    version of the whole-body PCA's need for complete frames).
+
+    Parameters
+    ----------
+    visible : (F, M) bool ndarray
+    marker : int
+    candidates : (c,) int ndarray
+        Visible through the gap, in order of preference.
+    n_predictors, frames_per_predictor, min_frames : int
+
+    Returns
+    -------
+    (k,) int ndarray, k <= n_predictors
+    """
+    cur = visible[:, marker].copy()
+    chosen: list[int] = []
+    for j in candidates:
+        new = cur & visible[:, j]
+        if new.sum() >= max(min_frames, frames_per_predictor * (len(chosen) + 1)):
+            chosen.append(int(j))
+            cur = new
+            if len(chosen) == n_predictors:
+                break
+    return np.asarray(chosen, dtype=np.int64)
+
+
+def regression_estimates(
+    X: np.ndarray,
+    marker: int,
+    candidates: np.ndarray,
+    holes: np.ndarray,
+    reference: np.ndarray,
+    *,
+    visible: np.ndarray | None = None,
+    n_predictors: int = REGRESSION_PREDICTORS,
+    min_predictors: int = REGRESSION_MIN_PREDICTORS,
+    ridge: float = REGRESSION_RIDGE,
+    max_train: int = REGRESSION_TRAIN,
+    max_span: int | None = None,
+    offset_correction: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Regression estimates of one marker's holes (see :func:`regress_gap`).
+
+    Each run of holes is regressed on the first ``n_predictors`` candidates
+    visible through it (skipping those that would leave too few training
+    frames, :func:`choose_predictors`).  Consecutive runs within ``max_span`` frames share one
+    regression while at least ``n_predictors`` of the first ``2 n_predictors``
+    candidates stay visible through all of them.  A run with fewer than
+    ``REGRESSION_SPLIT_FRACTION × n_predictors`` usable candidates is halved
+    until it has them; a single frame needs ``min_predictors`` (frames that
+    still lack them are left out).  A regression needs training frames for
+    at least half its holes (at most :data:`REGRESSION_MIN_TRAIN`).
+
+    Parameters
+    ----------
+    X : (F, M, 3) float ndarray
+        Measured positions, NaN where missing.
+    marker : int
+    candidates : (c,) int ndarray
+        Predictors in order of preference (:func:`predictor_ranking`).
+    holes : (F,) bool ndarray
+        Frames to estimate.
+    reference : (M, 3) float ndarray
+    visible : (F, M) bool ndarray, optional
+        ``isfinite(X).all(-1)`` if given (saves recomputing it).
+    n_predictors, min_predictors : int
+    ridge : float
+    max_train : int
+    max_span : int, optional
+        Longest stretch of frames sharing one regression (default ``max_train // 2``).
+    offset_correction : bool
+
+    Returns
+    -------
+    frames : (N,) int ndarray
+    estimates : (N, 3) float ndarray
+    """
+    vis = np.isfinite(X).all(-1) if visible is None else visible
+    c = np.asarray(candidates, dtype=np.int64)
+    span = max_train // 2 if max_span is None else max_span
+    top = c[:2 * n_predictors]
+    groups: list[list[tuple[int, int]]] = []
+    stack: list[tuple[int, int]] = []
+    cur: list[tuple[int, int]] = []
+    cur_v = np.ones(len(top), bool)
+    for a, b in _runs(holes):
+        v = vis[a:b][:, top].all(0)
+        if cur and b - cur[0][0] <= span and (cur_v & v).sum() >= n_predictors:
+            cur.append((a, b))
+            cur_v &= v
+            continue
+        if cur:
+            groups.append(cur)
+        cur, cur_v = [(a, b)], v
+    if cur:
+        groups.append(cur)
+    frames, ests = [], []
+    for g in groups:
+        if len(g) > 1:
+            ok = np.ones(len(c), bool)
+            for a, b in g:
+                ok &= vis[a:b][:, c].all(0)
+            n_gap = sum(b - a for a, b in g)
+            S = choose_predictors(vis, marker, c[ok], n_predictors=n_predictors,
+                                  min_frames=_min_train(n_gap))
+            e = None
+            if len(S) >= min_predictors:
+                e = regress_gap(X, vis, marker, S, g, reference, ridge=ridge,
+                                max_train=max_train, offset_correction=offset_correction)
+            if e is not None:
+                frames.append(np.concatenate([np.arange(a, b) for a, b in g]))
+                ests.append(e)
+                continue
+        stack += g
+    while stack:
+        a, b = stack.pop()
+        S = choose_predictors(vis, marker, c[vis[a:b][:, c].all(0)], n_predictors=n_predictors,
+                              min_frames=_min_train(b - a))
+        want = max(min_predictors, int(REGRESSION_SPLIT_FRACTION * n_predictors))
+        if len(S) < (min_predictors if b - a == 1 else want):
+            if b - a > 1:
+                h = (a + b) // 2
+                stack += [(a, h), (h, b)]
+            continue
+        e = regress_gap(X, vis, marker, S, [(a, b)], reference, ridge=ridge,
+                        max_train=max_train, offset_correction=offset_correction)
+        if e is not None:
+            frames.append(np.arange(a, b))
+            ests.append(e)
+    if not frames:
+        return np.zeros(0, np.int64), np.zeros((0, 3))
+    return np.concatenate(frames), np.concatenate(ests)
+
+
+def _regress_chunk(item: tuple) -> tuple[np.ndarray, ...]:
+    X, markers, holes, reference, kw = item
+    vis = np.isfinite(X).all(-1)
+    ranking = predictor_ranking(X, reference, markers, pool=kw.pop("pool"))
+    fs, ms, es = [], [], []
+    for m, cand in zip(markers, ranking):
+        f, e = regression_estimates(X, int(m), cand, holes[:, m], reference, visible=vis, **kw)
+        fs.append(f)
+        ms.append(np.full(len(f), m, dtype=np.int64))
+        es.append(e)
+    if not fs:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
+    return np.concatenate(fs), np.concatenate(ms), np.concatenate(es)

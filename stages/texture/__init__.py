@@ -1,0 +1,3 @@
+"""Moradoff 2002."""
+
+STAGE_MODULES = ("pyramid", "synth", "stickfigure")

@@ -1,0 +1,181 @@
+"""Graph-path gap filler at the coarsest level (Moradoff §3.7.2).
+
+Instead of growing a gap from both sides and joining the fronts at a meeting
+point, the coarsest level of a gap can be filled by a path in a *transition
+graph* over the coarsest input nodes: an edge ``a → a+1`` for every natural
+successor (cost 0) and an edge ``a → b`` for every jump whose transition cost
+is below a threshold (the ``graph_threshold`` quantile of all jump costs).  A
+path of exactly the gap's length from the left anchor to the right anchor is
+found by depth-first search under a cost bound (``(1 + graph_slack)`` × the
+cheapest such path); candidates are visited in random (seeded) order, so
+every seed gives another path.  The exact remaining-cost table makes the DFS
+prune every branch that cannot meet the bound.  Finer levels then select the
+sons of the path nodes (children ``±candidate_range``) with the usual
+neighbourhood search.
+
+A gap no path can fill raises :class:`UnreachableGapError` naming it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mocapflow.stages.texture.search import LevelView, SynthesisError, window_cost
+
+__all__ = [
+    "UnreachableGapError",
+    "graph_path",
+    "transition_costs",
+    "transition_graph",
+]
+
+
+class UnreachableGapError(SynthesisError):
+    """No path of the gap's length joins its two anchors in the transition graph."""
+
+
+def transition_costs(view: LevelView, *, slots: int = 3) -> np.ndarray:
+    """Cost of following input node ``a`` by node ``b`` (instead of ``a + 1``).
+
+    The output window ``a-slots+1 … a, b … b+slots`` is compared with the input
+    windows around ``b`` and around ``a + 1`` (the neighbourhood distance of
+    the synthesis); the cost is the mean of the two.
+
+    Parameters
+    ----------
+    view : LevelView
+        Coarsest level, ``n`` nodes.
+    slots : int
+
+    Returns
+    -------
+    (n, n) float ndarray
+        ``T[a, b]``; 0 on the natural successor, ``inf`` where no slot compares.
+    """
+    n = view.n
+    S = slots
+    off = np.arange(-S, S + 1)
+    a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    a, b = a.ravel(), b.ravel()
+    # output: a-S+1..a at offsets -S..-1, b..b+S at offsets 0..S
+    ov = np.where(off[None, :] < 0, a[:, None] + 1 + off[None, :], b[:, None] + off[None, :])
+    ov = np.where((ov >= 0) & (ov < n), ov, -1)
+    blk = off == 0
+    pw = np.exp(-0.5 * ((0.5 * (off[1:] + off[:-1])) / max(S, 1)) ** 2)
+    out = np.empty(a.size)
+    chunk = max(1, 200_000 // (2 * S + 1) // max(view.P.shape[1], 1))
+    for s in range(0, a.size, chunk):
+        sl = slice(s, s + chunk)
+        n1, d1, _ = window_cost(view, ov[sl], b[sl, None] + off[None, :], blk, pw)
+        n2, d2, _ = window_cost(view, ov[sl], a[sl, None] + 1 + off[None, :], blk, pw)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[sl] = 0.5 * (n1 / d1 + n2 / d2)
+    T = out.reshape(n, n)
+    T[~np.isfinite(T)] = np.inf
+    nat = np.arange(n - 1)
+    T[nat, nat + 1] = 0.0
+    return T
+
+
+def transition_graph(costs: np.ndarray, *, threshold: float = 0.1) -> np.ndarray:
+    """Thresholded transition graph.
+
+    Parameters
+    ----------
+    costs : (n, n) float ndarray
+        From :func:`transition_costs`.
+    threshold : float
+        Quantile (0–1) of the jump costs (``|b - (a+1)| >= 2``) kept as edges.
+
+    Returns
+    -------
+    (n, n) float ndarray
+        Edge costs, ``inf`` where there is no edge; natural successors always kept.
+    """
+    n = costs.shape[0]
+    a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    jump = np.abs(b - (a + 1)) >= 2
+    vals = costs[jump & np.isfinite(costs)]
+    cut = np.quantile(vals, threshold) if vals.size else -np.inf
+    E = np.where(jump & (costs <= cut), costs, np.inf)
+    nat = np.arange(n - 1)
+    E[nat, nat + 1] = 0.0
+    return E
+
+
+def _min_cost_to_end(E: np.ndarray, end: np.ndarray, steps: int) -> np.ndarray:
+    """``D[k, v]``: cheapest ``k``-edge path from ``v`` into ``end`` (inf: none)."""
+    n = E.shape[0]
+    D = np.full((steps + 1, n), np.inf)
+    D[0, end] = 0.0
+    for k in range(1, steps + 1):
+        D[k] = np.min(E + D[k - 1][None, :], axis=1)
+    return D
+
+
+def graph_path(
+    E: np.ndarray,
+    steps: int,
+    rng: np.random.Generator,
+    *,
+    start: int | None,
+    end: int | None,
+    slack: float = 0.5,
+    unit: float = 1.0,
+    where: str = "gap",
+) -> np.ndarray:
+    """A random path of exactly ``steps`` edges under a cost bound (DFS).
+
+    Parameters
+    ----------
+    E : (n, n) float ndarray
+        Edge costs (``inf``: no edge).
+    steps : int
+        Edges in the path.
+    rng : numpy.random.Generator
+    start, end : int or None
+        Anchor nodes (``None``: free).
+    slack : float
+        Cost bound ``(1 + slack) × cheapest + slack × unit``.
+    unit : float
+        Cost unit of the level.
+    where : str
+        Gap description for error messages.
+
+    Returns
+    -------
+    (steps + 1,) int ndarray
+        Nodes of the path including both ends.
+
+    Raises
+    ------
+    UnreachableGapError
+        No path of that length joins the anchors.
+    """
+    n = E.shape[0]
+    end_set = np.arange(n) if end is None else np.array([end])
+    D = _min_cost_to_end(E, end_set, steps)
+    starts = np.arange(n) if start is None else np.array([start])
+    feasible = starts[np.isfinite(D[steps, starts])]
+    if feasible.size == 0:
+        raise UnreachableGapError(
+            f"{where}: unreachable — no path of {steps} transitions in the transition graph "
+            f"joins input node {start} to input node {end} at the coarsest level; raise "
+            "graph_threshold, move the constraints, or use method='meeting_point'"
+        )
+    best = float(np.min(D[steps, feasible]))
+    bound = best * (1.0 + slack) + slack * unit
+    # depth-first search with the exact remaining-cost table as pruning bound
+    first = rng.permutation(feasible)
+    first = first[D[steps, first] <= bound]
+    stack: list[tuple[list[int], float]] = [([int(v)], 0.0) for v in first[::-1]]
+    while stack:
+        path, acc = stack.pop()
+        k = steps - (len(path) - 1)
+        if k == 0:
+            return np.asarray(path, dtype=np.int64)
+        u = path[-1]
+        nxt = np.flatnonzero(np.isfinite(E[u]) & (acc + E[u] + D[k - 1] <= bound + 1e-12))
+        for v in rng.permutation(nxt)[::-1]:
+            stack.append((path + [int(v)], acc + float(E[u, v])))
+    raise UnreachableGapError(f"{where}: no path within the cost bound {bound:.3g}")

@@ -1,0 +1,669 @@
+"""Root trajectory of a synthesized motion (Moradoff §3.10).
+
+The synthesis copies the root as velocities in the heading frame (yaw rate,
+horizontal velocity) and an absolute height; the trajectory is their
+integral.  To follow a user path (polyline or spline on the ground plane,
+e.g. a figure-8) the velocities are rotated into the path's local frame: the
+motion's smoothed travel direction is turned onto the path tangent at the
+distance travelled so far, the high-frequency sway is kept in the path frame.
+``y`` is up; ground-plane points are ``(x, z)``.
+
+Feet: smoothing a seam blends two stances, so a toe in contact slides.  The
+root correction (:func:`plant_feet`) keeps the mean stance toe moving as in
+the input; the residual slide of each toe is then removed by two-bone leg IK
+(:func:`foot_corrections`, :func:`apply_foot_ik`): within every contact span a
+toe follows the input's own toe steps (none, in blended frames), the
+correction is a smooth banded least-squares solution, and the feet keep their
+world orientation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "PathCurve",
+    "PathError",
+    "apply_foot_ik",
+    "contact_spans",
+    "figure_eight",
+    "follow_path",
+    "foot_corrections",
+    "heading_direction",
+    "integrate_root",
+    "leg_chains",
+    "plant_feet",
+    "toe_displacements",
+    "two_bone_ik",
+]
+
+
+class PathError(ValueError):
+    """A path param that cannot be followed."""
+
+
+def heading_direction(heading: np.ndarray) -> np.ndarray:
+    """Ground-plane unit vector ``(x, z)`` of a heading (``R_y(h) (0, 0, 1)``).
+
+    Parameters
+    ----------
+    heading : (...) float ndarray
+
+    Returns
+    -------
+    (..., 2) float ndarray
+    """
+    h = np.asarray(heading, dtype=np.float64)
+    return np.stack([np.sin(h), np.cos(h)], axis=-1)
+
+
+def _rotate_xz(v: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """``R_y(angle)`` applied to ground-plane vectors ``(x, z)``."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([v[..., 0] * c + v[..., 1] * s, -v[..., 0] * s + v[..., 1] * c], axis=-1)
+
+
+def integrate_root(
+    yaw_rate: np.ndarray,
+    velocity: np.ndarray,
+    *,
+    heading0: float = 0.0,
+    origin: np.ndarray | tuple[float, float] = (0.0, 0.0),
+) -> tuple[np.ndarray, np.ndarray]:
+    """Integrate heading-frame root velocities.
+
+    Parameters
+    ----------
+    yaw_rate : (L,) float ndarray
+        Heading change from frame ``t`` to ``t + 1`` (radians).
+    velocity : (L, 2) float ndarray
+        Displacement ``(x, z)`` from ``t`` to ``t + 1`` in the heading frame of ``t``.
+    heading0 : float
+        Heading of frame 0.
+    origin : (2,) float
+        Ground position ``(x, z)`` of frame 0.
+
+    Returns
+    -------
+    heading : (L,) float ndarray
+    ground : (L, 2) float ndarray
+        ``(x, z)`` per frame.
+    """
+    yaw = np.asarray(yaw_rate, dtype=np.float64)
+    heading = heading0 + np.concatenate([[0.0], np.cumsum(yaw[:-1])])
+    disp = _rotate_xz(np.asarray(velocity, dtype=np.float64), heading)
+    ground = np.asarray(origin, dtype=np.float64) + np.vstack(
+        [np.zeros((1, 2)), np.cumsum(disp[:-1], axis=0)]
+    )
+    return heading, ground
+
+
+def figure_eight(radius: float = 2.0, n_points: int = 65) -> np.ndarray:
+    """A closed figure-8 on the ground plane (two loops crossing at the origin).
+
+    Parameters
+    ----------
+    radius : float
+        Half width of each loop, metres (loops ``2 radius`` wide, ``4 radius`` long overall).
+    n_points : int
+
+    Returns
+    -------
+    (n_points, 2) float ndarray
+        ``(x, z)``; first point equals the last.
+    """
+    u = np.linspace(0.0, 2.0 * np.pi, n_points)
+    pts = np.stack([radius * np.sin(2 * u), 2.0 * radius * np.sin(u)], axis=-1)
+    pts[-1] = pts[0]
+    return pts
+
+
+@dataclass
+class PathCurve:
+    """An arc-length parametrised ground-plane curve.
+
+    Attributes
+    ----------
+    samples : (M, 2) float ndarray
+        Dense points ``(x, z)``.
+    s : (M,) float ndarray
+        Arc length at each sample.
+    closed : bool
+        First and last control points coincide (the path wraps).
+    """
+
+    samples: np.ndarray
+    s: np.ndarray
+    closed: bool
+
+    @classmethod
+    def from_points(cls, points, *, mode: str = "polyline") -> PathCurve:
+        """Build from control points.
+
+        Parameters
+        ----------
+        points : (N, 2) or (N, 3) array_like
+            ``(x, z)`` or ``(x, y, z)`` (``y`` ignored).
+        mode : {"polyline", "spline"}
+            Straight segments, or a C² cubic spline through the points (periodic when closed).
+        """
+        p = np.asarray(points, dtype=np.float64)
+        if p.ndim != 2 or p.shape[1] not in (2, 3) or p.shape[0] < 2:
+            raise PathError(
+                f"path: expected a list of >= 2 points [x, z] or [x, y, z], got {p.shape}"
+            )
+        if not np.isfinite(p).all():
+            raise PathError("path: points must be finite")
+        if p.shape[1] == 3:
+            p = p[:, [0, 2]]
+        keep = np.concatenate([[True], np.linalg.norm(np.diff(p, axis=0), axis=1) > 1e-9])
+        p = p[keep]
+        if p.shape[0] < 2:
+            raise PathError("path: all points coincide")
+        span = np.ptp(p, axis=0).max()
+        closed = p.shape[0] > 3 and np.linalg.norm(p[0] - p[-1]) < 1e-6 * max(span, 1.0)
+        if mode == "spline":
+            from scipy.interpolate import CubicSpline
+
+            u = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+            if closed:
+                p[-1] = p[0]
+            cs = CubicSpline(u, p, bc_type="periodic" if closed else "natural", axis=0)
+            dense = cs(np.linspace(0.0, u[-1], max(400, 40 * p.shape[0])))
+        elif mode == "polyline":
+            seg = np.linalg.norm(np.diff(p, axis=0), axis=1)
+            n_each = np.maximum(2, np.ceil(seg / 0.02).astype(int))
+            dense = np.vstack(
+                [np.linspace(a, b, k, endpoint=False) for a, b, k in zip(p[:-1], p[1:], n_each)]
+                + [p[-1:]]
+            )
+        else:
+            raise PathError(f"path_mode must be 'polyline' or 'spline', got {mode!r}")
+        s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(dense, axis=0), axis=1))])
+        return cls(dense, s, bool(closed))
+
+    @property
+    def length(self) -> float:
+        """Total arc length, metres."""
+        return float(self.s[-1])
+
+    def _wrap(self, s: np.ndarray) -> np.ndarray:
+        return np.mod(s, self.length) if self.closed else s
+
+    def point(self, s: np.ndarray) -> np.ndarray:
+        """Points at arc lengths ``s`` (extrapolated along the end tangent when open).
+
+        Parameters
+        ----------
+        s : (...) float ndarray
+
+        Returns
+        -------
+        (..., 2) float ndarray
+        """
+        s = self._wrap(np.asarray(s, dtype=np.float64))
+        x = np.interp(s, self.s, self.samples[:, 0])
+        z = np.interp(s, self.s, self.samples[:, 1])
+        out = np.stack([x, z], axis=-1)
+        if not self.closed:
+            over = np.clip(s - self.length, 0.0, None)[..., None]
+            out = out + over * heading_direction(self.tangent_angle(np.array(self.length)))
+        return out
+
+    def tangent_angle(self, s: np.ndarray) -> np.ndarray:
+        """Heading (``atan2(dx, dz)``) of the tangent at arc lengths ``s``.
+
+        Parameters
+        ----------
+        s : (...) float ndarray
+
+        Returns
+        -------
+        (...) float ndarray
+            Radians, continuous along the curve samples.
+        """
+        d = np.gradient(self.samples, self.s, axis=0)
+        ang = np.unwrap(np.arctan2(d[:, 0], d[:, 1]))
+        s = self._wrap(np.asarray(s, dtype=np.float64))
+        return np.interp(np.clip(s, 0.0, self.length), self.s, ang)
+
+    def closest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance from points to the curve and the arc length of the closest sample.
+
+        Parameters
+        ----------
+        points : (N, 2) float ndarray
+
+        Returns
+        -------
+        distance : (N,) float ndarray
+        s : (N,) float ndarray
+        """
+        from scipy.spatial import cKDTree
+
+        d, i = cKDTree(self.samples).query(np.asarray(points, dtype=np.float64))
+        return d, self.s[i]
+
+
+def _gauss(x: np.ndarray, sigma: float) -> np.ndarray:
+    from scipy.ndimage import gaussian_filter1d
+
+    if sigma <= 0:
+        return x
+    return gaussian_filter1d(x, sigma, axis=0, mode="nearest")
+
+
+def follow_path(
+    yaw_rate: np.ndarray,
+    velocity: np.ndarray,
+    curve: PathCurve,
+    rate: float,
+    *,
+    travel_window: float = 0.5,
+    min_speed: float = 0.1,
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Root trajectory following a path by rotating velocities into its local frame.
+
+    Parameters
+    ----------
+    yaw_rate : (L,) float ndarray
+    velocity : (L, 2) float ndarray
+        Heading-frame velocities of the synthesized motion (per frame).
+    curve : PathCurve
+    rate : float
+        Frames per second.
+    travel_window : float
+        Gaussian sigma (seconds) separating travel from sway.
+    min_speed : float
+        Travel speed (m/s) below which the travel direction is taken from the neighbours.
+
+    Returns
+    -------
+    heading : (L,) float ndarray
+    ground : (L, 2) float ndarray
+    info : dict
+        ``distance`` travelled, ``path_length``, ``beyond_end`` (frames past an open path's end).
+    """
+    heading, ground = integrate_root(yaw_rate, velocity)
+    L = heading.shape[0]
+    disp = _rotate_xz(np.asarray(velocity, dtype=np.float64), heading)
+    sigma = travel_window * rate
+    travel = _gauss(disp, sigma)
+    speed = np.linalg.norm(travel, axis=1)
+    smooth_ground = np.vstack([np.zeros((1, 2)), np.cumsum(travel[:-1], axis=0)])
+    sway = ground - smooth_ground
+    s = np.concatenate([[0.0], np.cumsum(speed[:-1])])
+    alpha = np.arctan2(travel[:, 0], travel[:, 1])
+    moving = speed * rate >= min_speed
+    phi = curve.tangent_angle(s)
+    if moving.any():
+        psi_raw = np.angle(np.exp(1j * (phi - alpha)))
+        idx = np.arange(L)
+        z = np.exp(1j * psi_raw)
+        zr = np.interp(idx, idx[moving], z.real[moving])
+        zi = np.interp(idx, idx[moving], z.imag[moving])
+        zs = _gauss(zr, 0.5 * sigma) + 1j * _gauss(zi, 0.5 * sigma)
+        psi = np.unwrap(np.angle(zs))
+    else:
+        psi = np.full(L, phi[0] - heading[0])
+    new_heading = heading + psi
+    new_ground = curve.point(s) + _rotate_xz(sway, psi)
+    beyond = 0 if curve.closed else int(np.sum(s > curve.length))
+    return new_heading, new_ground, {
+        "distance": float(s[-1]),
+        "path_length": curve.length,
+        "beyond_end": beyond,
+    }
+
+
+def toe_displacements(
+    yaw_rate: np.ndarray, velocity: np.ndarray, toe_local: np.ndarray
+) -> np.ndarray:
+    """Per-frame toe displacement in the heading frame of each frame.
+
+    Parameters
+    ----------
+    yaw_rate : (L,) float ndarray
+    velocity : (L, 2) float ndarray
+        Root displacement ``t → t+1`` in the heading frame of ``t``.
+    toe_local : (L, T, 2) float ndarray
+        Toe ground position relative to the root in each frame's heading frame.
+
+    Returns
+    -------
+    (L, T, 2) float ndarray
+        ``velocity[t] + R_y(yaw[t]) toe[t+1] - toe[t]`` (the last frame repeats).
+    """
+    nxt = np.concatenate([toe_local[1:], toe_local[-1:]], axis=0)
+    d = _rotate_xz(nxt, yaw_rate[:, None]) - toe_local + velocity[:, None, :]
+    d[-1] = d[-2] if d.shape[0] > 1 else d[-1]
+    return d
+
+
+def plant_feet(
+    yaw_rate: np.ndarray,
+    velocity: np.ndarray,
+    toe_local: np.ndarray,
+    source_index: np.ndarray,
+    source_displacement: np.ndarray,
+    source_contact: np.ndarray,
+    *,
+    cyclic: bool = False,
+    smooth: float = 2.0,
+) -> np.ndarray:
+    """Root velocities that keep the stance toes moving as in the input.
+
+    Smoothing a seam changes the pose; with the copied root velocity a toe in
+    contact would slide.  On every frame whose source frame (and the next
+    frame's source) has a toe in contact, the root velocity is chosen so that
+    the toe moves as it moved in the input at that source frame (the mean
+    correction when both toes are down).  Frames copied verbatim are left
+    unchanged.
+
+    Parameters
+    ----------
+    yaw_rate : (L,) float ndarray
+    velocity : (L, 2) float ndarray
+        Root velocities (heading frame) of the output.
+    toe_local : (L, T, 2) float ndarray
+        Output toe positions relative to the root, heading frame.
+    source_index : (L,) int ndarray
+    source_displacement : (F, T, 2) float ndarray
+        :func:`toe_displacements` of the input.
+    source_contact : (F, T) bool ndarray
+        Toe contacts of the input.
+    cyclic : bool
+    smooth : float
+        Gaussian sigma (frames) applied to the accumulated root offset.
+
+    Returns
+    -------
+    (L, 2) float ndarray
+    """
+    src = np.asarray(source_index, dtype=np.int64)
+    nxt = np.roll(src, -1)
+    contact = source_contact[src] & source_contact[nxt]
+    if not cyclic:
+        contact[-1] = False
+    current = toe_displacements(yaw_rate, velocity, toe_local)
+    corr = source_displacement[src] - current  # (L, T, 2)
+    n = contact.sum(axis=1)
+    mean = np.where(
+        n[:, None] > 0,
+        np.sum(np.where(contact[..., None], corr, 0.0), axis=1) / np.maximum(n, 1)[:, None],
+        0.0,
+    )
+    # the root offset the corrections add up to, smoothed so the root stays smooth
+    offset = np.vstack([np.zeros((1, 2)), np.cumsum(mean, axis=0)])
+    if smooth > 0:
+        from scipy.ndimage import gaussian_filter1d
+
+        offset = gaussian_filter1d(offset, smooth, axis=0, mode="nearest")
+    return velocity + np.diff(offset, axis=0)
+
+
+# --------------------------------------------------------------------------- foot contact IK
+
+
+def leg_chains(skeleton, toes: list[int] | np.ndarray) -> list[tuple[int, int, int]]:
+    """Two-bone leg chains ``(hip, knee, ankle)`` ending at (or above) each toe.
+
+    A joint named like a toe hangs below its ankle (its parent); a foot or
+    ankle joint used as the toe is the ankle itself.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    toes : sequence of int
+        Contact joints (:func:`~mocapflow.stages.metrics.quality.toe_indices`).
+
+    Returns
+    -------
+    list of (int, int, int)
+
+    Raises
+    ------
+    ValueError
+        A toe without three ancestors.
+    """
+    chains = []
+    for t in toes:
+        t = int(t)
+        ankle = skeleton.parents[t] if "toe" in skeleton.names[t].lower() else t
+        knee = skeleton.parents[ankle] if ankle >= 0 else -1
+        hip = skeleton.parents[knee] if knee >= 0 else -1
+        if min(ankle, knee, hip) < 0:
+            raise ValueError(
+                f"joint {skeleton.names[t]!r}: no hip-knee-ankle chain above it for foot IK"
+            )
+        chains.append((int(hip), int(knee), int(ankle)))
+    return chains
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Smallest rotations taking directions ``a`` onto ``b`` ((n, 3) -> (n, 4))."""
+    from mocapflow.stages.motion.kinematics import quat_from_rotvec
+
+    a = a / np.linalg.norm(a, axis=-1, keepdims=True)
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    axis = np.cross(a, b)
+    s = np.linalg.norm(axis, axis=-1, keepdims=True)
+    angle = np.arctan2(s, np.sum(a * b, axis=-1, keepdims=True))
+    rv = np.where(s > 1e-12, axis / np.maximum(s, 1e-12) * angle, 0.0)
+    return quat_from_rotvec(rv)
+
+
+def two_bone_ik(
+    hip: np.ndarray,
+    knee: np.ndarray,
+    ankle: np.ndarray,
+    target: np.ndarray,
+    *,
+    hinge: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """World rotations that bring an ankle onto a target (analytic two-bone IK).
+
+    The knee bends about the leg's plane normal until the hip–ankle distance
+    equals the hip–target distance (clamped to the leg's reach), then the
+    whole leg turns about the hip onto the target.
+
+    Parameters
+    ----------
+    hip, knee, ankle : (n, 3) float ndarray
+        Joint positions.
+    target : (n, 3) float ndarray
+        Wanted ankle positions.
+    hinge : (n, 3) float ndarray, optional
+        Knee axis used where the leg is straight (no plane).
+
+    Returns
+    -------
+    r_hip : (n, 4) float ndarray
+        World rotation about the hip (applied to thigh, shank and below).
+    r_knee : (n, 4) float ndarray
+        World rotation about the knee (applied to the shank and below, before ``r_hip``).
+    """
+    from mocapflow.stages.motion.kinematics import quat_from_rotvec, quat_rotate
+
+    u, v = hip - knee, ankle - knee
+    l1 = np.linalg.norm(u, axis=-1)
+    l2 = np.linalg.norm(v, axis=-1)
+    reach = np.linalg.norm(target - hip, axis=-1)
+    lo, hi = np.abs(l1 - l2) + 1e-6, l1 + l2 - 1e-6
+    want = np.clip(reach, lo, hi)
+    cos_now = np.sum(u * v, axis=-1) / np.maximum(l1 * l2, 1e-12)
+    cos_want = (l1**2 + l2**2 - want**2) / np.maximum(2 * l1 * l2, 1e-12)
+    dtheta = np.arccos(np.clip(cos_want, -1, 1)) - np.arccos(np.clip(cos_now, -1, 1))
+    n = np.cross(u, v)
+    nn = np.linalg.norm(n, axis=-1, keepdims=True)
+    if hinge is not None:
+        n = np.where(nn > 1e-6 * np.maximum(l1 * l2, 1e-12)[:, None], n, hinge)
+        nn = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = n / np.maximum(nn, 1e-12)
+    r_knee = quat_from_rotvec(n * dtheta[:, None])
+    bent = knee + quat_rotate(r_knee, v)
+    r_hip = _rotation_between(bent - hip, target - hip)
+    return r_hip, r_knee
+
+
+def contact_spans(contact: np.ndarray) -> list[tuple[int, int]]:
+    """Runs of ``True`` as inclusive ``(start, end)`` pairs.
+
+    Parameters
+    ----------
+    contact : (L,) bool ndarray
+
+    Returns
+    -------
+    list of (int, int)
+    """
+    c = np.concatenate([[False], np.asarray(contact, bool), [False]])
+    d = np.diff(c.astype(np.int8))
+    return list(zip(np.flatnonzero(d == 1).tolist(), (np.flatnonzero(d == -1) - 1).tolist()))
+
+
+def foot_corrections(
+    toe_ground: np.ndarray,
+    toe_step: np.ndarray,
+    contact: np.ndarray,
+    *,
+    stiffness: float = 1.0,
+    decay: float = 0.01,
+    min_span: int = 3,
+    fixed: np.ndarray | None = None,
+) -> np.ndarray:
+    """Smooth ground-plane toe corrections that stop the slide of stance toes.
+
+    Per toe and axis the correction ``e`` minimises (a banded least squares)::
+
+        Σ_contact ‖Δ(x + e)_t − s_t‖² + stiffness Σ_t ‖Δ²e_t‖² + decay Σ_t ‖e_t‖²
+
+    where ``x`` is the output toe position, ``s`` the wanted step (the
+    input's own toe step at the source frame, usually almost none) and the
+    first sum runs over pairs of frames inside one contact span of at least
+    ``min_span`` frames.  The second-difference term keeps the legs free of
+    jerk, the small decay brings ``e`` back to zero in the swing phases.
+    Verbatim spans (which already move as in the input) get no correction.
+
+    Parameters
+    ----------
+    toe_ground : (L, T, 2) float ndarray
+        Output toe positions ``(x, z)``.
+    toe_step : (L, T, 2) float ndarray
+        Wanted displacement ``t → t+1`` of each toe while in contact.
+    contact : (L, T) bool ndarray
+    stiffness : float
+        Weight of the second differences (frames are the unit of time).
+    decay : float
+        Weight pulling the corrections to zero.
+    min_span : int
+        Shorter contact spans are left alone.
+    fixed : (L,) bool ndarray, optional
+        Frames whose pose must not change (e.g. constrained frames): ``e = 0``.
+
+    Returns
+    -------
+    (L, T, 2) float ndarray
+    """
+    from scipy.linalg import solveh_banded
+
+    L, T = contact.shape
+    corr = np.zeros((L, T, 2))
+    if L < 3:
+        return corr
+    # second-difference operator D2 (L-2, L): D2ᵀD2 is pentadiagonal
+    d2 = np.zeros((3, L))  # upper banded form (u = 2) of stiffness * D2ᵀD2 + decay * I
+    c = np.zeros(L)
+    c[:-2] += 1
+    c[1:-1] += 4
+    c[2:] += 1
+    d2[2] = stiffness * c + decay
+    c1 = np.zeros(L - 1)
+    c1[:-1] += -2
+    c1[1:] += -2
+    d2[1, 1:] = stiffness * c1
+    d2[0, 2:] = stiffness
+    pen = np.zeros(L)
+    if fixed is not None:
+        pen = np.where(np.asarray(fixed, bool), 1e6, 0.0)
+    for k in range(T):
+        pair = np.zeros(L - 1)  # weight of each step t -> t+1 (both frames in one span)
+        for a, b in contact_spans(contact[:, k]):
+            if b - a + 1 >= min_span:
+                pair[a:b] = 1.0
+        if not pair.any():
+            continue
+        ab = d2.copy()
+        # D1ᵀ W D1: tridiagonal
+        ab[2, :-1] += pair
+        ab[2, 1:] += pair
+        ab[1, 1:] += -pair
+        ab[2] += pen
+        for ax in range(2):
+            x = toe_ground[:, k, ax]
+            r = pair * (toe_step[:-1, k, ax] - np.diff(x))  # wanted change of Δe
+            rhs = np.zeros(L)
+            rhs[1:] += r
+            rhs[:-1] -= r
+            corr[:, k, ax] = solveh_banded(ab, rhs)
+    return corr
+
+
+def apply_foot_ik(
+    skeleton,
+    rotations: np.ndarray,
+    root_position: np.ndarray,
+    chains: list[tuple[int, int, int]],
+    offsets: np.ndarray,
+    *,
+    translations: np.ndarray | None = None,
+) -> np.ndarray:
+    """Move each leg's ankle by a ground-plane offset, feet keeping their world orientation.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    rotations : (L, J, 4) float ndarray
+        Local rotations (root with heading).
+    root_position : (L, 3) float ndarray
+    chains : list of (hip, knee, ankle)
+        From :func:`leg_chains`.
+    offsets : (L, T, 2) float ndarray
+        Wanted ankle (and toe) displacement ``(x, z)`` per chain.
+    translations : (L, J, 3) float ndarray, optional
+
+    Returns
+    -------
+    (L, J, 4) float ndarray
+        Local rotations with the hip, knee and ankle joints of each chain changed.
+    """
+    from mocapflow.stages.motion.kinematics import (
+        forward_kinematics,
+        quat_inverse,
+        quat_multiply,
+        quat_normalize,
+        quat_rotate,
+    )
+
+    rot = np.array(rotations, dtype=np.float64)
+    for k, (h, kn, an) in enumerate(chains):
+        move = np.abs(offsets[:, k]).max(axis=-1) > 1e-7
+        if not move.any():
+            continue
+        idx = np.flatnonzero(move)
+        tr = None if translations is None else translations[idx]
+        pos, glob = forward_kinematics(skeleton, rot[idx], root_position[idx], translations=tr)
+        d = np.zeros((idx.size, 3))
+        d[:, [0, 2]] = offsets[idx, k]
+        hinge = quat_rotate(glob[:, kn], np.array([1.0, 0.0, 0.0]))
+        r_hip, r_knee = two_bone_ik(pos[:, h], pos[:, kn], pos[:, an], pos[:, an] + d, hinge=hinge)
+        g_hip = quat_multiply(r_hip, glob[:, h])
+        g_knee = quat_multiply(r_hip, quat_multiply(r_knee, glob[:, kn]))
+        p = skeleton.parents[h]
+        g_par = glob[:, p] if p >= 0 else np.tile([1.0, 0, 0, 0], (idx.size, 1))
+        rot[idx, h] = quat_normalize(quat_multiply(quat_inverse(g_par), g_hip))
+        rot[idx, kn] = quat_normalize(quat_multiply(quat_inverse(g_hip), g_knee))
+        rot[idx, an] = quat_normalize(quat_multiply(quat_inverse(g_knee), glob[:, an]))
+    return rot

@@ -1,0 +1,355 @@
+"""Adaptive local smoothing of the transitions (Moradoff §3.8).
+
+At every transition (a seam between output frames ``i`` and ``i+1`` whose
+sources are not consecutive) an *acceleration test* compares the acceleration
+at the two seam frames with the accelerations of frames ``i-3 … i-1`` and
+``i+2 … i+4``; acceleration is the mean over joints of the FK joint
+acceleration, on a trajectory integrated locally around the seam.  A seam
+fails when its acceleration exceeds ``accel_tolerance`` × the mean reference
+acceleration (and an absolute floor that lets still poses pass), or — an
+addition to the thesis' test — when the jerk of the frames around it exceeds
+``jerk_limit`` (the caller passes a multiple of the input's p99 jerk).  A failing
+seam is smoothed by a pass of a Gaussian of width 5 (binomial taps
+``[1, 4, 6, 4, 1] / 16``) over a window of ``±k`` frames (with a 5-frame cosine
+taper, whose edges stay below the input's jerk), on quaternions (taps
+sign-aligned, weighted sum, normalised) and on the root features; ``k`` widens
+by one per failing test until no discontinuity remains (or ``max_widening`` is
+reached).
+
+Constrained frames are pinned: after every pass the rotation and height offsets
+that smoothing introduced at a constrained frame are removed by a displacement
+that decays to zero (raised cosine) over the smoothing radius.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "SmoothingResult",
+    "adaptive_smoothing",
+    "filter_quaternions",
+    "gaussian_taps",
+    "seam_test",
+]
+
+#: Frames on each side of a seam used to evaluate the acceleration test.
+_HALF = 6
+#: Taper (frames) of a smoothing window.
+_TAPER = 5
+
+
+def gaussian_taps(width: int = 5) -> np.ndarray:
+    """Binomial approximation of a Gaussian with ``width`` taps (odd).
+
+    Parameters
+    ----------
+    width : int
+
+    Returns
+    -------
+    (width,) float ndarray
+    """
+    from math import comb
+
+    if width < 3 or width % 2 == 0:
+        raise ValueError(f"gaussian_width must be odd and >= 3, got {width}")
+    w = np.array([comb(width - 1, k) for k in range(width)], dtype=np.float64)
+    return w / w.sum()
+
+
+def _shift_index(L: int, m: int, cyclic: bool) -> np.ndarray:
+    idx = np.arange(L) + m
+    return np.mod(idx, L) if cyclic else np.clip(idx, 0, L - 1)
+
+
+def filter_quaternions(q: np.ndarray, taps: np.ndarray, *, cyclic: bool = False) -> np.ndarray:
+    """Gaussian filter of quaternion tracks along frames.
+
+    Parameters
+    ----------
+    q : (L, ..., 4) float ndarray
+    taps : (w,) float ndarray
+        Odd number of weights centred on the frame.
+    cyclic : bool
+        Wrap at the ends (loops); else clamp.
+
+    Returns
+    -------
+    (L, ..., 4) float ndarray
+    """
+    L = q.shape[0]
+    h = taps.size // 2
+    acc = np.zeros_like(q)
+    for m, w in zip(range(-h, h + 1), taps):
+        s = q[_shift_index(L, m, cyclic)]
+        sign = np.where(np.sum(s * q, axis=-1, keepdims=True) < 0, -1.0, 1.0)
+        acc += w * sign * s
+    return acc / np.linalg.norm(acc, axis=-1, keepdims=True)
+
+
+def _filter_linear(x: np.ndarray, taps: np.ndarray, *, cyclic: bool) -> np.ndarray:
+    L = x.shape[0]
+    h = taps.size // 2
+    acc = np.zeros_like(x)
+    for m, w in zip(range(-h, h + 1), taps):
+        acc += w * x[_shift_index(L, m, cyclic)]
+    return acc
+
+
+def _blend_quaternions(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Normalised lerp from ``a`` to ``b`` by per-frame weight ``w`` (L,)."""
+    sign = np.where(np.sum(a * b, axis=-1, keepdims=True) < 0, -1.0, 1.0)
+    ww = w.reshape((-1,) + (1,) * (a.ndim - 1))
+    out = (1 - ww) * a + ww * sign * b
+    return out / np.linalg.norm(out, axis=-1, keepdims=True)
+
+
+def _window(L: int, centre: float, inner: float, cyclic: bool) -> np.ndarray:
+    """Weight 1 within ``inner`` of ``centre``, cosine taper over ``_TAPER`` frames."""
+    f = np.arange(L, dtype=np.float64)
+    d = np.abs(f - centre)
+    if cyclic:
+        d = np.minimum(d, L - d)
+    x = np.clip((d - inner) / _TAPER, 0.0, 1.0)
+    return 0.5 * (1.0 + np.cos(np.pi * x))
+
+
+def seam_test(
+    skeleton,
+    rotations: np.ndarray,
+    features: np.ndarray,
+    seams: np.ndarray,
+    rate: float,
+    *,
+    cyclic: bool,
+    accel_tolerance: float = 1.0,
+    accel_floor: float = 0.0,
+    reference: np.ndarray | None = None,
+    jerk_limit: float | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Acceleration test at each seam.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    rotations : (L, J, 4) float ndarray
+        Local rotations, root heading removed.
+    features : (L, D) float ndarray
+        Root features ``[yaw_rate, vx, vz, height, (translations…)]``.
+    seams : (S,) int ndarray
+        Seams between frames ``t - 1`` and ``t`` (``t = 0``: the loop wrap).
+    rate : float
+    cyclic : bool
+    accel_tolerance : float
+    accel_floor : float
+        Seam accelerations (m/s²) below this always pass (still poses).
+    reference : (S,) float ndarray, optional
+        Reference accelerations to test against (default: measured here).  The
+        smoothing passes the ones of the unsmoothed track, whose reference
+        frames do not yet feel the smoothing window.
+    jerk_limit : float, optional
+        Largest mean joint jerk (m/s³) allowed at the three frames whose
+        jerk stencil spans the seam; a seam above it fails as well.
+
+    Returns
+    -------
+    passed : (S,) bool ndarray
+    seam_acc : (S,) float ndarray
+        Largest acceleration of the two seam frames (m/s²).
+    ref_acc : (S,) float ndarray
+        Largest acceleration of the reference frames.
+    """
+    from mocapflow.stages.motion.kinematics import forward_kinematics, quat_multiply
+    from mocapflow.stages.texture.pyramid import yaw_quaternion
+
+    S = seams.size
+    if S == 0:
+        return np.ones(0, bool), np.zeros(0), np.zeros(0)
+    L = rotations.shape[0]
+    J = rotations.shape[1]
+    raw = seams[:, None] + np.arange(-_HALF, _HALF)[None, :]
+    if cyclic:
+        idx, ok = np.mod(raw, L), np.ones(raw.shape, bool)
+    else:
+        idx, ok = np.clip(raw, 0, L - 1), (raw >= 0) & (raw < L)
+    yaw = features[idx, 0]
+    vel = features[idx, 1:3]
+    heading = np.concatenate([np.zeros((S, 1)), np.cumsum(yaw[:, :-1], axis=1)], axis=1)
+    c, s = np.cos(heading), np.sin(heading)
+    dx = vel[..., 0] * c + vel[..., 1] * s
+    dz = -vel[..., 0] * s + vel[..., 1] * c
+    root = np.zeros(idx.shape + (3,))
+    root[..., 1:, 0] = np.cumsum(dx[:, :-1], axis=1)
+    root[..., 1:, 2] = np.cumsum(dz[:, :-1], axis=1)
+    root[..., 1] = features[idx, 3]
+    rot = rotations[idx].copy()
+    rot[..., 0, :] = quat_multiply(yaw_quaternion(heading), rot[..., 0, :])
+    trans = None
+    if features.shape[1] > 4:
+        trans = features[idx, 4:].reshape(idx.shape + (J, 3))
+    pos, _ = forward_kinematics(skeleton, rot, root, translations=trans)
+    a = np.linalg.norm(pos[:, 2:] - 2 * pos[:, 1:-1] + pos[:, :-2], axis=-1).mean(-1) * rate**2
+    a_ok = ok[:, 2:] & ok[:, 1:-1] & ok[:, :-2]
+    acc = np.full(idx.shape, np.nan)
+    acc[:, 1:-1] = np.where(a_ok, a, np.nan)
+    i = _HALF - 1  # frame before the seam, local index
+    seam_acc = np.nanmax(acc[:, i : i + 2], axis=1)
+    ref = np.concatenate([acc[:, i - 3 : i], acc[:, i + 2 : i + 5]], axis=1)
+    with np.errstate(invalid="ignore"):
+        ref_acc = np.where(np.isfinite(ref).any(1), np.nanmean(ref, 1), 0)
+    if reference is not None:
+        ref_acc = np.asarray(reference, dtype=np.float64)
+    passed = ~(seam_acc > np.maximum(accel_tolerance * ref_acc, accel_floor))
+    passed |= ~np.isfinite(ref).any(1)
+    if jerk_limit is not None:
+        j = pos[:, 3:] - 3 * pos[:, 2:-1] + 3 * pos[:, 1:-2] - pos[:, :-3]
+        j = np.linalg.norm(j, axis=-1).mean(-1) * rate**3  # local frame f = index + 1
+        j_ok = ok[:, 3:] & ok[:, :-3]
+        jerk = np.where(j_ok, j, np.nan)[:, i - 2 : i + 1]  # frames i-1, i, i+1
+        with np.errstate(invalid="ignore"):
+            passed &= ~(np.nanmax(np.nan_to_num(jerk, nan=0.0), axis=1) > jerk_limit)
+    return passed, seam_acc, ref_acc
+
+
+@dataclass
+class SmoothingResult:
+    """Smoothed output and what the smoothing did.
+
+    Attributes
+    ----------
+    rotations : (L, J, 4) float ndarray
+    features : (L, D) float ndarray
+    widening : (S,) int ndarray
+        Final ``k`` of each seam (0: passed untouched).
+    passed : (S,) bool ndarray
+        Seams that pass the acceleration test after smoothing.
+    seam_acc, ref_acc : (S,) float ndarray
+        Test values after smoothing.
+    """
+
+    rotations: np.ndarray
+    features: np.ndarray
+    widening: np.ndarray
+    passed: np.ndarray
+    seam_acc: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    ref_acc: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+def _pin(rot, feat, rot0, feat0, frames, radius, cyclic):
+    """Remove the offsets smoothing left at the constrained frames (in place)."""
+    from mocapflow.stages.motion.kinematics import quat_exp, quat_inverse, quat_log, quat_multiply
+
+    L = rot.shape[0]
+    frames = sorted(int(f) for f in frames)
+    for n, c in enumerate(frames):
+        others = [abs(c - o) for k, o in enumerate(frames) if k != n]
+        if cyclic:
+            others = [min(d, L - d) for d in others]
+        r = min([radius] + [d - 1 for d in others])
+        if r < 1:
+            rot[c], feat[c, 3:] = rot0[c], feat0[c, 3:]
+            continue
+        d = np.abs(np.arange(L) - c)
+        if cyclic:
+            d = np.minimum(d, L - d)
+        w = np.where(d <= r, 0.5 * (1 + np.cos(np.pi * d / (r + 1))), 0.0)
+        delta = quat_multiply(quat_inverse(rot[c]), rot0[c])
+        delta = np.where(delta[..., :1] < 0, -delta, delta)
+        lg = quat_log(delta)  # (J, 3)
+        rot[:] = quat_multiply(rot, quat_exp(w[:, None, None] * lg[None]))
+        feat[:, 3:] += w[:, None] * (feat0[c, 3:] - feat[c, 3:])[None, :]
+        rot[c], feat[c, 3:] = rot0[c], feat0[c, 3:]
+
+
+def adaptive_smoothing(
+    skeleton,
+    rotations: np.ndarray,
+    features: np.ndarray,
+    seams: np.ndarray,
+    rate: float,
+    *,
+    constrained: list[int] | np.ndarray = (),
+    cyclic: bool = False,
+    gaussian_width: int = 5,
+    accel_tolerance: float = 1.0,
+    accel_floor: float = 0.0,
+    max_widening: int = 12,
+    jerk_limit: float | None = None,
+) -> SmoothingResult:
+    """Smooth every seam that fails the acceleration test, widening until it passes.
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    rotations : (L, J, 4) float ndarray
+        Local rotations (root heading removed).
+    features : (L, D) float ndarray
+        ``[yaw_rate, vx, vz, height, translations…]``.
+    seams : (S,) int ndarray
+        Seams between ``t - 1`` and ``t``.
+    rate : float
+    constrained : sequence of int
+        Output frames pinned to their values.
+    cyclic : bool
+        Loop mode (windows wrap).
+    gaussian_width : int
+        Taps of the Gaussian (5).
+    accel_tolerance : float
+        Seam acceleration allowed, relative to the mean reference acceleration.
+    accel_floor : float
+        Seam accelerations below this (m/s²) pass whatever the references.
+    max_widening : int
+        Largest ``k``.
+    jerk_limit : float, optional
+        Seams whose jerk exceeds this (m/s³) fail too (see :func:`seam_test`).
+
+    Returns
+    -------
+    SmoothingResult
+    """
+    rot = np.array(rotations, dtype=np.float64)
+    feat = np.array(features, dtype=np.float64)
+    rot0, feat0 = rot.copy(), feat.copy()
+    seams = np.asarray(seams, dtype=np.int64)
+    taps = gaussian_taps(gaussian_width)
+    k = np.zeros(seams.size, dtype=np.int64)
+    L = rot.shape[0]
+    passed, sa, ref = seam_test(
+        skeleton,
+        rot,
+        feat,
+        seams,
+        rate,
+        cyclic=cyclic,
+        accel_tolerance=accel_tolerance,
+        accel_floor=accel_floor,
+        jerk_limit=jerk_limit,
+    )
+    while not passed.all():
+        fail = ~passed & (k < max_widening)
+        if not fail.any():
+            break
+        k[fail] += 1
+        w = np.zeros(L)
+        for t, kk in zip(seams[fail], k[fail]):
+            w = np.maximum(w, _window(L, t - 0.5, float(kk), cyclic))
+        rot = _blend_quaternions(rot, filter_quaternions(rot, taps, cyclic=cyclic), w)
+        feat = feat + w[:, None] * (_filter_linear(feat, taps, cyclic=cyclic) - feat)
+        if len(constrained):
+            _pin(rot, feat, rot0, feat0, constrained, int(k.max()) + _TAPER + 2, cyclic)
+        passed, sa, _ = seam_test(
+            skeleton,
+            rot,
+            feat,
+            seams,
+            rate,
+            cyclic=cyclic,
+            accel_tolerance=accel_tolerance,
+            accel_floor=accel_floor,
+            reference=ref,
+            jerk_limit=jerk_limit,
+        )
+    return SmoothingResult(rot, feat, k, passed, sa, ref)

@@ -1,0 +1,3 @@
+"""Lau, Bar-Joseph & Kuffner 2009."""
+
+STAGE_MODULES = ("clips", "learn", "sample", "ik", "plots")

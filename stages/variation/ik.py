@@ -1,0 +1,619 @@
+"""Inverse-kinematics clean-up of sampled variants (Lau, Bar-Joseph & Kuffner 2009, §7).
+
+Per limb (leg or arm) and frame with constraints, the limb's joint-angle DOFs
+``q`` minimise
+
+    w₁ ‖q − q̄‖² + w₂ ‖q − 2 q₋₁ + q₋₂‖²
+
+subject to every constrained end effector of the limb lying at its target
+(SLSQP, initialised from the sample ``q̄``; ``q₋₁, q₋₂`` are the cleaned
+previous frames).  After a contact the correction eases back to the sample
+(raised cosine over ``blend`` seconds).
+
+Limbs and targets
+    The limb of an effector joint is the chain of its ancestors up to (not
+    including) the first joint with several children or the root; only the
+    chain's varying DOFs move.  Foot contacts are detected automatically per
+    effector (ankle and toe of each foot): height below the floor (5th
+    percentile) + ``height_threshold`` and horizontal speed below
+    ``speed_threshold``; each contact run's target is the position of
+    the effector at the run's first frame in the cleaned pose (so a contact
+    starts without a jump).  Of the detected contacts of one limb only the
+    deepest effector is held (the toe while it touches, else the ankle), so
+    the foot rolls about its ball through heel-off; contacts given in the
+    config are always held.  The config can replace the detection
+    (``contacts``: frame ranges per joint) or give explicit targets
+    (``targets``: ``[frame, x, y, z]`` rows per joint, e.g. for hands).
+Unreachable targets
+    When SLSQP cannot meet a target within ``tolerance`` the limb takes the
+    pose that minimises the target distance (best effort) and a warning names
+    the variant, frame, effector and the remaining error.  A detected contact
+    missed by more than ``release`` ends there (the foot lifts off early).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from mocapflow.pipeline import Context, stage
+from mocapflow.stages.motion.datatypes import Skeleton
+from mocapflow.stages.motion.kinematics import forward_kinematics, quat_to_matrix
+from mocapflow.stages.variation.clips import Clips, _padded_order, clips_to_motions, foot_joint
+
+__all__ = [
+    "IKError",
+    "Limb",
+    "contact_runs",
+    "ik",
+    "limb_of",
+    "solve_ik",
+]
+
+_AXES = "XYZ"
+
+
+class IKError(ValueError):
+    """Bad IK request (unknown effector joint, malformed targets)."""
+
+
+@dataclass
+class Limb:
+    """A kinematic chain moved by IK.
+
+    Attributes
+    ----------
+    joints : list of int
+        Chain joints, top (nearest the body) first.
+    top_parent : int
+        Parent of the chain's top joint (fixed during IK).
+    effectors : list of int
+        Effector joints (children of chain joints).
+    dof_columns : (V,) int ndarray
+        Columns of the full DOF vector that IK varies.
+    dof_slots : list of (int, int)
+        ``(chain joint position, Euler slot)`` of each varied DOF.
+    """
+
+    joints: list[int]
+    top_parent: int
+    effectors: list[int]
+    dof_columns: np.ndarray
+    dof_slots: list[tuple[int, int]]
+
+
+def limb_of(skeleton: Skeleton, effector: int) -> list[int]:
+    """The chain of joints that moves ``effector`` (top first).
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    effector : int
+        Joint index.
+
+    Returns
+    -------
+    list of int
+        Ancestors of ``effector`` from its parent up to (not including) the
+        first joint with more than one child or the root.
+    """
+    chain = []
+    j = int(skeleton.parents[effector])
+    while j > 0 and len(skeleton.children(j)) <= 1:
+        chain.append(j)
+        j = int(skeleton.parents[j])
+    if j > 0 and not chain:
+        chain.append(j)
+    return chain[::-1]
+
+
+def _make_limb(clips: Clips, effectors: list[int]) -> Limb:
+    sk = clips.skeleton
+    deepest = max(effectors, key=lambda e: len(limb_of(sk, e)))
+    joints = limb_of(sk, deepest)
+    for e in effectors:
+        if not set(limb_of(sk, e)) <= set(joints) and limb_of(sk, e):
+            raise IKError(f"effectors {[sk.names[x] for x in effectors]} are not on one limb")
+    col = {n: i for i, n in enumerate(clips.dof_names)}
+    cols, slots = [], []
+    for pos, j in enumerate(joints):
+        order = sk.rotation_order(j)
+        for slot, a in enumerate(order):
+            name = f"{sk.names[j]}:{a}rotation"
+            c = col.get(name)
+            if c is not None and clips.varying[c]:
+                cols.append(c)
+                slots.append((pos, slot))
+    if not joints:
+        raise IKError(f"effector {sk.names[deepest]!r} has no joint chain to move")
+    return Limb(
+        joints=joints,
+        top_parent=int(sk.parents[joints[0]]),
+        effectors=effectors,
+        dof_columns=np.asarray(cols, dtype=np.int64),
+        dof_slots=slots,
+    )
+
+
+def contact_runs(mask: np.ndarray, *, min_length: int = 2) -> list[tuple[int, int]]:
+    """``[start, stop)`` runs of a boolean contact track, at least ``min_length`` long."""
+    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
+    d = np.diff(m.astype(np.int8))
+    return [
+        (int(a), int(b))
+        for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1))
+        if b - a >= min_length
+    ]
+
+
+class _ChainFK:
+    """Forward kinematics of one limb at one frame, batched over candidate DOF vectors.
+
+    Rotation matrices from :class:`scipy.spatial.transform.Rotation` (upper-case
+    order = intrinsic, the convention of
+    :func:`~mocapflow.stages.motion.kinematics.euler_to_quat`).
+    """
+
+    def __init__(self, sk: Skeleton, limb: Limb, angles: np.ndarray, gpar: np.ndarray,
+                 ppar: np.ndarray):
+        self.sk, self.limb = sk, limb
+        self.angles = angles  # (J_c, 3) Euler angles of the chain at this frame
+        self.Gpar = quat_to_matrix(gpar)  # (3, 3) global rotation of the top parent
+        self.ppar = ppar
+        self.orders = [_padded_order(sk.rotation_order(j)) for j in limb.joints]
+        self.offsets = sk.offsets[limb.joints]
+        self.eff_parent = [limb.joints.index(int(sk.parents[e])) for e in limb.effectors]
+        self.eff_offset = sk.offsets[limb.effectors]
+
+    def __call__(self, q: np.ndarray) -> np.ndarray:
+        """Effector positions ``(Q, E, 3)`` for DOF vectors ``q (Q, V)``."""
+        from scipy.spatial.transform import Rotation
+
+        q = np.atleast_2d(q)
+        Q = q.shape[0]
+        ang = np.broadcast_to(self.angles, (Q,) + self.angles.shape).copy()
+        for v, (pos, slot) in enumerate(self.limb.dof_slots):
+            ang[:, pos, slot] = q[:, v]
+        G = np.broadcast_to(self.Gpar, (Q, 3, 3))
+        p = np.broadcast_to(self.ppar, (Q, 3))
+        gl, pl = [], []
+        for k in range(len(self.orders)):
+            p = p + G @ self.offsets[k]
+            G = G @ Rotation.from_euler(self.orders[k], ang[:, k]).as_matrix()
+            gl.append(G)
+            pl.append(p)
+        return np.stack(
+            [pl[k] + gl[k] @ off for k, off in zip(self.eff_parent, self.eff_offset)], axis=1
+        )
+
+
+def _solve_frame(
+    fk: _ChainFK,
+    qbar: np.ndarray,
+    qprev: np.ndarray | None,
+    target: np.ndarray,
+    active: np.ndarray,
+    *,
+    w1: float,
+    w2: float,
+    tolerance: float,
+    max_iter: int,
+    max_change: float,
+) -> tuple[np.ndarray, float, bool]:
+    """One limb, one frame: SLSQP, with a best-effort fallback."""
+    from scipy.optimize import minimize
+
+    pred = None if qprev is None else qprev  # 2 q₋₁ − q₋₂ (or None)
+
+    def obj(q):
+        r = w1 * ((q - qbar) ** 2).sum()
+        if pred is not None:
+            r += w2 * ((q - pred) ** 2).sum()
+        return r
+
+    def obj_grad(q):
+        g = 2 * w1 * (q - qbar)
+        if pred is not None:
+            g += 2 * w2 * (q - pred)
+        return g
+
+    h = 1e-7
+
+    def cons(q):
+        return (fk(q[None])[0, active] - target[active]).ravel()
+
+    def cons_jac(q):
+        V = len(q)
+        Qs = np.concatenate([q[None], q[None] + h * np.eye(V)])
+        P = fk(Qs)[:, active].reshape(V + 1, -1)
+        return ((P[1:] - P[0]) / h).T
+
+    q0 = qbar.copy()
+    bounds = list(zip(qbar - max_change, qbar + max_change))
+    res = minimize(
+        obj, q0, jac=obj_grad, method="SLSQP", bounds=bounds,
+        constraints=[{"type": "eq", "fun": cons, "jac": cons_jac}],
+        options={"maxiter": max_iter, "ftol": 1e-12},
+    )
+    q = np.clip(res.x, qbar - max_change, qbar + max_change) if np.all(
+        np.isfinite(res.x)) else q0
+    err = float(np.linalg.norm(cons(q).reshape(-1, 3), axis=1).max())
+    if err <= tolerance:
+        return q, err, True
+    # best effort: the objective plus a stiff penalty on the target distance
+    rho = 1e5  # per m²: 1 cm off costs as much as 0.3 rad of w1-weighted change
+
+    def dist(q):
+        c = cons(q)
+        return rho * (c * c).sum() + obj(q)
+
+    def dist_grad(q):
+        return 2 * rho * cons_jac(q).T @ cons(q) + obj_grad(q)
+
+    best = min((q, q0), key=lambda x: dist(x))
+    res2 = minimize(dist, best, jac=dist_grad, method="SLSQP", bounds=bounds,
+                    options={"maxiter": max_iter, "ftol": 1e-12})
+    q2 = res2.x if dist(res2.x) < dist(best) else best
+    err2 = float(np.linalg.norm(cons(q2).reshape(-1, 3), axis=1).max())
+    return q2, err2, err2 <= tolerance
+
+
+def _auto_effectors(sk: Skeleton) -> list[list[int]]:
+    """Per foot: [ankle, toe] joints that exist (one limb each)."""
+    limbs = []
+    for side in ("left", "right"):
+        f = foot_joint(sk, side)
+        if f < 0:
+            continue
+        eff = [f]
+        toes = [c for c in sk.children(f) if "toe" in sk.names[c].lower()]
+        if toes:
+            eff.append(toes[0])
+        limbs.append(eff)
+    return limbs
+
+
+def solve_ik(
+    clips: Clips,
+    *,
+    w1: float = 1.0,
+    w2: float = 5.0,
+    effectors: list[str] | None = None,
+    contacts: dict[str, list[list[int]]] | None = None,
+    targets: dict[str, list[list[float]]] | None = None,
+    height_threshold: float = 0.05,
+    speed_threshold: float | None = None,
+    tolerance: float = 1e-3,
+    release: float = 0.02,
+    max_change: float = 0.5,
+    blend: float = 0.15,
+    max_iter: int = 100,
+    ctx: Context | None = None,
+) -> tuple[Clips, dict[str, Any]]:
+    """IK clean-up of every clip (see module docstring).
+
+    Parameters
+    ----------
+    clips : Clips
+        Motion clips (``kind == "motion"``).
+    w1, w2 : float
+        Weights of the closeness and smoothness terms (paper: 1 and 5).
+    effectors : list of str, optional
+        Effector joint names for automatic contact detection (default the
+        ankle and toe joints of both feet).
+    contacts : dict, optional
+        ``joint -> [[start, stop], ...]`` contact frame ranges replacing the
+        detection for that joint (all clips).
+    targets : dict, optional
+        ``joint -> [[frame, x, y, z], ...]`` explicit targets (metres), added
+        to the detected ones (all clips).
+    height_threshold : float
+        Metres above the effector's floor (5th percentile of its height).
+    speed_threshold : float, optional
+        Horizontal speed (m/s) below which an effector may be in contact;
+        default the larger of 0.5 m/s and its median speed.
+    tolerance : float
+        Metres; a constraint met within it counts as reached.
+    release : float
+        Metres; a detected contact whose target is missed by more than this
+        ends at that frame (the foot lifts off early); contacts given in
+        ``contacts`` are held to the end.
+    max_change : float
+        Radians; each DOF stays within this of its sampled value (keeps the
+        knee and elbow on the sampled side of full extension).
+    blend : float
+        Seconds over which the correction of a limb eases back to the sample
+        after its last constrained frame (raised cosine).
+    max_iter : int
+        SLSQP iterations per frame.
+    ctx : Context, optional
+        Warnings.
+
+    Returns
+    -------
+    cleaned : Clips
+    report : dict
+        Per clip: constrained frames per effector, max / mean error (m), max
+        error over the frames whose targets were reached, unreachable frames;
+        the thresholds used.
+    """
+    ctx = ctx or Context()
+    if clips.kind != "motion":
+        raise IKError(f"IK needs motion clips, got {clips.kind!r}")
+    sk = clips.skeleton
+    up = "xyz".index(clips.attrs.get("up", "y"))
+    hz = [a for a in range(3) if a != up]
+    if effectors is None:
+        groups = _auto_effectors(sk)
+    else:
+        groups = []
+        for name in effectors:
+            try:
+                j = sk.index(name)
+            except KeyError as e:
+                raise IKError(f"ik.effectors: {e.args[0]}") from None
+            # group effectors sharing a limb
+            for g in groups:
+                if set(limb_of(sk, j)) & set(limb_of(sk, g[0])):
+                    g.append(j)
+                    break
+            else:
+                groups.append([j])
+    for name in list(contacts or {}) + list(targets or {}):
+        try:
+            j = sk.index(name)
+        except KeyError as e:
+            raise IKError(f"ik: {e.args[0]}") from None
+        if not any(j in g for g in groups):
+            for g in groups:
+                if set(limb_of(sk, j)) & set(limb_of(sk, g[0])):
+                    g.append(j)
+                    break
+            else:
+                groups.append([j])
+    limbs = [_make_limb(clips, g) for g in groups]
+    motions = clips_to_motions(clips)
+    out_trajs = []
+    report: dict[str, Any] = {"clips": [], "limbs": [[sk.names[e] for e in g] for g in groups]}
+    for c, motion in enumerate(motions):
+        full = clips.full(c)
+        F = full.shape[0]
+        pos, grot = forward_kinematics(
+            sk, motion.rotations, motion.root_position, translations=motion.translations
+        )
+        eff_all = sorted({e for g in groups for e in g})
+        # contact runs per effector; explicit targets per frame
+        runs_of: dict[int, list[tuple[int, int]]] = {}
+        fixed = {e: np.full((F, 3), np.nan) for e in eff_all}
+        rate = clips.rate
+        for e in eff_all:
+            name = sk.names[e]
+            p = pos[:, e]
+            if contacts and name in contacts:
+                runs = [(max(0, int(a)), min(F, int(b))) for a, b in contacts[name]]
+            elif effectors is None or name in effectors:
+                floor = float(np.percentile(p[:, up], 5))
+                v = (np.linalg.norm(np.gradient(p[:, hz], axis=0), axis=1) * rate
+                     if F > 1 else np.zeros(F))
+                s_thr = (max(0.5, float(np.median(v))) if speed_threshold is None
+                         else speed_threshold)
+                runs = contact_runs((p[:, up] < floor + height_threshold) & (v < s_thr))
+            else:
+                runs = []
+            runs_of[e] = [(a, b) for a, b in runs if b > a]
+            if targets and name in targets:
+                for row in targets[name]:
+                    if len(row) != 4:
+                        raise IKError(f"ik.targets.{name}: rows must be [frame, x, y, z]")
+                    fr = int(row[0])
+                    if not 0 <= fr < F:
+                        raise IKError(f"ik.targets.{name}: frame {fr} outside 0..{F - 1}")
+                    fixed[e][fr] = row[1:4]
+        errs: dict[str, list[float]] = {sk.names[e]: [] for e in eff_all}
+        reached: dict[str, list[float]] = {sk.names[e]: [] for e in eff_all}
+        unreachable: list[dict[str, Any]] = []
+        new = full.copy()
+        for limb in limbs:
+            cols = limb.dof_columns
+            if cols.size == 0:
+                ctx.warn(f"limb {[sk.names[e] for e in limb.effectors]} has no varying DOF")
+                continue
+            E = len(limb.effectors)
+            manual = [bool(contacts) and sk.names[e] in contacts for e in limb.effectors]
+            depth = [len(limb_of(sk, e)) for e in limb.effectors]
+            run_id = np.full((F, E), -1)
+            for k, e in enumerate(limb.effectors):
+                for r, (a, b) in enumerate(runs_of[e]):
+                    run_id[a:b, k] = r
+            planted: dict[tuple[int, int], np.ndarray] = {}  # (effector, run) -> target
+            angles = _chain_angles(sk, limb, clips.dof_names, full)
+            offset, since = None, 0
+            n_blend = max(1, int(round(blend * clips.rate)))
+            for t in range(F):
+                qbar = full[t, cols]
+                qprev = None
+                if t >= 2:
+                    qprev = 2 * new[t - 1, cols] - new[t - 2, cols]
+                elif t == 1:
+                    qprev = new[0, cols]
+                T = np.full((E, 3), np.nan)
+                pending = []
+                # of the detected contacts only the deepest (toe over ankle) is held, so
+                # the foot can roll about it; explicit targets are all held
+                touching = [k for k in range(E) if run_id[t, k] >= 0]
+                held = max(touching, key=lambda k: depth[k]) if touching else -1
+                for k, e in enumerate(limb.effectors):
+                    if np.isfinite(fixed[e][t]).all():
+                        T[k] = fixed[e][t]
+                    elif run_id[t, k] >= 0 and (k == held or manual[k]):
+                        key = (k, int(run_id[t, k]))
+                        if key in planted:
+                            T[k] = planted[key]
+                        else:
+                            pending.append(key)
+                act = np.isfinite(T).all(axis=-1)
+                if not act.any() and not pending:
+                    # after a contact: ease the correction back to the sample
+                    if offset is not None and since < n_blend:
+                        since += 1
+                        new[t, cols] = qbar + offset * 0.5 * (1 + np.cos(np.pi * since / n_blend))
+                    continue
+                fk = _ChainFK(sk, limb, angles[t], grot[t, limb.top_parent],
+                              pos[t, limb.top_parent])
+                if act.any():
+                    q, err, ok = _solve_frame(
+                        fk, qbar, qprev, T, act, w1=w1, w2=w2,
+                        tolerance=tolerance, max_iter=max_iter, max_change=max_change,
+                    )
+                    if not ok:
+                        names = [sk.names[e] for k, e in enumerate(limb.effectors) if act[k]]
+                        unreachable.append({"frame": t, "effectors": names, "error": err})
+                        if err > release:  # lift off: end these detected contacts here
+                            for k in np.flatnonzero(act):
+                                r = run_id[t, k]
+                                if r >= 0 and not manual[k]:
+                                    run_id[t + 1 :, k] = np.where(
+                                        run_id[t + 1 :, k] == r, -1, run_id[t + 1 :, k]
+                                    )
+                else:
+                    q = qbar if qprev is None else (w1 * qbar + w2 * qprev) / (w1 + w2)
+                    ok = True
+                new[t, cols] = q
+                P = fk(q[None])[0]
+                offset, since = new[t, cols] - qbar, 0
+                for key in pending:  # a contact starts: plant where the effector is now
+                    planted[key] = P[key[0]].copy()
+                    errs[sk.names[limb.effectors[key[0]]]].append(0.0)
+                    reached[sk.names[limb.effectors[key[0]]]].append(0.0)
+                for k, e in enumerate(limb.effectors):
+                    if act[k]:
+                        err_k = float(np.linalg.norm(P[k] - T[k]))
+                        errs[sk.names[e]].append(err_k)
+                        if ok:
+                            reached[sk.names[e]].append(err_k)
+        if unreachable:
+            ctx.warn(_unreachable_summary(clips.names[c], unreachable))
+        out_trajs.append(new[:, clips.varying])
+        report["clips"].append(
+            {
+                "name": clips.names[c],
+                "constrained_frames": {k: len(v) for k, v in errs.items()},
+                "max_error": {k: (max(v) if v else 0.0) for k, v in errs.items()},
+                "max_error_reached": {k: (max(v) if v else 0.0) for k, v in reached.items()},
+                "mean_error": {k: (float(np.mean(v)) if v else 0.0) for k, v in errs.items()},
+                "unreachable": unreachable,
+            }
+        )
+    report.update(
+        {"w1": w1, "w2": w2, "height_threshold": height_threshold,
+         "speed_threshold": speed_threshold, "tolerance": tolerance}
+    )
+    return clips.replace(trajectories=out_trajs, attrs={**clips.attrs, "ik": True}), report
+
+
+def _chain_angles(sk: Skeleton, limb: Limb, names: list[str], full: np.ndarray) -> np.ndarray:
+    """Euler angles ``(F, J_c, 3)`` of the chain joints (padded channel order)."""
+    col = {n: i for i, n in enumerate(names)}
+    F = full.shape[0]
+    out = np.zeros((F, len(limb.joints), 3))
+    for k, j in enumerate(limb.joints):
+        for s, a in enumerate(sk.rotation_order(j)):
+            c = col.get(f"{sk.names[j]}:{a}rotation")
+            if c is not None:
+                out[:, k, s] = full[:, c]
+    return out
+
+
+@stage("ik", outputs=("variants", "report"))
+def ik(
+    variants: Clips,
+    *,
+    w1: float = 1.0,
+    w2: float = 5.0,
+    effectors: list[str] | None = None,
+    contacts: dict[str, list[list[int]]] | None = None,
+    targets: dict[str, list[list[float]]] | None = None,
+    height_threshold: float = 0.05,
+    speed_threshold: float | None = None,
+    tolerance: float = 1e-3,
+    release: float = 0.02,
+    max_change: float = 0.5,
+    blend: float = 0.15,
+    max_iter: int = 100,
+    mode: Literal["auto", "off"] = "auto",
+    ctx: Context,
+) -> dict:
+    """IK clean-up of sampled variants: planted feet (and configured targets), §7.
+
+    Parameters
+    ----------
+    variants : Clips
+        Sampled variants (pen strokes pass through unchanged).
+    w1, w2 : float
+        Closeness and smoothness weights (paper: w₁ = 1, w₂ = 5).
+    effectors : list of str, optional
+        Effector joints for contact detection (default ankles and toes).
+    contacts : dict, optional
+        Manual contact frame ranges per joint (replaces detection).
+    targets : dict, optional
+        Explicit ``[frame, x, y, z]`` targets per joint (metres).
+    height_threshold : float
+        Contact height above the effector's floor, metres.
+    speed_threshold : float, optional
+        Contact speed, m/s (default max(0.5, median speed)).
+    tolerance : float
+        Metres; constraints met within it are reached, others are reported.
+    release : float
+        Metres; a detected contact missed by more than this ends early.
+    max_change : float
+        Radians; bound on each DOF's change from the sample.
+    blend : float
+        Seconds to ease a limb's correction back to the sample after a contact.
+    max_iter : int
+        SLSQP iterations per frame.
+    mode : {"auto", "off"}
+        ``off`` passes the variants through.
+    ctx : Context
+
+    Returns
+    -------
+    dict
+        ``variants`` (Clips) and ``report`` (JSON).
+    """
+    if mode == "off" or variants.kind != "motion":
+        why = "off" if mode == "off" else f"kind {variants.kind!r} has no skeleton"
+        return {"variants": variants, "report": {"skipped": why}}
+    cleaned, report = solve_ik(
+        variants, w1=w1, w2=w2, effectors=effectors, contacts=contacts, targets=targets,
+        height_threshold=height_threshold, speed_threshold=speed_threshold,
+        tolerance=tolerance, release=release, max_change=max_change, blend=blend,
+        max_iter=max_iter, ctx=ctx,
+    )
+    return {"variants": cleaned, "report": report}
+
+
+def _frame_ranges(frames: list[int]) -> str:
+    """``[3, 4, 5, 9]`` → ``"frames 3-5, frame 9"``."""
+    frames = sorted(set(frames))
+    runs: list[list[int]] = []
+    for f in frames:
+        if runs and f == runs[-1][-1] + 1:
+            runs[-1].append(f)
+        else:
+            runs.append([f])
+    return ", ".join(f"frame {r[0]}" if len(r) == 1 else f"frames {r[0]}-{r[-1]}" for r in runs)
+
+
+def _unreachable_summary(name: str, unreachable: list[dict[str, Any]]) -> str:
+    """One warning per clip: the unreachable frames per effector set and the worst miss."""
+    by_effectors: dict[str, list[dict[str, Any]]] = {}
+    for u in unreachable:
+        by_effectors.setdefault(", ".join(u["effectors"]), []).append(u)
+    parts = [
+        f"{eff} at {_frame_ranges([u['frame'] for u in us])} "
+        f"(up to {max(u['error'] for u in us) * 1000:.1f} mm off)"
+        for eff, us in by_effectors.items()
+    ]
+    return f"{name}: target unreachable, best effort: {'; '.join(parts)}"

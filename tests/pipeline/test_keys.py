@@ -1,0 +1,224 @@
+"""Cache-key building blocks: canonical encoding, digests, code fingerprints, key diffs."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mocapflow.pipeline.keys import (
+    KEY_LENGTH,
+    canonical,
+    clear_caches,
+    diff_components,
+    digest,
+    digest_of,
+    file_digest,
+    package_versions,
+    task_key,
+)
+
+# --------------------------------------------------------------------------- canonical
+
+
+def test_canonical_tags_types():
+    variants = [1, 1.0, "1", True]
+    encodings = [canonical(v) for v in variants]
+    assert len(set(encodings)) == 4
+    assert canonical(0) != canonical(False) != canonical(None)
+    assert canonical(np.int64(1)) == canonical(1)
+    assert canonical(np.float64(1.0)) == canonical(1.0)
+    assert canonical(np.bool_(True)) == canonical(True)
+    assert canonical({1: "a"}) != canonical({"1": "a"})
+    assert canonical([1, 2]) == canonical((1, 2))
+    assert canonical([1, [2]]) != canonical([1, 2])
+
+
+def test_canonical_dict_order_independent():
+    a = {"alpha1": 0.5, "alpha2": 0.6, "nested": {"x": [1, 2], "y": None}}
+    b = {"nested": {"y": None, "x": [1, 2]}, "alpha2": 0.6, "alpha1": 0.5}
+    assert canonical(a) == canonical(b)
+    assert digest_of(a) == digest_of(b)
+    assert canonical(a) != canonical({**a, "alpha1": 0.50000000000000011})
+
+
+def test_canonical_floats_exact_and_nonfinite():
+    assert canonical(0.1 + 0.2) != canonical(0.3)
+    assert canonical(np.float32(0.1)) != canonical(0.1)
+    assert canonical(-0.0) != canonical(0.0)
+    nan = canonical(float("nan"))
+    assert nan == canonical(np.nan) == canonical(np.float32("nan"))
+    assert len({nan, canonical(float("inf")), canonical(float("-inf")), canonical("nan")}) == 4
+    json.loads(canonical([float("nan"), float("inf")]))  # strict JSON, no NaN literals
+
+
+def test_canonical_arrays():
+    a = np.arange(6, dtype="<i4").reshape(2, 3)
+    assert canonical(a) == canonical(a.copy())
+    assert canonical(a) == canonical(a.astype(">i4"))  # same values, other byte order
+    assert canonical(a) != canonical(a.astype(np.int64))
+    assert canonical(a) != canonical(a.reshape(3, 2))
+    assert canonical(a) != canonical(a + (a == 5))
+
+
+@pytest.mark.parametrize("bad", [{1, 2}, object(), Path("x"), b"bytes"])
+def test_canonical_rejects_other_types(bad):
+    with pytest.raises(TypeError, match=type(bad).__name__):
+        canonical({"p": [bad]})
+
+
+def test_digest():
+    assert digest("abc") == digest(b"abc") == hashlib.blake2b(b"abc", digest_size=32).hexdigest()
+    assert len(digest(b"")) == 64
+    assert digest_of({"a": 1}) == digest(canonical({"a": 1}))
+
+
+# --------------------------------------------------------------------------- files
+
+
+def _old(path: Path) -> None:
+    """Push the mtime out of the racy window so the digest may be memoised."""
+    st = path.stat()
+    os.utime(path, ns=(st.st_atime_ns, st.st_mtime_ns - 10**10))
+
+
+def test_file_digest_content_and_memo(tmp_path):
+    clear_caches()
+    f = tmp_path / "a.bvh"
+    f.write_bytes(b"HIERARCHY\n" * 1000)
+    _old(f)
+    want = hashlib.blake2b(f.read_bytes(), digest_size=32).hexdigest()
+    memo: dict = {}
+    assert file_digest(f, memo) == want
+    st = f.stat()
+    assert memo[os.path.realpath(f)] == [st.st_size, st.st_mtime_ns, st.st_ino, want]
+    # same content under another name: same digest (content, not path)
+    g = tmp_path / "b.bvh"
+    g.write_bytes(f.read_bytes())
+    assert file_digest(g) == want
+    # the persistent memo is trusted when the stat matches ...
+    clear_caches()
+    fake = {os.path.realpath(f): [st.st_size, st.st_mtime_ns, st.st_ino, "f" * 64]}
+    assert file_digest(f, fake) == "f" * 64
+    # ... and ignored once the file changes
+    clear_caches()
+    f.write_bytes(b"HIERARCHY\n" * 999 + b"MOTION!!!\n")
+    assert file_digest(f, fake) == hashlib.blake2b(f.read_bytes(), digest_size=32).hexdigest()
+    assert file_digest(f, fake) != want
+
+
+def test_file_digest_recent_file_not_memoised(tmp_path):
+    clear_caches()
+    f = tmp_path / "fresh.c3d"
+    f.write_bytes(b"x")
+    memo: dict = {}
+    file_digest(f, memo)
+    assert memo == {}  # mtime within the racy window
+
+
+def test_file_digest_missing_and_directory(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nope.c3d"):
+        file_digest(tmp_path / "nope.c3d")
+    d = tmp_path / "trial"
+    (d / "sub").mkdir(parents=True)
+    (d / "a.txt").write_text("1")
+    (d / "sub" / "b.txt").write_text("2")
+    before = file_digest(d)
+    (d / "sub" / "b.txt").write_text("3")
+    clear_caches()
+    assert file_digest(d) != before
+
+
+# --------------------------------------------------------------------------- keys
+
+
+def test_package_versions():
+    v = package_versions()
+    assert set(v) == {"numpy", "scipy", "ezc3d"}
+    assert v["numpy"] == np.__version__
+    assert package_versions(("surely_not_installed_pkg_e1",)) == {
+        "surely_not_installed_pkg_e1": "absent"
+    }
+
+
+def _key(**over):
+    base = dict(
+        stage="clean",
+        fingerprint="c" * 64,
+        params={"alpha1": 0.5, "variance": 0.99},
+        part="trial1.c3d",
+        inputs={"markers": "a" * 64},
+        versions={"numpy": "2.3.0"},
+    )
+    base.update(over)
+    return task_key(**base)
+
+
+def test_task_key_components_and_sensitivity():
+    key, comp = _key()
+    assert len(key) == KEY_LENGTH == 32 and int(key, 16) >= 0
+    assert key == digest_of(comp)[:32]
+    assert set(comp) == {"format", "stage", "code", "params", "part", "inputs", "versions"}
+    assert _key(params={"variance": 0.99, "alpha1": 0.5})[0] == key  # order
+    changed = [
+        _key(stage="clean2"),
+        _key(fingerprint="d" * 64),
+        _key(params={"alpha1": 0.7, "variance": 0.99}),
+        _key(params={"alpha1": 0.5, "variance": 1}),  # 0.99 -> int 1
+        _key(part="trial2.c3d"),
+        _key(part=None),
+        _key(part="None"),
+        _key(inputs={"markers": "b" * 64}),
+        _key(inputs={"markers": ["a" * 64]}),  # gather list vs single
+        _key(versions={"numpy": "2.4.0"}),
+    ]
+    keys = {key} | {k for k, _ in changed}
+    assert len(keys) == len(changed) + 1
+
+
+def test_task_key_survives_json_round_trip():
+    key, comp = _key(params={"a": 1, "b": 1.0, "c": "1", "d": True, "e": [0.1, None]})
+    back = json.loads(json.dumps(comp))
+    assert digest_of(back)[:32] == key
+    assert diff_components(back, comp) == []
+
+
+def test_diff_components_words():
+    _, old = _key(input_kinds={"markers": "upstream"})
+    _, new = _key(
+        fingerprint="d" * 64,
+        params={"alpha1": 0.7, "variance": 0.99, "extra": 3},
+        part="trial2.c3d",
+        inputs={"markers": "b" * 64},
+        versions={"numpy": "2.4.0", "scipy": "1.0"},
+        input_kinds={"markers": "upstream"},
+    )
+    lines = diff_components(old, new)
+    assert "param alpha1: 0.5 -> 0.7" in lines
+    assert "param extra added (= 3)" in lines
+    assert any(s.startswith("code of stage clean changed") for s in lines)
+    assert "part changed: trial1.c3d -> trial2.c3d" in lines
+    assert "input markers changed (upstream output digest aaaaaaaa.. -> bbbbbbbb..)" in lines
+    assert "package numpy 2.3.0 -> 2.4.0" in lines
+    assert "package scipy absent -> 1.0" in lines
+    assert len(lines) == 7
+    assert diff_components(old, old) == []
+    assert diff_components(None, new) == ["no previous record"]
+
+
+def test_diff_components_types_lists_and_pins():
+    _, old = _key(params={"n": 1, "opts": {"k": 1}}, inputs={"clips": ["a" * 64, "b" * 64]})
+    _, new = _key(
+        fingerprint="pin:2",
+        params={"n": 1.0, "opts": {"k": 2}},
+        inputs={"clips": ["a" * 64, "c" * 64]},
+    )
+    lines = diff_components(old, new)
+    assert "param n: 1 -> 1.0" in lines
+    assert "param opts.k: 1 -> 2" in lines
+    assert any(s.startswith("version pin of stage clean") for s in lines)
+    assert any(s.startswith("input clips changed (1 of 2 items") for s in lines)
