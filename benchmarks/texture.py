@@ -38,8 +38,12 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from mocapflow.stages.metrics import quality as M  # noqa: E402
+from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices
 from mocapflow.stages.motion.formats.bvh import read_bvh  # noqa: E402
-from mocapflow.stages.motion.kinematics import resample_motion  # noqa: E402
+from mocapflow.stages.motion.kinematics import (
+    motion_positions,
+    resample_motion,  # noqa: E402
+)
 from mocapflow.stages.texture.pyramid import build_pyramid  # noqa: E402
 from mocapflow.stages.texture.search import SearchParams  # noqa: E402
 from mocapflow.stages.texture.synth import assemble_motion, synthesize  # noqa: E402
@@ -82,10 +86,10 @@ class Reference:
 
     def __init__(self, motion):
         self.motion = motion
-        self.pos = M.motion_positions(motion)
+        self.pos = motion_positions(motion)
         self.feat = M.rotation_features(motion, heading_free=HEADING_FREE)
-        self.toes = M.toe_indices(motion.skeleton)
-        self.h_thr, self.s_thr = M.contact_thresholds(self.pos, self.toes, motion.rate)
+        self.toes = toe_indices(motion.skeleton)
+        self.h_thr, self.s_thr = contact_thresholds(self.pos, self.toes, motion.rate)
         self.jerk = M.jerk_p99(self.pos, motion.rate)
         self.skate = M.foot_skate(
             self.pos, self.toes, motion.rate, height_threshold=self.h_thr,
@@ -96,7 +100,7 @@ class Reference:
 def evaluate(ref: Reference, out, src: np.ndarray, seconds: float) -> dict[str, float]:
     """All metrics of one output."""
     rate = ref.motion.rate
-    pos = M.motion_positions(out)
+    pos = motion_positions(out)
     feat = M.rotation_features(out, heading_free=HEADING_FREE)
     seams = M.seams_from_source(src)
     mask = M.seam_mask(out.n_frames, seams, radius=5)

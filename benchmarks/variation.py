@@ -33,13 +33,9 @@ import numpy as np
 
 from mocapflow.pipeline import Context
 from mocapflow.stages.metrics.novelty import novelty_report
-from mocapflow.stages.metrics.quality import (
-    contact_thresholds,
-    foot_skate,
-    jerk_p99,
-    motion_positions,
-    toe_indices,
-)
+from mocapflow.stages.metrics.quality import foot_skate, jerk_p99
+from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices
+from mocapflow.stages.motion.kinematics import motion_positions
 from mocapflow.stages.variation.clips import clips as clips_stage
 from mocapflow.stages.variation.clips import clips_to_motions
 from mocapflow.stages.variation.ik import solve_ik

@@ -21,49 +21,27 @@ from __future__ import annotations
 
 import numpy as np
 
+from mocapflow.stages.motion.contacts import foot_contacts, horizontal_speed
+
 __all__ = [
     "acceleration_per_frame",
     "acceleration_p99",
-    "contact_thresholds",
     "coverage",
     "diagonal_cumsum",
-    "foot_contacts",
     "foot_skate",
     "global_diversity",
     "jerk_p99",
     "jerk_per_frame",
     "local_diversity",
     "longest_verbatim_run",
-    "motion_positions",
     "patch_metrics",
     "rotation_features",
     "seam_mask",
     "seams_from_source",
-    "toe_indices",
 ]
 
 
 # --------------------------------------------------------------------------- FK helpers
-
-
-def motion_positions(motion) -> np.ndarray:
-    """Global joint positions of a motion (forward kinematics).
-
-    Parameters
-    ----------
-    motion : Motion
-
-    Returns
-    -------
-    (F, J, 3) float ndarray
-        Metres.
-    """
-    from mocapflow.stages.motion.kinematics import forward_kinematics
-
-    pos, _ = forward_kinematics(
-        motion.skeleton, motion.rotations, motion.root_position, translations=motion.translations
-    )
-    return pos
 
 
 def rotation_features(motion, *, heading_free: bool = False) -> np.ndarray:
@@ -85,34 +63,11 @@ def rotation_features(motion, *, heading_free: bool = False) -> np.ndarray:
 
     rot = motion.rotations
     if heading_free:
-        from mocapflow.stages.texture.pyramid import heading_split
+        from mocapflow.stages.motion.kinematics import heading_split
 
         rot = rot.copy()
         _, rot[:, 0] = heading_split(rot[:, 0])
     return quat_to_6d(rot).reshape(motion.n_frames, -1)
-
-
-def toe_indices(skeleton) -> list[int]:
-    """Indices of the toe joints (names containing ``toe``; else the feet).
-
-    Parameters
-    ----------
-    skeleton : Skeleton
-
-    Returns
-    -------
-    list of int
-        Joint indices; ``ValueError`` when the skeleton has neither toes nor feet.
-    """
-    names = [n.lower() for n in skeleton.names]
-    toes = [i for i, n in enumerate(names) if "toe" in n and "end" not in n]
-    if not toes:
-        toes = [i for i, n in enumerate(names) if "foot" in n or "ankle" in n]
-    if not toes:
-        raise ValueError(
-            f"skeleton has no joint named like a toe or foot (joints: {skeleton.names})"
-        )
-    return toes
 
 
 # --------------------------------------------------------------------------- seams
@@ -310,85 +265,6 @@ def longest_verbatim_run(source_index: np.ndarray) -> int:
 # --------------------------------------------------------------------------- feet
 
 
-def contact_thresholds(
-    positions: np.ndarray,
-    toe_indices: list[int] | np.ndarray,
-    rate: float,
-    *,
-    up_axis: int = 1,
-) -> tuple[float, float]:
-    """Default contact thresholds estimated from a reference motion.
-
-    Parameters
-    ----------
-    positions : (F, J, 3) float ndarray
-        Global joint positions, metres.
-    toe_indices : sequence of int
-    rate : float
-    up_axis : int
-
-    Returns
-    -------
-    height_threshold : float
-        Floor (5th percentile of toe height) + 5 cm.
-    speed_threshold : float
-        The larger of 0.5 m/s and the median horizontal toe speed.
-    """
-    toes = np.asarray(positions, dtype=np.float64)[:, list(toe_indices)]
-    h = toes[..., up_axis]
-    height = float(np.percentile(h, 5.0)) + 0.05
-    speed = _horizontal_speed(toes, rate, up_axis)
-    return height, max(0.5, float(np.nanmedian(speed)))
-
-
-def _horizontal_speed(toes: np.ndarray, rate: float, up_axis: int) -> np.ndarray:
-    """``(F, T)`` horizontal speed (central differences, one-sided at the ends)."""
-    horiz = [a for a in range(3) if a != up_axis]
-    xy = toes[..., horiz]
-    if xy.shape[0] < 2:
-        return np.zeros(xy.shape[:2])
-    v = np.gradient(xy, axis=0) * rate
-    return np.linalg.norm(v, axis=-1)
-
-
-def foot_contacts(
-    positions: np.ndarray,
-    toe_indices: list[int] | np.ndarray,
-    rate: float,
-    *,
-    height_threshold: float | None = None,
-    speed_threshold: float | None = None,
-    up_axis: int = 1,
-) -> np.ndarray:
-    """Contact frames of each toe: near the floor and slow.
-
-    Parameters
-    ----------
-    positions : (F, J, 3) float ndarray
-        Global joint positions, metres.
-    toe_indices : sequence of int
-        ``T`` toe joints.
-    rate : float
-    height_threshold : float, optional
-        Toe height (along ``up_axis``) below which the toe may be in contact;
-        default from :func:`contact_thresholds`.
-    speed_threshold : float, optional
-        Horizontal speed (m/s) below which it may be in contact.
-    up_axis : int
-
-    Returns
-    -------
-    (F, T) bool ndarray
-    """
-    positions = np.asarray(positions, dtype=np.float64)
-    dh, ds = contact_thresholds(positions, toe_indices, rate, up_axis=up_axis)
-    h_thr = dh if height_threshold is None else float(height_threshold)
-    s_thr = ds if speed_threshold is None else float(speed_threshold)
-    toes = positions[:, list(toe_indices)]
-    speed = _horizontal_speed(toes, rate, up_axis)
-    return (toes[..., up_axis] < h_thr) & (speed < s_thr)
-
-
 def foot_skate(
     positions: np.ndarray,
     toe_indices: list[int] | np.ndarray,
@@ -429,7 +305,7 @@ def foot_skate(
     )
     if not contact.any():
         return float("nan")
-    speed = _horizontal_speed(positions[:, list(toe_indices)], rate, up_axis)
+    speed = horizontal_speed(positions[:, list(toe_indices)], rate, up_axis)
     return float(speed[contact].mean())
 
 

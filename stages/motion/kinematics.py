@@ -1,5 +1,10 @@
 """Kinematics: quaternion algebra, Euler angles, forward kinematics, absolute orientation.
 
+Also the motion helpers several graphs share: :func:`motion_positions` (global
+joint positions of a motion), :func:`heading_split` / :func:`yaw_quaternion` (the
+root's heading about the up axis and the rest), :func:`euler_continuity`
+(continuous Euler tracks) and :func:`resample_motion`.
+
 Conventions
 -----------
 * Quaternions are ``(..., 4)`` float arrays ``(w, x, y, z)``: Hamilton product,
@@ -18,6 +23,7 @@ import warnings
 from typing import TYPE_CHECKING
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 if TYPE_CHECKING:  # pragma: no cover
     from mocapflow.stages.motion.datatypes import Motion, Skeleton
@@ -28,6 +34,10 @@ __all__ = [
     "absolute_orientation",
     "absolute_orientation_batch",
     "end_site_positions",
+    "euler_continuity",
+    "heading_split",
+    "motion_positions",
+    "yaw_quaternion",
     "euler_to_quat",
     "forward_kinematics",
     "quat_angle",
@@ -543,8 +553,6 @@ def quat_to_euler(q: np.ndarray, order: str, *, degrees: bool = False) -> np.nda
         Angles in channel order; the middle angle in ``[-pi/2, pi/2]`` (Tait-Bryan)
         or ``[0, pi]`` (proper Euler); at gimbal lock the last angle is 0.
     """
-    from scipy.spatial.transform import Rotation
-
     o = _check_order(order)
     q = np.asarray(q, dtype=np.float64)
     lead = q.shape[:-1]
@@ -963,3 +971,100 @@ def resample_motion(motion: Motion, rate: float) -> Motion:
     return motion.replace(
         root_position=root, rotations=rotations, rate=rate, translations=trans, attrs=attrs
     )
+
+
+def yaw_quaternion(angle: np.ndarray) -> np.ndarray:
+    """Rotation by ``angle`` (radians) about the up axis ``y``.
+
+    Parameters
+    ----------
+    angle : (...) float ndarray
+
+    Returns
+    -------
+    (..., 4) float ndarray
+    """
+    a = 0.5 * np.asarray(angle, dtype=np.float64)
+    z = np.zeros_like(a)
+    return np.stack([np.cos(a), z, np.sin(a), z], axis=-1)
+
+
+def heading_split(root_rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Split root rotations into heading (twist about ``y``) and the rest.
+
+    ``q = yaw_quaternion(heading) * local`` with ``local`` free of twist about ``y``.
+
+    Parameters
+    ----------
+    root_rotations : (F, 4) float ndarray
+
+    Returns
+    -------
+    heading : (F,) float ndarray
+        Radians, unwrapped along frames.
+    local : (F, 4) float ndarray
+    """
+    q = np.asarray(root_rotations, dtype=np.float64)
+    heading = np.unwrap(2.0 * np.arctan2(q[:, 2], q[:, 0]))
+    local = quat_multiply(yaw_quaternion(-heading), q)
+    return heading, local
+
+
+def motion_positions(motion) -> np.ndarray:
+    """Global joint positions of a motion (forward kinematics).
+
+    Parameters
+    ----------
+    motion : Motion
+
+    Returns
+    -------
+    (F, J, 3) float ndarray
+        Metres.
+    """
+    pos, _ = forward_kinematics(
+        motion.skeleton, motion.rotations, motion.root_position, translations=motion.translations
+    )
+    return pos
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def euler_continuity(angles: np.ndarray, proper: np.ndarray | bool = False) -> np.ndarray:
+    """Make Euler angle tracks continuous over frames.
+
+    Each frame takes, of its two equivalent triples (``(a, b, c)`` and
+    ``(a + π, π - b, c + π)``, or ``(a + π, -b, c + π)`` for proper Euler
+    orders), each shifted by multiples of 2π, the one closest to the
+    previous frame.
+
+    Parameters
+    ----------
+    angles : (F, ..., 3) float ndarray
+        Radians, channel order.
+    proper : bool or (...) bool ndarray
+        Proper Euler order (first axis == last axis), per track.
+
+    Returns
+    -------
+    (F, ..., 3) float ndarray
+    """
+    e = np.asarray(angles, dtype=np.float64)
+    if e.shape[0] < 2:
+        return e.copy()
+    proper = np.broadcast_to(np.asarray(proper, dtype=bool), e.shape[1:-1])
+    alt = e.copy()
+    alt[..., 0] += np.pi
+    alt[..., 1] = np.where(proper, -e[..., 1], np.pi - e[..., 1])
+    alt[..., 2] += np.pi
+    out = np.empty_like(e)
+    out[0] = e[0]
+    for t in range(1, e.shape[0]):
+        prev = out[t - 1]
+        c1 = prev + _wrap(e[t] - prev)
+        c2 = prev + _wrap(alt[t] - prev)
+        use2 = ((c2 - prev) ** 2).sum(-1) < ((c1 - prev) ** 2).sum(-1) - 1e-12
+        out[t] = np.where(use2[..., None], c2, c1)
+    return out

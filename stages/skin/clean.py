@@ -80,6 +80,7 @@ from typing import Any, Literal
 import numpy as np
 
 from mocapflow.pipeline import Context, FilePath, stage
+from mocapflow.stages.motion.contacts import true_runs
 from mocapflow.stages.motion.datatypes import Markers
 from mocapflow.stages.motion.kinematics import absolute_orientation_batch
 from mocapflow.stages.skin.fill import (
@@ -98,7 +99,6 @@ from mocapflow.stages.skin.predict import (
     _chunks,
     _names,
     choose_reference_frame,
-    fragment_runs,
     local_targets,
     predict_missing,
     reference_pose,
@@ -131,7 +131,6 @@ __all__ = [
     "clean",
     "clean_markers",
     "fill_holes",
-    "fragment_runs",
     "frame_weights",
     "local_targets",
     "merge_fragments",
@@ -395,7 +394,7 @@ def clean_markers(
 
     frags = markers.fragments
     U = frags.shape[1]
-    runs_before = sum(len(fragment_runs(vis0[:, m])) for m in range(M))
+    runs_before = sum(len(true_runs(vis0[:, m])) for m in range(M))
     t2 = time.perf_counter()
     if merge and U:
         X, assigned, mrep = merge_fragments(

@@ -18,6 +18,7 @@ from scipy.sparse.linalg import splu
 
 from mocapflow.pipeline import Context, FilePath, stage
 from mocapflow.stages.motion.datatypes import Mesh
+from mocapflow.stages.motion.geometry import vertex_normals
 from mocapflow.stages.skin.deform import DeformError, closest_points_on_triangles
 
 __all__ = [
@@ -86,17 +87,6 @@ def mesh_laplacian(n_vertices: int, faces: np.ndarray) -> sp.csr_matrix:
     deg = np.asarray(A.sum(1)).ravel()
     inv = np.where(deg > 0, 1.0 / np.maximum(deg, 1), 0.0)
     return (sp.diags((deg > 0).astype(float)) - sp.diags(inv) @ A).tocsr()
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals ``(V, 3)`` (zero for isolated vertices)."""
-    tri = vertices[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    vn = np.zeros_like(vertices)
-    for c in range(3):
-        np.add.at(vn, faces[:, c], fn)
-    norm = np.linalg.norm(vn, axis=1, keepdims=True)
-    return np.where(norm > 0, vn / np.where(norm > 0, norm, 1.0), 0.0)
 
 
 def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:

@@ -51,24 +51,6 @@ def _apply_inv(R: np.ndarray, t: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.matmul(x - t[:, None], R)
 
 
-def fragment_runs(visible: np.ndarray) -> list[tuple[int, int]]:
-    """Contiguous runs of ``True`` as ``(first, last)`` frame pairs.
-
-    Parameters
-    ----------
-    visible : (F,) bool ndarray
-
-    Returns
-    -------
-    list of (int, int)
-    """
-    v = np.concatenate([[False], np.asarray(visible, bool), [False]])
-    d = np.diff(v.astype(np.int8))
-    starts = np.flatnonzero(d == 1)
-    ends = np.flatnonzero(d == -1) - 1
-    return [(int(a), int(b)) for a, b in zip(starts, ends)]
-
-
 def _names(labels: list[str], idx: np.ndarray | list[int], limit: int = 20) -> str:
     idx = [int(i) for i in idx]
     s = ", ".join(labels[i] for i in idx[:limit])

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mocapflow.stages.motion.contacts import true_runs
 from mocapflow.stages.motion.kinematics import absolute_orientation_batch
 
 #: Predictors of the wide-neighbourhood regression: the marker's most rigid
@@ -45,12 +46,6 @@ REGRESSION_MIN_TRAIN = 100
 #: Predictors are chosen so that at least this many training frames per
 #: predictor remain (see :func:`choose_predictors`).
 REGRESSION_FRAMES_PER_PREDICTOR = 4
-
-
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """Half-open ``(start, stop)`` runs of ``True`` in a ``(F,)`` bool array."""
-    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist()))
 
 
 def predictor_ranking(
@@ -299,7 +294,7 @@ def regression_estimates(
     stack: list[tuple[int, int]] = []
     cur: list[tuple[int, int]] = []
     cur_v = np.ones(len(top), bool)
-    for a, b in _runs(holes):
+    for a, b in true_runs(holes):
         v = vis[a:b][:, top].all(0)
         if cur and b - cur[0][0] <= span and (cur_v & v).sum() >= n_predictors:
             cur.append((a, b))

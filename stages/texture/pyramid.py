@@ -30,6 +30,7 @@ import numpy as np
 from mocapflow.pipeline import Context, stage
 from mocapflow.pipeline.codecs import Encoded, codec
 from mocapflow.stages.motion.datatypes import Motion, Skeleton
+from mocapflow.stages.motion.kinematics import heading_split, yaw_quaternion
 
 __all__ = [
     "MIN_COARSE_NODES",
@@ -235,45 +236,6 @@ def downsample_quaternions(q: np.ndarray, filter_size: int = 4) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- root
-
-
-def yaw_quaternion(angle: np.ndarray) -> np.ndarray:
-    """Rotation by ``angle`` (radians) about the up axis ``y``.
-
-    Parameters
-    ----------
-    angle : (...) float ndarray
-
-    Returns
-    -------
-    (..., 4) float ndarray
-    """
-    a = 0.5 * np.asarray(angle, dtype=np.float64)
-    z = np.zeros_like(a)
-    return np.stack([np.cos(a), z, np.sin(a), z], axis=-1)
-
-
-def heading_split(root_rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Split root rotations into heading (twist about ``y``) and the rest.
-
-    ``q = yaw_quaternion(heading) * local`` with ``local`` free of twist about ``y``.
-
-    Parameters
-    ----------
-    root_rotations : (F, 4) float ndarray
-
-    Returns
-    -------
-    heading : (F,) float ndarray
-        Radians, unwrapped along frames.
-    local : (F, 4) float ndarray
-    """
-    from mocapflow.stages.motion.kinematics import quat_multiply
-
-    q = np.asarray(root_rotations, dtype=np.float64)
-    heading = np.unwrap(2.0 * np.arctan2(q[:, 2], q[:, 0]))
-    local = quat_multiply(yaw_quaternion(-heading), q)
-    return heading, local
 
 
 def root_features(

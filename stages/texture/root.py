@@ -23,11 +23,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mocapflow.stages.motion.contacts import true_runs
+
 __all__ = [
     "PathCurve",
     "PathError",
     "apply_foot_ik",
-    "contact_spans",
     "figure_eight",
     "follow_path",
     "foot_corrections",
@@ -508,22 +509,6 @@ def two_bone_ik(
     return r_hip, r_knee
 
 
-def contact_spans(contact: np.ndarray) -> list[tuple[int, int]]:
-    """Runs of ``True`` as inclusive ``(start, end)`` pairs.
-
-    Parameters
-    ----------
-    contact : (L,) bool ndarray
-
-    Returns
-    -------
-    list of (int, int)
-    """
-    c = np.concatenate([[False], np.asarray(contact, bool), [False]])
-    d = np.diff(c.astype(np.int8))
-    return list(zip(np.flatnonzero(d == 1).tolist(), (np.flatnonzero(d == -1) - 1).tolist()))
-
-
 def foot_corrections(
     toe_ground: np.ndarray,
     toe_step: np.ndarray,
@@ -590,9 +575,8 @@ def foot_corrections(
         pen = np.where(np.asarray(fixed, bool), 1e6, 0.0)
     for k in range(T):
         pair = np.zeros(L - 1)  # weight of each step t -> t+1 (both frames in one span)
-        for a, b in contact_spans(contact[:, k]):
-            if b - a + 1 >= min_span:
-                pair[a:b] = 1.0
+        for a, stop in true_runs(contact[:, k], min_length=min_span):
+            pair[a:stop - 1] = 1.0
         if not pair.any():
             continue
         ab = d2.copy()

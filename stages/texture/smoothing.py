@@ -162,8 +162,7 @@ def seam_test(
     ref_acc : (S,) float ndarray
         Largest acceleration of the reference frames.
     """
-    from mocapflow.stages.motion.kinematics import forward_kinematics, quat_multiply
-    from mocapflow.stages.texture.pyramid import yaw_quaternion
+    from mocapflow.stages.motion.kinematics import forward_kinematics, quat_multiply, yaw_quaternion
 
     S = seams.size
     if S == 0:

@@ -18,6 +18,7 @@ import numpy as np
 from mocapflow.pipeline import Context, stage
 from mocapflow.pipeline.codecs import Encoded, codec, exporter
 from mocapflow.stages.motion.datatypes import Motion
+from mocapflow.stages.motion.kinematics import motion_positions
 
 __all__ = ["StickStrip", "render_strip", "render_video", "stickfigure"]
 
@@ -88,15 +89,6 @@ def _write_mp4(frames: np.ndarray, path: Path, rate: float) -> None:
             w.append_data(f)
 
 
-def _positions(motion: Motion) -> np.ndarray:
-    from mocapflow.stages.motion.kinematics import forward_kinematics
-
-    pos, _ = forward_kinematics(
-        motion.skeleton, motion.rotations, motion.root_position, translations=motion.translations
-    )
-    return pos
-
-
 def _axes(view: str) -> tuple[int, int]:
     return {"side": (2, 1), "front": (0, 1), "top": (0, 2)}[view]
 
@@ -139,7 +131,7 @@ def render_strip(
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    pos = _positions(motion)
+    pos = motion_positions(motion)
     F = motion.n_frames
     frames = np.unique(np.linspace(0, F - 1, max(1, min(n_panels, F))).round().astype(int))
     h, v = _axes(view)
@@ -198,7 +190,7 @@ def render_video(
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt
 
-    pos = _positions(motion)
+    pos = motion_positions(motion)
     h, v = _axes(view)
     par = motion.skeleton.parents
     fig, ax = plt.subplots(figsize=(size, size), dpi=dpi)

@@ -34,13 +34,14 @@ import numpy as np
 
 from mocapflow.pipeline import Context, stage
 from mocapflow.stages.motion.datatypes import Motion
+from mocapflow.stages.motion.kinematics import heading_split, yaw_quaternion
 from mocapflow.stages.texture.graph import (
     UnreachableGapError,
     graph_path,
     transition_costs,
     transition_graph,
 )
-from mocapflow.stages.texture.pyramid import Pyramid, heading_split, yaw_quaternion
+from mocapflow.stages.texture.pyramid import Pyramid
 from mocapflow.stages.texture.search import (
     LevelResult,
     LevelSearch,
@@ -309,12 +310,8 @@ def _constraint_errors(motion_in: Motion, rot_out, feat_out, rot_in, feat_in, co
 
 def _planted_velocity(pyramid, motion, rot, feat, src, loop) -> np.ndarray:
     """Root velocities keeping the input's stance toes planted (see ``plant_feet``)."""
-    from mocapflow.stages.metrics.quality import (
-        contact_thresholds,
-        foot_contacts,
-        motion_positions,
-        toe_indices,
-    )
+    from mocapflow.stages.motion.contacts import contact_thresholds, foot_contacts, toe_indices
+    from mocapflow.stages.motion.kinematics import motion_positions
     from mocapflow.stages.texture.pyramid import level_positions
     from mocapflow.stages.texture.root import plant_feet, toe_displacements
 
@@ -339,12 +336,8 @@ def _foot_ik(motion: Motion, out: Motion, src: np.ndarray, constrained, blended)
     Returns the new local rotations and the largest correction (metres), or
     ``None`` when the skeleton has no usable toes or legs.
     """
-    from mocapflow.stages.metrics.quality import (
-        contact_thresholds,
-        foot_contacts,
-        motion_positions,
-        toe_indices,
-    )
+    from mocapflow.stages.motion.contacts import contact_thresholds, foot_contacts, toe_indices
+    from mocapflow.stages.motion.kinematics import motion_positions
     from mocapflow.stages.texture.root import (
         _rotate_xz,
         apply_foot_ik,
@@ -449,11 +442,8 @@ def assemble_motion(
     seams = seams_from_source(src, cyclic=loop)
     sm_report: dict[str, Any] = {"enabled": smoothing}
     if smoothing and seams.size:
-        from mocapflow.stages.metrics.quality import (
-            acceleration_per_frame,
-            jerk_p99,
-            motion_positions,
-        )
+        from mocapflow.stages.metrics.quality import acceleration_per_frame, jerk_p99
+        from mocapflow.stages.motion.kinematics import motion_positions
 
         world_in = motion_positions(motion)
         acc_in = acceleration_per_frame(world_in, motion.rate)

@@ -47,8 +47,10 @@ import numpy as np
 
 from mocapflow.pipeline import Context, stage
 from mocapflow.pipeline.codecs import Encoded, codec, decode, encode, exporter
+from mocapflow.stages.motion.contacts import foot_joint, true_runs
 from mocapflow.stages.motion.datatypes import Motion, Skeleton, Strokes
 from mocapflow.stages.motion.kinematics import (
+    euler_continuity,
     euler_to_quat,
     forward_kinematics,
     quat_conjugate,
@@ -409,48 +411,6 @@ def flatten_clips(value: Any) -> Clips:
 
 def _padded_order(rot: str) -> str:
     return rot + "".join(a for a in _AXES if a not in rot)
-
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
-def euler_continuity(angles: np.ndarray, proper: np.ndarray | bool = False) -> np.ndarray:
-    """Make Euler angle tracks continuous over frames.
-
-    Each frame takes, of its two equivalent triples (``(a, b, c)`` and
-    ``(a + π, π - b, c + π)``, or ``(a + π, -b, c + π)`` for proper Euler
-    orders), each shifted by multiples of 2π, the one closest to the
-    previous frame.
-
-    Parameters
-    ----------
-    angles : (F, ..., 3) float ndarray
-        Radians, channel order.
-    proper : bool or (...) bool ndarray
-        Proper Euler order (first axis == last axis), per track.
-
-    Returns
-    -------
-    (F, ..., 3) float ndarray
-    """
-    e = np.asarray(angles, dtype=np.float64)
-    if e.shape[0] < 2:
-        return e.copy()
-    proper = np.broadcast_to(np.asarray(proper, dtype=bool), e.shape[1:-1])
-    alt = e.copy()
-    alt[..., 0] += np.pi
-    alt[..., 1] = np.where(proper, -e[..., 1], np.pi - e[..., 1])
-    alt[..., 2] += np.pi
-    out = np.empty_like(e)
-    out[0] = e[0]
-    for t in range(1, e.shape[0]):
-        prev = out[t - 1]
-        c1 = prev + _wrap(e[t] - prev)
-        c2 = prev + _wrap(alt[t] - prev)
-        use2 = ((c2 - prev) ** 2).sum(-1) < ((c1 - prev) ** 2).sum(-1) - 1e-12
-        out[t] = np.where(use2[..., None], c2, c1)
-    return out
 
 
 # --------------------------------------------------------------------------- motion <-> DOFs
@@ -818,40 +778,6 @@ def clips_to_strokes(clips: Clips) -> list[Strokes]:
 
 # --------------------------------------------------------------------------- cycle cutting
 
-_FOOT_NAMES = ("foot", "ankle")
-
-
-def foot_joint(skeleton: Skeleton, side: Literal["left", "right"] = "left") -> int:
-    """Index of the ankle/foot joint of one side.
-
-    Parameters
-    ----------
-    skeleton : Skeleton
-    side : {"left", "right"}
-
-    Returns
-    -------
-    int
-        ``-1`` when no joint is named like a foot or ankle of that side
-        (``LeftFoot``, ``LeftAnkle``, ``lfoot``, ``l_ankle``...).
-    """
-    prefixes = ("left", "l_", "l") if side == "left" else ("right", "r_", "r")
-    for j, n in enumerate(skeleton.names):
-        low = n.lower()
-        if "toe" in low or "end" in low:
-            continue
-        for p in prefixes:
-            if low.startswith(p) and any(low[len(p) :].startswith(f) for f in _FOOT_NAMES):
-                return j
-    return -1
-
-
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """``[start, stop)`` runs of True."""
-    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
-    d = np.diff(m.astype(np.int8))
-    return list(zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)))
-
 
 def heel_strikes(
     positions: np.ndarray,
@@ -902,16 +828,16 @@ def heel_strikes(
     contact = low & slow
     gap = max(1, int(round(min_gap * rate)))
     # close short gaps, then drop short runs
-    for a, b in _runs(~contact):
+    for a, b in true_runs(~contact):
         if a > 0 and b < F and b - a < gap:
             contact[a:b] = True
-    for a, b in _runs(contact):
+    for a, b in true_runs(contact):
         if b - a < gap:
             contact[a:b] = False
     # an onset needs a real swing (foot above mid-range) since the previous one
     onsets: list[int] = []
     mid = lo + 0.5 * (hi - lo)
-    for a, _ in _runs(contact):
+    for a, _ in true_runs(contact):
         if a == 0:
             continue
         if onsets and h[onsets[-1] : a].max() < mid:

@@ -39,14 +39,14 @@ from typing import Any, Literal
 import numpy as np
 
 from mocapflow.pipeline import Context, stage
+from mocapflow.stages.motion.contacts import foot_joint, true_runs
 from mocapflow.stages.motion.datatypes import Skeleton
 from mocapflow.stages.motion.kinematics import forward_kinematics, quat_to_matrix
-from mocapflow.stages.variation.clips import Clips, _padded_order, clips_to_motions, foot_joint
+from mocapflow.stages.variation.clips import Clips, _padded_order, clips_to_motions
 
 __all__ = [
     "IKError",
     "Limb",
-    "contact_runs",
     "ik",
     "limb_of",
     "solve_ik",
@@ -135,17 +135,6 @@ def _make_limb(clips: Clips, effectors: list[int]) -> Limb:
         dof_columns=np.asarray(cols, dtype=np.int64),
         dof_slots=slots,
     )
-
-
-def contact_runs(mask: np.ndarray, *, min_length: int = 2) -> list[tuple[int, int]]:
-    """``[start, stop)`` runs of a boolean contact track, at least ``min_length`` long."""
-    m = np.concatenate([[False], np.asarray(mask, bool), [False]])
-    d = np.diff(m.astype(np.int8))
-    return [
-        (int(a), int(b))
-        for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1))
-        if b - a >= min_length
-    ]
 
 
 class _ChainFK:
@@ -399,7 +388,8 @@ def solve_ik(
                      if F > 1 else np.zeros(F))
                 s_thr = (max(0.5, float(np.median(v))) if speed_threshold is None
                          else speed_threshold)
-                runs = contact_runs((p[:, up] < floor + height_threshold) & (v < s_thr))
+                runs = true_runs((p[:, up] < floor + height_threshold) & (v < s_thr),
+                                 min_length=2)
             else:
                 runs = []
             runs_of[e] = [(a, b) for a, b in runs if b > a]

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from mocapflow.stages.motion.datatypes import Motion, Skeleton
+from mocapflow.stages.motion.geometry import vertex_normals
 from mocapflow.stages.motion.kinematics import quat_from_axis_angle, quat_identity
 from mocapflow.stages.motion.simulate.body import (
     BodyError,
@@ -16,7 +17,6 @@ from mocapflow.stages.motion.simulate.body import (
     procedural_body,
     skin,
     skinning_transforms,
-    vertex_normals,
 )
 from mocapflow.stages.motion.simulate.motion import procedural_skeleton, procedural_walk
 

@@ -8,7 +8,7 @@ import pytest
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, digest_encoded, encode
 from mocapflow.stages.motion.datatypes import Strokes
-from mocapflow.stages.motion.kinematics import euler_to_quat, forward_kinematics
+from mocapflow.stages.motion.kinematics import euler_continuity, euler_to_quat, forward_kinematics
 from mocapflow.stages.motion.simulate.motion import procedural_walk
 from mocapflow.stages.variation.clips import (
     ClipError,
@@ -20,7 +20,6 @@ from mocapflow.stages.variation.clips import (
     clips_to_strokes,
     cut_cycles,
     dofs_to_motion,
-    euler_continuity,
     heel_strikes,
     likelihood_threshold,
     make_clips,

@@ -4,12 +4,9 @@ import numpy as np
 import pytest
 
 from mocapflow.pipeline import Context
-from mocapflow.stages.metrics.quality import (
-    contact_thresholds,
-    foot_skate,
-    motion_positions,
-    toe_indices,
-)
+from mocapflow.stages.metrics.quality import foot_skate
+from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices
+from mocapflow.stages.motion.kinematics import motion_positions
 from mocapflow.stages.motion.simulate.motion import procedural_skeleton, procedural_walk
 from mocapflow.stages.variation.clips import clips_from_motions, clips_to_motions, make_clips
 from mocapflow.stages.variation.ik import IKError, ik, limb_of, solve_ik

@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial.distance import cdist
 
 from mocapflow.stages.metrics import quality as M
+from mocapflow.stages.motion.contacts import contact_thresholds, foot_contacts, toe_indices
 from mocapflow.stages.motion.simulate.motion import procedural_skeleton, procedural_walk
 
 
@@ -69,7 +70,7 @@ def test_foot_skate_counts_only_slow_frames_near_the_floor():
     pos[60:, 1, 1] = 0.3
     # toe 2 planted
     pos[:, 2, 2] = 0.4
-    contacts = M.foot_contacts(pos, [1, 2], rate, height_threshold=0.05, speed_threshold=0.5)
+    contacts = foot_contacts(pos, [1, 2], rate, height_threshold=0.05, speed_threshold=0.5)
     assert contacts[:59, 0].all() and not contacts[61:, 0].any() and contacts[:, 1].all()
     skate = M.foot_skate(pos, [1, 2], rate, height_threshold=0.05, speed_threshold=0.5)
     expect = (0.2 * contacts[:, 0].sum() + 0.0 * n) / (contacts[:, 0].sum() + n)
@@ -77,17 +78,17 @@ def test_foot_skate_counts_only_slow_frames_near_the_floor():
     assert M.foot_skate(pos, [1], rate, height_threshold=-1.0, speed_threshold=0.5) != (
         M.foot_skate(pos, [1], rate, height_threshold=-1.0, speed_threshold=0.5)
     )  # NaN: no contact at all
-    h, s = M.contact_thresholds(pos, [2], rate)
+    h, s = contact_thresholds(pos, [2], rate)
     assert h == pytest.approx(0.05) and s == pytest.approx(0.5)
 
 
 def test_toe_indices():
     sk = procedural_skeleton()
-    names = [sk.names[i] for i in M.toe_indices(sk)]
+    names = [sk.names[i] for i in toe_indices(sk)]
     assert names and all("toe" in n.lower() for n in names)
     bare = sk.__class__(["root", "a"], [-1, 0], np.zeros((2, 3)), [[], []])
     with pytest.raises(ValueError, match="toe or foot"):
-        M.toe_indices(bare)
+        toe_indices(bare)
 
 
 # --------------------------------------------------------------------------- patch metrics
@@ -168,8 +169,7 @@ def test_copy_scores_zero_and_noise_scores_high():
 
 
 def test_heading_free_features_ignore_the_facing():
-    from mocapflow.stages.motion.kinematics import quat_multiply
-    from mocapflow.stages.texture.pyramid import yaw_quaternion
+    from mocapflow.stages.motion.kinematics import quat_multiply, yaw_quaternion
 
     walk = procedural_walk(40, rate=30.0, seed=1)
     rot = walk.rotations.copy()

@@ -9,9 +9,11 @@ from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, encode
 from mocapflow.stages.motion.kinematics import (
     forward_kinematics,
+    heading_split,
     quat_angle,
     quat_from_axis_angle,
     quat_multiply,
+    yaw_quaternion,
 )
 from mocapflow.stages.motion.simulate.motion import procedural_walk
 from mocapflow.stages.texture.pyramid import (
@@ -21,10 +23,8 @@ from mocapflow.stages.texture.pyramid import (
     build_pyramid,
     downsample,
     downsample_quaternions,
-    heading_split,
     pyramid,
     root_features,
-    yaw_quaternion,
 )
 from mocapflow.stages.texture.root import integrate_root
 

@@ -255,7 +255,8 @@ def test_correlated_noise_is_smoother_and_validated(gt_model):
 
 
 def test_mean_motion_of_a_procedural_walk_is_as_smooth_as_the_walk():
-    from mocapflow.stages.metrics.quality import jerk_p99, motion_positions
+    from mocapflow.stages.metrics.quality import jerk_p99
+    from mocapflow.stages.motion.kinematics import motion_positions
     from mocapflow.stages.motion.simulate.motion import procedural_walk
     from mocapflow.stages.variation.clips import clips_to_motions
 

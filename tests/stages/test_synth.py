@@ -7,16 +7,12 @@ import pytest
 
 from mocapflow.pipeline import Context
 from mocapflow.stages.metrics import quality as M
+from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices
 from mocapflow.stages.motion.datatypes import Motion
-from mocapflow.stages.motion.kinematics import quat_angle
+from mocapflow.stages.motion.kinematics import heading_split, motion_positions, quat_angle
 from mocapflow.stages.motion.simulate.motion import procedural_walk
 from mocapflow.stages.texture.graph import graph_path
-from mocapflow.stages.texture.pyramid import (
-    build_pyramid,
-    heading_split,
-    level_positions,
-    root_features,
-)
+from mocapflow.stages.texture.pyramid import build_pyramid, level_positions, root_features
 from mocapflow.stages.texture.root import (
     PathCurve,
     apply_foot_ik,
@@ -113,11 +109,11 @@ def test_adaptive_smoothing_removes_the_jerk_of_bad_seams(pyr, walk):
     src = (starts[:, None] + np.arange(30)).ravel()
     seams = M.seams_from_source(src)
     mask = M.seam_mask(src.size, seams)
-    jerk_in = M.jerk_p99(M.motion_positions(walk), RATE)
+    jerk_in = M.jerk_p99(motion_positions(walk), RATE)
     raw, _ = assemble_motion(pyr, walk, src, smoothing=False, foot_ik=False)
     smooth, rep = assemble_motion(pyr, walk, src, foot_ik=False)
-    assert M.jerk_p99(M.motion_positions(raw), RATE, mask=mask) / jerk_in > 5.0
-    assert M.jerk_p99(M.motion_positions(smooth), RATE, mask=mask) / jerk_in < 1.3
+    assert M.jerk_p99(motion_positions(raw), RATE, mask=mask) / jerk_in > 5.0
+    assert M.jerk_p99(motion_positions(smooth), RATE, mask=mask) / jerk_in < 1.3
     sm = rep["smoothing"]
     assert all(sm["passed"]) and min(sm["widening"]) >= 1  # each seam needed widening
     # frames far from every seam are untouched
@@ -131,10 +127,10 @@ def test_synthesized_seams_stay_below_the_jerk_target(pyr, walk):
     seams = M.seams_from_source(r.source_index)
     assert seams.size
     mask = M.seam_mask(400, seams)
-    jerk_in = M.jerk_p99(M.motion_positions(walk), RATE)
+    jerk_in = M.jerk_p99(motion_positions(walk), RATE)
     raw, _ = assemble_motion(pyr, walk, r.source_index, smoothing=False)
-    jerk_raw = M.jerk_p99(M.motion_positions(raw), RATE, mask=mask) / jerk_in
-    jerk_out = M.jerk_p99(M.motion_positions(r.motion), RATE, mask=mask) / jerk_in
+    jerk_raw = M.jerk_p99(motion_positions(raw), RATE, mask=mask) / jerk_in
+    jerk_out = M.jerk_p99(motion_positions(r.motion), RATE, mask=mask) / jerk_in
     assert jerk_out < 1.3 and jerk_out < jerk_raw
     assert np.mean(r.report["smoothing"]["passed"]) >= 0.9
 
@@ -183,7 +179,7 @@ def test_default_output_is_a_new_arrangement_not_a_copy(varied):
     """
     walk, pyr = varied, build_pyramid(varied, levels=3)
     F, L = walk.n_frames, 2 * walk.n_frames
-    jerk_in = M.jerk_p99(M.motion_positions(walk), RATE)
+    jerk_in = M.jerk_p99(motion_positions(walk), RATE)
     f_in = M.rotation_features(walk, heading_free=True)
     for seed in (0, 1):
         r = _run(pyr, walk, seed=seed, length=L)
@@ -194,7 +190,7 @@ def test_default_output_is_a_new_arrangement_not_a_copy(varied):
         assert seams.size >= 10
         assert M.coverage(M.rotation_features(r.motion, heading_free=True), f_in) >= 0.95
         mask = M.seam_mask(L, seams)
-        assert M.jerk_p99(M.motion_positions(r.motion), RATE, mask=mask) / jerk_in <= 1.3
+        assert M.jerk_p99(motion_positions(r.motion), RATE, mask=mask) / jerk_in <= 1.3
     # without the variety knobs the synthesis falls back to a near-verbatim copy
     r0 = _run(pyr, walk, seed=0, length=L, params=SearchParams(variety=0.0, max_run=0.0))
     assert M.longest_verbatim_run(r0.source_index) >= 0.9 * F
@@ -297,7 +293,7 @@ def test_apply_foot_ik_moves_the_ankles_and_keeps_the_feet(walk):
     from mocapflow.stages.motion.kinematics import forward_kinematics, quat_angle
 
     m = walk
-    toes = M.toe_indices(m.skeleton)
+    toes = toe_indices(m.skeleton)
     chains = leg_chains(m.skeleton, toes)
     assert [m.skeleton.names[j] for j in chains[0]] == ["LeftUpLeg", "LeftLeg", "LeftFoot"]
     offsets = np.zeros((m.n_frames, len(toes), 2))
@@ -344,14 +340,14 @@ def test_foot_corrections_stop_the_slide_of_stance_toes():
 
 
 def test_foot_ik_removes_the_skate_the_seams_bring(pyr, walk):
-    pos_in = M.motion_positions(walk)
-    toes = M.toe_indices(walk.skeleton)
-    h, s = M.contact_thresholds(pos_in, toes, RATE)
+    pos_in = motion_positions(walk)
+    toes = toe_indices(walk.skeleton)
+    h, s = contact_thresholds(pos_in, toes, RATE)
     r = _run(pyr, walk, seed=0, length=600)
     raw, _ = assemble_motion(pyr, walk, r.source_index, foot_ik=False)
 
     def skate(m):
-        pos = M.motion_positions(m)
+        pos = motion_positions(m)
         return M.foot_skate(pos, toes, RATE, height_threshold=h, speed_threshold=s)
 
     sk_in, sk_raw, sk_ik = skate(walk), skate(raw), skate(r.motion)
@@ -418,11 +414,11 @@ def _wrap_jerk(m: Motion, walk: Motion) -> float:
     R = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
     step = m.root_position[-1] - m.root_position[-2]
     step[1] = 0.0
-    p1 = M.motion_positions(m)
+    p1 = motion_positions(m)
     p2 = (p1 - m.root_position[0] * [1, 0, 1]) @ R.T + (m.root_position[-1] + step) * [1, 0, 1]
     both = np.concatenate([p1[-12:], p2[:12]])
     jerk = M.jerk_per_frame(both, RATE)[7:16]  # frames around the wrap
-    return float(np.nanmax(jerk) / M.jerk_p99(M.motion_positions(walk), RATE))
+    return float(np.nanmax(jerk) / M.jerk_p99(motion_positions(walk), RATE))
 
 
 def test_loop_last_to_first_seam_passes_the_smoothing_test(pyr, walk):

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from mocapflow.stages.motion.datatypes import Mesh, Motion, Skeleton
+from mocapflow.stages.motion.geometry import vertex_normals
 from mocapflow.stages.motion.kinematics import (
     forward_kinematics,
     quat_multiply,
@@ -48,7 +49,6 @@ __all__ = [
     "procedural_body",
     "skin",
     "skinning_transforms",
-    "vertex_normals",
 ]
 
 
@@ -154,33 +154,6 @@ class Body:
 
 
 # --------------------------------------------------------------------------- geometry helpers
-
-
-def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Area-weighted unit vertex normals.
-
-    Parameters
-    ----------
-    vertices : (..., V, 3) float ndarray
-    faces : (T, 3) int ndarray
-
-    Returns
-    -------
-    (..., V, 3) float ndarray
-    """
-    import scipy.sparse as sp
-
-    v = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
-    V, T = v.shape[-2], len(faces)
-    a, b, c = (v[..., faces[:, k], :] for k in range(3))
-    fn = np.cross(b - a, c - a)  # (..., T, 3)
-    S = sp.csr_matrix((np.ones(3 * T), (faces.ravel(), np.repeat(np.arange(T), 3))),
-                      shape=(V, T))
-    moved = np.moveaxis(fn, -2, 0).reshape(T, -1)
-    n = np.moveaxis(np.asarray(S @ moved).reshape((V,) + fn.shape[:-2] + (3,)), 0, -2)
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
-    return n / np.where(norm > 0, norm, 1.0)
 
 
 def bind_pose(skeleton: Skeleton) -> np.ndarray:

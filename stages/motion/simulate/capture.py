@@ -53,6 +53,7 @@ import numpy as np
 
 from mocapflow.pipeline import Context, FilePath, stage
 from mocapflow.stages.motion.datatypes import Markers, Mesh, Motion
+from mocapflow.stages.motion.geometry import vertex_normals
 from mocapflow.stages.motion.kinematics import (
     quat_angle,
     quat_from_axis_angle,
@@ -60,7 +61,7 @@ from mocapflow.stages.motion.kinematics import (
     quat_slerp,
 )
 
-from .body import Body, skin, skinning_transforms, vertex_normals
+from .body import Body, skin, skinning_transforms
 
 __all__ = [
     "REGIONS",
