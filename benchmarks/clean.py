@@ -67,6 +67,7 @@ import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 from scipy.interpolate import CubicSpline
@@ -77,7 +78,7 @@ from mocapflow.stages.motion.simulate.capture import (
     gap_mask,
     region_errors,
     score_merges,
-    simulate_dense_capture,
+    simulate_capture,
 )
 from mocapflow.stages.skin.clean import choose_reference_frame, clean_markers, reference_pose
 from mocapflow.stages.skin.surface import build_marker_surface
@@ -432,9 +433,11 @@ def fill_ours(markers: Markers) -> np.ndarray:
 # --------------------------------------------------------------------------- datasets
 
 
-def simulated(n_markers: int, n_frames: int, motion: str, seed: int, **kw):
-    return simulate_dense_capture(n_markers=n_markers, n_frames=n_frames, motion=motion, rng=seed,
-                                  **kw)
+def simulated(n_markers: int, n_frames: int, motion: str, seed: int, **kw) -> SimpleNamespace:
+    """The ``simulate_capture`` stage on ``default_rng(seed)`` (the stream of earlier tables)."""
+    out = simulate_capture(n_markers=n_markers, n_frames=n_frames, motion=motion,
+                           ctx=Context(rng=np.random.default_rng(seed)), **kw)
+    return SimpleNamespace(**out)
 
 
 def perfectly_merged(sim) -> Markers:

@@ -57,6 +57,10 @@ class Context:
         the run's executor.  Defaults to a sequential map.
     progress : callable, optional
         ``progress(done, total, label)`` hook for long work.
+    rng : numpy.random.Generator, optional
+        The generator ``ctx.rng``; by default one seeded from ``seed`` and
+        ``part`` (:func:`part_seed`).  The engine never passes one; it is for
+        Python callers that need a stream of their own.
     """
 
     part: str | None = None
@@ -65,9 +69,11 @@ class Context:
     progress_hook: Callable[[int, int, str], None] | None = None
     warnings: list[str] = field(default_factory=list)
     workers: int = 1
+    rng: np.random.Generator | None = None
 
     def __post_init__(self) -> None:
-        self.rng = np.random.default_rng(part_seed(self.seed, self.part))
+        if self.rng is None:
+            self.rng = np.random.default_rng(part_seed(self.seed, self.part))
 
     def map(self, fn: Callable[[Any], Any], items: Iterable[Any]) -> list[Any]:
         """Apply ``fn`` to every item, in parallel where the executor allows.

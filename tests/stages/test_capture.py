@@ -18,9 +18,9 @@ from mocapflow.stages.motion.simulate.capture import (
     score_merges,
     segment_distance,
     simulate_capture,
-    simulate_dense_capture,
 )
 from mocapflow.stages.motion.simulate.motion import procedural_skeleton
+from tests.stages.conftest import simulated_capture
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 NOISE = 0.0003
@@ -28,7 +28,7 @@ NOISE = 0.0003
 
 @pytest.fixture(scope="module")
 def sim():
-    return simulate_dense_capture(n_markers=120, n_frames=200, motion="walk", rng=0,
+    return simulated_capture(n_markers=120, n_frames=200, motion="walk", rng=0,
                                   body_vertices=1500, noise=NOISE)
 
 
@@ -87,8 +87,8 @@ def test_markers_ride_on_the_true_mesh(sim):
 def test_known_non_rigid_skin_motion():
     kw = dict(n_markers=60, n_frames=150, motion="dynamic", rng=3, body_vertices=1200,
               noise=0.0, ghost_rate=0.0, break_rate=0.0)
-    rigid = simulate_dense_capture(bulge=0.0, jiggle=0.0, breathing=0.0, **kw)
-    soft = simulate_dense_capture(**kw)
+    rigid = simulated_capture(bulge=0.0, jiggle=0.0, breathing=0.0, **kw)
+    soft = simulated_capture(**kw)
     assert np.array_equal(rigid.truth["marker_face"], soft.truth["marker_face"])
     d = np.linalg.norm(soft.truth["positions"] - rigid.truth["positions"], axis=-1)
     assert 0.005 < d.max() < 0.06  # bulges, jiggle and breathing: mm to a few cm
@@ -180,9 +180,9 @@ def test_stage_is_seeded_and_stores(tmp_path):
 
 def test_bad_requests():
     with pytest.raises(ValueError, match="n_markers"):
-        simulate_dense_capture(n_markers=2, n_frames=10)
-    with pytest.raises(ValueError, match="unknown capture motion"):
-        simulate_dense_capture(n_markers=10, n_frames=10, motion="swim")
+        simulated_capture(n_markers=2, n_frames=10)
+    with pytest.raises(ValueError, match="motion: .swim. is not one of"):
+        simulated_capture(n_markers=10, n_frames=10, motion="swim")
 
 
 def test_scoring_helpers():
@@ -202,7 +202,7 @@ def test_scoring_helpers():
 
 @pytest.mark.skipif(not (DATA / "mesh" / "makehuman_base.obj").exists(), reason="no shared data")
 def test_makehuman_capture():
-    sim = simulate_dense_capture(n_markers=80, n_frames=30, motion="walk", rng=0,
+    sim = simulated_capture(n_markers=80, n_frames=30, motion="walk", rng=0,
                                  body_mesh=str(DATA / "mesh" / "makehuman_base.obj"))
     assert sim.mesh.vertices.shape == (30, 13380, 3)
     assert sim.truth["visible"].mean() > 0.8

@@ -16,7 +16,6 @@ from mocapflow.stages.motion.simulate.capture import (
     gap_mask,
     region_errors,
     score_merges,
-    simulate_dense_capture,
 )
 from mocapflow.stages.skin.clean import (
     STATUS,
@@ -29,6 +28,7 @@ from mocapflow.stages.skin.clean import (
     smooth_local,
 )
 from mocapflow.stages.skin.surface import SurfaceFileError, build_marker_surface
+from tests.stages.conftest import simulated_capture
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
 NOISE = 0.0003
@@ -36,7 +36,7 @@ NOISE = 0.0003
 
 @pytest.fixture(scope="module")
 def sim():
-    return simulate_dense_capture(n_markers=120, n_frames=200, motion="walk", rng=0,
+    return simulated_capture(n_markers=120, n_frames=200, motion="walk", rng=0,
                                   body_vertices=1500, noise=NOISE)
 
 

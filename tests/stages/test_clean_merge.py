@@ -28,6 +28,7 @@ from mocapflow.stages.motion.kinematics import (
     quat_from_rotvec,
     quat_to_matrix,
 )
+from tests.stages.conftest import simulated_capture
 
 REL_TOL = 1e-7
 
@@ -250,10 +251,9 @@ def test_prediction_index_counts_and_next_prediction():
 
 
 def test_merge_with_index_equals_dense_merge(monkeypatch):
-    from mocapflow.stages.motion.simulate.capture import simulate_dense_capture
     from mocapflow.stages.skin.surface import build_marker_surface
 
-    sim = simulate_dense_capture(n_markers=80, n_frames=120, motion="walk", rng=1,
+    sim = simulated_capture(n_markers=80, n_frames=120, motion="walk", rng=1,
                                  body_vertices=1000)
     m = sim.markers
     ref = np.nanmedian(m.positions, axis=0)

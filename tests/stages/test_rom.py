@@ -12,9 +12,9 @@ import pytest
 from mocapflow.pipeline import Context
 from mocapflow.stages.motion.datatypes import Markers
 from mocapflow.stages.motion.formats.c3d import read_c3d, write_c3d
-from mocapflow.stages.motion.simulate.capture import simulate_dense_capture
 from mocapflow.stages.skin.rom import ingest_rom, match_labels, match_markers
 from mocapflow.stages.skin.segment import Segmentation
+from tests.stages.conftest import simulated_capture
 
 SKIN = Path(__file__).parents[2] / "configs" / "skin.yaml"
 SMALL = dict(n_markers=40, n_frames=60, rate=60.0, body_vertices=1200, ghost_rate=0.0)
@@ -29,9 +29,9 @@ def _layout(sim):
 
 
 def test_same_seed_same_marker_layout_across_motions():
-    dyn = simulate_dense_capture(motion="dynamic", rng=3, **SMALL)
-    rom = simulate_dense_capture(motion="range_of_motion", rng=3, **SMALL)
-    other = simulate_dense_capture(motion="dynamic", rng=4, **SMALL)
+    dyn = simulated_capture(motion="dynamic", rng=3, **SMALL)
+    rom = simulated_capture(motion="range_of_motion", rng=3, **SMALL)
+    other = simulated_capture(motion="dynamic", rng=4, **SMALL)
     labels, bind, face, bary = _layout(dyn)
     assert _layout(rom)[0] == labels == dyn.markers.labels == rom.markers.labels
     np.testing.assert_array_equal(_layout(rom)[1], bind)
@@ -109,7 +109,7 @@ def test_match_markers_rejects_another_marker_set():
 def captures(tmp_path_factory):
     """Two trials (run, walk) and a ROM trial of one body and layout; some markers removed."""
     d = tmp_path_factory.mktemp("rom")
-    sims = {name: simulate_dense_capture(motion=motion, rng=0, **SMALL)
+    sims = {name: simulated_capture(motion=motion, rng=0, **SMALL)
             for name, motion in (("run", "dynamic"), ("walk", "walk"),
                                  ("rom", "range_of_motion"))}
     labels = sims["run"].markers.labels

@@ -45,7 +45,7 @@ true mesh per frame (``mesh`` output).  :func:`score_merges` and
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
@@ -61,11 +61,10 @@ from mocapflow.stages.motion.kinematics import (
     quat_slerp,
 )
 
-from .body import Body, skin, skinning_transforms
+from .body import Body, load_makehuman_body, procedural_body, skin, skinning_transforms
 
 __all__ = [
     "REGIONS",
-    "SimulatedCapture",
     "SurfacePoints",
     "SkinDynamics",
     "calibration_cameras",
@@ -81,8 +80,8 @@ __all__ = [
     "score_merges",
     "sample_surface",
     "segment_distance",
+    "capture_body",
     "simulate_capture",
-    "simulate_dense_capture",
 ]
 
 #: Body regions of the Table-2 style report, in order.
@@ -825,31 +824,6 @@ def _vertex_normals_at(vertices: np.ndarray, faces: np.ndarray, at: np.ndarray) 
 # --------------------------------------------------------------------------- simulation
 
 
-@dataclass(eq=False)
-class SimulatedCapture:
-    """A simulated dense-marker capture and its ground truth.
-
-    Attributes
-    ----------
-    markers : Markers
-        The capture as a system would deliver it: labelled runs through the
-        label frame, unlabelled fragments, noise.
-    truth : dict
-        See :func:`simulate_capture`.
-    mesh : Mesh
-        True skin per frame (``vertices (F, V, 3)``).
-    motion : Motion
-        The skeleton motion that drove it.
-    body : Body
-    """
-
-    markers: Markers
-    truth: dict[str, Any]
-    mesh: Mesh
-    motion: Motion
-    body: Body = field(repr=False)
-
-
 def _layout_rng(rng: np.random.Generator) -> np.random.Generator:
     """A generator for the marker layout, derived from ``rng``'s seed, not its state.
 
@@ -888,70 +862,58 @@ def calibration_cameras(
     return camera_ring(np.zeros((1, 3)), n_cameras=n_cameras) + offset
 
 
-def simulate_dense_capture(
-    *,
-    n_markers: int = 350,
-    n_frames: int = 900,
-    rate: float = 120.0,
-    motion: str = "dynamic",
-    rng: np.random.Generator | int = 0,
-    bvh: str | None = None,
-    body_mesh: str | None = None,
-    body_vertices: int = 3000,
-    noise: float = 0.0003,
-    n_cameras: int = 12,
-    min_cameras: int = 2,
-    calibration: float = 0.5,
-    bulge: float = 1.0,
-    jiggle: float = 1.0,
-    breathing: float = 1.0,
-    break_rate: float = 0.2,
-    ghost_rate: float = 1.0,
-    marker_radius: float = 0.007,
-    min_separation: float = 0.02,
-    ctx: Context | None = None,
-) -> SimulatedCapture:
-    """Simulate a dense-marker capture with ground truth (see :func:`simulate_capture`).
+def capture_body(motion: Motion, *, body_mesh: str | None = None,
+                 body_vertices: int = 3000) -> Body:
+    """The body a capture is simulated on.
+
+    Parameters
+    ----------
+    motion : Motion
+        The driving motion (its skeleton shapes a procedural body).
+    body_mesh : str, optional
+        The MakeHuman ``makehuman_base.obj`` (rig and weights JSON beside it).
+    body_vertices : int
+        Vertex count of the procedural body.
 
     Returns
     -------
-    SimulatedCapture
+    Body
     """
-    from .body import load_makehuman_body, procedural_body
-
-    ctx = ctx or Context()
-    rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-    layout_rng = _layout_rng(rng)
-    if n_markers < 4:
-        raise ValueError(f"simulate_capture: n_markers must be >= 4, got {n_markers}")
-    if n_frames < 2 or rate <= 0:
-        raise ValueError("simulate_capture: need n_frames >= 2 and rate > 0")
-    mot = capture_motion(motion, n_frames, rate=rate, rng=rng, calibration=calibration, bvh=bvh)
     if body_mesh is not None:
-        body = load_makehuman_body(body_mesh)
-    else:
-        body = procedural_body(mot.skeleton, n_vertices=body_vertices)
-    R, p = skinning_transforms(body, mot)
-    nb = body.normals
-    cams = camera_ring(mot.root_position, n_cameras=n_cameras)
-    # markers go where the calibration pose (frame 0) shows them, so all can be labelled;
-    # the layout depends on the body and the seed only, never on the motion (a
-    # range-of-motion trial and a dynamic trial of one seed share their markers)
+        return load_makehuman_body(body_mesh)
+    return procedural_body(motion.skeleton, n_vertices=body_vertices)
+
+
+def _marker_sites(body: Body, motion: Motion, R: np.ndarray, p: np.ndarray, n_markers: int, *,
+                  n_cameras: int, min_cameras: int, marker_radius: float,
+                  rng: np.random.Generator) -> SurfacePoints:
+    """Marker sites where the calibration pose (frame 0) shows them, so all can be labelled.
+
+    The layout depends on the body and ``rng`` (the layout stream) only, never on
+    the motion: a range-of-motion trial and a dynamic trial of one seed share it.
+    """
     v0 = skin(body, R[:1], p[:1])
     n0 = vertex_normals(v0, body.faces)
-    cams0 = calibration_cameras(v0[0], mot.root_position[0], n_cameras=n_cameras)
+    cams0 = calibration_cameras(v0[0], motion.root_position[0], n_cameras=n_cameras)
     seen0 = marker_visibility(v0 + marker_radius * n0, n0, body, R[:1], p[:1], cams0)[0]
-    sites = place_markers(body, n_markers, rng=layout_rng, eligible=seen0 >= min_cameras + 1)
-    # markers: bind-pose points above the skin, with the skin's weights and fields
-    skin_pts, skin_n, skin_w = sites.points(body), sites.normals(body), sites.weights(body)
-    skin_part = np.argmax(skin_w, axis=1)
-    mpts = skin_pts + marker_radius * skin_n
+    return place_markers(body, n_markers, rng=rng, eligible=seen0 >= min_cameras + 1)
+
+
+def _moving_skin(body: Body, motion: Motion, R: np.ndarray, p: np.ndarray,
+                 sites: SurfacePoints, dynamics: SkinDynamics, *, marker_radius: float,
+                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """True skin ``(F, V, 3)``, true marker centres ``(F, M, 3)`` and their normals.
+
+    Markers are bind-pose points ``marker_radius`` above the skin, carried by the
+    skin's weights and the same non-rigid fields as the vertices.
+    """
+    skin_n, skin_w = sites.normals(body), sites.weights(body)
+    mpts = sites.points(body) + marker_radius * skin_n
     pts = np.concatenate([body.vertices, mpts])
-    nrm = np.concatenate([nb, skin_n])
+    nrm = np.concatenate([body.normals, skin_n])
     W = np.concatenate([body.weights, skin_w])
-    part = np.concatenate([body.part, skin_part])
-    dyn = SkinDynamics(bulge=bulge, jiggle=jiggle, breathing=breathing)
-    allpos = dyn.apply(body, mot, R, p, pts, nrm, W, part, rng=rng)
+    part = np.concatenate([body.part, np.argmax(skin_w, axis=1)])
+    allpos = dynamics.apply(body, motion, R, p, pts, nrm, W, part, rng=rng)
     V = body.n_vertices
     mesh_seq, true = allpos[:, :V], allpos[:, V:]
     corners = np.unique(body.faces[sites.face])
@@ -959,32 +921,27 @@ def simulate_dense_capture(
     vn[:, corners] = _vertex_normals_at(mesh_seq, body.faces, corners)
     normals = sites.interpolate(body, vn)
     normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
-    seen = marker_visibility(true, normals, body, R, p, cams, ctx=ctx)
-    visible = (seen >= min_cameras) & ~crowded(true, min_separation)
-    observed = true + rng.normal(0.0, noise, true.shape)
-    labelled, frags, frag_marker, label_frame = fragment_capture(
-        observed, visible, rate=rate, rng=rng, break_rate=break_rate, ghost_rate=ghost_rate,
-        ghost_source=true, ghost_normals=normals)
-    labels = [f"M{i + 1:03d}" for i in range(n_markers)]
-    markers = Markers(
-        positions=labelled, labels=labels, rate=rate, first_frame=0,
-        fragments=frags, fragment_labels=[f"*{u + 1}" for u in range(frags.shape[1])],
-        attrs={"source": "simulate_capture", "source_unit": "m", "motion": motion,
-               "label_frame": label_frame})
-    regions = marker_regions(body, skin_pts, skin_n, skin_part)
-    bind_markers = mpts
-    truth: dict[str, Any] = {
+    return mesh_seq, true, normals
+
+
+def _capture_truth(body: Body, sites: SurfacePoints, true: np.ndarray, *, visible, seen,
+                   frag_marker, label_frame, labels, cams, noise, marker_radius, rate,
+                   motion_name) -> dict[str, Any]:
+    """The ``truth`` record of :func:`simulate_capture`."""
+    skin_pts, skin_n, skin_w = sites.points(body), sites.normals(body), sites.weights(body)
+    skin_part = np.argmax(skin_w, axis=1)
+    return {
         "positions": true,
         "visible": visible,
         "n_cameras_seeing": seen.astype(np.int16),
         "part": skin_part.astype(np.int64),
         "part_names": list(body.skeleton.names),
         "marker_weights": skin_w,
-        "region": regions,
+        "region": marker_regions(body, skin_pts, skin_n, skin_part),
         "region_names": list(REGIONS),
         "marker_face": sites.face.astype(np.int64),
         "marker_barycentric": sites.barycentric,
-        "bind_pose": bind_markers,
+        "bind_pose": skin_pts + marker_radius * skin_n,
         "reference_pose": true[label_frame],
         "fragment_marker": frag_marker,
         "label_frame": label_frame,
@@ -993,15 +950,8 @@ def simulate_dense_capture(
         "noise": noise,
         "marker_radius": marker_radius,
         "rate": rate,
-        "motion": motion if bvh is None else Path(bvh).name,
+        "motion": motion_name,
     }
-    mesh = Mesh(mesh_seq, body.faces, rate=rate, attrs={
-        "source": body.attrs.get("source", "procedural"),
-        "joint_names": list(body.skeleton.names),
-        "vertex_part": body.part.tolist(),
-        "marker_face": sites.face.tolist(),
-    })
-    return SimulatedCapture(markers, truth, mesh, mot, body)
 
 
 @stage("simulate_capture", outputs=("markers", "truth", "mesh", "motion"))
@@ -1024,6 +974,8 @@ def simulate_capture(
     breathing: float = 1.0,
     break_rate: float = 0.2,
     ghost_rate: float = 1.0,
+    marker_radius: float = 0.007,
+    min_separation: float = 0.02,
     ctx: Context,
 ) -> dict[str, Any]:
     """Simulate a dense-marker capture (Park & Hodgins style) with ground truth.
@@ -1063,6 +1015,13 @@ def simulate_capture(
         Extra trajectory breaks per marker per second.
     ghost_rate : float
         Ghost trajectories per second.
+    marker_radius : float
+        Metres from the skin to a marker's centre.
+    min_separation : float
+        Markers closer than this to another (skin folds) merge in the images and
+        are lost, metres.
+    ctx : Context
+        ``ctx.rng`` drives everything random; ``ctx.map`` the visibility tests.
 
     Returns
     -------
@@ -1079,14 +1038,46 @@ def simulate_capture(
         ``label_frame``, ``cameras (C, 3)``, ``noise``), ``mesh`` (:class:`Mesh`,
         true skin ``(F, V, 3)``), ``motion`` (the driving :class:`Motion`).
     """
-    sim = simulate_dense_capture(
-        n_markers=n_markers, n_frames=n_frames, rate=rate, motion=motion, rng=ctx.rng,
-        bvh=bvh, body_mesh=body_mesh, body_vertices=body_vertices, noise=noise,
-        n_cameras=n_cameras, min_cameras=min_cameras, calibration=calibration, bulge=bulge,
-        jiggle=jiggle, breathing=breathing, break_rate=break_rate, ghost_rate=ghost_rate,
-        ctx=ctx)
-    sim.truth["seed"] = int(seed)
-    return {"markers": sim.markers, "truth": sim.truth, "mesh": sim.mesh, "motion": sim.motion}
+    rng = ctx.rng
+    layout_rng = _layout_rng(rng)
+    if n_markers < 4:
+        raise ValueError(f"simulate_capture: n_markers must be >= 4, got {n_markers}")
+    if n_frames < 2 or rate <= 0:
+        raise ValueError("simulate_capture: need n_frames >= 2 and rate > 0")
+    mot = capture_motion(motion, n_frames, rate=rate, rng=rng, calibration=calibration, bvh=bvh)
+    body = capture_body(mot, body_mesh=body_mesh, body_vertices=body_vertices)
+    R, p = skinning_transforms(body, mot)
+    cams = camera_ring(mot.root_position, n_cameras=n_cameras)
+    sites = _marker_sites(body, mot, R, p, n_markers, n_cameras=n_cameras,
+                          min_cameras=min_cameras, marker_radius=marker_radius, rng=layout_rng)
+    dynamics = SkinDynamics(bulge=bulge, jiggle=jiggle, breathing=breathing)
+    mesh_seq, true, normals = _moving_skin(body, mot, R, p, sites, dynamics,
+                                           marker_radius=marker_radius, rng=rng)
+    seen = marker_visibility(true, normals, body, R, p, cams, ctx=ctx)
+    visible = (seen >= min_cameras) & ~crowded(true, min_separation)
+    observed = true + rng.normal(0.0, noise, true.shape)
+    labelled, frags, frag_marker, label_frame = fragment_capture(
+        observed, visible, rate=rate, rng=rng, break_rate=break_rate, ghost_rate=ghost_rate,
+        ghost_source=true, ghost_normals=normals)
+    labels = [f"M{i + 1:03d}" for i in range(n_markers)]
+    markers = Markers(
+        positions=labelled, labels=labels, rate=rate, first_frame=0,
+        fragments=frags, fragment_labels=[f"*{u + 1}" for u in range(frags.shape[1])],
+        attrs={"source": "simulate_capture", "source_unit": "m", "motion": motion,
+               "label_frame": label_frame})
+    truth = _capture_truth(
+        body, sites, true, visible=visible, seen=seen, frag_marker=frag_marker,
+        label_frame=label_frame, labels=labels, cams=cams, noise=noise,
+        marker_radius=marker_radius, rate=rate,
+        motion_name=motion if bvh is None else Path(bvh).name)
+    truth["seed"] = int(seed)
+    mesh = Mesh(mesh_seq, body.faces, rate=rate, attrs={
+        "source": body.attrs.get("source", "procedural"),
+        "joint_names": list(body.skeleton.names),
+        "vertex_part": body.part.tolist(),
+        "marker_face": sites.face.tolist(),
+    })
+    return {"markers": markers, "truth": truth, "mesh": mesh, "motion": mot}
 
 
 # --------------------------------------------------------------------------- scoring
