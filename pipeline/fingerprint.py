@@ -189,6 +189,14 @@ def _index(tree: ast.Module, mod: _Module) -> None:
     visit(tree.body)
 
 
+def _read_source(origin: str) -> bytes | None:
+    """The bytes of a module's source file (``None`` when it is not a file)."""
+    if not os.path.isfile(origin):
+        return None
+    with open(origin, "rb") as f:
+        return f.read()
+
+
 def _load_module(name: str) -> _Module | None:
     """The parsed module ``name`` (``None`` when it cannot be found)."""
     with _LOCK:
@@ -202,10 +210,7 @@ def _load_module(name: str) -> _Module | None:
     mod: _Module | None = None
     if spec is not None or origin:
         mod = _Module(name, name if is_pkg else name.rpartition(".")[0])
-        source = None
-        if origin and os.path.isfile(origin):
-            with open(origin, "rb") as f:
-                source = f.read()
+        source = _read_source(origin) if origin else None
         if source is None:
             mod.source_digest = digest(f"nosource:{name}:{origin}")
         elif not origin.endswith(".py"):

@@ -5,11 +5,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from mocapflow.stages.motion.formats.bvh import read_bvh
 from mocapflow.stages.motion.formats.c3d import read_c3d
 
 
+@pytest.mark.slow
 def test_demo_runs_every_graph_and_a_rerun_is_all_hits(tmp_path):
     out = tmp_path / "demo"
     cmd = [sys.executable, "-m", "mocapflow", "demo", "--out", str(out), "-q"]
