@@ -32,29 +32,24 @@ from pathlib import Path
 import numpy as np
 
 from mocapflow.pipeline import Context
+from mocapflow.pipeline.config import load_config
 from mocapflow.stages.metrics.novelty import novelty_report
 from mocapflow.stages.metrics.quality import foot_skate, jerk_p99
 from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices
-from mocapflow.stages.motion.kinematics import motion_positions
-from mocapflow.stages.variation.clips import clips as clips_stage
+from mocapflow.stages.motion.formats.bvh import read_bvh
+from mocapflow.stages.motion.formats.strokes import read_uci_chartraj
+from mocapflow.stages.motion.kinematics import motion_positions, resample_motion
 from mocapflow.stages.variation.clips import clips_to_motions
-from mocapflow.stages.variation.ik import solve_ik
-from mocapflow.stages.variation.learn import learn_structure
-from mocapflow.stages.variation.sample import (
-    Sampler,
-    matched_amplitude,
-    noise_variants,
-    sample_variants,
-)
+from mocapflow.stages.variation.ik import ik
+from mocapflow.stages.variation.inputs import clips as clips_stage
+from mocapflow.stages.variation.learn import learn
+from mocapflow.stages.variation.sample import Sampler, matched_amplitude, sample, sample_noise
 
 DATA = Path(os.environ.get("MOCAPFLOW_DATA", Path(__file__).resolve().parents[1] / ".."
                            / "shared" / "data"))
 
 
 def _take_clips(name: str, rate: float, n: int | None):
-    from mocapflow.stages.motion.formats.bvh import read_bvh
-    from mocapflow.stages.motion.kinematics import resample_motion
-
     m = resample_motion(read_bvh(DATA / "bvh" / name), rate)
     return clips_stage(m, max_clips=n, ctx=Context())["clips"]
 
@@ -78,12 +73,17 @@ def _mask(c, keep):
 def _learn_time(c, workers: int) -> tuple[float, object]:
     t0 = time.perf_counter()
     if workers == 1:
-        m = learn_structure(c)
+        m = learn(c)["model"]
     else:
         with ProcessPoolExecutor(workers) as pool:
             ctx = Context(mapper=lambda fn, items: list(pool.map(fn, items)), workers=workers)
-            m = learn_structure(c, ctx=ctx)
+            m = learn(c, ctx=ctx)["model"]
     return time.perf_counter() - t0, m
+
+
+def _variants(model, seed: int, **params):
+    """The ``sample`` stage's variants drawn from ``numpy.random.default_rng(seed)``."""
+    return sample(model, **params, ctx=Context(rng=np.random.default_rng(seed)))["variants"]
 
 
 def _synthesis_time(model, seconds: float, count: int) -> tuple[float, float]:
@@ -119,12 +119,10 @@ def _novelty_row(rep) -> str:
 
 def _config() -> dict:
     """``k``, ``kernel_width``, ``sigma`` and ``noise_time`` of configs/variation.yaml."""
-    from mocapflow.pipeline.config import load_config
-
     c = load_config(Path(__file__).resolve().parents[1] / "configs" / "variation.yaml")
-    learn, sample = c.nodes["learn"].params, c.nodes["sample"].params
-    return {"k": int(learn["k"]), "kernel_width": learn["kernel_width"],
-            "sigma": float(sample["sigma"]), "noise_time": sample["noise_time"]}
+    lp, sp = c.nodes["learn"].params, c.nodes["sample"].params
+    return {"k": int(lp["k"]), "kernel_width": lp["kernel_width"],
+            "sigma": float(sp["sigma"]), "noise_time": sp["noise_time"]}
 
 
 def main(quick: bool = False) -> None:
@@ -166,13 +164,12 @@ def main(quick: bool = False) -> None:
         walk = _subset(walk, 4, None)
     t0 = time.perf_counter()
     cfg = _config()
-    model = learn_structure(walk, k=cfg["k"], kernel_width=cfg["kernel_width"])
+    model = learn(walk, k=cfg["k"], kernel_width=cfg["kernel_width"])["model"]
     t_learn = time.perf_counter() - t0
     sigma, nt = cfg["sigma"], cfg["noise_time"]
-    mean_motion = sample_variants(model, np.random.default_rng(1), count=1, sigma=0.0)
-    white = sample_variants(model, np.random.default_rng(1), count=n_var, sigma=sigma)
-    ours = sample_variants(model, np.random.default_rng(1), count=n_var, sigma=sigma,
-                           noise_time=nt)
+    mean_motion = _variants(model, 1, count=1, sigma=0.0)
+    white = _variants(model, 1, count=n_var, sigma=sigma)
+    ours = _variants(model, 1, count=n_var, sigma=sigma, noise_time=nt)
     L = int(np.median(walk.lengths))
     toes = toe_indices(walk.skeleton)
     pin = np.concatenate([motion_positions(m) for m in clips_to_motions(walk)])
@@ -188,13 +185,14 @@ def main(quick: bool = False) -> None:
             (f"ours, white noise as the paper (sigma {sigma})", white, None),
             (f"ours (sigma {sigma}, noise_time {nt} s)", ours, None)]
     t0 = time.perf_counter()
-    ours_ik, ik_rep = solve_ik(ours, ctx=Context())
+    cleaned = ik(ours, ctx=Context())
+    ours_ik, ik_rep = cleaned["variants"], cleaned["report"]
     t_ik = time.perf_counter() - t0
     rows.append(("ours + IK", ours_ik, None))
     for method in ("strawman", "perlin"):
         def make(a, method=method):
-            return noise_variants(walk, np.random.default_rng(2), method=method, count=n_var,
-                                  length=L, amplitude=a)
+            return sample_noise(walk, method=method, count=n_var, length=L, amplitude=a,
+                                ctx=Context(rng=np.random.default_rng(2)))["variants"]
 
         a = matched_amplitude(make, dist, float(d_ours.mean()), iterations=7 if quick else 10)
         rows.append((f"{method} (amplitude {a:.3f} std)", make(a), a))
@@ -220,14 +218,12 @@ def main(quick: bool = False) -> None:
 
     # 4. strokes ------------------------------------------------------------------------
     if not quick:
-        from mocapflow.stages.motion.formats.strokes import read_uci_chartraj
-
         ss = read_uci_chartraj(DATA / "strokes" / "uci_chartraj_mv_subset.csv", letter="a")
         sc = clips_stage(ss, ctx=Context())["clips"]
         t0 = time.perf_counter()
-        sm = learn_structure(sc)
+        sm = learn(sc)["model"]
         tl = time.perf_counter() - t0
-        sv = sample_variants(sm, np.random.default_rng(0), count=15)
+        sv = _variants(sm, 0, count=15)
         print(f"\n## 4. strokes: UCI 'a', {sc.n_clips} examples -> 15 variants (learn {tl:.1f} s)")
         print("novelty:", _novelty_row(novelty_report(sv.trajectories, sc.trajectories)))
 

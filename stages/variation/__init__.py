@@ -1,3 +1,62 @@
-"""Lau, Bar-Joseph & Kuffner 2009."""
+"""Lau, Bar-Joseph & Kuffner 2009, *Modeling Spatial and Temporal Variation in Motion Data*.
 
-STAGE_MODULES = ("clips", "learn", "sample", "ik", "plots")
+A few similar clips → a second-order dynamic Bayesian network (prior and
+transition networks, greedy structure search scored by leave-one-out kernel
+regression) → sampled spatial and temporal variants → IK clean-up of the feet.
+
+Paper → function (modules of ``mocapflow.stages.variation``):
+
+§4 input clips
+    motion ↔ DOF trajectories (root heading) → ``dofs.motion_to_dofs``, ``dofs.dofs_to_motion``
+    the clips type; motions, pen strokes ↔ clips → ``clips.Clips``,
+    ``clips.clips_from_motions``, ``clips.clips_from_strokes``
+    clips from ingested parts → ``inputs.clips`` (the ``clips`` stage); one cyclic
+    take cut into cycles → ``cycles.cut_cycles``
+§5 prior network (``X[0], X[1]``)
+    instances → ``training.prior_data``; structure → ``search.search_prior``
+§5 transition network (``X[t], X[t+1] → X[t+2]``)
+    instances → ``training.transition_data``; structure → ``search.search_transition``
+Lau Eq. 5–6 conditional densities
+    kernel regression on the k nearest instances → ``kernel.kernel_regression``;
+    bandwidth → ``kernel.bandwidth2``
+§5 leave-one-out kernel-regression score
+    → ``scores.prior_node_fit``, ``scores.transition_node_fits`` (one-step or propagated)
+§5 greedy structure search
+    prior: add / delete / reverse with restarts → ``search.search_prior``;
+    transition: add / delete per node → ``search.search_transition``;
+    learning composed → ``learn.learn`` (the ``learn`` stage); the model →
+    ``model.VariationModel``
+§6 sampling (spatial variation)
+    prior network, frames 0 and 1 → ``sample.Sampler.sample_prior``; transition
+    network unrolled → ``sample.Sampler.run``; the stage → ``sample.sample``
+temporal variation
+    → ``sample.Sampler.run``: the second-order transition network regresses the
+    delta on position and velocity (``training.transition_data``), so timing
+    varies with the draws; there is no separate time-warp model
+§7 IK clean-up, Lau Eq. 7 with w₁ = 1, w₂ = 5
+    one limb, one frame → ``ik._solve_frame``; frame by frame with contact
+    planting → ``ik._clean_limb``; contacts and targets → ``ik._clip_constraints``;
+    the stage → ``ik.ik``
+§8 noise baselines and amplitude matching
+    → ``sample.strawman_noise``, ``sample.perlin_noise``, ``sample.matched_amplitude``;
+    the stage → ``sample.sample_noise``
+§9 selection of similar inputs
+    threshold from a trusted set → ``similar.likelihood_threshold``; removal →
+    ``similar.select_similar`` (both score with ``similar.heldout_log_likelihood``);
+    in the ``clips`` stage with ``similar_threshold``
+Fig. 1 (right), Fig. 6
+    → ``plots.variation_plots``
+
+Departures the module docstrings state (each can be switched off):
+
+* per-node bandwidth chosen by held-out likelihood when ``kernel_width=None``
+  (``kernel.bandwidth2``, ``kernel.KERNEL_GRID``);
+* offset retention ``λ`` of the transition mean, ``half_life`` (``training.retention_of``);
+* the normalised-time DOF ``_phase`` for non-cyclic clips, which also ends
+  variants (``training.with_phase``);
+* sparse candidate parents, ``candidates`` (Friedman et al. 1999; ``search``);
+* AR(1)-correlated sampling noise, ``noise_time`` (``sample.Sampler.run``;
+  ``None`` is the paper's white noise).
+"""
+
+STAGE_MODULES = ("clips", "inputs", "model", "learn", "sample", "ik", "plots")

@@ -1,14 +1,17 @@
 """Inverse-kinematics clean-up of sampled variants (Lau, Bar-Joseph & Kuffner 2009, §7).
 
 Per limb (leg or arm) and frame with constraints, the limb's joint-angle DOFs
-``q`` minimise
+``q`` minimise (Lau Eq. 7; paper and default weights w₁ = 1, w₂ = 5)
 
     w₁ ‖q − q̄‖² + w₂ ‖q − 2 q₋₁ + q₋₂‖²
 
 subject to every constrained end effector of the limb lying at its target
 (SLSQP, initialised from the sample ``q̄``; ``q₋₁, q₋₂`` are the cleaned
-previous frames).  After a contact the correction eases back to the sample
-(raised cosine over ``blend`` seconds).
+previous frames; :func:`_solve_frame`).  Frames without constraints keep the
+sample; after a contact the correction eases back to it (raised cosine over
+``blend`` seconds).  The ``ik`` stage detects the contacts of each
+clip (:func:`_clip_constraints`) and cleans every limb frame by frame
+(:func:`_clean_limb`).
 
 Limbs and targets
     The limb of an effector joint is the chain of its ancestors up to (not
@@ -37,23 +40,22 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
+from scipy.optimize import minimize
+from scipy.spatial.transform import Rotation
 
 from mocapflow.pipeline import Context, stage
 from mocapflow.stages.motion.contacts import foot_joint, true_runs
 from mocapflow.stages.motion.datatypes import Skeleton
 from mocapflow.stages.motion.kinematics import forward_kinematics, quat_to_matrix
-from mocapflow.stages.variation.clips import Clips, _padded_order, clips_to_motions
+from mocapflow.stages.variation.clips import Clips, clips_to_motions
+from mocapflow.stages.variation.dofs import padded_order
 
 __all__ = [
     "IKError",
     "Limb",
     "ik",
     "limb_of",
-    "solve_ik",
 ]
-
-_AXES = "XYZ"
-
 
 class IKError(ValueError):
     """Bad IK request (unknown effector joint, malformed targets)."""
@@ -151,15 +153,13 @@ class _ChainFK:
         self.angles = angles  # (J_c, 3) Euler angles of the chain at this frame
         self.Gpar = quat_to_matrix(gpar)  # (3, 3) global rotation of the top parent
         self.ppar = ppar
-        self.orders = [_padded_order(sk.rotation_order(j)) for j in limb.joints]
+        self.orders = [padded_order(sk.rotation_order(j)) for j in limb.joints]
         self.offsets = sk.offsets[limb.joints]
         self.eff_parent = [limb.joints.index(int(sk.parents[e])) for e in limb.effectors]
         self.eff_offset = sk.offsets[limb.effectors]
 
     def __call__(self, q: np.ndarray) -> np.ndarray:
         """Effector positions ``(Q, E, 3)`` for DOF vectors ``q (Q, V)``."""
-        from scipy.spatial.transform import Rotation
-
         q = np.atleast_2d(q)
         Q = q.shape[0]
         ang = np.broadcast_to(self.angles, (Q,) + self.angles.shape).copy()
@@ -178,22 +178,53 @@ class _ChainFK:
         )
 
 
+@dataclass(frozen=True)
+class _Solver:
+    """Settings of the per-frame solve (the ``ik`` stage's params; ``n_blend`` in frames)."""
+
+    w1: float
+    w2: float
+    tolerance: float
+    release: float
+    max_change: float
+    max_iter: int
+    n_blend: int
+
+
 def _solve_frame(
     fk: _ChainFK,
     qbar: np.ndarray,
     qprev: np.ndarray | None,
     target: np.ndarray,
     active: np.ndarray,
-    *,
-    w1: float,
-    w2: float,
-    tolerance: float,
-    max_iter: int,
-    max_change: float,
+    solver: _Solver,
 ) -> tuple[np.ndarray, float, bool]:
-    """One limb, one frame: SLSQP, with a best-effort fallback."""
-    from scipy.optimize import minimize
+    """One limb, one frame: Lau Eq. 7 by SLSQP, with a best-effort fallback.
 
+    Parameters
+    ----------
+    fk : _ChainFK
+        The limb's forward kinematics at this frame.
+    qbar : (V,) float ndarray
+        Sampled DOFs of the limb.
+    qprev : (V,) float ndarray or None
+        ``2 q₋₁ − q₋₂`` of the cleaned previous frames (``q₋₁`` at frame 1,
+        ``None`` at frame 0).
+    target : (E, 3) float ndarray
+        Effector targets (rows ``active`` are constrained).
+    active : (E,) bool ndarray
+    solver : _Solver
+
+    Returns
+    -------
+    q : (V,) float ndarray
+    error : float
+        Largest remaining target distance, metres.
+    reached : bool
+        ``error <= tolerance``.
+    """
+    w1, w2, tolerance = solver.w1, solver.w2, solver.tolerance
+    max_iter, max_change = solver.max_iter, solver.max_change
     pred = None if qprev is None else qprev  # 2 q₋₁ − q₋₂ (or None)
 
     def obj(q):
@@ -264,258 +295,6 @@ def _auto_effectors(sk: Skeleton) -> list[list[int]]:
     return limbs
 
 
-def solve_ik(
-    clips: Clips,
-    *,
-    w1: float = 1.0,
-    w2: float = 5.0,
-    effectors: list[str] | None = None,
-    contacts: dict[str, list[list[int]]] | None = None,
-    targets: dict[str, list[list[float]]] | None = None,
-    height_threshold: float = 0.05,
-    speed_threshold: float | None = None,
-    tolerance: float = 1e-3,
-    release: float = 0.02,
-    max_change: float = 0.5,
-    blend: float = 0.15,
-    max_iter: int = 100,
-    ctx: Context | None = None,
-) -> tuple[Clips, dict[str, Any]]:
-    """IK clean-up of every clip (see module docstring).
-
-    Parameters
-    ----------
-    clips : Clips
-        Motion clips (``kind == "motion"``).
-    w1, w2 : float
-        Weights of the closeness and smoothness terms (paper: 1 and 5).
-    effectors : list of str, optional
-        Effector joint names for automatic contact detection (default the
-        ankle and toe joints of both feet).
-    contacts : dict, optional
-        ``joint -> [[start, stop], ...]`` contact frame ranges replacing the
-        detection for that joint (all clips).
-    targets : dict, optional
-        ``joint -> [[frame, x, y, z], ...]`` explicit targets (metres), added
-        to the detected ones (all clips).
-    height_threshold : float
-        Metres above the effector's floor (5th percentile of its height).
-    speed_threshold : float, optional
-        Horizontal speed (m/s) below which an effector may be in contact;
-        default the larger of 0.5 m/s and its median speed.
-    tolerance : float
-        Metres; a constraint met within it counts as reached.
-    release : float
-        Metres; a detected contact whose target is missed by more than this
-        ends at that frame (the foot lifts off early); contacts given in
-        ``contacts`` are held to the end.
-    max_change : float
-        Radians; each DOF stays within this of its sampled value (keeps the
-        knee and elbow on the sampled side of full extension).
-    blend : float
-        Seconds over which the correction of a limb eases back to the sample
-        after its last constrained frame (raised cosine).
-    max_iter : int
-        SLSQP iterations per frame.
-    ctx : Context, optional
-        Warnings.
-
-    Returns
-    -------
-    cleaned : Clips
-    report : dict
-        Per clip: constrained frames per effector, max / mean error (m), max
-        error over the frames whose targets were reached, unreachable frames;
-        the thresholds used.
-    """
-    ctx = ctx or Context()
-    if clips.kind != "motion":
-        raise IKError(f"IK needs motion clips, got {clips.kind!r}")
-    sk = clips.skeleton
-    up = "xyz".index(clips.attrs.get("up", "y"))
-    hz = [a for a in range(3) if a != up]
-    if effectors is None:
-        groups = _auto_effectors(sk)
-    else:
-        groups = []
-        for name in effectors:
-            try:
-                j = sk.index(name)
-            except KeyError as e:
-                raise IKError(f"ik.effectors: {e.args[0]}") from None
-            # group effectors sharing a limb
-            for g in groups:
-                if set(limb_of(sk, j)) & set(limb_of(sk, g[0])):
-                    g.append(j)
-                    break
-            else:
-                groups.append([j])
-    for name in list(contacts or {}) + list(targets or {}):
-        try:
-            j = sk.index(name)
-        except KeyError as e:
-            raise IKError(f"ik: {e.args[0]}") from None
-        if not any(j in g for g in groups):
-            for g in groups:
-                if set(limb_of(sk, j)) & set(limb_of(sk, g[0])):
-                    g.append(j)
-                    break
-            else:
-                groups.append([j])
-    limbs = [_make_limb(clips, g) for g in groups]
-    motions = clips_to_motions(clips)
-    out_trajs = []
-    report: dict[str, Any] = {"clips": [], "limbs": [[sk.names[e] for e in g] for g in groups]}
-    for c, motion in enumerate(motions):
-        full = clips.full(c)
-        F = full.shape[0]
-        pos, grot = forward_kinematics(
-            sk, motion.rotations, motion.root_position, translations=motion.translations
-        )
-        eff_all = sorted({e for g in groups for e in g})
-        # contact runs per effector; explicit targets per frame
-        runs_of: dict[int, list[tuple[int, int]]] = {}
-        fixed = {e: np.full((F, 3), np.nan) for e in eff_all}
-        rate = clips.rate
-        for e in eff_all:
-            name = sk.names[e]
-            p = pos[:, e]
-            if contacts and name in contacts:
-                runs = [(max(0, int(a)), min(F, int(b))) for a, b in contacts[name]]
-            elif effectors is None or name in effectors:
-                floor = float(np.percentile(p[:, up], 5))
-                v = (np.linalg.norm(np.gradient(p[:, hz], axis=0), axis=1) * rate
-                     if F > 1 else np.zeros(F))
-                s_thr = (max(0.5, float(np.median(v))) if speed_threshold is None
-                         else speed_threshold)
-                runs = true_runs((p[:, up] < floor + height_threshold) & (v < s_thr),
-                                 min_length=2)
-            else:
-                runs = []
-            runs_of[e] = [(a, b) for a, b in runs if b > a]
-            if targets and name in targets:
-                for row in targets[name]:
-                    if len(row) != 4:
-                        raise IKError(f"ik.targets.{name}: rows must be [frame, x, y, z]")
-                    fr = int(row[0])
-                    if not 0 <= fr < F:
-                        raise IKError(f"ik.targets.{name}: frame {fr} outside 0..{F - 1}")
-                    fixed[e][fr] = row[1:4]
-        errs: dict[str, list[float]] = {sk.names[e]: [] for e in eff_all}
-        reached: dict[str, list[float]] = {sk.names[e]: [] for e in eff_all}
-        unreachable: list[dict[str, Any]] = []
-        new = full.copy()
-        for limb in limbs:
-            cols = limb.dof_columns
-            if cols.size == 0:
-                ctx.warn(f"limb {[sk.names[e] for e in limb.effectors]} has no varying DOF")
-                continue
-            E = len(limb.effectors)
-            manual = [bool(contacts) and sk.names[e] in contacts for e in limb.effectors]
-            depth = [len(limb_of(sk, e)) for e in limb.effectors]
-            run_id = np.full((F, E), -1)
-            for k, e in enumerate(limb.effectors):
-                for r, (a, b) in enumerate(runs_of[e]):
-                    run_id[a:b, k] = r
-            planted: dict[tuple[int, int], np.ndarray] = {}  # (effector, run) -> target
-            angles = _chain_angles(sk, limb, clips.dof_names, full)
-            offset, since = None, 0
-            n_blend = max(1, int(round(blend * clips.rate)))
-            for t in range(F):
-                qbar = full[t, cols]
-                qprev = None
-                if t >= 2:
-                    qprev = 2 * new[t - 1, cols] - new[t - 2, cols]
-                elif t == 1:
-                    qprev = new[0, cols]
-                T = np.full((E, 3), np.nan)
-                pending = []
-                # of the detected contacts only the deepest (toe over ankle) is held, so
-                # the foot can roll about it; explicit targets are all held
-                touching = [k for k in range(E) if run_id[t, k] >= 0]
-                held = max(touching, key=lambda k: depth[k]) if touching else -1
-                for k, e in enumerate(limb.effectors):
-                    if np.isfinite(fixed[e][t]).all():
-                        T[k] = fixed[e][t]
-                    elif run_id[t, k] >= 0 and (k == held or manual[k]):
-                        key = (k, int(run_id[t, k]))
-                        if key in planted:
-                            T[k] = planted[key]
-                        else:
-                            pending.append(key)
-                act = np.isfinite(T).all(axis=-1)
-                if not act.any() and not pending:
-                    # after a contact: ease the correction back to the sample
-                    if offset is not None and since < n_blend:
-                        since += 1
-                        new[t, cols] = qbar + offset * 0.5 * (1 + np.cos(np.pi * since / n_blend))
-                    continue
-                fk = _ChainFK(sk, limb, angles[t], grot[t, limb.top_parent],
-                              pos[t, limb.top_parent])
-                if act.any():
-                    q, err, ok = _solve_frame(
-                        fk, qbar, qprev, T, act, w1=w1, w2=w2,
-                        tolerance=tolerance, max_iter=max_iter, max_change=max_change,
-                    )
-                    if not ok:
-                        names = [sk.names[e] for k, e in enumerate(limb.effectors) if act[k]]
-                        unreachable.append({"frame": t, "effectors": names, "error": err})
-                        if err > release:  # lift off: end these detected contacts here
-                            for k in np.flatnonzero(act):
-                                r = run_id[t, k]
-                                if r >= 0 and not manual[k]:
-                                    run_id[t + 1 :, k] = np.where(
-                                        run_id[t + 1 :, k] == r, -1, run_id[t + 1 :, k]
-                                    )
-                else:
-                    q = qbar if qprev is None else (w1 * qbar + w2 * qprev) / (w1 + w2)
-                    ok = True
-                new[t, cols] = q
-                P = fk(q[None])[0]
-                offset, since = new[t, cols] - qbar, 0
-                for key in pending:  # a contact starts: plant where the effector is now
-                    planted[key] = P[key[0]].copy()
-                    errs[sk.names[limb.effectors[key[0]]]].append(0.0)
-                    reached[sk.names[limb.effectors[key[0]]]].append(0.0)
-                for k, e in enumerate(limb.effectors):
-                    if act[k]:
-                        err_k = float(np.linalg.norm(P[k] - T[k]))
-                        errs[sk.names[e]].append(err_k)
-                        if ok:
-                            reached[sk.names[e]].append(err_k)
-        if unreachable:
-            ctx.warn(_unreachable_summary(clips.names[c], unreachable))
-        out_trajs.append(new[:, clips.varying])
-        report["clips"].append(
-            {
-                "name": clips.names[c],
-                "constrained_frames": {k: len(v) for k, v in errs.items()},
-                "max_error": {k: (max(v) if v else 0.0) for k, v in errs.items()},
-                "max_error_reached": {k: (max(v) if v else 0.0) for k, v in reached.items()},
-                "mean_error": {k: (float(np.mean(v)) if v else 0.0) for k, v in errs.items()},
-                "unreachable": unreachable,
-            }
-        )
-    report.update(
-        {"w1": w1, "w2": w2, "height_threshold": height_threshold,
-         "speed_threshold": speed_threshold, "tolerance": tolerance}
-    )
-    return clips.replace(trajectories=out_trajs, attrs={**clips.attrs, "ik": True}), report
-
-
-def _chain_angles(sk: Skeleton, limb: Limb, names: list[str], full: np.ndarray) -> np.ndarray:
-    """Euler angles ``(F, J_c, 3)`` of the chain joints (padded channel order)."""
-    col = {n: i for i, n in enumerate(names)}
-    F = full.shape[0]
-    out = np.zeros((F, len(limb.joints), 3))
-    for k, j in enumerate(limb.joints):
-        for s, a in enumerate(sk.rotation_order(j)):
-            c = col.get(f"{sk.names[j]}:{a}rotation")
-            if c is not None:
-                out[:, k, s] = full[:, c]
-    return out
-
-
 @stage("ik", outputs=("variants", "report"))
 def ik(
     variants: Clips,
@@ -535,53 +314,381 @@ def ik(
     mode: Literal["auto", "off"] = "auto",
     ctx: Context,
 ) -> dict:
-    """IK clean-up of sampled variants: planted feet (and configured targets), §7.
+    """IK clean-up of sampled variants: planted feet (and configured targets), Lau §7.
 
     Parameters
     ----------
     variants : Clips
         Sampled variants (pen strokes pass through unchanged).
     w1, w2 : float
-        Closeness and smoothness weights (paper: w₁ = 1, w₂ = 5).
+        Closeness and smoothness weights of Lau Eq. 7 (paper: w₁ = 1, w₂ = 5).
     effectors : list of str, optional
-        Effector joints for contact detection (default ankles and toes).
+        Effector joint names for automatic contact detection (default the
+        ankle and toe joints of both feet).
     contacts : dict, optional
-        Manual contact frame ranges per joint (replaces detection).
+        ``joint -> [[start, stop], ...]`` contact frame ranges replacing the
+        detection for that joint (all clips).
     targets : dict, optional
-        Explicit ``[frame, x, y, z]`` targets per joint (metres).
+        ``joint -> [[frame, x, y, z], ...]`` explicit targets (metres), added
+        to the detected ones (all clips).
     height_threshold : float
-        Contact height above the effector's floor, metres.
+        Metres above the effector's floor (5th percentile of its height).
     speed_threshold : float, optional
-        Contact speed, m/s (default max(0.5, median speed)).
+        Horizontal speed (m/s) below which an effector may be in contact;
+        default the larger of 0.5 m/s and its median speed.
     tolerance : float
-        Metres; constraints met within it are reached, others are reported.
+        Metres; a constraint met within it counts as reached, others are reported.
     release : float
-        Metres; a detected contact missed by more than this ends early.
+        Metres; a detected contact whose target is missed by more than this
+        ends at that frame (the foot lifts off early); contacts given in
+        ``contacts`` are held to the end.
     max_change : float
-        Radians; bound on each DOF's change from the sample.
+        Radians; each DOF stays within this of its sampled value (keeps the
+        knee and elbow on the sampled side of full extension).
     blend : float
-        Seconds to ease a limb's correction back to the sample after a contact.
+        Seconds over which the correction of a limb eases back to the sample
+        after its last constrained frame (raised cosine).
     max_iter : int
         SLSQP iterations per frame.
     mode : {"auto", "off"}
         ``off`` passes the variants through.
     ctx : Context
+        Warnings.
 
     Returns
     -------
     dict
-        ``variants`` (Clips) and ``report`` (JSON).
+        ``variants`` (Clips, ``attrs["ik"]`` set) and ``report`` (JSON: per clip
+        the constrained frames per effector, max / mean error (m), max error
+        over the frames whose targets were reached, unreachable frames; the
+        limbs and the thresholds used).
     """
     if mode == "off" or variants.kind != "motion":
         why = "off" if mode == "off" else f"kind {variants.kind!r} has no skeleton"
         return {"variants": variants, "report": {"skipped": why}}
-    cleaned, report = solve_ik(
-        variants, w1=w1, w2=w2, effectors=effectors, contacts=contacts, targets=targets,
-        height_threshold=height_threshold, speed_threshold=speed_threshold,
-        tolerance=tolerance, release=release, max_change=max_change, blend=blend,
-        max_iter=max_iter, ctx=ctx,
+    sk = variants.skeleton
+    up = "xyz".index(variants.attrs.get("up", "y"))
+    groups = _effector_groups(sk, effectors, contacts, targets)
+    limbs = [_make_limb(variants, g) for g in groups]
+    solver = _Solver(w1=w1, w2=w2, tolerance=tolerance, release=release, max_change=max_change,
+                     max_iter=max_iter, n_blend=max(1, int(round(blend * variants.rate))))
+    eff_all = sorted({e for g in groups for e in g})
+    out_trajs = []
+    report: dict[str, Any] = {"clips": [], "limbs": [[sk.names[e] for e in g] for g in groups]}
+    for c, motion in enumerate(clips_to_motions(variants)):
+        pos, grot = forward_kinematics(
+            sk, motion.rotations, motion.root_position, translations=motion.translations
+        )
+        runs_of, fixed = _clip_constraints(
+            sk, pos, eff_all, rate=variants.rate, up=up, effectors=effectors, contacts=contacts,
+            targets=targets, height_threshold=height_threshold, speed_threshold=speed_threshold,
+        )
+        traj, clip_report = _clean_clip(variants, c, pos, grot, limbs, eff_all, runs_of, fixed,
+                                        contacts=contacts, solver=solver, ctx=ctx)
+        out_trajs.append(traj)
+        report["clips"].append(clip_report)
+    report.update(
+        {"w1": w1, "w2": w2, "height_threshold": height_threshold,
+         "speed_threshold": speed_threshold, "tolerance": tolerance}
     )
+    cleaned = variants.replace(trajectories=out_trajs, attrs={**variants.attrs, "ik": True})
     return {"variants": cleaned, "report": report}
+
+
+def _join_limb_group(groups: list[list[int]], sk: Skeleton, j: int) -> None:
+    """Add effector ``j`` to the group of a shared limb, or start a group."""
+    for g in groups:
+        if set(limb_of(sk, j)) & set(limb_of(sk, g[0])):
+            g.append(j)
+            break
+    else:
+        groups.append([j])
+
+
+def _effector_groups(
+    sk: Skeleton,
+    effectors: list[str] | None,
+    contacts: dict[str, list[list[int]]] | None,
+    targets: dict[str, list[list[float]]] | None,
+) -> list[list[int]]:
+    """Effector joints grouped by limb: the given or automatic ones, then constrained joints."""
+    if effectors is None:
+        groups = _auto_effectors(sk)
+    else:
+        groups = []
+        for name in effectors:
+            try:
+                j = sk.index(name)
+            except KeyError as e:
+                raise IKError(f"ik.effectors: {e.args[0]}") from None
+            _join_limb_group(groups, sk, j)
+    for name in list(contacts or {}) + list(targets or {}):
+        try:
+            j = sk.index(name)
+        except KeyError as e:
+            raise IKError(f"ik: {e.args[0]}") from None
+        if not any(j in g for g in groups):
+            _join_limb_group(groups, sk, j)
+    return groups
+
+
+def _clip_constraints(
+    sk: Skeleton,
+    pos: np.ndarray,
+    eff_all: list[int],
+    *,
+    rate: float,
+    up: int,
+    effectors: list[str] | None,
+    contacts: dict[str, list[list[int]]] | None,
+    targets: dict[str, list[list[float]]] | None,
+    height_threshold: float,
+    speed_threshold: float | None,
+) -> tuple[dict[int, list[tuple[int, int]]], dict[int, np.ndarray]]:
+    """Contact runs and explicit targets of each effector in one clip.
+
+    Parameters
+    ----------
+    sk : Skeleton
+    pos : (F, J, 3) float ndarray
+        Joint positions of the sampled clip.
+    eff_all : list of int
+        Effector joints.
+    rate : float
+    up : int
+        Up axis index.
+    effectors, contacts, targets, height_threshold, speed_threshold
+        As in the ``ik`` stage.
+
+    Returns
+    -------
+    runs_of : dict
+        ``effector -> [(start, stop), ...]`` contact frame ranges (given or detected).
+    fixed : dict
+        ``effector -> (F, 3)`` explicit targets (NaN where none).
+    """
+    F = pos.shape[0]
+    hz = [a for a in range(3) if a != up]
+    runs_of: dict[int, list[tuple[int, int]]] = {}
+    fixed = {e: np.full((F, 3), np.nan) for e in eff_all}
+    for e in eff_all:
+        name = sk.names[e]
+        p = pos[:, e]
+        if contacts and name in contacts:
+            runs = [(max(0, int(a)), min(F, int(b))) for a, b in contacts[name]]
+        elif effectors is None or name in effectors:
+            floor = float(np.percentile(p[:, up], 5))
+            v = (np.linalg.norm(np.gradient(p[:, hz], axis=0), axis=1) * rate
+                 if F > 1 else np.zeros(F))
+            s_thr = (max(0.5, float(np.median(v))) if speed_threshold is None
+                     else speed_threshold)
+            runs = true_runs((p[:, up] < floor + height_threshold) & (v < s_thr),
+                             min_length=2)
+        else:
+            runs = []
+        runs_of[e] = [(a, b) for a, b in runs if b > a]
+        if targets and name in targets:
+            for row in targets[name]:
+                if len(row) != 4:
+                    raise IKError(f"ik.targets.{name}: rows must be [frame, x, y, z]")
+                fr = int(row[0])
+                if not 0 <= fr < F:
+                    raise IKError(f"ik.targets.{name}: frame {fr} outside 0..{F - 1}")
+                fixed[e][fr] = row[1:4]
+    return runs_of, fixed
+
+
+def _clean_clip(
+    clips: Clips,
+    c: int,
+    pos: np.ndarray,
+    grot: np.ndarray,
+    limbs: list[Limb],
+    eff_all: list[int],
+    runs_of: dict[int, list[tuple[int, int]]],
+    fixed: dict[int, np.ndarray],
+    *,
+    contacts: dict[str, list[list[int]]] | None,
+    solver: _Solver,
+    ctx: Context,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Clip ``c`` with every limb cleaned; its varying DOFs ``(F, D)`` and its report entry."""
+    sk = clips.skeleton
+    full = clips.full(c)
+    errs: dict[str, list[float]] = {sk.names[e]: [] for e in eff_all}
+    reached: dict[str, list[float]] = {sk.names[e]: [] for e in eff_all}
+    unreachable: list[dict[str, Any]] = []
+    new = full.copy()
+    for limb in limbs:
+        if limb.dof_columns.size == 0:
+            ctx.warn(f"limb {[sk.names[e] for e in limb.effectors]} has no varying DOF")
+            continue
+        manual = [bool(contacts) and sk.names[e] in contacts for e in limb.effectors]
+        angles = _chain_angles(sk, limb, clips.dof_names, full)
+        _clean_limb(sk, limb, full, new, angles, pos, grot, runs_of, fixed, manual, solver,
+                    errs=errs, reached=reached, unreachable=unreachable)
+    if unreachable:
+        ctx.warn(_unreachable_summary(clips.names[c], unreachable))
+    report = {
+        "name": clips.names[c],
+        "constrained_frames": {k: len(v) for k, v in errs.items()},
+        "max_error": {k: (max(v) if v else 0.0) for k, v in errs.items()},
+        "max_error_reached": {k: (max(v) if v else 0.0) for k, v in reached.items()},
+        "mean_error": {k: (float(np.mean(v)) if v else 0.0) for k, v in errs.items()},
+        "unreachable": unreachable,
+    }
+    return new[:, clips.varying], report
+
+
+def _limb_run_ids(limb: Limb, runs_of: dict[int, list[tuple[int, int]]], F: int) -> np.ndarray:
+    """``(F, E)`` index of each effector's contact run at each frame (-1: none)."""
+    run_id = np.full((F, len(limb.effectors)), -1)
+    for k, e in enumerate(limb.effectors):
+        for r, (a, b) in enumerate(runs_of[e]):
+            run_id[a:b, k] = r
+    return run_id
+
+
+def _frame_targets(
+    limb: Limb,
+    t: int,
+    run_id: np.ndarray,
+    depth: list[int],
+    manual: list[bool],
+    fixed: dict[int, np.ndarray],
+    planted: dict[tuple[int, int], np.ndarray],
+) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """Targets ``(E, 3)`` of the limb's effectors at frame ``t`` (NaN: free) and new contacts.
+
+    Explicit targets are all held; of the detected contacts only the deepest
+    (toe over ankle) is, so the foot can roll about it; manual contacts are
+    always held.  A contact run not yet planted is returned as pending
+    ``(effector, run)`` (planted where the effector ends up this frame).
+    """
+    T = np.full((len(limb.effectors), 3), np.nan)
+    pending = []
+    touching = [k for k in range(len(limb.effectors)) if run_id[t, k] >= 0]
+    held = max(touching, key=lambda k: depth[k]) if touching else -1
+    for k, e in enumerate(limb.effectors):
+        if np.isfinite(fixed[e][t]).all():
+            T[k] = fixed[e][t]
+        elif run_id[t, k] >= 0 and (k == held or manual[k]):
+            key = (k, int(run_id[t, k]))
+            if key in planted:
+                T[k] = planted[key]
+            else:
+                pending.append(key)
+    return T, pending
+
+
+def _lift_off(run_id: np.ndarray, t: int, active: np.ndarray, manual: list[bool]) -> None:
+    """End the detected contact runs of the ``active`` effectors after frame ``t``."""
+    for k in np.flatnonzero(active):
+        r = run_id[t, k]
+        if r >= 0 and not manual[k]:
+            run_id[t + 1 :, k] = np.where(run_id[t + 1 :, k] == r, -1, run_id[t + 1 :, k])
+
+
+def _clean_limb(
+    sk: Skeleton,
+    limb: Limb,
+    full: np.ndarray,
+    new: np.ndarray,
+    angles: np.ndarray,
+    pos: np.ndarray,
+    grot: np.ndarray,
+    runs_of: dict[int, list[tuple[int, int]]],
+    fixed: dict[int, np.ndarray],
+    manual: list[bool],
+    solver: _Solver,
+    *,
+    errs: dict[str, list[float]],
+    reached: dict[str, list[float]],
+    unreachable: list[dict[str, Any]],
+) -> None:
+    """Solve one limb frame by frame into ``new`` (Lau Eq. 7), easing back after contacts.
+
+    Parameters
+    ----------
+    sk : Skeleton
+    limb : Limb
+    full : (F, D_all) float ndarray
+        Sampled DOFs of the clip.
+    new : (F, D_all) float ndarray
+        Cleaned DOFs, updated in place (the limb's columns).
+    angles : (F, J_c, 3) float ndarray
+        Sampled Euler angles of the chain (:func:`_chain_angles`).
+    pos, grot : (F, J, 3), (F, J, 4) float ndarray
+        Sampled joint positions and global rotations.
+    runs_of, fixed
+        From :func:`_clip_constraints`.
+    manual : list of bool
+        Per effector: its contacts were given (never lifted off).
+    solver : _Solver
+    errs, reached, unreachable
+        Per-effector errors, errors on reached frames and unreachable frames,
+        appended to.
+    """
+    cols = limb.dof_columns
+    F = full.shape[0]
+    depth = [len(limb_of(sk, e)) for e in limb.effectors]
+    run_id = _limb_run_ids(limb, runs_of, F)
+    planted: dict[tuple[int, int], np.ndarray] = {}  # (effector, run) -> target
+    offset, since = None, 0
+    n_blend = solver.n_blend
+    for t in range(F):
+        qbar = full[t, cols]
+        qprev = None
+        if t >= 2:
+            qprev = 2 * new[t - 1, cols] - new[t - 2, cols]
+        elif t == 1:
+            qprev = new[0, cols]
+        T, pending = _frame_targets(limb, t, run_id, depth, manual, fixed, planted)
+        act = np.isfinite(T).all(axis=-1)
+        if not act.any() and not pending:
+            # after a contact: ease the correction back to the sample
+            if offset is not None and since < n_blend:
+                since += 1
+                new[t, cols] = qbar + offset * 0.5 * (1 + np.cos(np.pi * since / n_blend))
+            continue
+        fk = _ChainFK(sk, limb, angles[t], grot[t, limb.top_parent], pos[t, limb.top_parent])
+        if act.any():
+            q, err, ok = _solve_frame(fk, qbar, qprev, T, act, solver)
+            if not ok:
+                names = [sk.names[e] for k, e in enumerate(limb.effectors) if act[k]]
+                unreachable.append({"frame": t, "effectors": names, "error": err})
+                if err > solver.release:  # lift off: end these detected contacts here
+                    _lift_off(run_id, t, act, manual)
+        else:
+            w1, w2 = solver.w1, solver.w2
+            q = qbar if qprev is None else (w1 * qbar + w2 * qprev) / (w1 + w2)
+            ok = True
+        new[t, cols] = q
+        P = fk(q[None])[0]
+        offset, since = new[t, cols] - qbar, 0
+        for key in pending:  # a contact starts: plant where the effector is now
+            planted[key] = P[key[0]].copy()
+            errs[sk.names[limb.effectors[key[0]]]].append(0.0)
+            reached[sk.names[limb.effectors[key[0]]]].append(0.0)
+        for k, e in enumerate(limb.effectors):
+            if act[k]:
+                err_k = float(np.linalg.norm(P[k] - T[k]))
+                errs[sk.names[e]].append(err_k)
+                if ok:
+                    reached[sk.names[e]].append(err_k)
+
+
+def _chain_angles(sk: Skeleton, limb: Limb, names: list[str], full: np.ndarray) -> np.ndarray:
+    """Euler angles ``(F, J_c, 3)`` of the chain joints (padded channel order)."""
+    col = {n: i for i, n in enumerate(names)}
+    F = full.shape[0]
+    out = np.zeros((F, len(limb.joints), 3))
+    for k, j in enumerate(limb.joints):
+        for s, a in enumerate(sk.rotation_order(j)):
+            c = col.get(f"{sk.names[j]}:{a}rotation")
+            if c is not None:
+                out[:, k, s] = full[:, c]
+    return out
 
 
 def _frame_ranges(frames: list[int]) -> str:

@@ -30,7 +30,6 @@ __all__ = [
     "figure_dof_time",
     "figure_pca",
     "figure_strokes",
-    "variation_figures",
     "variation_plots",
 ]
 
@@ -242,34 +241,6 @@ def figure_pca(inputs: Clips, variants: Clips) -> np.ndarray:
     return _render(fig)
 
 
-def variation_figures(
-    inputs: Clips, variants: Clips, *, dofs: list[str] | None = None
-) -> Figures:
-    """All figures that apply to the clips' kind.
-
-    Parameters
-    ----------
-    inputs, variants : Clips
-    dofs : list of str, optional
-        DOFs for the DOF plots.
-
-    Returns
-    -------
-    Figures
-        ``strokes`` for pen strokes; ``dof_time``, ``dof_dof`` and ``pca`` for
-        every kind.
-    """
-    images = {}
-    if inputs.kind == "strokes":
-        images["strokes"] = figure_strokes(inputs, variants)
-    images["dof_time"] = figure_dof_time(inputs, variants, dofs)
-    pair = tuple(dofs[:2]) if dofs and len(dofs) >= 2 else None
-    images["dof_dof"] = figure_dof_dof(inputs, variants, pair)
-    if inputs.n_dofs >= 2:
-        images["pca"] = figure_pca(inputs, variants)
-    return Figures(images, {"inputs": inputs.n_clips, "variants": variants.n_clips})
-
-
 def _concat(value: Any) -> Clips:
     """Variants of several tasks as one Clips (same layout: trajectories concatenated)."""
     if isinstance(value, Clips):
@@ -302,6 +273,18 @@ def variation_plots(
     Returns
     -------
     dict
-        ``figures``: :class:`Figures` (exported as PNG).
+        ``figures``: :class:`Figures` (exported as PNG): ``strokes`` for pen
+        strokes; ``dof_time``, ``dof_dof`` and (with at least 2 DOFs) ``pca``
+        for every kind.
     """
-    return {"figures": variation_figures(flatten_clips(inputs), _concat(variants), dofs=dofs)}
+    inputs, variants = flatten_clips(inputs), _concat(variants)
+    images = {}
+    if inputs.kind == "strokes":
+        images["strokes"] = figure_strokes(inputs, variants)
+    images["dof_time"] = figure_dof_time(inputs, variants, dofs)
+    pair = tuple(dofs[:2]) if dofs and len(dofs) >= 2 else None
+    images["dof_dof"] = figure_dof_dof(inputs, variants, pair)
+    if inputs.n_dofs >= 2:
+        images["pca"] = figure_pca(inputs, variants)
+    figures = Figures(images, {"inputs": inputs.n_clips, "variants": variants.n_clips})
+    return {"figures": figures}

@@ -1,12 +1,16 @@
 """Sampling variants from the learned DBN and noise baselines (Lau et al. 2009, §6 and §8).
 
-Sampling
+Sampling (the ``sample`` stage, :class:`Sampler`)
     The prior network is sampled in topological order (each node Gaussian
     with the kernel-regression mean and variance given its sampled parents),
     giving frames 0 and 1; then the transition network is unrolled: every DOF
     of frame ``t+2`` gets ``x[t+1] + Δ`` with ``Δ`` drawn from its kernel
     regression on frames ``t`` and ``t+1``.  ``sigma`` scales every standard
-    deviation: ``sigma = 0`` gives the mean motion.  Streams have any length;
+    deviation: ``sigma = 0`` gives the mean motion.  Spatial and temporal
+    variation come out of the same draws: the transition network is second
+    order (it regresses the delta on position and velocity), so a variant's
+    speed varies as its poses do; there is no separate time-warp model.
+    Streams have any length;
     for cyclic inputs they continue through cycle after cycle.  Several
     variants are sampled together (vectorised over variants and DOFs; the
     nearest-instance search is a batched matrix product + ``argpartition``).
@@ -15,7 +19,7 @@ Sampling
     time, so every frame keeps its conditional Gaussian as marginal but the
     velocity noise is no longer white (white noise on the delta is what makes
     variants of captured takes ~10x jerkier than the inputs).
-Noise baselines (§8)
+Noise baselines (Lau §8, the ``sample_noise`` stage)
     ``strawman``: an input clip, time-warped by a random smooth monotone warp,
     plus Gaussian-smoothed white noise.  ``perlin``: an input clip plus 1-D
     Perlin gradient noise per DOF.  Amplitudes are in units of each DOF's
@@ -31,28 +35,22 @@ from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
+from scipy.ndimage import gaussian_filter1d
 
 from mocapflow.pipeline import Context, stage
 from mocapflow.stages.variation.clips import Clips, flatten_clips
-from mocapflow.stages.variation.learn import (
-    _DAG,
-    PHASE,
-    VariationModel,
-    kernel_regression,
-    prior_data,
-    standardization,
-    transition_data,
-)
+from mocapflow.stages.variation.kernel import kernel_regression
+from mocapflow.stages.variation.model import VariationModel
+from mocapflow.stages.variation.search import DAG
+from mocapflow.stages.variation.training import PHASE, prior_data, standardization, transition_data
 
 __all__ = [
     "SampleError",
     "Sampler",
     "matched_amplitude",
-    "noise_variants",
     "perlin_noise",
     "sample",
     "sample_noise",
-    "sample_variants",
     "strawman_noise",
 ]
 
@@ -120,7 +118,7 @@ class Sampler:
         # prior
         self.Zp = pd.Z
         self.kp = min(int(p["k"]), pd.Z.shape[0])
-        dag = _DAG(2 * D)
+        dag = DAG(2 * D)
         for v, ps in enumerate(model.prior_parents):
             for u in ps:
                 dag.add(u, v)
@@ -181,7 +179,7 @@ class Sampler:
         noise_time : float, optional
             Correlation time (seconds) of the standard-normal draws of the
             transition network: AR(1) with ``ρ = exp(−1 / (noise_time · rate))``,
-            so each frame's delta keeps its conditional Gaussian (Eq. 5–6) as
+            so each frame's delta keeps its conditional Gaussian (Lau Eq. 5–6) as
             marginal but successive draws are correlated.  ``None``: independent
             draws per frame (the paper; white velocity noise, jerky positions).
 
@@ -249,38 +247,62 @@ class Sampler:
         return x
 
 
-def sample_variants(
+@stage("sample", outputs=("variants",))
+def sample(
     model: VariationModel,
-    rng: np.random.Generator,
     *,
     count: int = 1,
     length: int | None = None,
     sigma: float = 1.0,
     noise_time: float | None = None,
-) -> Clips:
-    """Sample variants as :class:`Clips` of the model's layout.
+    seed: int = 0,
+    ctx: Context,
+) -> dict:
+    """Sample motion variants from a learned model (Lau §6).
 
     Parameters
     ----------
     model : VariationModel
-    rng : numpy.random.Generator
     count : int
-        Variants.
+        Variants per task (fan out with ``seeds:`` for more tasks).
     length : int, optional
         Frames per variant.  Default: cyclic inputs the median input clip
-        length; other inputs (with the ``_phase`` DOF) each variant ends
-        where its phase reaches 1 (at most 1.5 × the longest input).
+        length; other inputs (with the ``_phase`` DOF) each variant ends where
+        its phase reaches 1 (at most 1.5 × the longest input).  Any length for
+        cyclic inputs.
     sigma : float
-        Standard-deviation scale (0: mean motion).
+        Standard-deviation scale; 0 gives the mean motion.
     noise_time : float, optional
-        Correlation time of the sampling noise in seconds (:meth:`Sampler.run`).
+        Correlation time of the sampling noise, seconds (:meth:`Sampler.run`;
+        null: independent per frame, as the paper).
+    seed : int
+        Seeds ``ctx.rng`` (with the part id).
+    ctx : Context
+        ``ctx.rng`` draws the variants.
 
     Returns
     -------
-    Clips
-        ``count`` trajectories; origins copied from the first input clip.
+    dict
+        ``variants``: :class:`~mocapflow.stages.variation.clips.Clips` of ``count``
+        trajectories of the model's layout; origins copied from the first input clip.
     """
     clips = model.clips
+    if length is not None and not clips.cyclic and length > 1.5 * clips.lengths.max():
+        ctx.warn(
+            f"length {length} exceeds the longest (non-cyclic) input clip "
+            f"({clips.lengths.max()} frames): the end continues past the data"
+        )
+    length, stop = _variant_length(clips, count=count, length=length, sigma=sigma,
+                                   noise_time=noise_time)
+    x = Sampler(model).run(ctx.rng, count=count, length=length, sigma=sigma, stop_at_end=stop,
+                           noise_time=noise_time)
+    return {"variants": _variant_clips(clips, x, sigma=sigma, noise_time=noise_time)}
+
+
+def _variant_length(
+    clips: Clips, *, count: int, length: int | None, sigma: float, noise_time: float | None
+) -> tuple[int, bool]:
+    """Check a sampling request; frames per variant and whether variants stop at phase 1."""
     if count < 1:
         raise SampleError(f"count must be at least 1, got {count}")
     stop = length is None and PHASE in clips.dof_names
@@ -293,8 +315,28 @@ def sample_variants(
     if noise_time is not None and not (noise_time > 0 and math.isfinite(noise_time)):
         raise SampleError(f"noise_time must be a finite number of seconds > 0 or null, "
                           f"got {noise_time}")
-    x = Sampler(model).run(rng, count=count, length=length, sigma=sigma, stop_at_end=stop,
-                           noise_time=noise_time)
+    return length, stop
+
+
+def _variant_clips(
+    clips: Clips, x: np.ndarray | list[np.ndarray], *, sigma: float, noise_time: float | None
+) -> Clips:
+    """Sampled DOF values as :class:`Clips` of the training clips' layout (``_phase`` dropped).
+
+    Parameters
+    ----------
+    clips : Clips
+        The model's training clips.
+    x : (B, T, D) float ndarray or list of (T_b, D) float ndarray
+        From :meth:`Sampler.run`.
+    sigma, noise_time : float
+        Recorded in ``attrs``.
+
+    Returns
+    -------
+    Clips
+    """
+    count = len(x)
     layout: dict[str, Any] = {}
     if PHASE in clips.dof_names:  # internal DOF (the last one): not part of the output
         x = [t[:, :-1] for t in x]
@@ -309,58 +351,11 @@ def sample_variants(
     )
 
 
-@stage("sample", outputs=("variants",))
-def sample(
-    model: VariationModel,
-    *,
-    count: int = 1,
-    length: int | None = None,
-    sigma: float = 1.0,
-    noise_time: float | None = None,
-    seed: int = 0,
-    ctx: Context,
-) -> dict:
-    """Sample motion variants from a learned model (§6).
-
-    Parameters
-    ----------
-    model : VariationModel
-    count : int
-        Variants per task (fan out with ``seeds:`` for more tasks).
-    length : int, optional
-        Frames per variant (default: cyclic inputs the median input clip
-        length; other inputs end where their phase DOF reaches 1).
-        Any length for cyclic inputs.
-    sigma : float
-        Standard-deviation scale; 0 gives the mean motion.
-    noise_time : float, optional
-        Correlation time of the sampling noise, seconds (null: independent
-        per frame, as the paper).
-    seed : int
-        Seeds ``ctx.rng`` (with the part id).
-    ctx : Context
-
-    Returns
-    -------
-    dict
-        ``variants``: :class:`~mocapflow.stages.variation.clips.Clips` of ``count`` trajectories.
-    """
-    clips = model.clips
-    if length is not None and not clips.cyclic and length > 1.5 * clips.lengths.max():
-        ctx.warn(
-            f"length {length} exceeds the longest (non-cyclic) input clip "
-            f"({clips.lengths.max()} frames): the end continues past the data"
-        )
-    return {"variants": sample_variants(model, ctx.rng, count=count, length=length, sigma=sigma,
-                                        noise_time=noise_time)}
-
-
 # --------------------------------------------------------------------------- noise baselines
 
 
 def _gaussian_smooth(x: np.ndarray, width: float) -> np.ndarray:
-    from scipy.ndimage import gaussian_filter1d
-
+    """``x`` smoothed along axis 0 by a Gaussian of std ``width`` samples (reflected ends)."""
     if width <= 0:
         return x
     return gaussian_filter1d(x, width, axis=0, mode="reflect")
@@ -431,6 +426,7 @@ def strawman_noise(
 
 
 def _unit(x: np.ndarray) -> np.ndarray:
+    """``x`` scaled to unit std per column (constant columns unchanged)."""
     s = x.std(axis=0)
     return x / np.where(s > 0, s, 1.0)
 
@@ -474,6 +470,11 @@ def _perlin_variants(
     clips: Clips, rng: np.random.Generator, *, count: int, length: int, amplitude: float,
     frequency: float = 2.0,
 ) -> np.ndarray:
+    """Perlin baseline: input clips (random start if cyclic) plus Perlin noise.
+
+    Returns ``(count, length, D)`` DOF values; ``frequency`` is in lattice
+    points per second.
+    """
     std = standardization(clips.trajectories)["std"]
     out = np.zeros((count, length, clips.n_dofs))
     for b in range(count):
@@ -485,43 +486,6 @@ def _perlin_variants(
             length, clips.n_dofs, rng, frequency=frequency / clips.rate
         )
     return out
-
-
-def noise_variants(
-    clips: Clips,
-    rng: np.random.Generator,
-    *,
-    method: Literal["strawman", "perlin"],
-    count: int,
-    length: int,
-    amplitude: float,
-) -> Clips:
-    """Noise-baseline variants as :class:`Clips` (see module docstring).
-
-    Parameters
-    ----------
-    clips : Clips
-    rng : numpy.random.Generator
-    method : {"strawman", "perlin"}
-    count, length : int
-    amplitude : float
-        Noise std in units of each DOF's std.
-
-    Returns
-    -------
-    Clips
-    """
-    if method == "strawman":
-        x = strawman_noise(clips, rng, count=count, length=length, amplitude=amplitude)
-    elif method == "perlin":
-        x = _perlin_variants(clips, rng, count=count, length=length, amplitude=amplitude)
-    else:
-        raise SampleError(f"unknown noise baseline {method!r}")
-    return clips.replace(
-        trajectories=list(x),
-        origins=np.repeat(clips.origins[:1], count, axis=0),
-        names=[f"{method}{i}" for i in range(count)],
-    )
 
 
 def matched_amplitude(
@@ -575,12 +539,14 @@ def sample_noise(
     seed: int = 0,
     ctx: Context,
 ) -> dict:
-    """Noise-baseline variants of the input clips (§8).
+    """Noise-baseline variants of the input clips (Lau §8).
 
     Parameters
     ----------
     clips : Clips or list of Clips
     method : {"strawman", "perlin"}
+        :func:`strawman_noise` (time-warped inputs plus smoothed noise) or
+        Perlin noise added to the inputs (:func:`perlin_noise`).
     amplitude : float
         Noise std in units of each DOF's std (match it to the model's variants
         with :func:`matched_amplitude`).
@@ -588,17 +554,27 @@ def sample_noise(
     length : int, optional
         Default the median input length.
     seed : int
+        Seeds ``ctx.rng`` (with the part id).
     ctx : Context
+        ``ctx.rng`` draws the baselines.
 
     Returns
     -------
     dict
-        ``variants``: Clips.
+        ``variants``: Clips of ``count`` trajectories named ``<method><i>``,
+        origins copied from the first input clip.
     """
     data = flatten_clips(clips)
     length = int(np.median(data.lengths)) if length is None else int(length)
-    return {
-        "variants": noise_variants(
-            data, ctx.rng, method=method, count=count, length=length, amplitude=amplitude
-        )
-    }
+    if method == "strawman":
+        x = strawman_noise(data, ctx.rng, count=count, length=length, amplitude=amplitude)
+    elif method == "perlin":
+        x = _perlin_variants(data, ctx.rng, count=count, length=length, amplitude=amplitude)
+    else:
+        raise SampleError(f"unknown noise baseline {method!r}")
+    variants = data.replace(
+        trajectories=list(x),
+        origins=np.repeat(data.origins[:1], count, axis=0),
+        names=[f"{method}{i}" for i in range(count)],
+    )
+    return {"variants": variants}

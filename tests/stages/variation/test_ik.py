@@ -9,7 +9,7 @@ from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices
 from mocapflow.stages.motion.kinematics import motion_positions
 from mocapflow.stages.motion.simulate.motion import procedural_skeleton, procedural_walk
 from mocapflow.stages.variation.clips import clips_from_motions, clips_to_motions, make_clips
-from mocapflow.stages.variation.ik import IKError, ik, limb_of, solve_ik
+from mocapflow.stages.variation.ik import IKError, ik, limb_of
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +34,8 @@ def test_planted_feet_within_a_millimetre_and_less_skate(skating):
     toes = toe_indices(sk)
     thr = contact_thresholds(motion_positions(clips_to_motions(clean)[0]), toes, clean.rate)
     ctx = Context()
-    out, rep = solve_ik(bad, ctx=ctx)
+    r = ik(bad, ctx=ctx)
+    out, rep = r["variants"], r["report"]
     r = rep["clips"][0]
     assert sum(r["constrained_frames"].values()) > 60
     assert not r["unreachable"] and not ctx.warnings
@@ -54,7 +55,8 @@ def test_manual_contacts_hold_the_foot(skating):
     walk = procedural_walk(90, rate=60.0, seed=2, variation=0.0)
     flat = [f for f in walk.attrs["gait_events"]["left"]["foot_flat"] if 0.1 < f < 1.1][0]
     a = int(round(flat * 60))
-    out, rep = solve_ik(bad, effectors=["LeftFoot"], contacts={"LeftFoot": [[a, a + 12]]})
+    r = ik(bad, effectors=["LeftFoot"], contacts={"LeftFoot": [[a, a + 12]]})
+    out, rep = r["variants"], r["report"]
     p = motion_positions(clips_to_motions(out)[0])[:, bad.skeleton.index("LeftFoot")]
     p0 = motion_positions(clips_to_motions(bad)[0])[:, bad.skeleton.index("LeftFoot")]
     assert np.abs(p[a : a + 12] - p[a]).max() <= 1e-3
@@ -65,17 +67,18 @@ def test_manual_contacts_hold_the_foot(skating):
 def test_unreachable_target_is_best_effort_with_a_warning(skating):
     _, bad = skating
     ctx = Context()
-    out, rep = solve_ik(bad, effectors=["LeftToeBase"], contacts={"LeftToeBase": []},
-                        targets={"LeftToeBase": [[10, 5.0, 0.0, 5.0]]}, ctx=ctx)
+    r = ik(bad, effectors=["LeftToeBase"], contacts={"LeftToeBase": []},
+           targets={"LeftToeBase": [[10, 5.0, 0.0, 5.0]]}, ctx=ctx)
+    out, rep = r["variants"], r["report"]
     un = rep["clips"][0]["unreachable"]
     assert len(un) == 1 and un[0]["frame"] == 10 and un[0]["error"] > 1.0
     assert any("frame 10" in w and "LeftToeBase" in w and "unreachable" in w
                for w in ctx.warnings)
     assert np.isfinite(out.trajectories[0]).all()
     with pytest.raises(IKError, match="NoSuchJoint"):
-        solve_ik(bad, effectors=["NoSuchJoint"])
+        ik(bad, effectors=["NoSuchJoint"])
     with pytest.raises(IKError, match="frame 500"):
-        solve_ik(bad, targets={"LeftFoot": [[500, 0, 0, 0]]})
+        ik(bad, targets={"LeftFoot": [[500, 0, 0, 0]]})
 
 
 def test_stage_passes_strokes_and_off_through_and_limbs():

@@ -9,21 +9,14 @@ from scipy.ndimage import gaussian_filter1d
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, digest_encoded, encode
 from mocapflow.stages.variation.clips import make_clips
-from mocapflow.stages.variation.learn import (
-    _DAG,
-    LearnError,
-    VariationModel,
-    heldout_log_likelihood,
-    kernel_regression,
-    learn,
-    learn_structure,
-    prior_data,
-    prior_node_score,
-    standardization,
-    transition_data,
-    transition_node_fit,
-)
-from mocapflow.stages.variation.sample import sample_variants
+from mocapflow.stages.variation.kernel import kernel_regression
+from mocapflow.stages.variation.learn import LearnError, learn
+from mocapflow.stages.variation.model import VariationModel
+from mocapflow.stages.variation.scores import prior_node_score, transition_node_fit
+from mocapflow.stages.variation.search import DAG
+from mocapflow.stages.variation.similar import heldout_log_likelihood
+from mocapflow.stages.variation.training import prior_data, standardization, transition_data
+from tests.stages.variation.conftest import variants
 
 
 def _lagged(n_clips=4, T=80, seed=0):
@@ -87,14 +80,14 @@ def test_scores_prefer_the_true_parent():
 
 def test_structure_search_recovers_the_lag_and_the_prior_pairs():
     c = _lagged()
-    m = learn_structure(c, k=10, restarts=1)
+    m = learn(c, k=10, restarts=1)["model"]
     D = m.n_dofs  # x0, x1, x2 and the _phase DOF added for non-cyclic clips
     assert D == 4 and m.clips.labels[-1] == "_phase"
     assert D + 0 in m.transition_parents[1]
     # X_i[0] and X_i[1] are linked in the prior (either direction), the graph is acyclic
     for i in range(3):
         assert (i in m.prior_parents[D + i]) or (D + i in m.prior_parents[i])
-    dag = _DAG(2 * D)
+    dag = DAG(2 * D)
     for v, ps in enumerate(m.prior_parents):
         for u in ps:
             dag.add(u, v)
@@ -105,10 +98,10 @@ def test_structure_search_recovers_the_lag_and_the_prior_pairs():
 
 def test_parallel_map_gives_the_same_model_and_codec_round_trip():
     c = make_clips(_cycles(), ["a", "b", "c"], rate=48.0, cyclic=True)
-    seq = learn_structure(c, k=10, seed=3)
+    seq = learn(c, k=10, seed=3)["model"]
     with ThreadPoolExecutor(2) as pool:
         ctx = Context(mapper=lambda fn, items: list(pool.map(fn, items)), workers=2)
-        par = learn_structure(c, k=10, seed=3, ctx=ctx)
+        par = learn(c, k=10, seed=3, ctx=ctx)["model"]
     assert par.transition_parents == seq.transition_parents
     assert par.prior_parents == seq.prior_parents
     np.testing.assert_array_equal(par.transition_scores, seq.transition_scores)
@@ -117,8 +110,8 @@ def test_parallel_map_gives_the_same_model_and_codec_round_trip():
     assert isinstance(back, VariationModel) and back.params == seq.params
     np.testing.assert_array_equal(back.transition_bandwidth, seq.transition_bandwidth)
     assert digest_encoded(encode(back)) == digest_encoded(e)
-    a = sample_variants(seq, np.random.default_rng(5), count=2, length=30)
-    b = sample_variants(back, np.random.default_rng(5), count=2, length=30)
+    a = variants(seq, 5, count=2, length=30)
+    b = variants(back, 5, count=2, length=30)
     np.testing.assert_array_equal(a.trajectories[1], b.trajectories[1])
 
 
@@ -136,35 +129,35 @@ def test_edge_cases_one_clip_constant_dof_lengths_and_bad_params():
     base = _cycles(n=3, T=60)
     # one clip: learns with a warning, samples
     ctx = Context()
-    one = learn_structure(make_clips(base[:1], ["a", "b", "c"], rate=48.0, cyclic=True),
-                          k=8, score="one_step", ctx=ctx)
+    one = learn(make_clips(base[:1], ["a", "b", "c"], rate=48.0, cyclic=True),
+                k=8, score="one_step", ctx=ctx)["model"]
     assert any("only one input clip" in w for w in ctx.warnings)
-    assert sample_variants(one, np.random.default_rng(0), length=50).trajectories[0].shape == (
+    assert variants(one, 0, length=50).trajectories[0].shape == (
         50, 3)
     # a DOF constant in all clips is dropped and comes back exactly
     with_const = [np.concatenate([t, np.full((len(t), 1), 0.25)], axis=1) for t in base]
     c = make_clips(with_const, ["a", "b", "c", "k"], rate=48.0, cyclic=True)
-    m = learn_structure(c, k=8, score="one_step")
+    m = learn(c, k=8, score="one_step")["model"]
     assert m.n_dofs == 3 and c.attrs["constant_dofs"] == ["k"]
-    v = sample_variants(m, np.random.default_rng(0), length=40)
+    v = variants(m, 0, length=40)
     np.testing.assert_array_equal(v.full(0)[:, 3], 0.25)
     # clips of very different lengths: fine, k clamped where needed
     ctx = Context()
     uneven = [base[0][:12], base[1], np.concatenate([base[2]] * 4)]
-    mu = learn_structure(make_clips(uneven, ["a", "b", "c"], rate=48.0), k=15,
-                         score="one_step", ctx=ctx)
+    mu = learn(make_clips(uneven, ["a", "b", "c"], rate=48.0), k=15,
+               score="one_step", ctx=ctx)["model"]
     assert mu.params["k_transition"] <= 15
-    assert np.isfinite(sample_variants(mu, np.random.default_rng(1)).trajectories[0]).all()
+    assert np.isfinite(variants(mu, 1).trajectories[0]).all()
     # errors
     flat = make_clips([np.ones((10, 2)), np.ones((12, 2))], ["a", "b"], rate=10.0)
     with pytest.raises(LearnError, match="no varying DOF"):
-        learn_structure(flat)
+        learn(flat)
     with pytest.raises(LearnError, match="k must be"):
-        learn_structure(c, k=1)
+        learn(c, k=1)
     with pytest.raises(LearnError, match="half_life"):
-        learn_structure(c, k=8, half_life=-1.0)
+        learn(c, k=8, half_life=-1.0)
     with pytest.raises(LearnError, match="fewer than 3 frames"):
-        learn_structure(make_clips([base[0][:2], base[1][:2]], ["a", "b", "c"], rate=48.0), k=2)
+        learn(make_clips([base[0][:2], base[1][:2]], ["a", "b", "c"], rate=48.0), k=2)
 
 
 def test_heldout_likelihood_ranks_an_outlier_last():

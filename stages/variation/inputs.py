@@ -1,0 +1,238 @@
+"""The ``clips`` stage: ingested parts → the similar training clips (Lau et al. 2009, §4, §9).
+
+One long take of a cyclic motion is cut into cycles
+(:mod:`~mocapflow.stages.variation.cycles`); several parts are one example each;
+each pen-stroke example is one clip (:mod:`~mocapflow.stages.variation.clips`).
+Optionally only the ``max_clips`` most typical clips are kept (smallest RMS
+distance to the elementwise median clip, all resampled to 32 frames) and clips
+unlikely under the others are removed (Lau §9,
+:mod:`~mocapflow.stages.variation.similar`).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import numpy as np
+
+from mocapflow.pipeline import Context, stage
+from mocapflow.stages.motion.datatypes import Motion, Strokes
+from mocapflow.stages.variation.clips import (
+    ClipError,
+    Clips,
+    clips_from_motions,
+    clips_from_strokes,
+    merge_clips,
+    source_name,
+)
+from mocapflow.stages.variation.cycles import cut_cycles
+from mocapflow.stages.variation.similar import select_similar
+
+__all__ = ["clips"]
+
+
+@stage("clips", outputs=("clips", "report"))
+def clips(
+    sources: Any,
+    *,
+    cut: Literal["auto", "feet", "period", "none"] = "auto",
+    cyclic: bool | None = None,
+    root: Literal["heading", "absolute"] = "heading",
+    up: Literal["y", "z"] = "y",
+    outlier: float = 2.5,
+    min_cycles: int = 2,
+    letter: str | None = None,
+    max_clips: int | None = None,
+    similar_threshold: float | None = None,
+    ctx: Context,
+) -> dict:
+    """Make the DOF clips the ``learn`` stage trains on, from ingested parts.
+
+    With one motion part (a long take) and ``cut`` not ``"none"``, the take is
+    cut into cycles (:func:`~mocapflow.stages.variation.cycles.cut_cycles`).
+    With several parts each part is one example.  Each pen-stroke example is
+    one clip.
+
+    Parameters
+    ----------
+    sources : Motion, Strokes, Clips or list of them
+        The ingested parts (a gather input is a list ordered by part).
+    cut : {"auto", "feet", "period", "none"}
+        Cycle cutting of a single take (``auto``: heel strikes, else period).
+    cyclic : bool, optional
+        Mark the clips as cycles (default: true exactly when a take was cut).
+    root : {"heading", "absolute"}
+        Root DOFs (see :mod:`~mocapflow.stages.variation.dofs`).
+    up : {"y", "z"}
+        World up axis.
+    outlier : float
+        Shape-outlier factor for dropping cycles.
+    min_cycles : int
+        Fewer cycles than this: the take is used whole, with a warning.
+    letter : str, optional
+        Keep only strokes whose ``attrs["letter"]`` equals it.
+    max_clips : int, optional
+        Keep at most this many clips, the most typical ones (smallest
+        distance to the median clip, all resampled to 32 frames), in order.
+    similar_threshold : float, optional
+        Run :func:`~mocapflow.stages.variation.similar.select_similar` (Lau §9)
+        with this per-frame log-likelihood threshold (from
+        :func:`~mocapflow.stages.variation.similar.likelihood_threshold` on a
+        trusted set).
+    ctx : Context
+
+    Returns
+    -------
+    dict
+        ``clips`` (:class:`Clips`) and ``report`` (JSON: clip names and
+        lengths, cut method and frames, dropped constant DOFs, removed clips).
+    """
+    items = _flatten_sources(sources, [])
+    if not items:
+        raise ClipError("clips: no input part")
+    report: dict[str, Any] = {}
+    if all(isinstance(x, Clips) for x in items):
+        out = merge_clips(items)
+    elif all(isinstance(x, Strokes) for x in items):
+        out = _stroke_clips(items, letter=letter, cyclic=cyclic, ctx=ctx)
+    elif all(isinstance(x, Motion) for x in items):
+        if len(items) == 1 and cut != "none":
+            out, report["cut"] = _take_cycles(
+                items[0], cut=cut, cyclic=cyclic, root=root, up=up, outlier=outlier,
+                min_cycles=min_cycles, ctx=ctx,
+            )
+        else:
+            out = clips_from_motions(items, root=root, up=up, cyclic=bool(cyclic))
+    else:
+        kinds = {type(x).__name__ for x in items}
+        raise ClipError(f"clips: mixed or unsupported inputs {sorted(kinds)}")
+    if max_clips is not None and out.n_clips > max_clips:
+        out, report["dropped_atypical"] = _most_typical(out, max_clips)
+    if similar_threshold is not None:
+        out, report["removed"] = _similar_only(out, similar_threshold, ctx)
+    return {"clips": out, "report": _summary(out, report, ctx)}
+
+
+def _flatten_sources(value: Any, out: list) -> list:
+    """Append the parts in ``value`` (nested lists, ``{"strokes": ...}`` sets) to ``out``."""
+    if isinstance(value, (list, tuple)):
+        for v in value:
+            _flatten_sources(v, out)
+    elif isinstance(value, dict) and "strokes" in value:
+        _flatten_sources(value["strokes"], out)
+    elif value is not None:
+        out.append(value)
+    return out
+
+
+def _stroke_clips(
+    strokes: list[Strokes], *, letter: str | None, cyclic: bool | None, ctx: Context
+) -> Clips:
+    """One clip per pen-stroke example (of ``letter`` only, when given)."""
+    if letter is not None:
+        strokes = [s for s in strokes if s.attrs.get("letter") == letter]
+        if not strokes:
+            raise ClipError(f"clips: no strokes of letter {letter!r}")
+    out = clips_from_strokes(strokes)
+    if cyclic:
+        out = out.replace(cyclic=True)
+    if out.attrs.get("pen_up_joined"):
+        ctx.warn(f"pen-up breaks joined in {out.attrs['pen_up_joined']}")
+    return out
+
+
+def _take_cycles(
+    take: Motion,
+    *,
+    cut: Literal["auto", "feet", "period"],
+    cyclic: bool | None,
+    root: Literal["heading", "absolute"],
+    up: str,
+    outlier: float,
+    min_cycles: int,
+    ctx: Context,
+) -> tuple[Clips, dict[str, Any]]:
+    """The kept cycles of one take as clips, or the whole take when too few are found.
+
+    Returns
+    -------
+    clips : Clips
+    cut_report : dict
+        From :func:`~mocapflow.stages.variation.cycles.cut_cycles`.
+    """
+    cycles, rep = cut_cycles(take, method=cut, up=up, outlier=outlier)
+    if len(cycles) < min_cycles:
+        ctx.warn(
+            f"{source_name(take, 'take')}: found {len(cycles)} cycle(s) (< {min_cycles}); "
+            "using the whole take as one clip"
+        )
+        return clips_from_motions([take], root=root, up=up, cyclic=bool(cyclic)), rep
+    bounds = sorted({x for c in cycles for x in c})
+    out = clips_from_motions(
+        [take],
+        cuts=[np.array(bounds)],
+        root=root,
+        up=up,
+        cyclic=True if cyclic is None else cyclic,
+    )
+    keep = [i for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])) if (a, b) in set(cycles)]
+    return out.subset(keep), rep
+
+
+def _typicality(trajs: list[np.ndarray], samples: int = 32) -> np.ndarray:
+    """RMS distance of each clip (standardised, resampled) to the elementwise median clip."""
+    X = np.concatenate(trajs, axis=0)
+    mean, std = X.mean(axis=0), X.std(axis=0)
+    std = np.where(std > 0, std, 1.0)
+    grid = np.linspace(0.0, 1.0, samples)
+    shapes = []
+    for t in trajs:
+        z = (t - mean) / std
+        tt = np.linspace(0.0, 1.0, len(z))
+        shapes.append(np.stack([np.interp(grid, tt, z[:, d]) for d in range(z.shape[1])], 1))
+    shapes = np.stack(shapes)
+    med = np.median(shapes, axis=0)
+    return np.sqrt(((shapes - med) ** 2).mean(axis=(1, 2)))
+
+
+def _most_typical(clips: Clips, max_clips: int) -> tuple[Clips, list[str]]:
+    """The ``max_clips`` clips of smallest :func:`_typicality`, in order, and the dropped names."""
+    if max_clips < 1:
+        raise ClipError(f"clips.max_clips must be at least 1, got {max_clips}")
+    keep = np.sort(np.argsort(_typicality(clips.trajectories), kind="stable")[:max_clips])
+    dropped = [clips.names[i] for i in range(clips.n_clips) if i not in keep]
+    return clips.subset(keep), dropped
+
+
+def _similar_only(
+    clips: Clips, threshold: float, ctx: Context
+) -> tuple[Clips, list[dict[str, Any]]]:
+    """Lau §9 selection (:func:`~mocapflow.stages.variation.similar.select_similar`), warned."""
+    out, removed = select_similar(clips, threshold)
+    for r in removed:
+        ctx.warn(f"clip {r['name']} removed: log-likelihood {r['log_likelihood']:.3g} "
+                 f"< threshold {threshold:.3g}")
+    return out, removed
+
+
+def _summary(clips: Clips, report: dict[str, Any], ctx: Context) -> dict[str, Any]:
+    """``report`` completed with the clips' sizes (warns on very uneven lengths)."""
+    lengths = clips.lengths
+    if clips.n_clips > 1 and lengths.max() > 2 * lengths.min():
+        ctx.warn(
+            f"clip lengths differ a lot ({lengths.min()}–{lengths.max()} frames); "
+            "the prior network draws more start frames from the long ones"
+        )
+    if clips.attrs.get("constant_dofs"):
+        report["constant_dofs"] = clips.attrs["constant_dofs"]
+    report.update(
+        {
+            "n_clips": clips.n_clips,
+            "names": clips.names,
+            "lengths": lengths.tolist(),
+            "n_dofs": clips.n_dofs,
+            "cyclic": clips.cyclic,
+            "kind": clips.kind,
+        }
+    )
+    return report
