@@ -39,9 +39,13 @@ from pathlib import Path
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import bvhio  # noqa: E402
+import ezc3d  # noqa: E402
+import kineticstoolkit as ktk  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mocapflow.stages.motion.datatypes import Markers  # noqa: E402
+from mocapflow.stages.motion.formats.bvh import read_bvh, write_bvh  # noqa: E402
 from mocapflow.stages.motion.formats.c3d import read_c3d, write_c3d  # noqa: E402
 
 DATA = Path(os.environ.get("MOCAPFLOW_DATA", Path(__file__).parents[1] / ".." / "shared" / "data"))
@@ -67,9 +71,6 @@ def best_times(fns: list[Callable[[], object]], repeat: int) -> list[float]:
 
 
 def _rows_c3d(path: Path, frames: int, repeat: int, tmp: Path) -> list[tuple]:
-    import ezc3d
-    import kineticstoolkit as ktk
-
     rows = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -110,10 +111,6 @@ def _rows_c3d(path: Path, frames: int, repeat: int, tmp: Path) -> list[tuple]:
 
 
 def _rows_bvh(path: Path, repeat: int, tmp: Path) -> list[tuple]:
-    import bvhio
-
-    from mocapflow.stages.motion.formats.bvh import read_bvh, write_bvh
-
     motion = read_bvh(path)
     frames = motion.n_frames
     rows = []

@@ -107,8 +107,13 @@ def aligned_distance(a: np.ndarray, b: np.ndarray, *, window: int | None = None)
     -------
     float
     """
+    return _aligned(a, b, window)[0]
+
+
+def _aligned(a: np.ndarray, b: np.ndarray, window: int | None) -> tuple[float, np.ndarray]:
+    """:func:`aligned_distance` and the DTW path it comes from."""
     cost, path = dtw(a, b, window=window)
-    return cost / len(path)
+    return cost / len(path), path
 
 
 def warp_slope_std(path: np.ndarray, *, smooth: int = 5, trim: float = 0.1) -> float:
@@ -201,14 +206,13 @@ def nearest_pose_distance(output: np.ndarray, inputs: list[np.ndarray]) -> float
     -------
     float
     """
-    tree = cKDTree(np.concatenate(inputs, axis=0))
-    d, _ = tree.query(np.asarray(output, dtype=np.float64))
-    return float(np.min(d))
+    return float(np.min(_input_distances(output, inputs)))
 
 
-def _count_within(output: np.ndarray, inputs: list[np.ndarray], tol: float) -> int:
-    d, _ = cKDTree(np.concatenate(inputs, axis=0)).query(output)
-    return int((d <= tol).sum())
+def _input_distances(output: np.ndarray, inputs: list[np.ndarray]) -> np.ndarray:
+    """``(T,)`` distance from each output pose to its nearest input pose (a k-d tree)."""
+    d, _ = cKDTree(np.concatenate(inputs, axis=0)).query(np.asarray(output, dtype=np.float64))
+    return d
 
 
 def novelty_report(
@@ -254,55 +258,97 @@ def novelty_report(
     """
     if not inputs:
         raise ValueError("novelty_report: no input clip")
-    allin = np.concatenate(inputs, axis=0)
-    mean = allin.mean(axis=0)
-    std = allin.std(axis=0)
-    std = np.where(std > 0, std, 1.0)
-    zin = [(x - mean) / std for x in inputs]
-    zout = [(y - mean) / std for y in outputs]
-    steps = [np.linalg.norm(np.diff(z, axis=0), axis=1) for z in zin]
-    allsteps = np.concatenate(steps)
-    med = float(np.median(allsteps)) if allsteps.size else 0.0
-    tol = copy_tolerance * med
-    moving = [np.append(s, s[-1:]) >= 0.5 * med if s.size else np.zeros(1, bool) for s in steps]
+    zin, zout = _standardised(inputs, outputs)
+    tol, moving = _copy_tolerance(zin, copy_tolerance)
     rep: dict[str, Any] = {"tol": tol, "equal_tol": equal_tol}
     near, runs, adist, wstd = [], [], [], []
     for z in zout:
         near.append(nearest_pose_distance(z, zin))
         runs.append(longest_copied_run(z, zin, tol, cyclic=cyclic, eligible=moving))
-        best = None
-        for x in zin:
-            cost, path = dtw(z, x, window=window)
-            d = cost / len(path)
-            if best is None or d < best[0]:
-                best = (d, path)
-        adist.append(best[0])
-        wstd.append(warp_slope_std(best[1], smooth=smooth))
-    pair_d, pair_w = [], []
-    for a in range(len(zin)):
-        for b in range(a + 1, len(zin)):
-            cost, path = dtw(zin[a], zin[b], window=window)
-            pair_d.append(cost / len(path))
-            pair_w.append(warp_slope_std(path, smooth=smooth))
-            cost, path = dtw(zin[b], zin[a], window=window)
-            pair_w.append(warp_slope_std(path, smooth=smooth))
+        d, path = _nearest_aligned(z, zin, window)
+        adist.append(d)
+        wstd.append(warp_slope_std(path, smooth=smooth))
+    pair_d, pair_w = _among_inputs(zin, window, smooth)
     rep.update(
         {
-            "equal_poses": int(sum(_count_within(z, zin, equal_tol) for z in zout)),
+            "equal_poses": int(sum((_input_distances(z, zin) <= equal_tol).sum() for z in zout)),
             "nearest_pose": near,
             "copied_run": runs,
             "aligned_distance": adist,
             "warp_slope_std": wstd,
-            "input_copied_run": max(
-                (longest_copied_run(zin[a], [x for b, x in enumerate(zin) if b != a], tol,
-                                    cyclic=cyclic,
-                                    eligible=[m for b, m in enumerate(moving) if b != a])
-                 for a in range(len(zin)) if len(zin) > 1),
-                default=0,
-            ),
+            "input_copied_run": _input_copied_run(zin, tol, cyclic=cyclic, moving=moving),
             "input_distances": pair_d,
             "input_distance_p95": float(np.percentile(pair_d, 95)) if pair_d else float("nan"),
             "input_warp_slope_std": float(np.mean(pair_w)) if pair_w else float("nan"),
         }
     )
     return rep
+
+
+def _standardised(
+    inputs: list[np.ndarray], outputs: list[np.ndarray]
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Inputs and outputs in DOF units standardised by the inputs' per-DOF mean and std
+    (a DOF that never moves keeps its unit)."""
+    allin = np.concatenate(inputs, axis=0)
+    mean = allin.mean(axis=0)
+    std = allin.std(axis=0)
+    std = np.where(std > 0, std, 1.0)
+    return [(x - mean) / std for x in inputs], [(y - mean) / std for y in outputs]
+
+
+def _copy_tolerance(
+    zin: list[np.ndarray], copy_tolerance: float
+) -> tuple[float, list[np.ndarray]]:
+    """Copied-run tolerance and the input frames that may count as copied.
+
+    The tolerance is ``copy_tolerance`` × the median frame-to-frame step of the
+    inputs; a frame moving less than half that median step (at rest) is never
+    counted as copied.  Returns the tolerance and one ``(T_c,)`` bool per input.
+    """
+    steps = [np.linalg.norm(np.diff(z, axis=0), axis=1) for z in zin]
+    allsteps = np.concatenate(steps)
+    med = float(np.median(allsteps)) if allsteps.size else 0.0
+    tol = copy_tolerance * med
+    moving = [np.append(s, s[-1:]) >= 0.5 * med if s.size else np.zeros(1, bool) for s in steps]
+    return tol, moving
+
+
+def _nearest_aligned(
+    z: np.ndarray, zin: list[np.ndarray], window: int | None
+) -> tuple[float, np.ndarray]:
+    """The smallest DTW-aligned distance of ``z`` to an input, and that alignment's path
+    (the first input wins a tie)."""
+    best = None
+    for x in zin:
+        d, path = _aligned(z, x, window)
+        if best is None or d < best[0]:
+            best = (d, path)
+    return best
+
+
+def _among_inputs(
+    zin: list[np.ndarray], window: int | None, smooth: int
+) -> tuple[list[float], list[float]]:
+    """Aligned distance of every input pair, and the warp-slope std of both directions."""
+    pair_d, pair_w = [], []
+    for a in range(len(zin)):
+        for b in range(a + 1, len(zin)):
+            d, path = _aligned(zin[a], zin[b], window)
+            pair_d.append(d)
+            pair_w.append(warp_slope_std(path, smooth=smooth))
+            _, path = _aligned(zin[b], zin[a], window)
+            pair_w.append(warp_slope_std(path, smooth=smooth))
+    return pair_d, pair_w
+
+
+def _input_copied_run(
+    zin: list[np.ndarray], tol: float, *, cyclic: bool, moving: list[np.ndarray]
+) -> int:
+    """Longest copied run of an input against the other inputs (0 with one input)."""
+    return max(
+        (longest_copied_run(zin[a], [x for b, x in enumerate(zin) if b != a], tol,
+                            cyclic=cyclic, eligible=[m for b, m in enumerate(moving) if b != a])
+         for a in range(len(zin)) if len(zin) > 1),
+        default=0,
+    )

@@ -14,14 +14,17 @@ Patch nearest-neighbour metrics (GANimator's definitions)
     diagonal ``W(i, k, T) = Σ_{t<T} c[i+t, k+t]``, read from the diagonal
     cumulative sum ``C[t+1, k+1] = C[t, k] + c[t, k]`` in ``O(L · L_in)`` memory.
 
-All functions are pure NumPy; nothing here imports the engine.
+All functions are pure NumPy (and SciPy); nothing here imports the engine.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.distance import cdist
 
 from mocapflow.stages.motion.contacts import foot_contacts, horizontal_speed
+from mocapflow.stages.motion.datatypes import Motion
+from mocapflow.stages.motion.rotations import heading_split, quat_to_6d
 
 __all__ = [
     "acceleration_per_frame",
@@ -44,7 +47,7 @@ __all__ = [
 # --------------------------------------------------------------------------- FK helpers
 
 
-def rotation_features(motion, *, heading_free: bool = False) -> np.ndarray:
+def rotation_features(motion: Motion, *, heading_free: bool = False) -> np.ndarray:
     """GANimator features: the 6-D rotation of every joint, root translation excluded.
 
     Parameters
@@ -59,12 +62,8 @@ def rotation_features(motion, *, heading_free: bool = False) -> np.ndarray:
     -------
     (F, 6 J) float ndarray
     """
-    from mocapflow.stages.motion.kinematics import quat_to_6d
-
     rot = motion.rotations
     if heading_free:
-        from mocapflow.stages.motion.kinematics import heading_split
-
         rot = rot.copy()
         _, rot[:, 0] = heading_split(rot[:, 0])
     return quat_to_6d(rot).reshape(motion.n_frames, -1)
@@ -258,7 +257,7 @@ def longest_verbatim_run(source_index: np.ndarray) -> int:
     s = np.asarray(source_index, dtype=np.int64)
     if s.size == 0:
         return 0
-    breaks = np.concatenate([[0], np.flatnonzero(s[1:] != s[:-1] + 1) + 1, [s.size]])
+    breaks = np.concatenate([[0], seams_from_source(s), [s.size]])
     return int(np.max(np.diff(breaks)))
 
 
@@ -331,13 +330,6 @@ def diagonal_cumsum(cost: np.ndarray) -> np.ndarray:
     for t in range(L):
         C[t + 1, 1:] = C[t, :-1] + cost[t]
     return C
-
-
-def cdist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Euclidean distances between the rows of ``a`` and ``b`` (scipy, imported lazily)."""
-    from scipy.spatial.distance import cdist as _cdist
-
-    return _cdist(a, b)
 
 
 def _window_costs(C: np.ndarray, T: int) -> np.ndarray:

@@ -1,10 +1,28 @@
-"""Shared motion types, formats, kinematics, ingest/export and simulators."""
+"""The shared motion domain: types, formats, kinematics, geometry, contacts, ingest/export,
+simulators.  Every paper package builds on it; it imports only the engine.
+
+* **types** — :mod:`.datatypes`: ``Markers``, ``Skeleton``/``Motion``, ``Mesh``,
+  ``Strokes``/``StrokesSet`` and their exact Zarr codecs (metres, frame-major).
+* **formats** — :mod:`.formats`: ``c3d`` (via ezc3d, validated first), ``bvh``,
+  ``asf`` (ASF skeletons, AMC motions), ``strokes`` (UCI, Omniglot, our CSV),
+  ``text`` (decoding shared by the text formats).
+* **kinematics** — :mod:`.rotations` (quaternion algebra, Euler angles, rotation
+  tracks: continuity, heading), :mod:`.kinematics` (forward kinematics, End
+  Sites, global positions, resampling), :mod:`.absolute_orientation` (Horn's
+  rigid fit of point sets, batched).
+* **geometry** — :mod:`.geometry`: mesh vertex normals.
+* **contacts** — :mod:`.contacts`: runs of ``True``, toe and foot joints, foot contacts.
+* **ingest / export** — :mod:`.ingest` (the ``ingest_*`` stages: one file in, one
+  stored type out), :mod:`.export` (the exporters of ``mocapflow export``).
+* **simulate** — :mod:`.simulate`: synthetic data with ground truth (procedural
+  skeleton, walk/run and range-of-motion stages, skinned bodies, the dense-marker
+  capture stage).
+"""
 
 #: Modules of this package that register stages, codecs or exporters (the
 #: ``mocapflow.stages`` entry point ``motion`` names this tuple).
 STAGE_MODULES = (
     "datatypes",
-    "formats.strokes",
     "ingest",
     "export",
     "simulate.motion",

@@ -12,6 +12,9 @@ from typing import Any
 
 from mocapflow.pipeline.codecs import exporter
 from mocapflow.stages.motion.datatypes import UNIT_SCALE, Markers, Motion, Strokes
+from mocapflow.stages.motion.formats.bvh import write_bvh
+from mocapflow.stages.motion.formats.c3d import write_c3d
+from mocapflow.stages.motion.formats.strokes import write_strokes_csv
 
 __all__ = [
     "export_markers_c3d",
@@ -31,8 +34,6 @@ def export_markers_c3d(markers: Markers, path: str | Path, *, unit: str | None =
         POINT:UNITS of the file; default the source unit (``attrs["source_unit"]``)
         when it is a known unit, else ``"mm"``.
     """
-    from mocapflow.stages.motion.formats.c3d import write_c3d
-
     if unit is None:
         unit = markers.attrs.get("source_unit", "mm")
         unit = unit if unit in UNIT_SCALE else "mm"
@@ -41,8 +42,6 @@ def export_markers_c3d(markers: Markers, path: str | Path, *, unit: str | None =
 
 def export_motion_bvh(motion: Motion, path: str | Path) -> Path:
     """Write a motion to a BVH file (skeleton, channel order and Frame Time kept)."""
-    from mocapflow.stages.motion.formats.bvh import write_bvh
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     out = write_bvh(motion, path)
@@ -51,8 +50,6 @@ def export_motion_bvh(motion: Motion, path: str | Path) -> Path:
 
 def export_strokes_csv(strokes: Strokes | list[Strokes], path: str | Path) -> Path:
     """Write one or several Strokes to a mocapflow strokes CSV (exact round trip)."""
-    from mocapflow.stages.motion.formats.strokes import write_strokes_csv
-
     items = [strokes] if isinstance(strokes, Strokes) else list(strokes)
     return write_strokes_csv(items, path)
 

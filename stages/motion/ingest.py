@@ -18,8 +18,12 @@ from typing import Any
 import numpy as np
 
 from mocapflow.pipeline import Context, FilePath, stage
-from mocapflow.stages.motion.datatypes import Markers, Motion
-from mocapflow.stages.motion.formats.strokes import StrokesFileError, StrokesSet, read_strokes_file
+from mocapflow.stages.motion.datatypes import Markers, Motion, StrokesSet
+from mocapflow.stages.motion.formats.asf import read_amc, read_asf
+from mocapflow.stages.motion.formats.bvh import read_bvh
+from mocapflow.stages.motion.formats.c3d import read_c3d
+from mocapflow.stages.motion.formats.strokes import StrokesFileError, read_strokes_file
+from mocapflow.stages.motion.kinematics import resample_motion
 
 __all__ = [
     "amc_skeleton_path",
@@ -129,8 +133,6 @@ def ingest_c3d(path: FilePath, *, ctx: Context) -> dict:
         ``markers``: :class:`Markers` (``positions (F, M, 3)``, fragments, residuals);
         ``report``: JSON summary (see :func:`markers_report`).
     """
-    from mocapflow.stages.motion.formats.c3d import read_c3d
-
     markers = read_c3d(path)
     report = markers_report(markers)
     if report["never_seen"]:
@@ -146,8 +148,6 @@ def _resampled(motion: Motion, rate: float | None) -> Motion:
         return motion
     if not rate > 0:
         raise ValueError(f"rate must be positive, got {rate}")
-    from mocapflow.stages.motion.kinematics import resample_motion
-
     return resample_motion(motion, rate)
 
 
@@ -171,8 +171,6 @@ def ingest_bvh(
     dict
         ``motion``: :class:`Motion` with ``root_position (F, 3)``, ``rotations (F, J, 4)``.
     """
-    from mocapflow.stages.motion.formats.bvh import read_bvh
-
     return {"motion": _resampled(read_bvh(path, unit=unit), rate)}
 
 
@@ -214,8 +212,6 @@ def ingest_amc(
     dict
         ``motion``: :class:`Motion`.
     """
-    from mocapflow.stages.motion.formats.asf import read_amc, read_asf
-
     asf_path = Path(asf) if asf is not None else amc_skeleton_path(path)
     if not asf_path.is_file():
         raise FileNotFoundError(

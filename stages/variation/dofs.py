@@ -19,7 +19,7 @@ from typing import Literal
 import numpy as np
 
 from mocapflow.stages.motion.datatypes import Motion, Skeleton
-from mocapflow.stages.motion.kinematics import (
+from mocapflow.stages.motion.rotations import (
     euler_continuity,
     euler_to_quat,
     quat_conjugate,

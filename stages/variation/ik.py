@@ -46,7 +46,8 @@ from scipy.spatial.transform import Rotation
 from mocapflow.pipeline import Context, stage
 from mocapflow.stages.motion.contacts import foot_joint, true_runs
 from mocapflow.stages.motion.datatypes import Skeleton
-from mocapflow.stages.motion.kinematics import forward_kinematics, quat_to_matrix
+from mocapflow.stages.motion.kinematics import forward_kinematics
+from mocapflow.stages.motion.rotations import quat_to_matrix
 from mocapflow.stages.variation.clips import Clips, clips_to_motions
 from mocapflow.stages.variation.dofs import padded_order
 

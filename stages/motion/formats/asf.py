@@ -32,10 +32,13 @@ from typing import Any
 import numpy as np
 
 from mocapflow.stages.motion.datatypes import Motion, Skeleton
-from mocapflow.stages.motion.kinematics import (
+from mocapflow.stages.motion.formats.text import read_text
+from mocapflow.stages.motion.rotations import (
     euler_to_quat,
+    padded_order,
     quat_conjugate,
     quat_continuity,
+    quat_identity,
     quat_multiply,
 )
 
@@ -71,13 +74,7 @@ def _acclaim_quat(angles: np.ndarray, order: str) -> np.ndarray:
 
 
 def _read_lines(path: str) -> list[str]:
-    with open(path, "rb") as f:
-        raw = f.read()
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        text = raw.decode("latin-1")
-    return text.splitlines()
+    return read_text(path).splitlines()
 
 
 def _floats(tokens: list[str], path: str, line: int, what: str) -> list[float]:
@@ -134,113 +131,142 @@ def read_asf(path: str | os.PathLike) -> Skeleton:
     lines = _read_lines(p)
     if not any(ln.strip() for ln in lines):
         raise ASFError(f"{p}:1: empty file")
-    units: dict[str, Any] = {"mass": 1.0, "length": 1.0, "angle": "deg"}
-    root: dict[str, Any] = {
-        "order": ["TX", "TY", "TZ", "RX", "RY", "RZ"],
-        "axis": "XYZ",
-        "position": [0.0, 0.0, 0.0],
-        "orientation": [0.0, 0.0, 0.0],
-    }
-    bones: dict[str, dict[str, Any]] = {}
-    hierarchy: list[tuple[str, list[str], int]] = []
-    section = None
-    bone: dict[str, Any] | None = None
-    bone_line = 0
-    last_key = None
-    seen = set()
+    asf = _ASFReader(p)
     for i, raw in enumerate(lines, start=1):
+        asf.read_line(i, raw)
+    asf.finish(len(lines))
+    return _build_skeleton(p, asf.units, asf.root, asf.bones, asf.hierarchy)
+
+
+class _ASFReader:
+    """An ASF read line by line: what the sections said so far, and the bone being read."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.units: dict[str, Any] = {"mass": 1.0, "length": 1.0, "angle": "deg"}
+        self.root: dict[str, Any] = {
+            "order": ["TX", "TY", "TZ", "RX", "RY", "RZ"],
+            "axis": "XYZ",
+            "position": [0.0, 0.0, 0.0],
+            "orientation": [0.0, 0.0, 0.0],
+        }
+        self.bones: dict[str, dict[str, Any]] = {}
+        self.hierarchy: list[tuple[str, list[str], int]] = []
+        self.section: str | None = None
+        self.bone: dict[str, Any] | None = None
+        self.bone_line = 0
+        self.last_key: str | None = None
+        self.seen: set[str] = set()
+
+    def read_line(self, i: int, raw: str) -> None:
+        """Line ``i`` (1-based): a ``:section`` header or an entry of the current section."""
+        p = self.path
         line = raw.split("#", 1)[0].strip()
         if not line:
-            continue
+            return
         if line.startswith(":"):
             toks = line.split()
-            section = toks[0][1:].lower()
-            seen.add(section)
-            if bone is not None:
-                raise ASFError(f"{p}:{i}: bone starting line {bone_line} has no 'end'")
-            continue
+            self.section = toks[0][1:].lower()
+            self.seen.add(self.section)
+            if self.bone is not None:
+                raise ASFError(f"{p}:{i}: bone starting line {self.bone_line} has no 'end'")
+            return
         toks = line.split()
         key = toks[0].lower()
-        if section == "units":
-            if len(toks) < 2:
-                raise ASFError(f"{p}:{i}: units entry without a value")
-            if key in ("mass", "length"):
-                units[key] = _floats(toks[1:2], p, i, f"units {key}")[0]
-            elif key == "angle":
-                if toks[1].lower() not in ("deg", "rad"):
-                    raise ASFError(f"{p}:{i}: unknown angle unit {toks[1]!r} (deg or rad)")
-                units["angle"] = toks[1].lower()
-        elif section == "root":
-            if key == "order":
-                root["order"] = [t.upper() for t in toks[1:]]
-                bad = [t for t in root["order"] if t not in ("TX", "TY", "TZ", "RX", "RY", "RZ")]
-                if bad:
-                    raise ASFError(f"{p}:{i}: unknown root order entries {bad}")
-            elif key == "axis":
-                root["axis"] = toks[1].upper()
-                _check_axis_order(root["axis"], p, i)
-            elif key in ("position", "orientation"):
-                root[key] = _floats(toks[1:4], p, i, f"root {key}")
-        elif section == "bonedata":
-            if key == "begin":
-                bone = {"dof": [], "limits": [], "axis": [0.0, 0.0, 0.0], "axis_order": "XYZ"}
-                bone_line = i
-            elif key == "end":
-                if bone is None:
-                    raise ASFError(f"{p}:{i}: 'end' without 'begin'")
-                if "name" not in bone or "direction" not in bone or "length" not in bone:
-                    raise ASFError(f"{p}:{bone_line}: bone needs name, direction and length")
-                bones[bone["name"]] = bone
-                bone = None
-            elif bone is None:
-                raise ASFError(f"{p}:{i}: {toks[0]!r} outside a bone's begin/end")
-            elif key == "id":
-                bone["id"] = int(_floats(toks[1:2], p, i, "id")[0])
-            elif key == "name":
-                bone["name"] = toks[1]
-            elif key == "direction":
-                d = np.array(_floats(toks[1:4], p, i, "direction"))
-                if d.shape != (3,):
-                    raise ASFError(f"{p}:{i}: direction needs 3 numbers")
-                bone["direction"] = d.tolist()
-            elif key == "length":
-                bone["length"] = _floats(toks[1:2], p, i, "length")[0]
-            elif key == "axis":
-                if len(toks) < 5:
-                    raise ASFError(f"{p}:{i}: axis needs 3 angles and an order")
-                bone["axis"] = _floats(toks[1:4], p, i, "axis")
-                bone["axis_order"] = toks[4].upper()
-                _check_axis_order(bone["axis_order"], p, i)
-            elif key == "dof":
-                dof = [t.lower() for t in toks[1:]]
-                bad = [d for d in dof if d not in _ROT_DOFS]
-                if bad:
-                    raise ASFError(
-                        f"{p}:{i}: unsupported dof {bad} (only rotational rx ry rz are read)"
-                    )
-                bone["dof"] = dof
-            elif key == "limits":
-                bone["limits"] = _parse_limits(toks[1:], p, i)
-                last_key = "limits"
-                continue
-            elif key.startswith("(") and last_key == "limits":
-                bone["limits"] += _parse_limits(toks, p, i)
-                continue
-            else:
-                pass  # bodymass, cofmass, ... not needed
-            last_key = key
-        elif section == "hierarchy":
+        if self.section == "units":
+            self._units(i, toks, key)
+        elif self.section == "root":
+            self._root(i, toks, key)
+        elif self.section == "bonedata":
+            self._bonedata(i, toks, key)
+        elif self.section == "hierarchy":
             if key in ("begin", "end"):
-                continue
-            hierarchy.append((toks[0], toks[1:], i))
-    if bone is not None:
-        raise ASFError(
-            f"{p}:{len(lines)}: truncated file: bone starting line {bone_line} has no 'end'"
-        )
-    for need in ("bonedata", "hierarchy"):
-        if need not in seen:
-            raise ASFError(f"{p}:{len(lines)}: no :{need} section")
-    return _build_skeleton(p, units, root, bones, hierarchy)
+                return
+            self.hierarchy.append((toks[0], toks[1:], i))
+
+    def _units(self, i: int, toks: list[str], key: str) -> None:
+        p = self.path
+        if len(toks) < 2:
+            raise ASFError(f"{p}:{i}: units entry without a value")
+        if key in ("mass", "length"):
+            self.units[key] = _floats(toks[1:2], p, i, f"units {key}")[0]
+        elif key == "angle":
+            if toks[1].lower() not in ("deg", "rad"):
+                raise ASFError(f"{p}:{i}: unknown angle unit {toks[1]!r} (deg or rad)")
+            self.units["angle"] = toks[1].lower()
+
+    def _root(self, i: int, toks: list[str], key: str) -> None:
+        p, root = self.path, self.root
+        if key == "order":
+            root["order"] = [t.upper() for t in toks[1:]]
+            bad = [t for t in root["order"] if t not in ("TX", "TY", "TZ", "RX", "RY", "RZ")]
+            if bad:
+                raise ASFError(f"{p}:{i}: unknown root order entries {bad}")
+        elif key == "axis":
+            root["axis"] = toks[1].upper()
+            _check_axis_order(root["axis"], p, i)
+        elif key in ("position", "orientation"):
+            root[key] = _floats(toks[1:4], p, i, f"root {key}")
+
+    def _bonedata(self, i: int, toks: list[str], key: str) -> None:
+        p, bone = self.path, self.bone
+        if key == "begin":
+            self.bone = {"dof": [], "limits": [], "axis": [0.0, 0.0, 0.0], "axis_order": "XYZ"}
+            self.bone_line = i
+        elif key == "end":
+            if bone is None:
+                raise ASFError(f"{p}:{i}: 'end' without 'begin'")
+            if "name" not in bone or "direction" not in bone or "length" not in bone:
+                raise ASFError(f"{p}:{self.bone_line}: bone needs name, direction and length")
+            self.bones[bone["name"]] = bone
+            self.bone = None
+        elif bone is None:
+            raise ASFError(f"{p}:{i}: {toks[0]!r} outside a bone's begin/end")
+        elif key == "id":
+            bone["id"] = int(_floats(toks[1:2], p, i, "id")[0])
+        elif key == "name":
+            bone["name"] = toks[1]
+        elif key == "direction":
+            d = np.array(_floats(toks[1:4], p, i, "direction"))
+            if d.shape != (3,):
+                raise ASFError(f"{p}:{i}: direction needs 3 numbers")
+            bone["direction"] = d.tolist()
+        elif key == "length":
+            bone["length"] = _floats(toks[1:2], p, i, "length")[0]
+        elif key == "axis":
+            if len(toks) < 5:
+                raise ASFError(f"{p}:{i}: axis needs 3 angles and an order")
+            bone["axis"] = _floats(toks[1:4], p, i, "axis")
+            bone["axis_order"] = toks[4].upper()
+            _check_axis_order(bone["axis_order"], p, i)
+        elif key == "dof":
+            dof = [t.lower() for t in toks[1:]]
+            bad = [d for d in dof if d not in _ROT_DOFS]
+            if bad:
+                raise ASFError(
+                    f"{p}:{i}: unsupported dof {bad} (only rotational rx ry rz are read)"
+                )
+            bone["dof"] = dof
+        elif key == "limits":
+            bone["limits"] = _parse_limits(toks[1:], p, i)
+            self.last_key = "limits"
+            return
+        elif key.startswith("(") and self.last_key == "limits":
+            bone["limits"] += _parse_limits(toks, p, i)
+            return
+        # bodymass, cofmass, ... are not needed
+        self.last_key = key
+
+    def finish(self, n_lines: int) -> None:
+        """Check that the file did not end inside a bone and had the needed sections."""
+        p = self.path
+        if self.bone is not None:
+            raise ASFError(
+                f"{p}:{n_lines}: truncated file: bone starting line {self.bone_line} has no 'end'"
+            )
+        for need in ("bonedata", "hierarchy"):
+            if need not in self.seen:
+                raise ASFError(f"{p}:{n_lines}: no :{need} section")
 
 
 def _check_axis_order(order: str, path: str, line: int) -> None:
@@ -505,12 +531,11 @@ def read_amc(path: str | os.PathLike, skeleton: Skeleton, *, rate: float = 120.0
         C = _acclaim_quat(axis_angles, axis_order)
         if dofs:
             vals = np.stack([data[:, col[f"{name}.{d}"]] for d in dofs], axis=1) * to_rad
-            rot_order = "".join(d[1].upper() for d in dofs)
-            rot_order += "".join(a for a in "XYZ" if a not in rot_order)
+            rot_order = padded_order("".join(d[1].upper() for d in dofs))
             vals = np.concatenate([vals, np.zeros((F, 3 - len(dofs)))], axis=1)
             M = _acclaim_quat(vals, rot_order)
         else:
-            M = np.broadcast_to(np.array([1.0, 0.0, 0.0, 0.0]), (F, 4))
+            M = quat_identity((F,))
         rotations[:, j] = quat_multiply(quat_multiply(C, M), quat_conjugate(C))
     rotations = quat_continuity(rotations, axis=0)
     return Motion(

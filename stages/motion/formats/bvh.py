@@ -40,12 +40,19 @@ from pathlib import Path
 import numpy as np
 
 from mocapflow.stages.motion.datatypes import UNIT_SCALE, Motion, Skeleton
-from mocapflow.stages.motion.kinematics import euler_to_quat, quat_continuity, quat_to_euler
+from mocapflow.stages.motion.formats.text import read_text
+from mocapflow.stages.motion.rotations import (
+    euler_to_quat,
+    padded_order,
+    quat_continuity,
+    quat_to_euler,
+)
 
 __all__ = ["BVH_UNITS", "BVHError", "guess_unit", "read_bvh", "write_bvh"]
 
-#: Metres per file unit for the units ``read_bvh`` understands (``unit=``).
-BVH_UNITS: dict[str, float] = {**UNIT_SCALE, "cmu": 0.0254 / 0.45}
+#: Metres per file unit for the units ``read_bvh`` understands (``unit=``): those of
+#: :data:`~mocapflow.stages.motion.datatypes.UNIT_SCALE`, ``cmu`` included.
+BVH_UNITS: dict[str, float] = dict(UNIT_SCALE)
 
 #: Candidates of ``unit="auto"``, checked against a 1.7 m body.
 _AUTO_UNITS = ("m", "dm", "cmu", "in", "cm", "mm")
@@ -261,15 +268,6 @@ def _resolve_unit(unit: str | float, extent: float, path: str) -> tuple[str, flo
     return u, BVH_UNITS[u]
 
 
-def _read_text(path: str) -> str:
-    with open(path, "rb") as f:
-        raw = f.read()
-    try:
-        return raw.decode("utf-8-sig")
-    except UnicodeDecodeError:
-        return raw.decode("latin-1")
-
-
 def read_bvh(path: str | os.PathLike, *, unit: str | float = "auto") -> Motion:
     """Read a BVH file.
 
@@ -297,7 +295,34 @@ def read_bvh(path: str | os.PathLike, *, unit: str | float = "auto") -> Motion:
         the file and line.
     """
     p = os.fspath(path)
-    text = _read_text(p)
+    lines, joints, ends, motion_at = _read_hierarchy(p)
+    n_frames, frame_time, frame_time_text, k = _motion_header(lines, motion_at, p)
+    data = _parse_frames(lines, k, n_frames, sum(len(j.channels) for j in joints), p)
+    skeleton = _skeleton(joints, ends, unit, p)
+    root_position, rotations, translations = _channels_to_motion(
+        skeleton, data, skeleton.attrs["source_scale"]
+    )
+    attrs = {
+        "source_file": p,
+        "source_format": "bvh",
+        "source_unit": skeleton.attrs["source_unit"],
+        "source_scale": skeleton.attrs["source_scale"],
+        "frame_time": frame_time,
+        "frame_time_text": frame_time_text,
+    }
+    return Motion(
+        skeleton=skeleton,
+        root_position=root_position,
+        rotations=rotations,
+        rate=_snap_rate(frame_time, frame_time_text),
+        translations=translations,
+        attrs=attrs,
+    )
+
+
+def _read_hierarchy(p: str) -> tuple[list[str], list[_Joint], list[tuple[int, np.ndarray]], int]:
+    """The file's lines, its joints and End Sites, and the index of the ``MOTION`` line."""
+    text = read_text(p)
     lines = text.splitlines()
     if not text.strip():
         raise BVHError(f"{p}:1: empty file")
@@ -311,8 +336,15 @@ def read_bvh(path: str | os.PathLike, *, unit: str | float = "auto") -> Motion:
         raise BVHError(f"{p}:{len(lines)}: truncated file: no MOTION section after the hierarchy")
     if lines[motion_at].strip().upper() != "MOTION":
         raise BVHError(f"{p}:{motion_at + 1}: expected 'MOTION', found {lines[motion_at]!r}")
+    return lines, joints, ends, motion_at
 
-    # header: Frames / Frame Time (skip blank lines)
+
+def _motion_header(lines: list[str], motion_at: int, p: str) -> tuple[int, float, str, int]:
+    """``Frames:`` and ``Frame Time:`` after the ``MOTION`` line (blank lines skipped).
+
+    Returns the frame count, the frame time (s), its text as written, and the
+    index of the line after the header (where the frames start).
+    """
     k = motion_at + 1
     header: list[tuple[list[str], int]] = []
     while len(header) < 2 and k < len(lines):
@@ -338,16 +370,20 @@ def read_bvh(path: str | os.PathLike, *, unit: str | float = "auto") -> Motion:
             raise ValueError
     except ValueError:
         raise BVHError(f"{p}:{tline}: bad frame time {ttoks[2]!r}") from None
+    return n_frames, frame_time, ttoks[2], k
 
-    n_ch = sum(len(j.channels) for j in joints)
-    data = _parse_frames(lines, k, n_frames, n_ch, p)
 
+def _skeleton(
+    joints: list[_Joint], ends: list[tuple[int, np.ndarray]], unit: str | float, p: str
+) -> Skeleton:
+    """The parsed hierarchy as a :class:`Skeleton` in metres (``unit`` resolved, see module
+    docstring); ``attrs`` ``source_unit`` and ``source_scale`` (metres per file unit)."""
     names = [j.name for j in joints]
     parents = np.array([j.parent for j in joints], dtype=np.int64)
     offsets = np.stack([j.offset for j in joints])
     extent = _rest_extent(parents, offsets, ends)
     unit_name, scale = _resolve_unit(unit, extent, p)
-    skeleton = Skeleton(
+    return Skeleton(
         names=names,
         parents=parents,
         offsets=offsets * scale,
@@ -355,23 +391,6 @@ def read_bvh(path: str | os.PathLike, *, unit: str | float = "auto") -> Motion:
         end_parents=np.array([e[0] for e in ends], dtype=np.int64),
         end_offsets=np.array([e[1] for e in ends]).reshape(-1, 3) * scale,
         attrs={"source_unit": unit_name, "source_scale": scale},
-    )
-    root_position, rotations, translations = _channels_to_motion(skeleton, data, scale)
-    attrs = {
-        "source_file": p,
-        "source_format": "bvh",
-        "source_unit": unit_name,
-        "source_scale": scale,
-        "frame_time": frame_time,
-        "frame_time_text": ttoks[2],
-    }
-    return Motion(
-        skeleton=skeleton,
-        root_position=root_position,
-        rotations=rotations,
-        rate=_snap_rate(frame_time, ttoks[2]),
-        translations=translations,
-        attrs=attrs,
     )
 
 
@@ -420,10 +439,6 @@ def _parse_frames(lines: list[str], start: int, n_frames: int, n_ch: int, p: str
     return data
 
 
-def _padded_order(rot: str) -> str:
-    return rot + "".join(a for a in "XYZ" if a not in rot)
-
-
 def _channels_to_motion(
     skeleton: Skeleton, data: np.ndarray, scale: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -436,7 +451,7 @@ def _channels_to_motion(
     col = 0
     for j, chans in enumerate(skeleton.channels):
         rot = "".join(c[0] for c in chans if c.endswith("rotation"))
-        order = _padded_order(rot)
+        order = padded_order(rot)
         orders.append(order)
         for c in chans:
             if c.endswith("position"):
@@ -458,10 +473,17 @@ def _channels_to_motion(
 # --------------------------------------------------------------------------- writing
 
 
-def _dfs_order(parents: np.ndarray) -> list[int]:
+def _children_of(parents: np.ndarray) -> dict[int, list[int]]:
+    """Children of every joint (``-1``: the root), in joint order."""
     children: dict[int, list[int]] = {}
     for j, p in enumerate(parents):
         children.setdefault(int(p), []).append(j)
+    return children
+
+
+def _dfs_order(parents: np.ndarray) -> list[int]:
+    """Joints in the depth-first order of the hierarchy (the order of the frame columns)."""
+    children = _children_of(parents)
     order: list[int] = []
     stack = [0]
     while stack:
@@ -557,31 +579,34 @@ def write_bvh(
             for j in range(sk.n_joints)
         ]
     F = motion.n_frames
-    order = _dfs_order(sk.parents)
+    data = _frame_columns(motion, channels, scale, p)
+    out = ["HIERARCHY", *_hierarchy_lines(sk, channels, scale, precision)]
+    out += ["MOTION", f"Frames: {F}", f"Frame Time: {_frame_time_text(motion)}"]
+    with open(p, "w", newline="\n") as f:
+        f.write("\n".join(out) + "\n")
+        if F and data.shape[1]:
+            np.savetxt(f, data, fmt=f"%.{precision}f", delimiter=" ")
+        elif F:
+            f.write("\n" * F)
+    return p
+
+
+def _frame_columns(motion: Motion, channels: list[list[str]], scale: float, p: Path) -> np.ndarray:
+    """``(F, C)`` frame values, one column per channel in hierarchy order.
+
+    Positions in file units (metres / ``scale``), angles in degrees (unwrapped
+    along frames); raises :class:`BVHError` where the channels cannot hold the
+    joint's rotation or translation.
+    """
+    sk = motion.skeleton
+    F = motion.n_frames
     columns: list[np.ndarray] = []
     trans = motion.translations
-    for j in order:
+    for j in _dfs_order(sk.parents):
         chans = channels[j]
         rot = "".join(c[0] for c in chans if c.endswith("rotation"))
-        padded = _padded_order(rot)
-        if rot:
-            angles = quat_to_euler(motion.rotations[:, j], padded, degrees=True)
-            if len(rot) < 3 and F:
-                lost = np.abs(angles[:, len(rot) :]).max()
-                if lost > 1e-6:
-                    raise BVHError(
-                        f"{p}: rotation of joint {sk.names[j]!r} needs axes its channels "
-                        f"{rot!r} lack (up to {lost:.3g} deg); add rotation channels"
-                    )
-            angles = np.unwrap(angles, period=360.0, axis=0) if F else angles
-        elif F:
-            w = np.abs(motion.rotations[:, j, 0])
-            lost = np.degrees(2 * np.arccos(np.clip(w, 0.0, 1.0))).max()
-            if lost > 1e-6:
-                raise BVHError(
-                    f"{p}: joint {sk.names[j]!r} rotates (up to {lost:.3g} deg) but has no "
-                    "rotation channels; add rotation channels"
-                )
+        padded = padded_order(rot)
+        angles = _joint_angles(motion, j, rot, padded, p)
         _check_positions(motion, j, chans, p)
         for c in chans:
             if c.endswith("position"):
@@ -594,16 +619,47 @@ def write_bvh(
                 columns.append(src[:, "XYZ".index(c[0])] / scale)
             else:
                 columns.append(angles[:, padded.index(c[0])])
-    data = np.stack(columns, axis=1) if columns else np.zeros((F, 0))
+    return np.stack(columns, axis=1) if columns else np.zeros((F, 0))
 
+
+def _joint_angles(motion: Motion, j: int, rot: str, padded: str, p: Path) -> np.ndarray | None:
+    """``(F, 3)`` Euler angles (degrees, ``padded`` order) of joint ``j``, unwrapped.
+
+    ``None`` for a joint without rotation channels (``rot == ""``).  Raises
+    :class:`BVHError` when the rotation needs axes the channels ``rot`` lack.
+    """
+    sk = motion.skeleton
+    F = motion.n_frames
+    if rot:
+        angles = quat_to_euler(motion.rotations[:, j], padded, degrees=True)
+        if len(rot) < 3 and F:
+            lost = np.abs(angles[:, len(rot) :]).max()
+            if lost > 1e-6:
+                raise BVHError(
+                    f"{p}: rotation of joint {sk.names[j]!r} needs axes its channels "
+                    f"{rot!r} lack (up to {lost:.3g} deg); add rotation channels"
+                )
+        return np.unwrap(angles, period=360.0, axis=0) if F else angles
+    if F:
+        w = np.abs(motion.rotations[:, j, 0])
+        lost = np.degrees(2 * np.arccos(np.clip(w, 0.0, 1.0))).max()
+        if lost > 1e-6:
+            raise BVHError(
+                f"{p}: joint {sk.names[j]!r} rotates (up to {lost:.3g} deg) but has no "
+                "rotation channels; add rotation channels"
+            )
+    return None
+
+
+def _hierarchy_lines(
+    sk: Skeleton, channels: list[list[str]], scale: float, precision: int
+) -> list[str]:
+    """The ``ROOT`` … ``End Site`` lines (tab-indented, offsets in file units)."""
     ends: dict[int, list[np.ndarray]] = {}
     for e, j in enumerate(sk.end_parents):
         ends.setdefault(int(j), []).append(sk.end_offsets[e])
-    children: dict[int, list[int]] = {}
-    for j, par in enumerate(sk.parents):
-        children.setdefault(int(par), []).append(j)
-
-    out: list[str] = ["HIERARCHY"]
+    children = _children_of(sk.parents)
+    out: list[str] = []
 
     def vec(v: np.ndarray) -> str:
         return " ".join(_fmt(x / scale, precision) for x in v)
@@ -623,11 +679,4 @@ def write_bvh(
         out.append(f"{ind}}}")
 
     emit(0, 0)
-    out += ["MOTION", f"Frames: {F}", f"Frame Time: {_frame_time_text(motion)}"]
-    with open(p, "w", newline="\n") as f:
-        f.write("\n".join(out) + "\n")
-        if F and data.shape[1]:
-            np.savetxt(f, data, fmt=f"%.{precision}f", delimiter=" ")
-        elif F:
-            f.write("\n" * F)
-    return p
+    return out

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import ezc3d
 import numpy as np
 
 from mocapflow.stages.motion.datatypes import UNIT_SCALE, Markers
@@ -383,8 +384,6 @@ def _ezc3d_points(path: str) -> tuple[dict, np.ndarray, np.ndarray, int, float]:
     rotations that ``ezc3d.c3d(path)`` also converts; falls back to that wrapper if
     the SWIG layer is laid out differently.
     """
-    import ezc3d
-
     try:
         sw = ezc3d.ezc3d.c3d(path)
         params = ezc3d.c3d.Parameters(sw.parameters())
@@ -431,71 +430,26 @@ def read_c3d(path: str | os.PathLike) -> Markers:
         Empty, truncated, corrupt or unsupported file; unknown POINT:UNITS.
     """
     path = Path(path)
-    layout = _check_file(path)
-    try:
-        params, pts, res, first_frame, header_rate = _ezc3d_points(str(path))
-    except Exception as e:  # ezc3d raises RuntimeError/OSError/IndexError …
-        raise _fail(path, f"corrupt C3D file: ezc3d could not read it ({e})") from None
-    if pts.ndim != 3 or pts.shape[1] != layout.n_points or pts.shape[2] != layout.n_frames:
-        raise _fail(
-            path,
-            f"truncated or corrupt C3D data: read {pts.shape[2] if pts.ndim == 3 else 0} frames"
-            f" of {pts.shape[1] if pts.ndim == 3 else 0} points, the header says "
-            f"{layout.n_frames} frames of {layout.n_points} points",
-        )
-    n_points, n_frames = pts.shape[1], pts.shape[2]
-    rate_v = _param(params, "POINT", "RATE")
-    rate = float(np.ravel(rate_v)[0]) if rate_v is not None and np.size(rate_v) else 0.0
-    if not rate > 0:
-        rate = header_rate
-    if not rate > 0:
-        raise _fail(path, "no positive POINT:RATE")
-    units = _param(params, "POINT", "UNITS") or [""]
-    unit = str(units[0]).strip().lower() if len(units) else ""
-    unit_assumed = unit == ""
-    if unit_assumed:
-        unit = "mm"
-    if unit not in UNIT_SCALE:
-        raise _fail(path, f"unsupported POINT:UNITS {unit!r} (known: {sorted(UNIT_SCALE)})")
+    params, pts, res, first_frame, header_rate = _read_points(path)
+    n_points = pts.shape[1]
+    rate = _point_rate(params, header_rate, path)
+    unit, unit_assumed = _point_unit(params, path)
     k = UNIT_SCALE[unit]
-
-    labels = _joined(params, "POINT", "LABELS")[:n_points]
-    labels += [f"POINT{i + 1}" for i in range(len(labels), n_points)]
-    labels = [lb if lb else f"POINT{i + 1}" for i, lb in enumerate(labels)]
+    labels = _point_labels(params, n_points)
     descriptions = _joined(params, "POINT", "DESCRIPTIONS")
     kinds = classify_points(labels, descriptions, _model_output_lists(params))
-
-    xyz = np.ascontiguousarray(pts[:3].transpose(2, 1, 0))  # (F, P, 3), the one copy
-    r = np.ascontiguousarray(res[0].T) if res.size else np.zeros((n_frames, n_points))
-    missing = np.isnan(xyz).any(axis=-1)
-    missing |= ~(r >= 0)
-    if k != 1.0:
-        xyz *= k
-        r *= k
-    xyz[missing] = np.nan
-    r[missing] = np.nan
+    xyz, r, missing = _metre_samples(pts, res, k)
 
     idx = {
         kind: [i for i, (kd, _) in enumerate(kinds) if kd == kind]
         for kind in ("marker", "fragment")
     }
     mk, fr = idx["marker"], idx["fragment"]
-    excluded = [
-        {
-            "label": labels[i],
-            "index": i,
-            "kind": kd,
-            "reason": why,
-            "missing": int(missing[:, i].sum()),
-        }
-        for i, (kd, why) in enumerate(kinds)
-        if kd in ("model_output", "virtual_segment")
-    ]
     attrs = {
         "source": path.name,
         "source_unit": unit,
         "n_points": n_points,
-        "excluded_points": excluded,
+        "excluded_points": _excluded_points(labels, kinds, missing),
         "fragment_missing": int(missing[:, fr].sum()),
     }
     if unit_assumed:
@@ -510,6 +464,91 @@ def read_c3d(path: str | os.PathLike) -> Markers:
         fragment_labels=[labels[i] for i in fr],
         attrs=attrs,
     )
+
+
+def _read_points(path: Path) -> tuple[dict, np.ndarray, np.ndarray, int, float]:
+    """:func:`_check_file`, then :func:`_ezc3d_points`, checked against the header's sizes."""
+    layout = _check_file(path)
+    try:
+        params, pts, res, first_frame, header_rate = _ezc3d_points(str(path))
+    except Exception as e:  # ezc3d raises RuntimeError/OSError/IndexError …
+        raise _fail(path, f"corrupt C3D file: ezc3d could not read it ({e})") from None
+    if pts.ndim != 3 or pts.shape[1] != layout.n_points or pts.shape[2] != layout.n_frames:
+        raise _fail(
+            path,
+            f"truncated or corrupt C3D data: read {pts.shape[2] if pts.ndim == 3 else 0} frames"
+            f" of {pts.shape[1] if pts.ndim == 3 else 0} points, the header says "
+            f"{layout.n_frames} frames of {layout.n_points} points",
+        )
+    return params, pts, res, first_frame, header_rate
+
+
+def _point_rate(params: dict, header_rate: float, path: Path) -> float:
+    """``POINT:RATE`` (kept non-integer), else the header's rate; must be positive."""
+    rate_v = _param(params, "POINT", "RATE")
+    rate = float(np.ravel(rate_v)[0]) if rate_v is not None and np.size(rate_v) else 0.0
+    if not rate > 0:
+        rate = header_rate
+    if not rate > 0:
+        raise _fail(path, "no positive POINT:RATE")
+    return rate
+
+
+def _point_unit(params: dict, path: Path) -> tuple[str, bool]:
+    """``POINT:UNITS`` lower-cased (a key of ``UNIT_SCALE``), and whether ``mm`` was assumed."""
+    units = _param(params, "POINT", "UNITS") or [""]
+    unit = str(units[0]).strip().lower() if len(units) else ""
+    unit_assumed = unit == ""
+    if unit_assumed:
+        unit = "mm"
+    if unit not in UNIT_SCALE:
+        raise _fail(path, f"unsupported POINT:UNITS {unit!r} (known: {sorted(UNIT_SCALE)})")
+    return unit, unit_assumed
+
+
+def _point_labels(params: dict, n_points: int) -> list[str]:
+    """``P`` labels: ``POINT:LABELS`` joined, ``POINT<i>`` where missing or empty."""
+    labels = _joined(params, "POINT", "LABELS")[:n_points]
+    labels += [f"POINT{i + 1}" for i in range(len(labels), n_points)]
+    return [lb if lb else f"POINT{i + 1}" for i, lb in enumerate(labels)]
+
+
+def _metre_samples(
+    pts: np.ndarray, res: np.ndarray, k: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions ``(F, P, 3)`` and residuals ``(F, P)`` in metres, NaN where missing.
+
+    ``k`` is metres per file unit; a sample is missing when a coordinate is NaN
+    or its residual is negative.  Returns the missing mask ``(F, P)`` too.
+    """
+    n_points, n_frames = pts.shape[1], pts.shape[2]
+    xyz = np.ascontiguousarray(pts[:3].transpose(2, 1, 0))  # (F, P, 3), the one copy
+    r = np.ascontiguousarray(res[0].T) if res.size else np.zeros((n_frames, n_points))
+    missing = np.isnan(xyz).any(axis=-1)
+    missing |= ~(r >= 0)
+    if k != 1.0:
+        xyz *= k
+        r *= k
+    xyz[missing] = np.nan
+    r[missing] = np.nan
+    return xyz, r, missing
+
+
+def _excluded_points(
+    labels: list[str], kinds: list[tuple[str, str]], missing: np.ndarray
+) -> list[dict[str, Any]]:
+    """``attrs["excluded_points"]``: the model outputs and virtual segment points."""
+    return [
+        {
+            "label": labels[i],
+            "index": i,
+            "kind": kd,
+            "reason": why,
+            "missing": int(missing[:, i].sum()),
+        }
+        for i, (kd, why) in enumerate(kinds)
+        if kd in ("model_output", "virtual_segment")
+    ]
 
 
 # --------------------------------------------------------------------------- writing
@@ -538,8 +577,6 @@ def write_c3d(markers: Markers, path: str | os.PathLike, *, unit: str = "mm") ->
         Residuals are stored with ``POINT:SCALE = -max_residual / 255`` (C3D keeps
         them in one byte), so they read back to within ``max_residual / 510``.
     """
-    import ezc3d
-
     if unit not in UNIT_SCALE:
         raise ValueError(f"write_c3d: unknown unit {unit!r} (known: {sorted(UNIT_SCALE)})")
     path = Path(path)

@@ -41,13 +41,11 @@ from typing import Any
 
 import numpy as np
 
-from mocapflow.pipeline.codecs import Encoded, codec
 from mocapflow.stages.motion.datatypes import Strokes
 
 __all__ = [
     "UCI_RATE",
     "StrokesFileError",
-    "StrokesSet",
     "read_omniglot",
     "read_strokes_csv",
     "read_strokes_file",
@@ -80,70 +78,6 @@ def _read_lines(path: Path) -> list[str]:
     if not text.strip():
         raise _fail(path, "empty file")
     return text.splitlines()
-
-
-# --------------------------------------------------------------------------- StrokesSet
-
-
-class StrokesSet(list):
-    """Several :class:`Strokes` (e.g. the 5 examples of one UCI letter) as one output.
-
-    A plain ``list`` subclass with a registered codec, so a stage can return it as a
-    single output (``ingest_strokes_set``) and ``mocapflow export`` writes it as one CSV.
-    """
-
-    def __init__(self, items: Sequence[Strokes] = ()) -> None:
-        items = list(items)
-        for s in items:
-            if not isinstance(s, Strokes):
-                raise TypeError(f"StrokesSet holds Strokes, got {type(s).__name__}")
-        super().__init__(items)
-
-
-def _encode_set(ss: StrokesSet) -> Encoded:
-    n = np.array([len(s.points) for s in ss], dtype=np.int64)
-    k = np.array([len(s.stroke_starts) for s in ss], dtype=np.int64)
-    points = np.concatenate([s.points for s in ss]) if ss else np.zeros((0, 2))
-    starts = np.concatenate([s.stroke_starts for s in ss]) if ss else np.zeros(0, np.int64)
-    has_t = [s.times is not None for s in ss]
-    times = (
-        np.concatenate([s.times if s.times is not None else np.zeros(len(s.points)) for s in ss])
-        if ss
-        else np.zeros(0)
-    )
-    return Encoded(
-        "strokes_set",
-        {
-            "points": (points, ("sample", "xy")),
-            "stroke_starts": (starts, ("stroke",)),
-            "times": (times, ("sample",)),
-            "n_samples": (n, ("example",)),
-            "n_strokes": (k, ("example",)),
-        },
-        {"rates": [s.rate for s in ss], "has_times": has_t, "attrs": [s.attrs for s in ss]},
-    )
-
-
-def _decode_set(e: Encoded) -> StrokesSet:
-    a = e.attrs
-    pts, starts, times = (e.arrays[k][0] for k in ("points", "stroke_starts", "times"))
-    n, k = e.arrays["n_samples"][0], e.arrays["n_strokes"][0]
-    po, so = np.concatenate([[0], np.cumsum(n)]), np.concatenate([[0], np.cumsum(k)])
-    out = []
-    for i in range(len(n)):
-        out.append(
-            Strokes(
-                points=pts[po[i] : po[i + 1]],
-                stroke_starts=starts[so[i] : so[i + 1]],
-                rate=a["rates"][i],
-                times=times[po[i] : po[i + 1]] if a["has_times"][i] else None,
-                attrs=a["attrs"][i],
-            )
-        )
-    return StrokesSet(out)
-
-
-codec("strokes_set", encode=_encode_set, decode=_decode_set)(StrokesSet)
 
 
 # --------------------------------------------------------------------------- UCI

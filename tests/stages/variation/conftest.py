@@ -13,7 +13,7 @@ import pytest
 
 from mocapflow.pipeline import Context
 from mocapflow.stages.motion.kinematics import forward_kinematics
-from mocapflow.stages.motion.simulate.motion import procedural_walk
+from mocapflow.stages.motion.simulate.gait import procedural_walk
 from mocapflow.stages.variation.sample import sample, sample_noise
 
 #: ``<repo>/../shared/data`` (the public sample data; tests using it skip when absent).

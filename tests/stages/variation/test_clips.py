@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from mocapflow.pipeline.codecs import decode, digest_encoded, encode
-from mocapflow.stages.motion.kinematics import (
+from mocapflow.stages.motion.rotations import (
     euler_continuity,
     euler_to_quat,
     quat_angle,
@@ -12,7 +12,7 @@ from mocapflow.stages.motion.kinematics import (
     quat_rotate,
     quat_to_euler,
 )
-from mocapflow.stages.motion.simulate.motion import procedural_walk
+from mocapflow.stages.motion.simulate.gait import procedural_walk
 from mocapflow.stages.variation.clips import Clips, clips_from_motions, clips_to_motions, make_clips
 from mocapflow.stages.variation.dofs import dofs_to_motion, motion_to_dofs
 from tests.stages.variation.conftest import positions

@@ -7,7 +7,8 @@ from mocapflow.pipeline import Context
 from mocapflow.stages.metrics.quality import foot_skate
 from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices
 from mocapflow.stages.motion.kinematics import motion_positions
-from mocapflow.stages.motion.simulate.motion import procedural_skeleton, procedural_walk
+from mocapflow.stages.motion.simulate.gait import procedural_walk
+from mocapflow.stages.motion.simulate.skeleton import procedural_skeleton
 from mocapflow.stages.variation.clips import clips_from_motions, clips_to_motions, make_clips
 from mocapflow.stages.variation.ik import IKError, ik, limb_of
 

@@ -8,7 +8,7 @@ from mocapflow.stages.motion.datatypes import Strokes
 from mocapflow.stages.motion.formats.bvh import read_bvh
 from mocapflow.stages.motion.formats.strokes import read_uci_chartraj
 from mocapflow.stages.motion.kinematics import resample_motion
-from mocapflow.stages.motion.simulate.motion import procedural_walk
+from mocapflow.stages.motion.simulate.gait import procedural_walk
 from mocapflow.stages.variation.clips import ClipError, clips_to_strokes, make_clips
 from mocapflow.stages.variation.inputs import clips
 from tests.stages.variation.conftest import DATA

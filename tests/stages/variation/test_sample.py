@@ -12,7 +12,7 @@ from mocapflow.stages.metrics.novelty import dtw, novelty_report, warp_slope_std
 from mocapflow.stages.metrics.quality import jerk_p99
 from mocapflow.stages.motion.formats.strokes import read_uci_chartraj
 from mocapflow.stages.motion.kinematics import motion_positions
-from mocapflow.stages.motion.simulate.motion import procedural_walk
+from mocapflow.stages.motion.simulate.gait import procedural_walk
 from mocapflow.stages.variation.clips import clips_to_motions, make_clips
 from mocapflow.stages.variation.inputs import clips
 from mocapflow.stages.variation.learn import learn

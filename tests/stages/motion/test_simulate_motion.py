@@ -6,16 +6,15 @@ import pytest
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.registry import get_stage
 from mocapflow.stages.motion.formats.bvh import read_bvh, write_bvh
-from mocapflow.stages.motion.kinematics import end_site_positions, forward_kinematics, quat_angle
-from mocapflow.stages.motion.simulate.motion import (
+from mocapflow.stages.motion.kinematics import end_site_positions, forward_kinematics
+from mocapflow.stages.motion.rotations import quat_angle
+from mocapflow.stages.motion.simulate.gait import procedural_walk
+from mocapflow.stages.motion.simulate.motion import simulate_range_of_motion, simulate_walk
+from mocapflow.stages.motion.simulate.range_of_motion import (
     JOINT_GROUPS,
-    ROOT_HEIGHT,
     procedural_range_of_motion,
-    procedural_skeleton,
-    procedural_walk,
-    simulate_range_of_motion,
-    simulate_walk,
 )
+from mocapflow.stages.motion.simulate.skeleton import ROOT_HEIGHT, procedural_skeleton
 
 
 def _world(m):

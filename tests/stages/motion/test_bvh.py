@@ -5,12 +5,8 @@ import pytest
 
 from mocapflow.stages.motion.datatypes import Motion
 from mocapflow.stages.motion.formats.bvh import BVH_UNITS, BVHError, guess_unit, read_bvh, write_bvh
-from mocapflow.stages.motion.kinematics import (
-    end_site_positions,
-    euler_to_quat,
-    forward_kinematics,
-    quat_from_axis_angle,
-)
+from mocapflow.stages.motion.kinematics import end_site_positions, forward_kinematics
+from mocapflow.stages.motion.rotations import euler_to_quat, quat_from_axis_angle
 
 # file -> (joints, frames, unit guessed) ; joints/frames as in PROVENANCE.md
 BVH_FILES = {

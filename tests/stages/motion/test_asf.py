@@ -14,7 +14,8 @@ from mocapflow.stages.motion.formats.asf import (
     read_asf,
 )
 from mocapflow.stages.motion.formats.bvh import read_bvh, write_bvh
-from mocapflow.stages.motion.kinematics import forward_kinematics, quat_angle
+from mocapflow.stages.motion.kinematics import forward_kinematics
+from mocapflow.stages.motion.rotations import quat_angle
 
 #: The CMU BVH conversion's names for the ASF bones (same depth-first order).
 BVH_NAMES = [

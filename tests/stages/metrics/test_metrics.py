@@ -8,7 +8,9 @@ from scipy.spatial.distance import cdist
 
 from mocapflow.stages.metrics import quality as M
 from mocapflow.stages.motion.contacts import contact_thresholds, foot_contacts, toe_indices
-from mocapflow.stages.motion.simulate.motion import procedural_skeleton, procedural_walk
+from mocapflow.stages.motion.rotations import quat_multiply, yaw_quaternion
+from mocapflow.stages.motion.simulate.gait import procedural_walk
+from mocapflow.stages.motion.simulate.skeleton import procedural_skeleton
 
 
 def _cubic(n: int, a: float, rate: float) -> np.ndarray:
@@ -169,8 +171,6 @@ def test_copy_scores_zero_and_noise_scores_high():
 
 
 def test_heading_free_features_ignore_the_facing():
-    from mocapflow.stages.motion.kinematics import quat_multiply, yaw_quaternion
-
     walk = procedural_walk(40, rate=30.0, seed=1)
     rot = walk.rotations.copy()
     rot[:, 0] = quat_multiply(yaw_quaternion(np.full(40, 2.0)), rot[:, 0])

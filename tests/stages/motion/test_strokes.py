@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 
 from mocapflow.pipeline.codecs import decode, encode
-from mocapflow.stages.motion.datatypes import Strokes
+from mocapflow.stages.motion.datatypes import Strokes, StrokesSet
 from mocapflow.stages.motion.formats.strokes import (
     StrokesFileError,
-    StrokesSet,
     read_omniglot,
     read_strokes_csv,
     read_strokes_file,
@@ -20,7 +19,7 @@ from mocapflow.stages.motion.formats.strokes import (
     write_strokes_csv,
 )
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "strokes"
+DATA = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "strokes"
 
 
 @pytest.fixture(scope="module")

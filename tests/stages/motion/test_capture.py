@@ -9,20 +9,21 @@ import pytest
 
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, encode
-from mocapflow.stages.motion.simulate.body import procedural_body, skin, skinning_transforms
-from mocapflow.stages.motion.simulate.capture import (
-    REGIONS,
+from mocapflow.stages.motion.datatypes import Motion
+from mocapflow.stages.motion.rotations import quat_identity
+from mocapflow.stages.motion.simulate.body import skin, skinning_transforms
+from mocapflow.stages.motion.simulate.capsules import procedural_body
+from mocapflow.stages.motion.simulate.capture import simulate_capture
+from mocapflow.stages.motion.simulate.markers import REGIONS
+from mocapflow.stages.motion.simulate.optical import (
     fragment_capture,
     marker_visibility,
-    region_errors,
-    score_merges,
     segment_distance,
-    simulate_capture,
 )
-from mocapflow.stages.motion.simulate.motion import procedural_skeleton
+from mocapflow.stages.motion.simulate.skeleton import procedural_skeleton
 from tests.stages.conftest import simulated_capture
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / ".." / "shared" / "data"
 NOISE = 0.0003
 
 
@@ -115,9 +116,6 @@ def test_segment_distance_matches_brute_force():
 def test_visibility_by_ray_casting():
     sk = procedural_skeleton()
     body = procedural_body(sk, n_vertices=1500)
-    from mocapflow.stages.motion.datatypes import Motion
-    from mocapflow.stages.motion.kinematics import quat_identity
-
     mot = Motion(sk, np.array([[0.0, 0.93, 0.0]]), quat_identity((1, sk.n_joints)), 120.0)
     R, p = skinning_transforms(body, mot)
     v = skin(body, R, p)[0]
@@ -183,21 +181,6 @@ def test_bad_requests():
         simulated_capture(n_markers=2, n_frames=10)
     with pytest.raises(ValueError, match="motion: .swim. is not one of"):
         simulated_capture(n_markers=10, n_frames=10, motion="swim")
-
-
-def test_scoring_helpers():
-    merges = [{"fragment": "*1", "label": "A"}, {"fragment": "*2", "label": "A"},
-              {"fragment": "*3", "label": "B"}]
-    sc = score_merges(merges, ["*1", "*2", "*3", "*4"], np.array([0, 1, -1, 1]), ["A", "B"])
-    assert sc["wrong"] == 2 and sc["ghosts_merged"] == 1 and sc["missed"] == 1
-    truth = np.zeros((2, 2, 3))
-    est = truth.copy()
-    est[0, 0, 0] = 0.01
-    est[1, 1] = np.nan
-    mask = np.array([[True, False], [False, True]])
-    out = region_errors(est, truth, mask, np.array([0, 0]), np.array([0.05, 0.05]))
-    assert out["abdomen"]["max"] == pytest.approx(0.2) and out["abdomen"]["unfilled"] == 1
-    assert out["all"]["mean_mm"] == pytest.approx(10.0)
 
 
 @pytest.mark.skipif(not (DATA / "mesh" / "makehuman_base.obj").exists(), reason="no shared data")

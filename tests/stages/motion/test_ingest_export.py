@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import json
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -10,9 +14,9 @@ import pytest
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, digest_encoded, encode, find_exporter
 from mocapflow.pipeline.registry import get_stage, validate_params
-from mocapflow.stages.motion.datatypes import Markers, Motion, Strokes
+from mocapflow.stages.motion.datatypes import Markers, Motion, Strokes, StrokesSet
 from mocapflow.stages.motion.formats.c3d import read_c3d
-from mocapflow.stages.motion.formats.strokes import StrokesFileError, StrokesSet, read_strokes_csv
+from mocapflow.stages.motion.formats.strokes import StrokesFileError, read_strokes_csv
 from mocapflow.stages.motion.ingest import (
     amc_skeleton_path,
     ingest_amc,
@@ -22,7 +26,7 @@ from mocapflow.stages.motion.ingest import (
     ingest_strokes_set,
 )
 
-ROOT = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+ROOT = Path(__file__).resolve().parents[3] / ".." / "shared" / "data"
 
 
 @pytest.fixture(scope="module")
@@ -182,12 +186,7 @@ def test_ingest_amc(ingest_data, tmp_path):
 
 def test_default_asf_beside_the_amc_is_part_of_the_cache_key(tmp_path):
     """The sidecar ASF is resolved into the task's params, so editing it recomputes."""
-    import json
-    import shutil
-    import subprocess
-    import sys
-
-    data = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "bvh"
+    data = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "bvh"
     if not (data / "cmu_11.asf").is_file():
         pytest.skip("shared data not available")
     for name in ("cmu_11.asf", "cmu_11_01.amc"):

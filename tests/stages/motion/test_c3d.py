@@ -5,6 +5,7 @@ from __future__ import annotations
 import struct
 from pathlib import Path
 
+import ezc3d
 import numpy as np
 import pytest
 
@@ -12,7 +13,7 @@ from mocapflow.stages.motion.datatypes import Markers
 from mocapflow.stages.motion.formats.c3d import C3DError, classify_points, read_c3d, write_c3d
 from mocapflow.stages.motion.ingest import gap_statistics, markers_report
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "c3d"
+DATA = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "c3d"
 
 
 @pytest.fixture(scope="module")
@@ -101,8 +102,6 @@ def test_provenance_details(read_all):
 
 
 def test_units_are_metres(read_all, c3d_dir):
-    import ezc3d
-
     for name, m in read_all.items():
         seen = m.positions[m.visible.any(axis=1)]
         extent = np.nanmedian(np.nanmax(seen, 1) - np.nanmin(seen, 1), axis=0)
@@ -119,8 +118,6 @@ def test_units_are_metres(read_all, c3d_dir):
 
 
 def test_residuals_in_metres(read_all, c3d_dir):
-    import ezc3d
-
     m = read_all["btkdata_c3dorg_Eb015pr.c3d"]
     raw = ezc3d.c3d(str(c3d_dir / "btkdata_c3dorg_Eb015pr.c3d"))
     r = raw["data"]["meta_points"]["residuals"][0, :26].T
@@ -197,7 +194,6 @@ def _synthetic(n_markers: int, n_frames: int, *, n_fragments: int = 0, seed: int
 
 
 def test_write_400_markers_reads_back_everywhere(tmp_path):
-    import ezc3d
     import kineticstoolkit as ktk
 
     m = _synthetic(400, 12, n_fragments=5)
@@ -328,8 +324,6 @@ def test_random_corruption_never_crashes(tmp_path):
 
 
 def test_unknown_unit_is_an_error(tmp_path):
-    import ezc3d
-
     path = write_c3d(_synthetic(3, 4, seed=5), tmp_path / "u.c3d")
     c = ezc3d.c3d(str(path))
     c["parameters"]["POINT"]["UNITS"]["value"] = ["furlong"]

@@ -9,18 +9,14 @@ import pytest
 
 from mocapflow.stages.motion.datatypes import Motion, Skeleton
 from mocapflow.stages.motion.geometry import vertex_normals
-from mocapflow.stages.motion.kinematics import quat_from_axis_angle, quat_identity
-from mocapflow.stages.motion.simulate.body import (
-    BodyError,
-    bind_pose,
-    load_makehuman_body,
-    procedural_body,
-    skin,
-    skinning_transforms,
-)
-from mocapflow.stages.motion.simulate.motion import procedural_skeleton, procedural_walk
+from mocapflow.stages.motion.rotations import quat_from_axis_angle, quat_identity
+from mocapflow.stages.motion.simulate.body import BodyError, bind_pose, skin, skinning_transforms
+from mocapflow.stages.motion.simulate.capsules import _capsule_distances, procedural_body
+from mocapflow.stages.motion.simulate.gait import procedural_walk
+from mocapflow.stages.motion.simulate.makehuman import load_makehuman_body
+from mocapflow.stages.motion.simulate.skeleton import procedural_skeleton
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / ".." / "shared" / "data"
 
 
 @pytest.fixture(scope="module")
@@ -55,8 +51,6 @@ def test_procedural_body_is_a_closed_outward_skin(body):
 
 
 def test_occluder_capsules_stay_inside_the_skin(body):
-    from mocapflow.stages.motion.simulate.body import _capsule_distances
-
     d = _capsule_distances(body.vertices, body.capsules)
     assert d.min() >= 0.005  # every skin vertex at least 5 mm outside every capsule
 
