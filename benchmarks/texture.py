@@ -37,16 +37,15 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+from mocapflow.pipeline import Context  # noqa: E402
 from mocapflow.stages.metrics import quality as M  # noqa: E402
-from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices
+from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices  # noqa: E402
 from mocapflow.stages.motion.formats.bvh import read_bvh  # noqa: E402
-from mocapflow.stages.motion.kinematics import (
-    motion_positions,
-    resample_motion,  # noqa: E402
-)
+from mocapflow.stages.motion.kinematics import motion_positions, resample_motion  # noqa: E402
+from mocapflow.stages.texture.assemble import assemble_motion  # noqa: E402
 from mocapflow.stages.texture.pyramid import build_pyramid  # noqa: E402
 from mocapflow.stages.texture.search import SearchParams  # noqa: E402
-from mocapflow.stages.texture.synth import assemble_motion, synthesize  # noqa: E402
+from mocapflow.stages.texture.synth import synth  # noqa: E402
 
 DATA = Path(os.environ.get("MOCAPFLOW_DATA", Path(__file__).parents[1] / ".." / "shared" / "data"))
 INPUTS = {
@@ -130,8 +129,18 @@ def shuffle_source(n_in: int, length: int, rng: np.random.Generator, chunk: int 
     return (starts[:, None] + np.arange(chunk)[None, :]).ravel()[:length]
 
 
+def seeded_context(seed: int) -> Context:
+    """A stage context drawing from ``np.random.default_rng(seed)``."""
+    ctx = Context(seed=seed)
+    ctx.rng = np.random.default_rng(seed)
+    return ctx
+
+
 def run_row(motion, length: int, seeds: list[int], levels: int, variants: dict):
-    """Metrics of our variants, copy and shuffle over the seeds; ``{method: [dict]}``."""
+    """Metrics of our variants, copy and shuffle over the seeds; ``{method: [dict]}``.
+
+    ``variants``: method name -> ``synth`` params.
+    """
     ref = Reference(motion)
     res: dict[str, list[dict]] = {name: [] for name in variants}
     res.update(copy=[], shuffle=[])
@@ -139,10 +148,9 @@ def run_row(motion, length: int, seeds: list[int], levels: int, variants: dict):
         for name, params in variants.items():
             t0 = time.process_time()  # CPU seconds: robust to other jobs on the machine
             pyr = build_pyramid(motion, levels=levels)
-            r = synthesize(
-                pyr, motion, length=length, params=params, rng=np.random.default_rng(seed)
-            )
-            res[name].append(evaluate(ref, r.motion, r.source_index, time.process_time() - t0))
+            r = synth(pyr, motion, length=length, seed=seed, ctx=seeded_context(seed), **params)
+            seconds = time.process_time() - t0
+            res[name].append(evaluate(ref, r["motion"], r["source_index"], seconds))
         rng = np.random.default_rng(1000 + seed)
         for name, src in (
             ("copy", copy_source(motion.n_frames, length)),
@@ -190,10 +198,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     n_seeds = args.seeds or (2 if args.quick else 5)
     seeds = list(range(n_seeds))
-    variants = {
-        "ours": SearchParams(),
-        f"ours variety={MORE_VARIED}": SearchParams(variety=MORE_VARIED),
-    }
+    variants = {"ours": {}, f"ours variety={MORE_VARIED}": {"variety": MORE_VARIED}}
     print(f"texture benchmark — {n_seeds} seeds, {args.levels} levels, 30 fps; {TARGETS}")
     print(
         "cells: mean (min–max over seeds); ratios are output/input; CPU s = pyramid + "

@@ -1,3 +1,79 @@
-"""Moradoff 2002."""
+"""Moradoff 2002, "Constrained Synthesis of Textural Motion for Animation".
+
+An input motion is turned into a Gaussian tree over its joint angles (stage
+``pyramid``) and synthesized, coarsest level first, into a longer (or looping,
+constrained, path-following) motion (stage ``synth``); ``stickfigure`` renders
+a strip of poses.  Each section of the thesis lives in one function (modules
+of this package); the module docstrings cite the neighbourhood search,
+meeting points and son selection together as Moradoff §3.5–3.7, and so does
+this table:
+
+Moradoff §3.4 Gaussian multi-resolution   pyramid.build_pyramid (the stage: pyramid.pyramid)
+  tree over the joint angles
+  binomial filter, filter size 4          pyramid.binomial_filter, pyramid.downsample
+  quaternion-aware filtering              pyramid.downsample_quaternions
+  root as heading-frame velocities        pyramid.root_features
+  3-D pose representation per level       pyramid.level_positions
+Moradoff ch. 3 the synthesis (the stage)  synth.synth: inputs checked (synth._levels_used,
+                                          synth._check_constraints), source track
+                                          (synth.synthesize_source), motion
+                                          (assemble.assemble_motion), report (synth._synth_report)
+  constraints as anchors on every level   synth._anchors (i >> l at j >> l)
+Moradoff §3.5–3.7 neighbourhood distance  neighbourhood.window_cost (per slot pair:
+  on velocities, ‖d‖∞ + ‖d‖₀.₅             neighbourhood.slot_distance; features and cost unit:
+                                          neighbourhood.level_view; slot weights:
+                                          neighbourhood.slot_pair_weights)
+  three-level neighbourhood (ancestor,    search.LevelSearch.cost_rows (search.LevelSearch.cost,
+  current, finer)                         ._ancestor_cost, ._finer_cost)
+  random choice among the k best          search.LevelSearch.choose, search.LevelSearch._draw
+  coarsest level: gaps grown from both    search.LevelSearch.fill_gap (one node:
+  anchors, alternating fronts             search.LevelSearch.fill); coarsest level driven by
+                                          synth._coarsest_level
+  meeting point                           search.LevelSearch._meet (coarsest level);
+                                          refine.LevelRefinement._rejoin (searched again at
+                                          every finer level)
+  son selection                           refine.LevelRefinement.son_track (the level:
+                                          refine.LevelRefinement.refine)
+  candidate acceleration (children of     refine.LevelRefinement._candidate_lines,
+  the parent's 3 best ±candidate_range)   search.LevelSearch.candidates
+Moradoff §3.7.2 graph path                graph.transition_costs, graph.transition_graph,
+                                          graph.graph_path (DFS under a cost bound);
+                                          per gap: synth._graph_level
+Moradoff §3.8 adaptive local smoothing    smoothing.adaptive_smoothing (with the input's floor
+                                          and jerk limit: assemble._smooth_seams)
+  acceleration test                       smoothing.seam_test
+  Gaussian of width 5 on quaternions      smoothing.gaussian_taps, smoothing.filter_quaternions
+  constrained frames pinned               smoothing._pin
+Moradoff §3.10 root trajectory            root.integrate_root (placed at the first constraint:
+                                          assemble._place_root)
+  new root paths (polyline, spline,       root.PathCurve, root.follow_path, root.figure_eight
+  e.g. a figure-8)
+loops (cyclic output; not in the thesis)  the ``loop`` param: wrapped gaps (search.gaps_of),
+                                          wrapped positions in search.LevelSearch and
+                                          refine.verbatim_runs, the last → first seam smoothed
+                                          (smoothing.adaptive_smoothing, ``cyclic``)
+stance feet (after smoothing)             root.plant_feet (assemble._planted_velocity),
+                                          root.foot_corrections, root.apply_foot_ik,
+                                          root.two_bone_ik, root.leg_chains (assemble._foot_ik)
+
+Departures from the thesis (the module docstrings say why):
+
+* any output length (not a multiple of the input's), any number of meeting
+  points per output (one per gap), loops (synth);
+* variety: at the coarsest level the k best are drawn only within the
+  ``variety`` quantile of the input's own best-jump costs
+  (search.LevelSearch.jump_threshold; ``variety=1`` is the thesis' plain draw
+  among the k best), ranked by cost plus ``usage_weight`` windows per use of
+  the input they would play next (coverage), a new draw only once the last
+  transition has ``slots`` verbatim nodes behind it
+  (search.LevelSearch._settled), and a run reaching ``max_run`` of the input
+  must jump where the jump fits best (search.LevelSearch._jump_earlier);
+* smoothing: a seam also fails the test while its jerk exceeds
+  ``jerk_tolerance`` × the input's p99 jerk (smoothing.seam_test).
+
+How refinement keeps the coarse plan (the drawn line tried first, joins
+``MIN_RUN_FRAMES`` apart, no bridge of a few frames into the input's end) is
+in :mod:`~mocapflow.stages.texture.refine`.
+"""
 
 STAGE_MODULES = ("pyramid", "synth", "stickfigure")

@@ -11,7 +11,9 @@ cheapest such path); candidates are visited in random (seeded) order, so
 every seed gives another path.  The exact remaining-cost table makes the DFS
 prune every branch that cannot meet the bound.  Finer levels then select the
 sons of the path nodes (children ``±candidate_range``) with the usual
-neighbourhood search.
+refinement (:mod:`~mocapflow.stages.texture.refine`).  The path is driven by
+:func:`mocapflow.stages.texture.synth._graph_level`, which also reports the
+costliest jump of each two-sided gap as its meeting point (its middle without jumps).
 
 A gap no path can fill raises :class:`UnreachableGapError` naming it.
 """
@@ -20,7 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mocapflow.stages.texture.search import LevelView, SynthesisError, window_cost
+from mocapflow.stages.texture.neighbourhood import LevelView, slot_pair_weights, window_cost
+from mocapflow.stages.texture.search import SynthesisError
 
 __all__ = [
     "UnreachableGapError",
@@ -61,7 +64,7 @@ def transition_costs(view: LevelView, *, slots: int = 3) -> np.ndarray:
     ov = np.where(off[None, :] < 0, a[:, None] + 1 + off[None, :], b[:, None] + off[None, :])
     ov = np.where((ov >= 0) & (ov < n), ov, -1)
     blk = off == 0
-    pw = np.exp(-0.5 * ((0.5 * (off[1:] + off[:-1])) / max(S, 1)) ** 2)
+    pw = slot_pair_weights(off, 0.0, max(S, 1))
     out = np.empty(a.size)
     chunk = max(1, 200_000 // (2 * S + 1) // max(view.P.shape[1], 1))
     for s in range(0, a.size, chunk):

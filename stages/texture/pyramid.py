@@ -30,7 +30,13 @@ import numpy as np
 from mocapflow.pipeline import Context, stage
 from mocapflow.pipeline.codecs import Encoded, codec
 from mocapflow.stages.motion.datatypes import Motion, Skeleton
-from mocapflow.stages.motion.kinematics import heading_split, yaw_quaternion
+from mocapflow.stages.motion.kinematics import forward_kinematics
+from mocapflow.stages.motion.rotations import (
+    heading_split,
+    quat_continuity,
+    quat_rotate,
+    yaw_quaternion,
+)
 
 __all__ = [
     "MIN_COARSE_NODES",
@@ -41,11 +47,9 @@ __all__ = [
     "build_pyramid",
     "downsample",
     "downsample_quaternions",
-    "heading_split",
     "level_positions",
     "pyramid",
     "root_features",
-    "yaw_quaternion",
 ]
 
 #: The coarsest level must keep at least this many nodes (room for ±3 slots).
@@ -257,8 +261,6 @@ def root_features(
         ``(x, z)`` of ``R_y(-heading[t]) (p[t+1] - p[t])``.
     height : (F,) float ndarray
     """
-    from mocapflow.stages.motion.kinematics import quat_rotate
-
     p = np.asarray(root_position, dtype=np.float64)
     F = p.shape[0]
     if F < 2:
@@ -290,8 +292,6 @@ def level_positions(
     -------
     (n, J, 3) float ndarray
     """
-    from mocapflow.stages.motion.kinematics import forward_kinematics
-
     root = np.zeros((rotations.shape[0], 3))
     root[:, 1] = height
     pos, _ = forward_kinematics(skeleton, rotations, root, translations=translations)
@@ -323,8 +323,6 @@ def build_pyramid(motion: Motion, *, levels: int = 4, filter_size: int = 4) -> P
         Fewer than 1 level, a bad filter size, or a coarsest level with fewer
         than :data:`MIN_COARSE_NODES` nodes.
     """
-    from mocapflow.stages.motion.kinematics import quat_continuity
-
     if levels < 1:
         raise PyramidError(f"levels must be >= 1, got {levels}")
     binomial_filter(filter_size)

@@ -22,8 +22,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.linalg import solveh_banded
+from scipy.ndimage import gaussian_filter1d
+from scipy.spatial import cKDTree
 
 from mocapflow.stages.motion.contacts import true_runs
+from mocapflow.stages.motion.kinematics import forward_kinematics
+from mocapflow.stages.motion.rotations import (
+    quat_from_rotvec,
+    quat_inverse,
+    quat_multiply,
+    quat_normalize,
+    quat_rotate,
+)
 
 __all__ = [
     "PathCurve",
@@ -36,6 +48,7 @@ __all__ = [
     "integrate_root",
     "leg_chains",
     "plant_feet",
+    "rotate_xz",
     "toe_displacements",
     "two_bone_ik",
 ]
@@ -60,8 +73,19 @@ def heading_direction(heading: np.ndarray) -> np.ndarray:
     return np.stack([np.sin(h), np.cos(h)], axis=-1)
 
 
-def _rotate_xz(v: np.ndarray, angle: np.ndarray) -> np.ndarray:
-    """``R_y(angle)`` applied to ground-plane vectors ``(x, z)``."""
+def rotate_xz(v: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """``R_y(angle)`` applied to ground-plane vectors ``(x, z)``.
+
+    Parameters
+    ----------
+    v : (..., 2) float ndarray
+    angle : float or float ndarray
+        Broadcasts against ``v[..., 0]``.
+
+    Returns
+    -------
+    (..., 2) float ndarray
+    """
     c, s = np.cos(angle), np.sin(angle)
     return np.stack([v[..., 0] * c + v[..., 1] * s, -v[..., 0] * s + v[..., 1] * c], axis=-1)
 
@@ -94,7 +118,7 @@ def integrate_root(
     """
     yaw = np.asarray(yaw_rate, dtype=np.float64)
     heading = heading0 + np.concatenate([[0.0], np.cumsum(yaw[:-1])])
-    disp = _rotate_xz(np.asarray(velocity, dtype=np.float64), heading)
+    disp = rotate_xz(np.asarray(velocity, dtype=np.float64), heading)
     ground = np.asarray(origin, dtype=np.float64) + np.vstack(
         [np.zeros((1, 2)), np.cumsum(disp[:-1], axis=0)]
     )
@@ -166,8 +190,6 @@ class PathCurve:
         span = np.ptp(p, axis=0).max()
         closed = p.shape[0] > 3 and np.linalg.norm(p[0] - p[-1]) < 1e-6 * max(span, 1.0)
         if mode == "spline":
-            from scipy.interpolate import CubicSpline
-
             u = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
             if closed:
                 p[-1] = p[0]
@@ -242,15 +264,11 @@ class PathCurve:
         distance : (N,) float ndarray
         s : (N,) float ndarray
         """
-        from scipy.spatial import cKDTree
-
         d, i = cKDTree(self.samples).query(np.asarray(points, dtype=np.float64))
         return d, self.s[i]
 
 
 def _gauss(x: np.ndarray, sigma: float) -> np.ndarray:
-    from scipy.ndimage import gaussian_filter1d
-
     if sigma <= 0:
         return x
     return gaussian_filter1d(x, sigma, axis=0, mode="nearest")
@@ -289,7 +307,7 @@ def follow_path(
     """
     heading, ground = integrate_root(yaw_rate, velocity)
     L = heading.shape[0]
-    disp = _rotate_xz(np.asarray(velocity, dtype=np.float64), heading)
+    disp = rotate_xz(np.asarray(velocity, dtype=np.float64), heading)
     sigma = travel_window * rate
     travel = _gauss(disp, sigma)
     speed = np.linalg.norm(travel, axis=1)
@@ -310,7 +328,7 @@ def follow_path(
     else:
         psi = np.full(L, phi[0] - heading[0])
     new_heading = heading + psi
-    new_ground = curve.point(s) + _rotate_xz(sway, psi)
+    new_ground = curve.point(s) + rotate_xz(sway, psi)
     beyond = 0 if curve.closed else int(np.sum(s > curve.length))
     return new_heading, new_ground, {
         "distance": float(s[-1]),
@@ -338,7 +356,7 @@ def toe_displacements(
         ``velocity[t] + R_y(yaw[t]) toe[t+1] - toe[t]`` (the last frame repeats).
     """
     nxt = np.concatenate([toe_local[1:], toe_local[-1:]], axis=0)
-    d = _rotate_xz(nxt, yaw_rate[:, None]) - toe_local + velocity[:, None, :]
+    d = rotate_xz(nxt, yaw_rate[:, None]) - toe_local + velocity[:, None, :]
     d[-1] = d[-2] if d.shape[0] > 1 else d[-1]
     return d
 
@@ -399,8 +417,6 @@ def plant_feet(
     # the root offset the corrections add up to, smoothed so the root stays smooth
     offset = np.vstack([np.zeros((1, 2)), np.cumsum(mean, axis=0)])
     if smooth > 0:
-        from scipy.ndimage import gaussian_filter1d
-
         offset = gaussian_filter1d(offset, smooth, axis=0, mode="nearest")
     return velocity + np.diff(offset, axis=0)
 
@@ -418,7 +434,7 @@ def leg_chains(skeleton, toes: list[int] | np.ndarray) -> list[tuple[int, int, i
     ----------
     skeleton : Skeleton
     toes : sequence of int
-        Contact joints (:func:`~mocapflow.stages.metrics.quality.toe_indices`).
+        Contact joints (:func:`~mocapflow.stages.motion.contacts.toe_indices`).
 
     Returns
     -------
@@ -445,8 +461,6 @@ def leg_chains(skeleton, toes: list[int] | np.ndarray) -> list[tuple[int, int, i
 
 def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Smallest rotations taking directions ``a`` onto ``b`` ((n, 3) -> (n, 4))."""
-    from mocapflow.stages.motion.kinematics import quat_from_rotvec
-
     a = a / np.linalg.norm(a, axis=-1, keepdims=True)
     b = b / np.linalg.norm(b, axis=-1, keepdims=True)
     axis = np.cross(a, b)
@@ -486,8 +500,6 @@ def two_bone_ik(
     r_knee : (n, 4) float ndarray
         World rotation about the knee (applied to the shank and below, before ``r_hip``).
     """
-    from mocapflow.stages.motion.kinematics import quat_from_rotvec, quat_rotate
-
     u, v = hip - knee, ankle - knee
     l1 = np.linalg.norm(u, axis=-1)
     l2 = np.linalg.norm(v, axis=-1)
@@ -552,8 +564,6 @@ def foot_corrections(
     -------
     (L, T, 2) float ndarray
     """
-    from scipy.linalg import solveh_banded
-
     L, T = contact.shape
     corr = np.zeros((L, T, 2))
     if L < 3:
@@ -623,14 +633,6 @@ def apply_foot_ik(
     (L, J, 4) float ndarray
         Local rotations with the hip, knee and ankle joints of each chain changed.
     """
-    from mocapflow.stages.motion.kinematics import (
-        forward_kinematics,
-        quat_inverse,
-        quat_multiply,
-        quat_normalize,
-        quat_rotate,
-    )
-
     rot = np.array(rotations, dtype=np.float64)
     for k, (h, kn, an) in enumerate(chains):
         move = np.abs(offsets[:, k]).max(axis=-1) > 1e-7

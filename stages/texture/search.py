@@ -1,58 +1,53 @@
-"""Neighbourhood matching, meeting points and son selection (Moradoff §3.5–3.7).
+"""Neighbourhood search, gap growing and meeting points (Moradoff §3.5–3.7).
 
 The output of every pyramid level is a *source track*: for each output node the
 index of the input node (same level) it copies.  A node is chosen by comparing
 its neighbourhood in the output with the neighbourhood of each candidate in the
-input, on three levels of the tree:
+input, on three levels of the tree (:meth:`LevelSearch.cost_rows`):
 
 * the **ancestor** level (``l + 1``, already synthesised) around the parent,
 * the **current** level (``l``) around the node, only the slots filled so far,
 * the **finer** level (``l - 1``) around the node's children, where every
   filled node provisionally brings the children of its source.
 
-Every level contributes ``±slots`` slots, weighted by ``level_weights``.  A slot
-pair ``(s, s+1)`` is compared on the *velocities* between the two nodes: the
-joint-position velocities of the 3-D pose representation (so a jump of pose
-shows as a wrong velocity) and the root's rate features (horizontal velocity,
-yaw rate × 1 m).  The per-slot distance of the vector ``d`` of per-joint
-velocity errors is ``‖d‖∞ + ‖d‖₀.₅`` with ``‖d‖₀.₅ = (mean_j √d_j)²`` (the
-normalised 0.5-norm).  Empty slots (not yet synthesised, or outside the input)
-have weight 0 and the weights are renormalised; a candidate without input where
-the output next to it is already filled is rejected, and so is one that would
-freeze or rewind the motion (``≤ slots`` nodes back from a filled neighbour).
+Every level contributes ``±slots`` slots, weighted by ``level_weights``; the
+distance of two windows of one level is
+:func:`~mocapflow.stages.texture.neighbourhood.window_cost` (velocities,
+``‖d‖∞ + ‖d‖₀.₅`` per slot pair).  Empty slots (not yet synthesised, or outside
+the input) have weight 0 and the weights are renormalised; a candidate without
+input where the output next to it is already filled is rejected, and so is one
+that would freeze or rewind the motion (``≤ slots`` nodes back from a filled
+neighbour).
 
 Coarsest level (:class:`LevelSearch`): gaps between anchors (constraints) are
-grown from both sides, alternating one node of the left front and one of the
-right front, each node searched exhaustively over the input; the two sequences
-are joined at the *meeting point*, searched exhaustively over every position
-of the gap and every input node.  Gaps with one anchor grow from it.
+grown from both sides (:meth:`LevelSearch.fill_gap`), alternating one node of
+the left front and one of the right front, each node searched exhaustively over
+the input (:meth:`LevelSearch.fill`); the two sequences are joined at the
+*meeting point* (:meth:`LevelSearch._meet`), searched exhaustively over every
+position of the gap and every input node.  Gaps with one anchor grow from it.
 
-Finer levels (:func:`refine_level`): every node takes the child (same parity)
-of its parent's source (son selection) and every transition of the parent
-level — meeting points and the random jumps — is searched again around twice
-its position (``±meeting_window`` nodes), among the lines through the children
-of the parent's 3 best matches ``±candidate_range`` nodes (candidate
-acceleration).
+Finer levels (:class:`~mocapflow.stages.texture.refine.LevelRefinement`, a
+``LevelSearch``): son selection, then every transition of the parent level is
+searched again around twice its position (see :mod:`~mocapflow.stages.texture.refine`).
 
-Randomisation: at every level but the finest, the node (or join) is drawn at
-random (seeded) among the ``k_best`` best *distinct* candidates (closer than
-``slots`` nodes counts as the same match).  At the coarsest level the natural
-successor of a run always matches perfectly (cost 0), so a window of a fixed
-number of cost units around the best admitted only the rare near-perfect jumps
-of a periodic input: the outputs were near-verbatim copies (a 512-frame salsa
-played through in one 510-frame run).  The window is therefore measured on the
-input's own transitions: the ``variety`` quantile of the best jump cost away
-from every input node (:meth:`LevelSearch.jump_threshold`) — ``variety`` is
-roughly the share of moments a drawn jump may leave.  Candidates are ranked by
-cost plus ``usage_weight`` windows per time the input they would play next is
-already in the output (coverage), a new draw happens once the previous
-transition has ``slots`` verbatim nodes behind it, and a run reaching
-``max_run`` of the input must end: its jump is searched at the last
-``relocate`` positions of the run, exhaustively over the input.  Finer levels
-keep the coarse plan — the join takes the drawn line's children before the
-other parent matches, runs stay long enough to smooth and never bridge a few
-frames into the input's end — and draw joins within ``tolerance`` cost units
-(the unit: the input's median frame-to-frame velocity change).
+Randomisation (:meth:`LevelSearch._draw`): at every level but the finest, the
+node (or join) is drawn at random (seeded) among the ``k_best`` best *distinct*
+candidates (closer than ``slots`` nodes counts as the same match).  At the
+coarsest level the natural successor of a run always matches perfectly (cost
+0), so a window of a fixed number of cost units around the best admitted only
+the rare near-perfect jumps of a periodic input: the outputs were near-verbatim
+copies (a 512-frame salsa played through in one 510-frame run).  The window is
+therefore measured on the input's own transitions: the ``variety`` quantile of
+the best jump cost away from every input node (:meth:`LevelSearch.jump_threshold`)
+— ``variety`` is roughly the share of moments a drawn jump may leave.
+Candidates are ranked by cost plus ``usage_weight`` windows per time the input
+they would play next is already in the output (coverage), a new draw happens
+once the previous transition has ``slots`` verbatim nodes behind it
+(:meth:`LevelSearch._settled`), and a run reaching ``max_run`` of the input
+must end: its jump is searched at the last ``relocate`` positions of the run,
+exhaustively over the input (:meth:`LevelSearch._jump_earlier`).  Finer levels
+keep the coarse plan and draw joins within ``tolerance`` cost units (the unit:
+the input's median frame-to-frame velocity change).
 """
 
 from __future__ import annotations
@@ -61,24 +56,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mocapflow.stages.texture.neighbourhood import slot_pair_weights, window_cost
+
 __all__ = [
     "Gap",
     "LevelResult",
     "LevelSearch",
-    "LevelView",
     "SearchParams",
     "SynthesisError",
     "gaps_of",
-    "level_view",
-    "refine_level",
-    "slot_distance",
-    "window_cost",
 ]
-
-#: Shortest run (fine frames) refinement leaves between two transitions when it can.
-MIN_RUN_FRAMES = 12
-#: Length (metres) turning a yaw rate (rad per frame) into a velocity.
-YAW_LEVER = 1.0
 
 
 class SynthesisError(ValueError):
@@ -140,138 +127,6 @@ class SearchParams:
     max_run: float = 0.3
     usage_weight: float = 0.5
     relocate: int = 6
-
-
-@dataclass
-class LevelView:
-    """What the search compares at one level of the input pyramid.
-
-    Attributes
-    ----------
-    P : (n, K, 3) float ndarray
-        Joint positions of the heading-free pose.
-    R : (n, E, 3) float ndarray
-        Rate features per fine frame (root velocity, yaw rate × 1 m).
-    spacing : float
-        Fine frames between consecutive nodes (``2**l``).
-    unit : float
-        Cost unit: median per-slot distance between consecutive velocities.
-    V : (n - 1, K, 3) float ndarray
-        Input joint velocities ``P[i+1] - P[i]`` (derived).
-    """
-
-    P: np.ndarray
-    R: np.ndarray
-    spacing: float
-    unit: float = 1.0
-
-    def __post_init__(self) -> None:
-        self.V = np.diff(self.P, axis=0) if self.P.shape[0] > 1 else np.zeros_like(self.P)
-
-    @property
-    def n(self) -> int:
-        """Number of input nodes."""
-        return self.P.shape[0]
-
-
-def slot_distance(d: np.ndarray) -> np.ndarray:
-    """``‖d‖∞ + ‖d‖₀.₅`` over the last axis (``‖d‖₀.₅ = (mean √d)²``).
-
-    Parameters
-    ----------
-    d : (..., K) float ndarray
-        Non-negative per-joint errors.
-
-    Returns
-    -------
-    (...) float ndarray
-    """
-    return d.max(axis=-1) + np.square(np.sqrt(d).mean(axis=-1))
-
-
-def level_view(level, spacing: float) -> LevelView:
-    """Comparison features of one pyramid level.
-
-    Parameters
-    ----------
-    level : PyramidLevel
-    spacing : float
-        ``2**l``.
-
-    Returns
-    -------
-    LevelView
-    """
-    n = level.n_nodes
-    R = np.zeros((n, 2, 3))
-    R[:, 0, 0] = level.velocity[:, 0]
-    R[:, 0, 2] = level.velocity[:, 1]
-    R[:, 1, 0] = level.yaw_rate * YAW_LEVER
-    view = LevelView(np.asarray(level.positions, dtype=np.float64), R, float(spacing))
-    if n >= 3:
-        v = np.diff(view.P, axis=0) / spacing
-        dv = np.linalg.norm(np.diff(v, axis=0), axis=-1)
-        dr = np.linalg.norm(np.diff(R, axis=0), axis=-1)[1:]
-        unit = float(np.median(slot_distance(np.concatenate([dv, dr, dr], axis=-1))))
-        view.unit = unit if unit > 0 else 1.0
-    return view
-
-
-def window_cost(
-    view: LevelView,
-    ov: np.ndarray,
-    iv: np.ndarray,
-    block: np.ndarray,
-    pair_weights: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weighted velocity distance between output windows and input windows.
-
-    Parameters
-    ----------
-    view : LevelView
-    ov : (m, W) int ndarray
-        Input node copied at each output slot (-1: empty).
-    iv : (m, W) int ndarray
-        Input node at each slot of the candidate's input window (may fall
-        outside ``[0, n)``: then empty).
-    block : (W,) bool ndarray
-        Slots holding the candidate itself.
-    pair_weights : (W - 1,) float ndarray
-        Weight of each slot pair.
-
-    Returns
-    -------
-    num : (m,) float ndarray
-        Weighted sum of per-pair distances over valid pairs.
-    den : (m,) float ndarray
-        Sum of the weights of valid pairs.
-    reject : (m,) bool ndarray
-        A pair touching the candidate is filled in the output but missing in the input.
-    """
-    n = view.n
-    out_ok = ov >= 0
-    in_ok = (iv >= 0) & (iv < n)
-    o = np.clip(ov, 0, n - 1)
-    i = np.clip(iv, 0, n - 1)
-    both_out = out_ok[:, 1:] & out_ok[:, :-1]
-    valid = both_out & in_ok[:, 1:] & in_ok[:, :-1]
-    touch = block[1:] | block[:-1]
-    reject = np.any(both_out & ~valid & touch[None, :], axis=1)
-    P, R, V = view.P, view.R, view.V
-    dv = (P[o[:, 1:]] - P[o[:, :-1]]) - V[np.minimum(i[:, :-1], n - 2)]
-    d = np.sqrt(np.einsum("...k,...k->...", dv, dv)) / view.spacing
-    ra = R[o[:, :-1]] - R[i[:, :-1]]
-    rb = R[o[:, 1:]] - R[i[:, 1:]]
-    ra = np.sqrt(np.einsum("...k,...k->...", ra, ra))
-    rb = np.sqrt(np.einsum("...k,...k->...", rb, rb))
-    dist = slot_distance(np.concatenate([d, ra, rb], axis=-1))
-    w = pair_weights[None, :] * valid
-    return np.sum(w * dist, axis=1), np.sum(w, axis=1), reject
-
-
-def _pair_weights(offsets: np.ndarray, centre: float, sigma: float) -> np.ndarray:
-    mid = 0.5 * (offsets[1:] + offsets[:-1]) - centre
-    return np.exp(-0.5 * (mid / sigma) ** 2)
 
 
 def _ahead_usage(counts: np.ndarray, span: int, side: int) -> np.ndarray:
@@ -380,6 +235,15 @@ class LevelResult:
 class LevelSearch:
     """Neighbourhood search on one output level.
 
+    The three-level neighbourhood cost of a candidate (:meth:`cost`,
+    :meth:`cost_rows`), the candidates of a node (:meth:`candidates`), the
+    seeded draw (:meth:`choose`, :meth:`_draw`, :meth:`jump_threshold`),
+    node-by-node growth (:meth:`fill`, with the forced jumps of
+    :meth:`_jump_earlier` at the coarsest level) and the gaps and meeting
+    points of the coarsest level (:meth:`fill_gap`, :meth:`_meet`).  Finer
+    levels are refined by the subclass
+    :class:`~mocapflow.stages.texture.refine.LevelRefinement`.
+
     Parameters
     ----------
     views : list of LevelView
@@ -417,10 +281,10 @@ class LevelSearch:
             self.max_run_nodes = max(2 * params.slots, int(params.max_run * self.view.n) - 1)
         S = params.slots
         self.off = np.arange(-S, S + 1)
-        self.pw = _pair_weights(self.off, 0.0, max(S, 1))
+        self.pw = slot_pair_weights(self.off, 0.0, max(S, 1))
         self.blk = self.off == 0
         self.off_f = np.arange(-S, S + 2)
-        self.pw_f = _pair_weights(self.off_f, 0.5, max(S, 1))
+        self.pw_f = slot_pair_weights(self.off_f, 0.5, max(S, 1))
         self.blk_f = (self.off_f == 0) | (self.off_f == 1)
 
     # ----------------------------------------------------------- positions
@@ -911,227 +775,3 @@ class LevelSearch:
         top[: min(3, len(seen))] = seen[:3]
         ranked[here] = top
         return m
-
-
-# --------------------------------------------------------------------------- finer levels
-
-
-def _runs(val: np.ndarray, valid: np.ndarray, cyclic: bool) -> tuple[int, list[list[int]]]:
-    """Verbatim runs of a track as ``[start, end]`` (unwrapped, inclusive) from ``p0``."""
-    n = val.size
-    cont = np.zeros(n, dtype=bool)  # position continues the previous one
-    cont[1:] = valid[1:] & valid[:-1] & (val[1:] == val[:-1] + 1)
-    if cyclic:
-        cont[0] = valid[0] and valid[-1] and val[0] == val[-1] + 1
-    starts = np.flatnonzero(valid & ~cont)
-    if starts.size == 0:
-        return 0, ([[0, n - 1]] if valid.all() else [])
-    p0 = int(starts[0])
-    runs: list[list[int]] = []
-    for u in range(p0, p0 + n):
-        i = u % n if cyclic else u
-        if i >= n:
-            break
-        if not valid[i]:
-            continue
-        if runs and cont[i] and runs[-1][1] == u - 1:
-            runs[-1][1] = u
-        else:
-            runs.append([u, u])
-    return p0, runs
-
-
-def _join_rows(search, val, starts, lo, hi, a1, b1, a2, b2, L_end, strict=True, min_run=1):
-    """Costs of joining the left line to right lines ``starts`` at ``m`` in ``[lo, hi]``.
-
-    A right line must stay inside the input for ``min_run`` nodes from ``m``
-    (or up to ``b2``): no bridge of a few nodes into the input's end.
-    """
-    n_in = search.view.n
-    rows, keys, ms = [], [], []
-    for m in range(lo, hi + 1):
-        last = min(b2, m + min_run - 1) - a2
-        ss = starts[(starts + (m - a2) >= 0) & (starts + last < n_in)]
-        if ss.size == 0:
-            continue
-        u = m + search.off
-        ov = np.broadcast_to(search._out_values(val, u), (ss.size, u.size)).copy()
-        left = (u < m) & (u >= a1)
-        right = (u >= m) & (u <= b2)
-        ov[:, left] = (L_end + (u[left] - b1))[None, :]
-        ov[:, right] = ss[:, None] + (u[right] - a2)[None, :]
-        ov[(ov < 0) | (ov >= n_in)] = -1
-        c = search.cost_rows(ov, m, coherence=False, strict=strict)
-        c = np.where(np.isnan(c), 0.0, c)
-        for s_, v in zip(ss, c):
-            if np.isfinite(v):
-                rows.append(float(v))
-                keys.append(int(s_) * 1_000_000 + m)
-                ms.append((m, int(s_)))
-    return rows, keys, ms
-
-
-def refine_level(search: LevelSearch, anchors: dict[int, int]) -> LevelResult:
-    """Son selection with refinement of every transition (finer levels).
-
-    Every output node first takes the child (same parity) of its parent's
-    source; runs holding a constraint are shifted to pass through it.  Each
-    transition between two runs — a seam or meeting point of the parent level
-    — is then searched again around twice its parent position: the left run is
-    extended forwards, the right run backwards, and the join position ``m``
-    (``±meeting_window`` nodes) and the right run's line (the children of the
-    parent's 3 best matches ``±candidate_range`` nodes) are chosen by the
-    three-level neighbourhood cost at the join.  Lines that merely continue
-    the left run are only taken when nothing else fits, and the drawn line
-    (the children of the parent's source) is preferred to the other parent
-    matches, so the coarse plan's transitions — and its randomisation —
-    survive refinement.  Joins keep ``MIN_RUN_FRAMES`` between each other when
-    the window allows, and a new line must stay in the input for ``2 slots + 1``
-    nodes.
-
-    Parameters
-    ----------
-    search : LevelSearch
-        Level ``l`` with its synthesised parent level.
-    anchors : dict
-        Output position -> input node at this level (constraints).
-
-    Returns
-    -------
-    LevelResult
-    """
-    up = search.upper
-    n, n_in, cyclic = search.n, search.view.n, search.cyclic
-    S, r, w = search.p.slots, search.p.candidate_range, search.p.meeting_window
-    t = np.arange(n)
-    T = np.minimum(t // 2, up.src.size - 1)
-    val = 2 * up.src[T] + (t - 2 * T)
-    # align the runs holding anchors
-    valid = (val >= 0) & (val < n_in)
-    p0, runs = _runs(val, valid, cyclic)
-    for a, b in runs:
-        pos = np.arange(a, b + 1)
-        wp = np.mod(pos, n) if cyclic else pos
-        inside = [(u, anchors[int(i)]) for u, i in zip(pos, wp) if int(i) in anchors]
-        if not inside:
-            continue
-        au = np.array([u for u, _ in inside])
-        nearest = np.abs(pos[:, None] - au[None, :]).argmin(axis=1)
-        off = np.array([v - val[np.mod(u, n) if cyclic else u] for u, v in inside])
-        val[wp] = val[wp] + off[nearest]
-    for p, v in anchors.items():
-        val[p] = v
-    valid = (val >= 0) & (val < n_in)
-    p0, runs = _runs(val, valid, cyclic)
-    ranked = np.full((n, 3), -1, dtype=np.int64)
-    anchor_u = np.array(sorted(anchors), dtype=np.int64)
-    if len(runs) <= 1 and valid.all():
-        ranked[:, 0] = val
-        return LevelResult(val, ranked, {})
-    if cyclic and runs:
-        runs.append([runs[0][0] + n, runs[0][1] + n])  # the wrap joins the last run to the first
-
-    def at(u):
-        return np.mod(u, n) if cyclic else u
-
-    def anchored(a: int, b: int) -> list[int]:
-        if anchor_u.size == 0:
-            return []
-        us = np.arange(a, b + 1)
-        return [int(u) for u in us if at(int(u)) in anchors]
-
-    prev_join = None
-    for k in range(len(runs) - 1):
-        (a1, b1), (a2, b2) = runs[k], runs[k + 1]
-        if not cyclic and k == len(runs) - 2 and b2 >= n:
-            b2 = n - 1
-        left_anchor = anchored(a1, b1)
-        right_anchor = anchored(a2, b2)
-        lo = max(a1 + 1, b1 + 1 - w, (prev_join + 1) if prev_join is not None else a1 + 1)
-        if left_anchor:
-            lo = max(lo, max(left_anchor) + 1)
-        hi = min(b2, a2 + w)
-        if right_anchor:
-            hi = min(hi, min(right_anchor))
-        L_end = int(val[at(b1)])  # left line: L(u) = L_end + (u - b1)
-        lo = max(lo, a1 + 1)
-        hi_left = b1 + (n_in - 1 - L_end) + 1  # m - 1 must keep L in range
-        hi = min(hi, hi_left)
-        # keep the runs on both sides long enough to smooth: no bridge of a few frames
-        gap = max(S + 1, -(-MIN_RUN_FRAMES // 2**search.l))
-        lo_s = max(lo, (prev_join if prev_join is not None else a1) + gap)
-        last_run = k + 1 == len(runs) - 1 and not cyclic
-        hi_s = hi if last_run else min(hi, b2 + 1 - gap)
-        if lo_s <= hi_s:
-            lo, hi = lo_s, hi_s
-        lo_f = max([a1 + 1] + [x + 1 for x in left_anchor])
-        hi_f = min([b2, hi_left] + right_anchor)
-        q_val = int(val[at(a2)])
-        L_at_q = L_end + (a2 - b1)
-        if q_val == L_at_q and a2 == b1 + 1 and not right_anchor:
-            runs[k + 1] = [a1, b2]  # a previous join made the two runs one
-            continue
-        if right_anchor:
-            starts = np.array([q_val])
-        else:
-            Tq = min(int(at(a2)) // 2, up.src.size - 1)
-            par = up.ranked[Tq]
-            par = par[par >= 0][: search.p.n_parent_matches]
-            par = np.unique(np.concatenate([par, [up.src[Tq]]]))
-            lines = 2 * par + (int(at(a2)) - 2 * Tq)
-            starts = np.unique((lines[:, None] + np.arange(-r, r + 1)[None, :]).ravel())
-            starts = np.unique(np.concatenate([starts, [q_val]]))
-        # right line R_s(u) = s + (u - a2); where it runs past the input's end the
-        # run is cut short and the next join covers the rest
-        novel = starts[np.abs(starts - L_at_q) >= S]
-        own = novel[np.abs(novel - q_val) <= r]  # the line the coarser level drew
-        rows: list = []
-        span = 2 * S + 1  # a new run plays at least this long before the input ends
-        for ss_all, (m_lo, m_hi), strict, min_run in (
-            (own, (lo, hi), True, span),
-            (novel, (lo, hi), True, span),
-            (starts, (lo, hi), True, span),
-            (starts, (lo_f, hi_f), True, 1),
-            (starts, (lo_f, hi_f), False, 1),
-            (np.arange(-w - (a2 - b1), n_in), (lo_f, hi_f), False, 1),  # any line at all
-        ):
-            rows, keys, ms = _join_rows(
-                search, val, ss_all, m_lo, m_hi, a1, b1, a2, b2, L_end, strict, min_run
-            )
-            if rows:
-                break
-        if not rows:
-            raise SynthesisError(
-                f"level {search.l}: no join between output nodes {b1} and {a2} "
-                f"(input runs ending at {L_end} and starting at {q_val})"
-            )
-        cost = np.array(rows)
-        perm = search.rng.permutation(cost.size)
-        order = perm[np.argsort(cost[perm], kind="stable")]
-        pick = order[0]
-        if search.randomize and search.p.k_best > 1:
-            pick = order[search._draw(np.array(keys)[order], cost[order])]
-        m, s_ = ms[pick]
-        span_l = np.arange(a1, m)
-        span_r = np.arange(m, b2 + 1)
-        val[at(span_l)] = L_end + (span_l - b1)
-        val[at(span_r)] = s_ + (span_r - a2)
-        runs[k + 1] = [m, min(b2, m + (n_in - 1 - (s_ + m - a2)))]
-        best_here = [ms[i][1] + (m - a2) for i in order if ms[i][0] == m]
-        top = list(dict.fromkeys(best_here))[:3]
-        ranked[at(m), : len(top)] = top
-        prev_join = m
-    ranked[:, 0] = val
-    bad = (val < 0) | (val >= n_in)
-    if bad.any() and not cyclic and not bad.all():  # free ends: grow them node by node
-        src = np.where(bad, -1, val)
-        first = int(np.argmin(bad))
-        for u in range(first - 1, -1, -1):
-            search.fill(src, ranked, u, f"output node {u}")
-        for u in np.flatnonzero(src < 0):
-            search.fill(src, ranked, int(u), f"output node {u}")
-        val = src
-    if not ((val >= 0) & (val < n_in)).all():
-        bad = np.flatnonzero((val < 0) | (val >= n_in))
-        raise SynthesisError(f"level {search.l}: output nodes {bad[:5].tolist()} left unfilled")
-    return LevelResult(val.astype(np.int64), ranked, {})

@@ -24,8 +24,18 @@ that decays to zero (raised cosine) over the smoothing radius.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from math import comb
 
 import numpy as np
+
+from mocapflow.stages.motion.kinematics import forward_kinematics
+from mocapflow.stages.motion.rotations import (
+    quat_exp,
+    quat_inverse,
+    quat_log,
+    quat_multiply,
+    yaw_quaternion,
+)
 
 __all__ = [
     "SmoothingResult",
@@ -52,8 +62,6 @@ def gaussian_taps(width: int = 5) -> np.ndarray:
     -------
     (width,) float ndarray
     """
-    from math import comb
-
     if width < 3 or width % 2 == 0:
         raise ValueError(f"gaussian_width must be odd and >= 3, got {width}")
     w = np.array([comb(width - 1, k) for k in range(width)], dtype=np.float64)
@@ -162,8 +170,6 @@ def seam_test(
     ref_acc : (S,) float ndarray
         Largest acceleration of the reference frames.
     """
-    from mocapflow.stages.motion.kinematics import forward_kinematics, quat_multiply, yaw_quaternion
-
     S = seams.size
     if S == 0:
         return np.ones(0, bool), np.zeros(0), np.zeros(0)
@@ -239,8 +245,6 @@ class SmoothingResult:
 
 def _pin(rot, feat, rot0, feat0, frames, radius, cyclic):
     """Remove the offsets smoothing left at the constrained frames (in place)."""
-    from mocapflow.stages.motion.kinematics import quat_exp, quat_inverse, quat_log, quat_multiply
-
     L = rot.shape[0]
     frames = sorted(int(f) for f in frames)
     for n, c in enumerate(frames):

@@ -7,15 +7,15 @@ import pytest
 
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, encode
-from mocapflow.stages.motion.kinematics import (
-    forward_kinematics,
+from mocapflow.stages.motion.kinematics import forward_kinematics
+from mocapflow.stages.motion.rotations import (
     heading_split,
     quat_angle,
     quat_from_axis_angle,
     quat_multiply,
     yaw_quaternion,
 )
-from mocapflow.stages.motion.simulate.motion import procedural_walk
+from mocapflow.stages.motion.simulate.gait import procedural_walk
 from mocapflow.stages.texture.pyramid import (
     Pyramid,
     PyramidError,

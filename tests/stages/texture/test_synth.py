@@ -2,16 +2,24 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
+from scipy.ndimage import uniform_filter1d
 
 from mocapflow.pipeline import Context
+from mocapflow.pipeline.codecs import decode, encode, find_exporter
+from mocapflow.pipeline.config import load_config
 from mocapflow.stages.metrics import quality as M
 from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices
 from mocapflow.stages.motion.datatypes import Motion
-from mocapflow.stages.motion.kinematics import heading_split, motion_positions, quat_angle
-from mocapflow.stages.motion.simulate.motion import procedural_walk
+from mocapflow.stages.motion.kinematics import forward_kinematics, motion_positions
+from mocapflow.stages.motion.rotations import heading_split, quat_angle, quat_rotate
+from mocapflow.stages.motion.simulate.gait import procedural_walk
+from mocapflow.stages.texture.assemble import assemble_motion
 from mocapflow.stages.texture.graph import graph_path
+from mocapflow.stages.texture.neighbourhood import level_view
 from mocapflow.stages.texture.pyramid import build_pyramid, level_positions, root_features
 from mocapflow.stages.texture.root import (
     PathCurve,
@@ -21,20 +29,9 @@ from mocapflow.stages.texture.root import (
     leg_chains,
     two_bone_ik,
 )
-from mocapflow.stages.texture.search import (
-    Gap,
-    LevelSearch,
-    SearchParams,
-    _ahead_usage,
-    level_view,
-)
-from mocapflow.stages.texture.synth import (
-    ConstraintError,
-    UnreachableGapError,
-    assemble_motion,
-    synth,
-    synthesize,
-)
+from mocapflow.stages.texture.search import Gap, LevelSearch, SearchParams, _ahead_usage
+from mocapflow.stages.texture.stickfigure import StickStrip, stickfigure
+from mocapflow.stages.texture.synth import ConstraintError, UnreachableGapError, synth
 
 RATE = 30.0
 
@@ -49,10 +46,6 @@ def pyr(walk):
     return build_pyramid(walk, levels=3)
 
 
-def _run(pyr, walk, seed=0, **kw):
-    return synthesize(pyr, walk, rng=np.random.default_rng(seed), **kw)
-
-
 def _local_pose(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
     """Heading-free local rotations and root-relative FK positions."""
     rot = motion.rotations.copy()
@@ -64,41 +57,41 @@ def _local_pose(motion: Motion) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------- constraints
 
 
-def test_constrained_frames_exact_before_and_within_tolerance_after_smoothing(pyr, walk):
+def test_constrained_frames_exact_before_and_within_tolerance_after_smoothing(run_synth, pyr, walk):
     cons = [[10, 5], [150, 200], [40, 333], [290, 397]]
-    r = _run(pyr, walk, length=400, constraints=cons)
-    src = r.source_index
+    r = run_synth(pyr, walk, length=400, constraints=cons)
+    src = r["source_index"]
     assert src.shape == (400,) and src.dtype == np.int64
     for i, j in cons:
         assert src[j] == i  # exact before smoothing
-    assert r.report["n_seams"] > 0 and any(k > 0 for k in r.report["smoothing"]["widening"])
-    rot_o, pos_o = _local_pose(r.motion)
+    assert r["report"]["n_seams"] > 0 and any(k > 0 for k in r["report"]["smoothing"]["widening"])
+    rot_o, pos_o = _local_pose(r["motion"])
     rot_i, pos_i = _local_pose(walk)
     i = np.array([c[0] for c in cons])
     j = np.array([c[1] for c in cons])
     angle = np.degrees(quat_angle(rot_o[j], rot_i[i]))
     assert angle.max() <= 1.0
     assert np.linalg.norm(pos_o[j] - pos_i[i], axis=-1).max() <= 0.01
-    assert r.report["constraint_max_angle_deg"] <= 1.0
-    assert r.report["constraint_max_fk_m"] <= 0.01
+    assert r["report"]["constraint_max_angle_deg"] <= 1.0
+    assert r["report"]["constraint_max_fk_m"] <= 0.01
     # the first constraint is placed where its input frame was in the world
-    np.testing.assert_allclose(r.motion.root_position[5], walk.root_position[10], atol=1e-9)
+    np.testing.assert_allclose(r["motion"].root_position[5], walk.root_position[10], atol=1e-9)
 
 
-def test_any_output_length_and_the_output_is_a_motion_on_the_input_skeleton(pyr, walk):
-    r = _run(pyr, walk, length=333)
-    m = r.motion
+def test_any_output_length_and_the_output_is_a_motion_on_the_input_skeleton(run_synth, pyr, walk):
+    r = run_synth(pyr, walk, length=333)
+    m = r["motion"]
     assert m.n_frames == 333 and m.skeleton is walk.skeleton and m.rate == RATE
-    assert r.source_index.min() >= 0 and r.source_index.max() < walk.n_frames
+    assert r["source_index"].min() >= 0 and r["source_index"].max() < walk.n_frames
     norms = np.linalg.norm(m.rotations, axis=-1)
     np.testing.assert_allclose(norms, 1.0, atol=1e-9)
-    assert r.report["meetings"] == {}  # no constraint: no two-sided gap
+    assert r["report"]["meetings"] == {}  # no constraint: no two-sided gap
 
 
-def test_seeds_give_different_variants_and_the_same_seed_the_same(pyr, walk):
-    a = _run(pyr, walk, seed=1, length=360).source_index
-    b = _run(pyr, walk, seed=1, length=360).source_index
-    c = _run(pyr, walk, seed=2, length=360).source_index
+def test_seeds_give_different_variants_and_the_same_seed_the_same(run_synth, pyr, walk):
+    a = run_synth(pyr, walk, seed=1, length=360)["source_index"]
+    b = run_synth(pyr, walk, seed=1, length=360)["source_index"]
+    c = run_synth(pyr, walk, seed=2, length=360)["source_index"]
     np.testing.assert_array_equal(a, b)
     assert np.mean(a != c) > 0.3
 
@@ -122,17 +115,17 @@ def test_adaptive_smoothing_removes_the_jerk_of_bad_seams(pyr, walk):
     np.testing.assert_allclose(smooth.rotations[far, 1:], raw.rotations[far, 1:], atol=1e-12)
 
 
-def test_synthesized_seams_stay_below_the_jerk_target(pyr, walk):
-    r = _run(pyr, walk, length=400, constraints=[[20, 10], [200, 300]])
-    seams = M.seams_from_source(r.source_index)
+def test_synthesized_seams_stay_below_the_jerk_target(run_synth, pyr, walk):
+    r = run_synth(pyr, walk, length=400, constraints=[[20, 10], [200, 300]])
+    seams = M.seams_from_source(r["source_index"])
     assert seams.size
     mask = M.seam_mask(400, seams)
     jerk_in = M.jerk_p99(motion_positions(walk), RATE)
-    raw, _ = assemble_motion(pyr, walk, r.source_index, smoothing=False)
+    raw, _ = assemble_motion(pyr, walk, r["source_index"], smoothing=False)
     jerk_raw = M.jerk_p99(motion_positions(raw), RATE, mask=mask) / jerk_in
-    jerk_out = M.jerk_p99(motion_positions(r.motion), RATE, mask=mask) / jerk_in
+    jerk_out = M.jerk_p99(motion_positions(r["motion"]), RATE, mask=mask) / jerk_in
     assert jerk_out < 1.3 and jerk_out < jerk_raw
-    assert np.mean(r.report["smoothing"]["passed"]) >= 0.9
+    assert np.mean(r["report"]["smoothing"]["passed"]) >= 0.9
 
 
 @pytest.mark.parametrize(
@@ -146,19 +139,19 @@ def test_synthesized_seams_stay_below_the_jerk_target(pyr, walk):
         (dict(constraints=[[10]]), r"expected \[input_frame, output_frame\]"),
     ],
 )
-def test_bad_constraints_raise_clear_errors(pyr, walk, kw, match):
+def test_bad_constraints_raise_clear_errors(run_synth, pyr, walk, kw, match):
     with pytest.raises(ConstraintError, match=match):
-        _run(pyr, walk, length=400, **kw)
+        run_synth(pyr, walk, length=400, **kw)
 
 
-def test_pyramid_mismatches_raise(pyr, walk):
+def test_pyramid_mismatches_raise(run_synth, pyr, walk):
     other = procedural_walk(200, rate=RATE, seed=1)
     with pytest.raises(ValueError, match="pyramid has 300 frames but the motion has 200"):
-        _run(pyr, other, length=100)
+        run_synth(pyr, other, length=100)
     with pytest.raises(ValueError, match="filter_size 6 differs"):
-        _run(pyr, walk, length=100, filter_size=6)
+        run_synth(pyr, walk, length=100, filter_size=6)
     with pytest.raises(ValueError, match="levels must be in 1-3"):
-        _run(pyr, walk, length=100, levels=4)
+        run_synth(pyr, walk, length=100, levels=4)
 
 
 # --------------------------------------------------------------------------- variety
@@ -170,7 +163,7 @@ def varied() -> Motion:
     return procedural_walk(300, rate=RATE, seed=3, variation=0.3)
 
 
-def test_default_output_is_a_new_arrangement_not_a_copy(varied):
+def test_default_output_is_a_new_arrangement_not_a_copy(run_synth, varied):
     """2× the walk: short verbatim runs, the whole input used, smooth seams.
 
     With the previous draw window (a fixed number of cost units around the
@@ -182,24 +175,24 @@ def test_default_output_is_a_new_arrangement_not_a_copy(varied):
     jerk_in = M.jerk_p99(motion_positions(walk), RATE)
     f_in = M.rotation_features(walk, heading_free=True)
     for seed in (0, 1):
-        r = _run(pyr, walk, seed=seed, length=L)
-        src = r.source_index
+        r = run_synth(pyr, walk, seed=seed, length=L)
+        src = r["source_index"]
         # the input is never replayed for more than ~1/3 of its length (max_run 0.3)
         assert M.longest_verbatim_run(src) <= 0.35 * F
         seams = M.seams_from_source(src)
         assert seams.size >= 10
-        assert M.coverage(M.rotation_features(r.motion, heading_free=True), f_in) >= 0.95
+        assert M.coverage(M.rotation_features(r["motion"], heading_free=True), f_in) >= 0.95
         mask = M.seam_mask(L, seams)
-        assert M.jerk_p99(motion_positions(r.motion), RATE, mask=mask) / jerk_in <= 1.3
+        assert M.jerk_p99(motion_positions(r["motion"]), RATE, mask=mask) / jerk_in <= 1.3
     # without the variety knobs the synthesis falls back to a near-verbatim copy
-    r0 = _run(pyr, walk, seed=0, length=L, params=SearchParams(variety=0.0, max_run=0.0))
-    assert M.longest_verbatim_run(r0.source_index) >= 0.9 * F
+    r0 = run_synth(pyr, walk, seed=0, length=L, variety=0.0, max_run=0.0)
+    assert M.longest_verbatim_run(r0["source_index"]) >= 0.9 * F
 
 
-def test_max_run_bounds_the_longest_verbatim_run(pyr, walk):
+def test_max_run_bounds_the_longest_verbatim_run(run_synth, pyr, walk):
     for max_run, bound in ((0.15, 0.2), (0.3, 0.35)):
-        r = _run(pyr, walk, seed=2, length=600, params=SearchParams(max_run=max_run))
-        assert M.longest_verbatim_run(r.source_index) <= bound * walk.n_frames
+        r = run_synth(pyr, walk, seed=2, length=600, max_run=max_run)
+        assert M.longest_verbatim_run(r["source_index"]) <= bound * walk.n_frames
 
 
 def _coarse_search(pyr, params, n_out=None, seed=0):
@@ -262,8 +255,6 @@ def test_ahead_usage_counts_the_material_a_candidate_plays_next():
 
 
 def test_two_bone_ik_reaches_the_target_and_keeps_the_bones():
-    from mocapflow.stages.motion.kinematics import quat_rotate
-
     rng = np.random.default_rng(0)
     n = 50
     hip = rng.normal(size=(n, 3)) * 0.1 + [0, 0.9, 0]
@@ -290,8 +281,6 @@ def test_two_bone_ik_reaches_the_target_and_keeps_the_bones():
 
 
 def test_apply_foot_ik_moves_the_ankles_and_keeps_the_feet(walk):
-    from mocapflow.stages.motion.kinematics import forward_kinematics, quat_angle
-
     m = walk
     toes = toe_indices(m.skeleton)
     chains = leg_chains(m.skeleton, toes)
@@ -339,39 +328,39 @@ def test_foot_corrections_stop_the_slide_of_stance_toes():
     assert abs(foot_corrections(slide, step, contact, fixed=fixed)[28]).max() < 1e-5
 
 
-def test_foot_ik_removes_the_skate_the_seams_bring(pyr, walk):
+def test_foot_ik_removes_the_skate_the_seams_bring(run_synth, pyr, walk):
     pos_in = motion_positions(walk)
     toes = toe_indices(walk.skeleton)
     h, s = contact_thresholds(pos_in, toes, RATE)
-    r = _run(pyr, walk, seed=0, length=600)
-    raw, _ = assemble_motion(pyr, walk, r.source_index, foot_ik=False)
+    r = run_synth(pyr, walk, seed=0, length=600)
+    raw, _ = assemble_motion(pyr, walk, r["source_index"], foot_ik=False)
 
     def skate(m):
         pos = motion_positions(m)
         return M.foot_skate(pos, toes, RATE, height_threshold=h, speed_threshold=s)
 
-    sk_in, sk_raw, sk_ik = skate(walk), skate(raw), skate(r.motion)
+    sk_in, sk_raw, sk_ik = skate(walk), skate(raw), skate(r["motion"])
     assert sk_ik < sk_raw and sk_ik - sk_in < 0.5 * (sk_raw - sk_in)
     assert sk_ik < 0.05  # m/s on contact frames
-    assert r.report["foot_ik_max_m"] > 0
+    assert r["report"]["foot_ik_max_m"] > 0
 
 
 # --------------------------------------------------------------------------- graph path
 
 
-def test_graph_path_fills_gaps_exactly_and_keeps_constraints(pyr, walk):
+def test_graph_path_fills_gaps_exactly_and_keeps_constraints(run_synth, pyr, walk):
     cons = [[10, 5], [150, 200], [60, 380]]
-    r = _run(pyr, walk, length=400, method="graph_path", constraints=cons)
+    r = run_synth(pyr, walk, length=400, method="graph_path", constraints=cons)
     for i, j in cons:
-        assert r.source_index[j] == i
-    assert r.report["constraint_max_angle_deg"] <= 1.0
+        assert r["source_index"][j] == i
+    assert r["report"]["constraint_max_angle_deg"] <= 1.0
 
 
-def test_graph_path_unreachable_gap_names_the_gap(pyr, walk):
+def test_graph_path_unreachable_gap_names_the_gap(run_synth, pyr, walk):
     # two output frames 12 apart but 200 input frames apart, and almost no jump edges
     gap = r"gap between output frame ~0 and output frame ~12"
     with pytest.raises(UnreachableGapError, match=gap):
-        _run(
+        run_synth(
             pyr,
             walk,
             length=100,
@@ -421,48 +410,46 @@ def _wrap_jerk(m: Motion, walk: Motion) -> float:
     return float(np.nanmax(jerk) / M.jerk_p99(motion_positions(walk), RATE))
 
 
-def test_loop_last_to_first_seam_passes_the_smoothing_test(pyr, walk):
+def test_loop_last_to_first_seam_passes_the_smoothing_test(run_synth, pyr, walk):
     L = 360
     # constraints on both sides of the wrap force a transition into the 5 frames
     # between them: 66 → … must reach 50 (a jump back by ~20 frames)
-    r = _run(pyr, walk, seed=0, length=L, loop=True, constraints=[[50, 2], [66, L - 4]])
-    assert r.source_index[2] == 50 and r.source_index[L - 4] == 66
-    seams = r.report["seams"]
+    r = run_synth(pyr, walk, seed=0, length=L, loop=True, constraints=[[50, 2], [66, L - 4]])
+    assert r["source_index"][2] == 50 and r["source_index"][L - 4] == 66
+    seams = r["report"]["seams"]
     near_wrap = [t for t in seams if t >= L - 3 or t <= 2]
     assert near_wrap  # this seed puts a transition at the wrap
-    sm = r.report["smoothing"]
+    sm = r["report"]["smoothing"]
     assert all(sm["passed"][seams.index(t)] for t in near_wrap)
-    assert _wrap_jerk(r.motion, walk) <= 1.3
-    raw, _ = assemble_motion(pyr, walk, r.source_index, loop=True, smoothing=False)
+    assert _wrap_jerk(r["motion"], walk) <= 1.3
+    raw, _ = assemble_motion(pyr, walk, r["source_index"], loop=True, smoothing=False)
     assert _wrap_jerk(raw, walk) > 2.0  # without smoothing the wrap is a visible pop
 
 
-def test_figure_eight_path_error_and_heading(pyr, walk):
+def test_figure_eight_path_error_and_heading(run_synth, pyr, walk):
     pts = figure_eight(2.0)
     curve = PathCurve.from_points(pts, mode="spline")
-    r = _run(pyr, walk, length=540, path=pts.tolist(), path_mode="spline")
-    ground = r.motion.root_position[:, [0, 2]]
+    r = run_synth(pyr, walk, length=540, path=pts.tolist(), path_mode="spline")
+    ground = r["motion"].root_position[:, [0, 2]]
     d, s = curve.closest(ground)
     assert d.mean() <= 0.05 * curve.length
     inner = slice(15, -15)
-    heading, _ = heading_split(r.motion.rotations[:, 0])
+    heading, _ = heading_split(r["motion"].rotations[:, 0])
     tangent = curve.tangent_angle(s)
     err = np.degrees(np.abs(np.angle(np.exp(1j * (heading - tangent)))))[inner]
     assert err.mean() <= 10.0
     # travel direction (1 s window) along the tangent too
     v = np.gradient(ground, axis=0)
-    from scipy.ndimage import uniform_filter1d
-
     v = uniform_filter1d(v, 30, axis=0)
     travel = np.arctan2(v[:, 0], v[:, 1])
     err_t = np.degrees(np.abs(np.angle(np.exp(1j * (travel - tangent)))))[inner]
     assert err_t.mean() <= 10.0
-    assert r.report["path"]["path_length"] == pytest.approx(curve.length)
+    assert r["report"]["path"]["path_length"] == pytest.approx(curve.length)
 
 
-def test_bad_path_raises(pyr, walk):
+def test_bad_path_raises(run_synth, pyr, walk):
     with pytest.raises(ValueError, match="at least|>= 2 points"):
-        _run(pyr, walk, length=100, path=[[0.0, 0.0]])
+        run_synth(pyr, walk, length=100, path=[[0.0, 0.0]])
 
 
 # --------------------------------------------------------------------------- stage
@@ -487,11 +474,7 @@ def test_search_params_are_exposed_under_the_papers_names():
 
 
 def test_texture_config_wires_ingest_pyramid_synth():
-    from pathlib import Path
-
-    from mocapflow.pipeline.config import load_config
-
-    root = Path(__file__).parents[2]
+    root = Path(__file__).parents[3]
     data = root / ".." / "shared" / "data"
     if not (data / "bvh" / "cmu_131_02.bvh").exists():
         pytest.skip("shared data not available")
@@ -511,9 +494,6 @@ def test_texture_config_wires_ingest_pyramid_synth():
 
 
 def test_stickfigure_strip_and_export(tmp_path, walk):
-    from mocapflow.pipeline.codecs import decode, encode, find_exporter
-    from mocapflow.stages.texture.stickfigure import StickStrip, stickfigure
-
     short = walk.replace(root_position=walk.root_position[:20], rotations=walk.rotations[:20])
     out = stickfigure(short, n_panels=4, video=True, video_step=5, ctx=Context())["strip"]
     assert isinstance(out, StickStrip) and out.frames == [0, 6, 13, 19]

@@ -1,0 +1,359 @@
+"""A motion from a source track: copy, smooth the seams, place the root, pin the feet.
+
+:func:`assemble_motion` turns the finest source track of the synthesis (the
+input frame copied into each output frame) into a motion on the input skeleton:
+
+1. the joint rotations and root features (yaw rate, heading-frame velocity,
+   height, translations) of each source frame are copied from level 0 of the
+   pyramid (:func:`_input_features`);
+2. the seams are smoothed adaptively (:func:`_smooth_seams` →
+   :func:`~mocapflow.stages.texture.smoothing.adaptive_smoothing`, Moradoff
+   §3.8); seam accelerations below ``ACCEL_FLOOR`` × the input's median
+   acceleration pass the test, and — an addition to the thesis' test — seams
+   also fail while their jerk exceeds ``jerk_tolerance`` × the input's p99 jerk;
+3. the root velocity is corrected so that stance toes move as in the input
+   (:func:`_planted_velocity` → :func:`~mocapflow.stages.texture.root.plant_feet`);
+4. the root is integrated, the first constraint (else output frame 0) placed
+   at its input frame's world position and heading, or steered along a path
+   (:func:`_place_root` → :func:`~mocapflow.stages.texture.root.integrate_root`,
+   :func:`~mocapflow.stages.texture.root.follow_path`, Moradoff §3.10);
+5. the residual slide of stance toes is pinned by two-bone leg IK
+   (:func:`_foot_ik` → :func:`~mocapflow.stages.texture.root.foot_corrections`,
+   :func:`~mocapflow.stages.texture.root.apply_foot_ik`);
+6. the errors at the constrained frames are measured (:func:`_constraint_errors`).
+"""
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from mocapflow.stages.metrics.quality import acceleration_per_frame, jerk_p99, seams_from_source
+from mocapflow.stages.motion.contacts import contact_thresholds, foot_contacts, toe_indices
+from mocapflow.stages.motion.datatypes import Motion
+from mocapflow.stages.motion.kinematics import motion_positions
+from mocapflow.stages.motion.rotations import (
+    heading_split,
+    quat_angle,
+    quat_multiply,
+    yaw_quaternion,
+)
+from mocapflow.stages.texture.pyramid import Pyramid, level_positions
+from mocapflow.stages.texture.root import (
+    PathCurve,
+    apply_foot_ik,
+    follow_path,
+    foot_corrections,
+    integrate_root,
+    leg_chains,
+    plant_feet,
+    rotate_xz,
+    toe_displacements,
+)
+from mocapflow.stages.texture.smoothing import adaptive_smoothing
+
+__all__ = ["ACCEL_FLOOR", "assemble_motion"]
+
+#: Seam accelerations below this fraction of the input's median acceleration pass the test.
+ACCEL_FLOOR = 0.25
+
+
+def _input_features(pyramid: Pyramid) -> tuple[np.ndarray, np.ndarray]:
+    """Level 0 rotations ``(F, J, 4)`` and root features ``(F, D)`` (yaw rate, velocity,
+    height, translations)."""
+    lev = pyramid.levels[0]
+    parts = [lev.yaw_rate[:, None], lev.velocity, lev.height[:, None]]
+    if lev.translations is not None:
+        parts.append(lev.translations.reshape(lev.n_nodes, -1))
+    return lev.rotations, np.concatenate(parts, axis=1)
+
+
+def _smooth_seams(
+    pyramid: Pyramid,
+    motion: Motion,
+    rot: np.ndarray,
+    feat: np.ndarray,
+    seams: np.ndarray,
+    constrained: list[int],
+    loop: bool,
+    *,
+    gaussian_width: int,
+    accel_tolerance: float,
+    max_widening: int,
+    jerk_tolerance: float | None,
+    warn,
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Adaptive smoothing of the seams with the input's acceleration floor and jerk limit.
+
+    Returns
+    -------
+    rotations : (L, J, 4) float ndarray
+    features : (L, D) float ndarray
+    report : dict
+        ``widening``, ``passed``, ``seam_acc``, ``ref_acc`` per seam.
+    """
+    world_in = motion_positions(motion)
+    acc_in = acceleration_per_frame(world_in, motion.rate)
+    floor = ACCEL_FLOOR * float(np.nanmedian(acc_in)) if motion.n_frames > 2 else 0.0
+    jerk_limit = None
+    if jerk_tolerance is not None and motion.n_frames > 8:
+        jerk_limit = jerk_tolerance * jerk_p99(world_in, motion.rate)
+    sm = adaptive_smoothing(
+        motion.skeleton,
+        rot,
+        feat,
+        seams,
+        pyramid.rate,
+        constrained=constrained,
+        cyclic=loop,
+        gaussian_width=gaussian_width,
+        accel_tolerance=accel_tolerance,
+        accel_floor=floor,
+        max_widening=max_widening,
+        jerk_limit=jerk_limit,
+    )
+    failed = seams[~sm.passed]
+    if failed.size:
+        warn(
+            f"{failed.size} of {seams.size} seams still fail the acceleration test after "
+            f"widening to k={max_widening} (output frames {failed[:10].tolist()})"
+        )
+    report = dict(
+        widening=sm.widening.tolist(),
+        passed=sm.passed.tolist(),
+        seam_acc=sm.seam_acc.tolist(),
+        ref_acc=sm.ref_acc.tolist(),
+    )
+    return sm.rotations, sm.features, report
+
+
+def _planted_velocity(pyramid, motion, rot, feat, src, loop) -> np.ndarray:
+    """Root velocities keeping the input's stance toes planted (see ``plant_feet``)."""
+    try:
+        toes = toe_indices(motion.skeleton)
+    except ValueError:
+        return feat[:, 1:3]
+    lev = pyramid.levels[0]
+    world = motion_positions(motion)
+    h, s = contact_thresholds(world, toes, motion.rate)
+    contact = foot_contacts(world, toes, motion.rate, height_threshold=h, speed_threshold=s)
+    disp_in = toe_displacements(lev.yaw_rate, lev.velocity, lev.positions[:, toes][..., [0, 2]])
+    J = motion.skeleton.n_joints
+    trans = feat[:, 4:].reshape(len(src), J, 3) if feat.shape[1] > 4 else None
+    local = level_positions(motion.skeleton, rot, feat[:, 3], trans)[:, toes][..., [0, 2]]
+    return plant_feet(feat[:, 0], feat[:, 1:3], local, src, disp_in, contact, cyclic=loop)
+
+
+def _place_root(
+    motion: Motion,
+    feat: np.ndarray,
+    src: np.ndarray,
+    constraints: list[tuple[int, int]],
+    curve: PathCurve | None,
+    rate: float,
+    warn,
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """World heading and ground position of every output frame.
+
+    Along ``curve`` when given; else the integrated root velocities, turned and
+    moved so that the first constrained output frame (else frame 0) has its
+    source frame's heading and ground position in the input.
+
+    Returns
+    -------
+    heading : (L,) float ndarray
+    ground : (L, 2) float ndarray
+        ``(x, z)``.
+    path_info : dict
+        :func:`~mocapflow.stages.texture.root.follow_path`'s info (empty without a path).
+    """
+    if curve is not None:
+        heading, ground, path_info = follow_path(feat[:, 0], feat[:, 1:3], curve, rate)
+        if path_info["beyond_end"]:
+            warn(
+                f"the motion travels {path_info['distance']:.2f} m but the path is only "
+                f"{path_info['path_length']:.2f} m long: the last {path_info['beyond_end']} "
+                "frames continue along the final tangent"
+            )
+        return heading, ground, path_info
+    heading_in, _ = heading_split(motion.rotations[:, 0])
+    ref = constraints[0][1] if constraints else 0
+    h0, g0 = integrate_root(feat[:, 0], feat[:, 1:3])
+    dh = heading_in[src[ref]] - h0[ref]
+    c, s = np.cos(dh), np.sin(dh)
+    rel = g0 - g0[ref]
+    ground = np.stack([rel[:, 0] * c + rel[:, 1] * s, -rel[:, 0] * s + rel[:, 1] * c], 1)
+    ground += motion.root_position[src[ref], [0, 2]]
+    return h0 + dh, ground, {}
+
+
+def _output_motion(
+    motion: Motion, rot: np.ndarray, feat: np.ndarray, heading: np.ndarray, ground: np.ndarray
+) -> Motion:
+    """The motion on the input skeleton: heading put back on the root, root at ``ground``."""
+    L = feat.shape[0]
+    root = np.stack([ground[:, 0], feat[:, 3], ground[:, 1]], axis=1)
+    rotations = rot.copy()
+    rotations[:, 0] = quat_multiply(yaw_quaternion(heading), rot[:, 0])
+    J = motion.skeleton.n_joints
+    trans = feat[:, 4:].reshape(L, J, 3) if feat.shape[1] > 4 else None
+    attrs = dict(motion.attrs)
+    attrs["synthesized_from"] = motion.attrs.get("source", motion.attrs.get("path"))
+    return Motion(motion.skeleton, root, rotations, motion.rate, trans, attrs)
+
+
+def _foot_ik(motion: Motion, out: Motion, src: np.ndarray, constrained, blended):
+    """Leg IK keeping every stance toe moving as in the input (see ``foot_corrections``).
+
+    Returns the new local rotations and the largest correction (metres), or
+    ``None`` when the skeleton has no usable toes or legs.
+    """
+    try:
+        toes = toe_indices(motion.skeleton)
+        chains = leg_chains(motion.skeleton, toes)
+    except ValueError:
+        return None
+    world = motion_positions(motion)
+    h, s = contact_thresholds(world, toes, motion.rate)
+    contact_in = foot_contacts(world, toes, motion.rate, height_threshold=h, speed_threshold=s)
+    heading_in, _ = heading_split(motion.rotations[:, 0])
+    ground = world[:, toes][..., [0, 2]]
+    step = np.concatenate([np.diff(ground, axis=0), np.zeros((1,) + ground.shape[1:])], axis=0)
+    if step.shape[0] > 1:
+        step[-1] = step[-2]
+    step_h = rotate_xz(step, -heading_in[:, None])
+    heading_out, _ = heading_split(out.rotations[:, 0])
+    L = src.size
+    toe_step = rotate_xz(step_h[src], heading_out[:, None])
+    toe_step[blended] = 0.0  # a blend of two stances keeps the stance foot still
+    pos_out = motion_positions(out)
+    fixed = np.zeros(L, dtype=bool)
+    fixed[[int(j) for j in constrained]] = True
+    corr = foot_corrections(pos_out[:, toes][..., [0, 2]], toe_step, contact_in[src], fixed=fixed)
+    rot = apply_foot_ik(
+        out.skeleton, out.rotations, out.root_position, chains, corr,
+        translations=out.translations,
+    )
+    return rot, float(np.linalg.norm(corr, axis=-1).max()) if L else 0.0
+
+
+def _constraint_errors(motion_in: Motion, rot_out, feat_out, rot_in, feat_in, constraints):
+    """Worst geodesic angle (deg) and root-relative FK distance (m) at constrained frames."""
+    if not constraints:
+        return 0.0, 0.0
+    i = np.array([c[0] for c in constraints])
+    j = np.array([c[1] for c in constraints])
+    ang = float(np.degrees(quat_angle(rot_out[j], rot_in[i]).max()))
+    J = rot_in.shape[1]
+    tr_o = feat_out[j, 4:].reshape(len(j), J, 3) if feat_out.shape[1] > 4 else None
+    tr_i = feat_in[i, 4:].reshape(len(i), J, 3) if feat_in.shape[1] > 4 else None
+    po = level_positions(motion_in.skeleton, rot_out[j], feat_out[j, 3], tr_o)
+    pi = level_positions(motion_in.skeleton, rot_in[i], feat_in[i, 3], tr_i)
+    return ang, float(np.linalg.norm(po - pi, axis=-1).max())
+
+
+def assemble_motion(
+    pyramid: Pyramid,
+    motion: Motion,
+    source_index: np.ndarray,
+    *,
+    constraints: list[tuple[int, int]] = (),
+    loop: bool = False,
+    curve: PathCurve | None = None,
+    smoothing: bool = True,
+    gaussian_width: int = 5,
+    accel_tolerance: float = 1.0,
+    max_widening: int = 12,
+    jerk_tolerance: float | None = 1.0,
+    plant: bool = True,
+    foot_ik: bool = True,
+    warn=None,
+) -> tuple[Motion, dict[str, Any]]:
+    """Turn a source track into a motion: copy, smooth the seams, integrate the root.
+
+    Parameters
+    ----------
+    pyramid : Pyramid
+        Tree of ``motion`` (level 0 supplies the copied frames).
+    motion : Motion
+        Input motion (skeleton, world heading and position of the first frame).
+    source_index : (L,) int ndarray
+        Input frame per output frame.
+    constraints : list of (int, int)
+        ``(input_frame, output_frame)``, pinned through smoothing; the first one
+        (else output frame 0) is placed at its input frame's world position and heading.
+    loop : bool
+        Cyclic output.
+    curve : PathCurve, optional
+        Path to follow.
+    smoothing : bool
+    gaussian_width, accel_tolerance, max_widening :
+        See :func:`~mocapflow.stages.texture.smoothing.adaptive_smoothing`.
+    jerk_tolerance : float or None
+        A seam also fails the smoothing test while its jerk exceeds this
+        multiple of the input's p99 jerk (None: acceleration test only).
+    plant : bool
+        Keep stance toes moving as in the input (root velocity correction).
+    foot_ik : bool
+        Then pin the residual toe slide of every contact span with two-bone
+        leg IK (feet keep their world orientation; constrained frames untouched).
+    warn : callable, optional
+
+    Returns
+    -------
+    motion : Motion
+    report : dict
+        ``seams``, ``smoothing``, constraint errors, ``path``.
+    """
+    t0 = time.perf_counter()
+    warn = warn or (lambda msg: None)
+    src = np.asarray(source_index, dtype=np.int64)
+    L = src.size
+    cons = list(constraints)
+    rot_in, feat_in = _input_features(pyramid)
+    rot, feat = rot_in[src].copy(), feat_in[src].copy()
+    seams = seams_from_source(src, cyclic=loop)
+    sm_report: dict[str, Any] = {"enabled": smoothing}
+    if smoothing and seams.size:
+        rot, feat, widened = _smooth_seams(
+            pyramid,
+            motion,
+            rot,
+            feat,
+            seams,
+            [j for _, j in cons],
+            loop,
+            gaussian_width=gaussian_width,
+            accel_tolerance=accel_tolerance,
+            max_widening=max_widening,
+            jerk_tolerance=jerk_tolerance,
+            warn=warn,
+        )
+        sm_report.update(widened)
+    t_smooth = time.perf_counter() - t0
+
+    if plant:
+        feat[:, 1:3] = _planted_velocity(pyramid, motion, rot, feat, src, loop)
+    heading, ground, path_info = _place_root(motion, feat, src, cons, curve, pyramid.rate, warn)
+    out = _output_motion(motion, rot, feat, heading, ground)
+    ik_max = 0.0
+    if foot_ik and L > 2:
+        blended = np.abs(rot - rot_in[src]).max(axis=(1, 2)) > 1e-9
+        res = _foot_ik(motion, out, src, [j for _, j in cons], blended)
+        if res is not None:
+            rotations, ik_max = res
+            rot[:, 1:] = rotations[:, 1:]
+            out = out.replace(rotations=rotations)
+    ang, fk = _constraint_errors(motion, rot, feat, rot_in, feat_in, cons)
+    report = {
+        "seams": seams.tolist(),
+        "n_seams": int(seams.size),
+        "smoothing": sm_report,
+        "constraint_max_angle_deg": ang,
+        "constraint_max_fk_m": fk,
+        "path": path_info,
+        "foot_ik_max_m": ik_max,
+        "seconds_smoothing": t_smooth,
+    }
+    return out, report

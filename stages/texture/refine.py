@@ -1,0 +1,438 @@
+"""Son selection and refinement of the transitions at the finer levels (Moradoff §3.5–3.7).
+
+Below the coarsest level the output of a level is derived from the level above
+(:class:`LevelRefinement`, a :class:`~mocapflow.stages.texture.search.LevelSearch`):
+
+* **son selection** — every output node takes the child (same parity) of its
+  parent's source (:meth:`LevelRefinement.son_track`); runs holding a
+  constraint are shifted to pass through it
+  (:meth:`LevelRefinement._align_to_anchors`).  The track is then a sequence of
+  *verbatim runs* (:func:`verbatim_runs`).
+* **refinement of every transition** — each transition between two runs (a
+  seam, meeting point or random jump of the parent level) is searched again
+  around twice its parent position (:meth:`LevelRefinement._rejoin`): the left
+  run is extended forwards, the right run backwards, and the join position
+  ``m`` and the right run's line are chosen by the three-level neighbourhood
+  cost at the join (:meth:`LevelRefinement.join_costs`).
+* **the join schedule** — where and among which lines a join is searched, in
+  order until one fits (:meth:`LevelRefinement._join_windows`,
+  :meth:`LevelRefinement._candidate_lines`,
+  :meth:`LevelRefinement._join_attempts`): the ``±meeting_window`` nodes around
+  the transition, narrowed so that joins keep ``MIN_RUN_FRAMES`` between each
+  other; first the line the coarser level drew (the children of the parent's
+  source), then the other lines through the children of the parent's 3 best
+  matches ``±candidate_range`` nodes (candidate acceleration), lines that merely
+  continue the left run only when nothing else fits; a new line must stay in
+  the input for ``2 slots + 1`` nodes.  So the coarse plan's transitions — and
+  its randomisation — survive refinement.  Joins are drawn within
+  ``tolerance`` cost units (:meth:`LevelRefinement._draw_join`).
+* **gap growing** — ends the runs leave outside the input (open outputs) are
+  grown node by node with the ordinary search
+  (:meth:`LevelRefinement._grow_free_ends`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mocapflow.stages.texture.search import LevelResult, LevelSearch, SynthesisError
+
+__all__ = ["MIN_RUN_FRAMES", "LevelRefinement", "verbatim_runs"]
+
+#: Shortest run (fine frames) refinement leaves between two transitions when it can.
+MIN_RUN_FRAMES = 12
+
+
+def verbatim_runs(
+    val: np.ndarray, valid: np.ndarray, cyclic: bool
+) -> tuple[int, list[list[int]]]:
+    """Verbatim runs of a source track: stretches that play the input forwards.
+
+    A run is a maximal stretch of output positions whose input nodes follow
+    each other (``val[u + 1] == val[u] + 1``); invalid positions belong to no
+    run.  In loop mode a run may wrap past the last position.
+
+    Parameters
+    ----------
+    val : (n,) int ndarray
+        Input node at each output position.
+    valid : (n,) bool ndarray
+        Positions holding an input node.
+    cyclic : bool
+
+    Returns
+    -------
+    p0 : int
+        First run start: the runs are listed from there.
+    runs : list of [int, int]
+        ``[start, end]`` (unwrapped, inclusive), in output order.
+    """
+    n = val.size
+    cont = np.zeros(n, dtype=bool)  # position continues the previous one
+    cont[1:] = valid[1:] & valid[:-1] & (val[1:] == val[:-1] + 1)
+    if cyclic:
+        cont[0] = valid[0] and valid[-1] and val[0] == val[-1] + 1
+    starts = np.flatnonzero(valid & ~cont)
+    if starts.size == 0:
+        return 0, ([[0, n - 1]] if valid.all() else [])
+    p0 = int(starts[0])
+    runs: list[list[int]] = []
+    for u in range(p0, p0 + n):
+        i = u % n if cyclic else u
+        if i >= n:
+            break
+        if not valid[i]:
+            continue
+        if runs and cont[i] and runs[-1][1] == u - 1:
+            runs[-1][1] = u
+        else:
+            runs.append([u, u])
+    return p0, runs
+
+
+@dataclass
+class _Transition:
+    """The transition from run ``[a1, b1]`` to run ``[a2, b2]`` (unwrapped positions).
+
+    Attributes
+    ----------
+    a1, b1, a2, b2 : int
+    left_end : int
+        Input node the left run plays at ``b1`` (its line: ``left_end + (u - b1)``).
+    right_start : int
+        Input node the right run plays at ``a2``.
+    left_anchors, right_anchors : list of int
+        Constrained positions in each run.
+    """
+
+    a1: int
+    b1: int
+    a2: int
+    b2: int
+    left_end: int
+    right_start: int
+    left_anchors: list[int]
+    right_anchors: list[int]
+
+
+class LevelRefinement(LevelSearch):
+    """Son selection with refinement of every transition (a finer level).
+
+    Every output node first takes the child (same parity) of its parent's
+    source; runs holding a constraint are shifted to pass through it.  Each
+    transition between two runs — a seam or meeting point of the parent level
+    — is then searched again around twice its parent position: the left run is
+    extended forwards, the right run backwards, and the join position ``m``
+    (``±meeting_window`` nodes) and the right run's line (the children of the
+    parent's 3 best matches ``±candidate_range`` nodes) are chosen by the
+    three-level neighbourhood cost at the join.  Lines that merely continue
+    the left run are only taken when nothing else fits, and the drawn line
+    (the children of the parent's source) is preferred to the other parent
+    matches, so the coarse plan's transitions — and its randomisation —
+    survive refinement.  Joins keep ``MIN_RUN_FRAMES`` between each other when
+    the window allows, and a new line must stay in the input for ``2 slots + 1``
+    nodes.
+
+    Constructed like :class:`~mocapflow.stages.texture.search.LevelSearch`
+    (``upper``: the synthesised parent level); :meth:`refine` does the work.
+    """
+
+    def refine(self, anchors: dict[int, int]) -> LevelResult:
+        """The source track of this level.
+
+        Parameters
+        ----------
+        anchors : dict
+            Output position -> input node at this level (constraints).
+
+        Returns
+        -------
+        LevelResult
+        """
+        n_in = self.view.n
+        val = self.son_track()
+        self._align_to_anchors(val, anchors)
+        valid = (val >= 0) & (val < n_in)
+        _, runs = verbatim_runs(val, valid, self.cyclic)
+        ranked = np.full((self.n, 3), -1, dtype=np.int64)
+        if len(runs) <= 1 and valid.all():
+            ranked[:, 0] = val
+            return LevelResult(val, ranked, {})
+        if self.cyclic and runs:
+            # the wrap joins the last run to the first
+            runs.append([runs[0][0] + self.n, runs[0][1] + self.n])
+        prev_join = None
+        for k in range(len(runs) - 1):
+            prev_join = self._rejoin(val, ranked, runs, k, anchors, prev_join)
+        ranked[:, 0] = val
+        val = self._grow_free_ends(val, ranked)
+        if not ((val >= 0) & (val < n_in)).all():
+            bad = np.flatnonzero((val < 0) | (val >= n_in))
+            raise SynthesisError(f"level {self.l}: output nodes {bad[:5].tolist()} left unfilled")
+        return LevelResult(val.astype(np.int64), ranked, {})
+
+    # ----------------------------------------------------------- son selection
+    def son_track(self) -> np.ndarray:
+        """Every output node takes the child (same parity) of its parent's source.
+
+        Returns
+        -------
+        (n_out,) int ndarray
+        """
+        up = self.upper
+        t = np.arange(self.n)
+        T = np.minimum(t // 2, up.src.size - 1)
+        return 2 * up.src[T] + (t - 2 * T)
+
+    def _align_to_anchors(self, val: np.ndarray, anchors: dict[int, int]) -> None:
+        """Shift every run holding anchors onto them (in place), then write the anchors.
+
+        Each position of such a run takes the shift of its nearest anchor.
+        """
+        n, cyclic = self.n, self.cyclic
+        valid = (val >= 0) & (val < self.view.n)
+        _, runs = verbatim_runs(val, valid, cyclic)
+        for a, b in runs:
+            pos = np.arange(a, b + 1)
+            wp = np.mod(pos, n) if cyclic else pos
+            inside = [(u, anchors[int(i)]) for u, i in zip(pos, wp) if int(i) in anchors]
+            if not inside:
+                continue
+            au = np.array([u for u, _ in inside])
+            nearest = np.abs(pos[:, None] - au[None, :]).argmin(axis=1)
+            off = np.array([v - val[np.mod(u, n) if cyclic else u] for u, v in inside])
+            val[wp] = val[wp] + off[nearest]
+        for p, v in anchors.items():
+            val[p] = v
+
+    # ----------------------------------------------------------- one transition
+    def _at(self, u):
+        """Array position(s) of unwrapped output position(s) ``u``."""
+        return np.mod(u, self.n) if self.cyclic else u
+
+    def _anchored(self, anchors: dict[int, int], a: int, b: int) -> list[int]:
+        """Constrained positions (unwrapped) in ``[a, b]``."""
+        if not anchors:
+            return []
+        us = np.arange(a, b + 1)
+        return [int(u) for u in us if self._at(int(u)) in anchors]
+
+    def _transition(self, val, runs, k: int, anchors: dict[int, int]) -> _Transition:
+        """Transition from run ``k`` to ``k + 1`` (an open output's last run ends at n - 1)."""
+        (a1, b1), (a2, b2) = runs[k], runs[k + 1]
+        if not self.cyclic and k == len(runs) - 2 and b2 >= self.n:
+            b2 = self.n - 1
+        return _Transition(
+            a1,
+            b1,
+            a2,
+            b2,
+            left_end=int(val[self._at(b1)]),
+            right_start=int(val[self._at(a2)]),
+            left_anchors=self._anchored(anchors, a1, b1),
+            right_anchors=self._anchored(anchors, a2, b2),
+        )
+
+    def _rejoin(self, val, ranked, runs, k: int, anchors, prev_join: int | None) -> int | None:
+        """Search transition ``k`` again and rewrite both runs (in place).
+
+        Returns
+        -------
+        int or None
+            The join position; ``prev_join`` when the two runs have become one.
+
+        Raises
+        ------
+        SynthesisError
+            No line joins the two runs anywhere.
+        """
+        tr = self._transition(val, runs, k, anchors)
+        at_join = tr.left_end + (tr.a2 - tr.b1)  # the left line at a2
+        if tr.right_start == at_join and tr.a2 == tr.b1 + 1 and not tr.right_anchors:
+            runs[k + 1] = [tr.a1, tr.b2]  # a previous join made the two runs one
+            return prev_join
+        last_run = k + 1 == len(runs) - 1 and not self.cyclic
+        window, fallback = self._join_windows(tr, prev_join, last_run=last_run)
+        starts = self._candidate_lines(tr)
+        for lines, (m_lo, m_hi), strict, min_run in self._join_attempts(
+            tr, starts, window, fallback
+        ):
+            rows, keys, ms = self.join_costs(val, tr, lines, m_lo, m_hi, strict, min_run)
+            if rows:
+                break
+        if not rows:
+            raise SynthesisError(
+                f"level {self.l}: no join between output nodes {tr.b1} and {tr.a2} "
+                f"(input runs ending at {tr.left_end} and starting at {tr.right_start})"
+            )
+        pick, order = self._draw_join(rows, keys)
+        m, s_ = ms[pick]
+        self._write_join(val, ranked, runs, k, tr, m, s_, [ms[i] for i in order])
+        return m
+
+    # ----------------------------------------------------------- join schedule
+    def _join_windows(
+        self, tr: _Transition, prev_join: int | None, *, last_run: bool
+    ) -> tuple[tuple[int, int], tuple[int, int]]:
+        """Inclusive ranges of join positions: the scheduled one and the fallback.
+
+        The scheduled window is ``±meeting_window`` nodes around the transition,
+        after the previous join and the left run's constraints, up to the right
+        run's first constraint and while the left line stays in the input;
+        when it can be, it is narrowed so that the runs on both sides keep
+        ``MIN_RUN_FRAMES`` (and more than ``slots`` nodes) — long enough to
+        smooth, no bridge of a few frames.  The fallback window reaches from
+        the left run's constraints to the right run's end (or first constraint).
+        """
+        S, w = self.p.slots, self.p.meeting_window
+        a1, b1, a2, b2 = tr.a1, tr.b1, tr.a2, tr.b2
+        lo = max(a1 + 1, b1 + 1 - w, (prev_join + 1) if prev_join is not None else a1 + 1)
+        if tr.left_anchors:
+            lo = max(lo, max(tr.left_anchors) + 1)
+        hi = min(b2, a2 + w)
+        if tr.right_anchors:
+            hi = min(hi, min(tr.right_anchors))
+        lo = max(lo, a1 + 1)
+        hi_left = b1 + (self.view.n - 1 - tr.left_end) + 1  # m - 1 must keep L in range
+        hi = min(hi, hi_left)
+        # keep the runs on both sides long enough to smooth: no bridge of a few frames
+        gap = max(S + 1, -(-MIN_RUN_FRAMES // 2**self.l))
+        lo_s = max(lo, (prev_join if prev_join is not None else a1) + gap)
+        hi_s = hi if last_run else min(hi, b2 + 1 - gap)
+        if lo_s <= hi_s:
+            lo, hi = lo_s, hi_s
+        lo_f = max([a1 + 1] + [x + 1 for x in tr.left_anchors])
+        hi_f = min([b2, hi_left] + tr.right_anchors)
+        return (lo, hi), (lo_f, hi_f)
+
+    def _candidate_lines(self, tr: _Transition) -> np.ndarray:
+        """Input nodes the right run may play at ``a2`` (its line: ``s + (u - a2)``).
+
+        Only its own when it holds a constraint; else the children of the
+        parent's source and best matches ``±candidate_range`` and its own.
+        """
+        if tr.right_anchors:
+            return np.array([tr.right_start])
+        up, r = self.upper, self.p.candidate_range
+        q = int(self._at(tr.a2))
+        Tq = min(q // 2, up.src.size - 1)
+        par = up.ranked[Tq]
+        par = par[par >= 0][: self.p.n_parent_matches]
+        par = np.unique(np.concatenate([par, [up.src[Tq]]]))
+        lines = 2 * par + (q - 2 * Tq)
+        starts = np.unique((lines[:, None] + np.arange(-r, r + 1)[None, :]).ravel())
+        return np.unique(np.concatenate([starts, [tr.right_start]]))
+
+    def _join_attempts(self, tr: _Transition, starts: np.ndarray, window, fallback) -> tuple:
+        """``(lines, window, strict, min_run)`` to try in order until a join fits.
+
+        Right lines ``R_s(u) = s + (u - a2)``; where one runs past the input's
+        end the run is cut short and the next join covers the rest.
+        """
+        S = self.p.slots
+        novel = starts[np.abs(starts - (tr.left_end + (tr.a2 - tr.b1))) >= S]
+        own = novel[np.abs(novel - tr.right_start) <= self.p.candidate_range]  # the drawn line
+        span = 2 * S + 1  # a new run plays at least this long before the input ends
+        any_line = np.arange(-self.p.meeting_window - (tr.a2 - tr.b1), self.view.n)
+        return (
+            (own, window, True, span),
+            (novel, window, True, span),
+            (starts, window, True, span),
+            (starts, fallback, True, 1),
+            (starts, fallback, False, 1),
+            (any_line, fallback, False, 1),
+        )
+
+    # ----------------------------------------------------------- join cost, draw, write
+    def join_costs(
+        self,
+        val: np.ndarray,
+        tr: _Transition,
+        starts: np.ndarray,
+        lo: int,
+        hi: int,
+        strict: bool = True,
+        min_run: int = 1,
+    ) -> tuple[list[float], list[int], list[tuple[int, int]]]:
+        """Costs of joining the left line to right lines ``starts`` at ``m`` in ``[lo, hi]``.
+
+        A right line must stay inside the input for ``min_run`` nodes from ``m``
+        (or up to ``b2``): no bridge of a few nodes into the input's end.
+
+        Returns
+        -------
+        rows : list of float
+            Neighbourhood cost at the join (:meth:`cost_rows`, no coherence bonus).
+        keys : list of int
+            Identity of each join for the draw.
+        ms : list of (int, int)
+            ``(m, s)`` of each join.
+        """
+        n_in = self.view.n
+        a1, b1, a2, b2, L_end = tr.a1, tr.b1, tr.a2, tr.b2, tr.left_end
+        rows, keys, ms = [], [], []
+        for m in range(lo, hi + 1):
+            last = min(b2, m + min_run - 1) - a2
+            ss = starts[(starts + (m - a2) >= 0) & (starts + last < n_in)]
+            if ss.size == 0:
+                continue
+            u = m + self.off
+            ov = np.broadcast_to(self._out_values(val, u), (ss.size, u.size)).copy()
+            left = (u < m) & (u >= a1)
+            right = (u >= m) & (u <= b2)
+            ov[:, left] = (L_end + (u[left] - b1))[None, :]
+            ov[:, right] = ss[:, None] + (u[right] - a2)[None, :]
+            ov[(ov < 0) | (ov >= n_in)] = -1
+            c = self.cost_rows(ov, m, coherence=False, strict=strict)
+            c = np.where(np.isnan(c), 0.0, c)
+            for s_, v in zip(ss, c):
+                if np.isfinite(v):
+                    rows.append(float(v))
+                    keys.append(int(s_) * 1_000_000 + m)
+                    ms.append((m, int(s_)))
+        return rows, keys, ms
+
+    def _draw_join(self, rows: list[float], keys: list[int]) -> tuple[int, np.ndarray]:
+        """Index of the chosen join and the joins' order (cheapest first, ties random)."""
+        cost = np.array(rows)
+        perm = self.rng.permutation(cost.size)
+        order = perm[np.argsort(cost[perm], kind="stable")]
+        pick = order[0]
+        if self.randomize and self.p.k_best > 1:
+            pick = order[self._draw(np.array(keys)[order], cost[order])]
+        return pick, order
+
+    def _write_join(self, val, ranked, runs, k: int, tr: _Transition, m: int, s_: int,
+                    ordered: list[tuple[int, int]]) -> None:
+        """Write both lines around the join at ``m`` (in place); ``ordered``: joins, best first."""
+        n_in = self.view.n
+        span_l = np.arange(tr.a1, m)
+        span_r = np.arange(m, tr.b2 + 1)
+        val[self._at(span_l)] = tr.left_end + (span_l - tr.b1)
+        val[self._at(span_r)] = s_ + (span_r - tr.a2)
+        runs[k + 1] = [m, min(tr.b2, m + (n_in - 1 - (s_ + m - tr.a2)))]
+        best_here = [s + (m - tr.a2) for mm, s in ordered if mm == m]
+        top = list(dict.fromkeys(best_here))[:3]
+        ranked[self._at(m), : len(top)] = top
+
+    # ----------------------------------------------------------- gap growing
+    def _grow_free_ends(self, val: np.ndarray, ranked: np.ndarray) -> np.ndarray:
+        """Grow the ends the runs leave outside the input node by node (open outputs).
+
+        Returns
+        -------
+        (n_out,) int ndarray
+            ``val``, or the track with the grown ends (``ranked`` updated in place).
+        """
+        bad = (val < 0) | (val >= self.view.n)
+        if not (bad.any() and not self.cyclic and not bad.all()):
+            return val
+        src = np.where(bad, -1, val)
+        first = int(np.argmin(bad))
+        for u in range(first - 1, -1, -1):
+            self.fill(src, ranked, u, f"output node {u}")
+        for u in np.flatnonzero(src < 0):
+            self.fill(src, ranked, int(u), f"output node {u}")
+        return src
