@@ -42,19 +42,18 @@ from scipy.interpolate import RBFInterpolator
 
 from mocapflow.pipeline import Context
 from mocapflow.stages.motion.datatypes import Markers, Mesh
-from mocapflow.stages.motion.kinematics import quat_from_matrix, quat_multiply, quat_rotate
-from mocapflow.stages.motion.simulate.body import procedural_body, skin, skinning_transforms
-from mocapflow.stages.motion.simulate.capture import SkinDynamics, capture_motion, place_markers
-from mocapflow.stages.skin.deform import (
-    MODES,
-    bind_mesh,
-    deform,
-    evaluate_part,
-    fit_part,
-    prepare_part,
-)
+from mocapflow.stages.motion.rotations import quat_from_matrix, quat_multiply, quat_rotate
+from mocapflow.stages.motion.simulate.body import skin, skinning_transforms
+from mocapflow.stages.motion.simulate.capsules import procedural_body
+from mocapflow.stages.motion.simulate.capture import capture_motion
+from mocapflow.stages.motion.simulate.markers import place_markers
+from mocapflow.stages.motion.simulate.skin_dynamics import SkinDynamics
+from mocapflow.stages.skin.binding import bind_mesh
+from mocapflow.stages.skin.deform import deform
 from mocapflow.stages.skin.mesh_fit import fit_mesh
-from mocapflow.stages.skin.segment import adjusted_rand_index, segment
+from mocapflow.stages.skin.parts import MODES, evaluate_part, fit_part, prepare_part
+from mocapflow.stages.skin.segment import segment
+from mocapflow.stages.skin.segmentation import adjusted_rand_index
 from mocapflow.stages.skin.surface import build_marker_surface
 
 RATE = 120.0
@@ -211,6 +210,7 @@ _DEFAULTS = {k: v.default for k, v in inspect.signature(deform).parameters.items
 DEFAULT = {"sharpness": _DEFAULTS["beta_sharpness"], "damping": _DEFAULTS["quadratic_damping"],
            "kernel": _DEFAULTS["residual_kernel"]}  # the stage's defaults
 PAPER = {"sharpness": 1.0, "damping": 0.0, "kernel": "cubic_bspline"}  # Park & Hodgins exactly
+OTHER_KERNEL = "thin_plate" if DEFAULT["kernel"] == "cubic_bspline" else "cubic_bspline"
 
 
 def ours(seg, x, points, mode, *, sharpness, damping, kernel):
@@ -250,26 +250,12 @@ def print_table(title, header, rows):
         print("| " + " | ".join(str(c) for c in r) + " |")
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="small run")
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args()
-    q = args.quick
-    n_markers = 350
-    t0 = time.perf_counter()
-    sim = simulate(n_markers=n_markers, body_vertices=3000 if q else 6000,
-                   rom_frames=600 if q else 1200, test_frames=240 if q else 900,
-                   seed=args.seed)  # fmt: skip
-    print(f"# Skin deformation benchmark ({'quick' if q else 'full'}, seed {args.seed})")
-    print(f"simulated: {n_markers} markers, body {sim['body'].n_vertices} vertices, ROM "
-          f"{sim['rom']['true'].shape[0]} frames, test (run) {sim['test']['true'].shape[0]} "
-          f"frames at {RATE:g} Hz, noise 0.3 mm; {time.perf_counter() - t0:.0f} s")  # fmt: skip
+def segmentation_table(sim, rom_obs, full_faces):
+    """Table 1: the segmentation of the ROM trial against the simulator's parts.
 
-    # 1. segmentation ------------------------------------------------------------------
+    Returns the segmentation with the stage's defaults."""
+    n_markers = rom_obs.shape[1]
     allm = np.arange(n_markers)
-    rom_obs = sim["rom"]["observed"]
-    full_faces = build_marker_surface(rom_obs[0], positions=rom_obs).faces
     truth = sim["part"]
     clear = sim["weights"].max(1) > 0.8
     rows = []
@@ -292,13 +278,17 @@ def main() -> None:
         f"{clear.sum()} markers with dominant weight > 0.8)",
         ["params", "mean-shift clusters", "parts", "ARI all", "ARI weight>0.8",
          "boundary markers", "s"], rows)  # fmt: skip
+    return seg_default
 
-    # 2. held-out markers ------------------------------------------------------------------
-    rng = np.random.default_rng(args.seed + 100)
-    folds = 1 if q else 3
+
+def held_out_table(sim, rom_obs, full_faces, *, folds, seed):
+    """Table 2: held-out markers predicted as mesh vertices, ours (modes, paper, ablations)
+    and the baselines, then the errors by how the held-out markers bind."""
+    n_markers = rom_obs.shape[1]
+    allm = np.arange(n_markers)
+    rng = np.random.default_rng(seed + 100)
     x_test_all = sim["test"]["observed"]
     true_test = sim["test"]["true"]
-    other_kernel = "thin_plate" if DEFAULT["kernel"] == "cubic_bspline" else "cubic_bspline"
     variants = {  # name -> (mode, settings)
         **{m: (m, DEFAULT) for m in MODES},
         "quadratic_residual, paper (barycentric beta, Eq. 6 pinv, B-spline)":
@@ -307,10 +297,10 @@ def main() -> None:
             ("quadratic_residual", {**DEFAULT, "sharpness": 1.0}),
         "quadratic_residual, damping 0 (Eq. 6 pinv)":
             ("quadratic_residual", {**DEFAULT, "damping": 0.0}),
-        f"quadratic_residual, {other_kernel} kernel":
-            ("quadratic_residual", {**DEFAULT, "kernel": other_kernel}),
-        f"rigid_residual, {other_kernel} kernel":
-            ("rigid_residual", {**DEFAULT, "kernel": other_kernel}),
+        f"quadratic_residual, {OTHER_KERNEL} kernel":
+            ("quadratic_residual", {**DEFAULT, "kernel": OTHER_KERNEL}),
+        f"rigid_residual, {OTHER_KERNEL} kernel":
+            ("rigid_residual", {**DEFAULT, "kernel": OTHER_KERNEL}),
     }  # fmt: skip
     methods = [*variants, "LBS (same parts)", "DQS (same parts)",
                "LBS (same parts, barycentric beta)", "global thin-plate RBF"]  # fmt: skip
@@ -356,9 +346,13 @@ def main() -> None:
         f"trial; defaults: beta sharpness {DEFAULT['sharpness']:g}, quadratic damping "
         f"{DEFAULT['damping']:g}, {DEFAULT['kernel']} residual; lowest mean: {best})",
         ["method", "mean mm", "p95 mm", "max mm", "s"], rows)
-    # where the error is: markers binding to one part vs across a part boundary, and by
-    # the distance to the marker-surface triangle they bind to (holes -> far triangles)
-    n_parts, bind_d = np.concatenate(n_parts), np.concatenate(bind_d) * 1000
+    binding_table(errs, np.concatenate(n_parts), np.concatenate(bind_d) * 1000)
+
+
+def binding_table(errs, n_parts, bind_d):
+    """Where the held-out error is: markers binding to one part vs across a part boundary,
+    and by the distance (mm) to the marker-surface triangle they bind to (holes -> far
+    triangles)."""
     groups = {
         "binds to 1 part": n_parts == 1, "binds to >= 2 parts": n_parts >= 2,
         "triangle < 5 mm away": bind_d < 5, "triangle 5-15 mm away": (bind_d >= 5) & (bind_d < 15),
@@ -377,10 +371,12 @@ def main() -> None:
                 ["held-out markers", "n", "paper q+r", "q+r (defaults)", "rigid (defaults)",
                  "global TPS"], rows)  # fmt: skip
 
-    # 3. detailed mesh vs true mesh -------------------------------------------------------------
-    seg = seg_default
-    labels = labels_of(allm)
-    mk_test = Markers(x_test_all, labels, RATE)
+
+def true_mesh_table(sim, seg, mk_test):
+    """Table 3: the detailed mesh against the simulator's true mesh, per vertex: the true
+    rest mesh bound directly (modes, paper, ablations, DQS, global TPS) and a perturbed
+    template fitted with ``fit_mesh``."""
+    x_test_all = mk_test.positions
     rest_true = sim["rom"]["mesh"][0]
     faces = sim["body"].faces
     true_mesh = sim["test"]["mesh"]
@@ -393,7 +389,7 @@ def main() -> None:
                      err_stats(out["mesh"].vertices, true_mesh)), f"{dt:.1f}"])  # fmt: skip
     for label, st in (("paper (barycentric beta, Eq. 6 pinv, B-spline)", PAPER),
                       ("beta sharpness 1", {**DEFAULT, "sharpness": 1.0}),
-                      (f"{other_kernel} kernel", {**DEFAULT, "kernel": other_kernel})):
+                      (f"{OTHER_KERNEL} kernel", {**DEFAULT, "kernel": OTHER_KERNEL})):
         out = deform(mk_test, seg, Mesh(rest_true, faces), beta_sharpness=st["sharpness"],
                      quadratic_damping=st["damping"], residual_kernel=st["kernel"],
                      ctx=Context())  # fmt: skip
@@ -434,15 +430,18 @@ def main() -> None:
         f"{rep['aligned']['rms_mm']:.1f} mm aligned -> {rep['fitted']['rms_mm']:.1f} mm fitted)",
         ["mesh / mode", "mean mm", "p95 mm", "s"], rows)
 
-    # 4. throughput -----------------------------------------------------------------------------
+
+def throughput_table(sim, seg, mk_test, *, frames):
+    """Table 4: frames per second deforming a ~13k-vertex mesh, in process and with 2
+    worker processes, against a NumPy linear-blend skinning of the same mesh."""
+    n_markers = mk_test.n_markers
     big = procedural_body(sim["body"].skeleton, n_vertices=13000)
     rom0 = sim["rom_motion"]
     R0, p0 = skinning_transforms(big, rom0.replace(root_position=rom0.root_position[:1],
                                                    rotations=rom0.rotations[:1]))  # fmt: skip
     big_rest = skin(big, R0, p0)[0]  # the reference (first ROM) frame, like the markers
     mesh13 = Mesh(big_rest, big.faces)
-    frames = 240 if q else 900
-    mk = Markers(x_test_all[:frames], labels, RATE)
+    mk = Markers(mk_test.positions[:frames], mk_test.labels, RATE)
     rows = []
     with ProcessPoolExecutor(2) as pool:
         mapper = lambda fn, items: list(pool.map(fn, items))  # noqa: E731
@@ -481,6 +480,30 @@ def main() -> None:
         "target >= 500 fps on 2 cores; frames per CPU-second of this process shows the cost "
         "independently of other load on the machine)",
         ["method", "processes", "frames/s", "frames/CPU-s"], rows)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small run")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args()
+    q = args.quick
+    n_markers = 350
+    t0 = time.perf_counter()
+    sim = simulate(n_markers=n_markers, body_vertices=3000 if q else 6000,
+                   rom_frames=600 if q else 1200, test_frames=240 if q else 900,
+                   seed=args.seed)  # fmt: skip
+    print(f"# Skin deformation benchmark ({'quick' if q else 'full'}, seed {args.seed})")
+    print(f"simulated: {n_markers} markers, body {sim['body'].n_vertices} vertices, ROM "
+          f"{sim['rom']['true'].shape[0]} frames, test (run) {sim['test']['true'].shape[0]} "
+          f"frames at {RATE:g} Hz, noise 0.3 mm; {time.perf_counter() - t0:.0f} s")  # fmt: skip
+    rom_obs = sim["rom"]["observed"]
+    full_faces = build_marker_surface(rom_obs[0], positions=rom_obs).faces
+    seg = segmentation_table(sim, rom_obs, full_faces)
+    held_out_table(sim, rom_obs, full_faces, folds=1 if q else 3, seed=args.seed)
+    mk_test = Markers(sim["test"]["observed"], labels_of(np.arange(n_markers)), RATE)
+    true_mesh_table(sim, seg, mk_test)
+    throughput_table(sim, seg, mk_test, frames=240 if q else 900)
     print(f"\ntotal {time.perf_counter() - t0:.0f} s")
 
 

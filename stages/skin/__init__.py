@@ -1,3 +1,80 @@
-"""Park & Hodgins 2006."""
+"""Park & Hodgins 2006, "Capturing and Animating Skin Deformation in Human Motion".
 
-STAGE_MODULES = ("clean", "rom", "segment", "mesh_fit", "deform", "render")
+Dense marker captures (~350 markers) are cleaned (§4, stage ``clean``), cut into
+near-rigid parts on a range-of-motion trial (§5, stages ``ingest_rom``,
+``segment``, ``match_markers``), and drive a detailed mesh fitted to the subject
+(stages ``template_mesh``, ``fit_mesh``, ``deform``), rendered off-screen
+(``render``, ``render_modes``, ``render_error``).  Each section and equation of
+the paper lives in one function (modules of this package):
+
+§4 cleaning (the stage)                  clean.clean
+  reference pose                         predict.reference_pose, predict.choose_reference_frame
+§4.1 marker surface                      surface.build_marker_surface (automatic: triangulate,
+                                         manifold), surface.read_surface_file (manual)
+  one-ring neighbours                    surface.one_ring
+  local frames (t, b, n)                 surface.local_frames
+§4.2 rigid prediction from >= 3          predict.predict_missing (Horn fits: predict._neighbour_fit)
+  neighbours, greedy, estimates re-used
+  trajectory merging                     merge.merge_fragments (rounds: merge._merge_rounds)
+  ε₁ = α₁·d̄, ε₂ = α₂·d̄                   merge._tolerances
+  entry / tube / ambiguity tests         merge._judge_fragment
+§4.3 hole filling (dispatcher)           fill.fill_holes
+  local PCA of marker + one-ring,        local_pca.train_local_pca
+  training frames aligned (P&H Eq. 5)
+  coefficients from visible members      local_pca.model_estimates_batch
+  average of the models with the marker  fill._average_estimates
+  passes re-using estimates              fill.fill_by_local_pca
+§4.4 smoothing x ← x − λ Δ⁴x in the      clean.smooth_local (the iteration: clean._smooth_run)
+  local frames
+§5.1–5.2 near-rigid segmentation         segment.segment
+  triangle rotation sequences            segment.triangle_rotations, segment.rotation_features
+  mean-shift clustering                  segment.mean_shift
+  markers' parts, clean-up               segment.marker_labels_from_triangles,
+                                         segment.clean_up_parts
+  soft weights α (Gaussian likelihood    segment.soft_weights
+  of the rigid-fit error, α < 0.2 out)
+  part local frames                      segment.part_frames
+  the parts (type, codec)                segmentation.Segmentation
+  range-of-motion trial                  rom.ingest_rom, rom.match_markers
+§5.3 detailed mesh registration          mesh_fit.fit_detailed_mesh (Allen et al. 2003 style)
+  vertex weights β (barycentric α)       binding.bind_mesh
+  rigid: Horn per part                   parts._rigid_fits (in parts.fit_part)
+  quadratic p̂ ≈ A q(p̄) (P&H Eq. 6)       parts._quadratic_fits, kernels.quadratic_basis
+  RBF residual, cubic B-spline           parts._residual_fits, kernels.rbf_matrix,
+  (P&H Eq. 7)                            kernels.cubic_bspline, kernels._solve_kernel
+  vertices moved and blended             parts.evaluate_part, deform.vertex_operator,
+  (P&H Eq. 8–9)                          deform.deform_positions; the stage deform.deform
+rendering (Figure 7: modes side by side) render.render_frames, render.render_modes
+
+Departures from the paper (each module docstring says why, with measurements):
+
+* the marker surface is automatic, not hand-made (triangulate, manifold), and
+  every neighbour carries a rigidity weight, with rigid two-ring supplements
+  where the one-ring straddles a joint (rigidity);
+* merging: predictions carry the marker's own local coordinates from the ends
+  of its gap (predict.local_targets), are trusted one depth at a time, a
+  fragment must stay within ε₁ on average, rivals within AMBIGUITY_RATIO make it
+  ambiguous, d̄ is capped by the nearest-marker distance, and fragments left
+  are judged again against the PCA fill (clean._pca_merge_rounds, param
+  ``pca_merge_rounds``);
+* hole filling: the default is a wider regression (``fill_model="regression"``:
+  fill.fill_by_regression, regress.regression_estimates), the paper's local PCA
+  fills what it cannot reach (``"pca"``: the paper alone); a neighbour's model
+  weighs fill.NEIGHBOUR_MODEL_WEIGHT (0.1) in the §4.3 average; interior holes no
+  model reaches are interpolated in time, then rigidly predicted
+  (fill.fill_by_rigid_fit);
+* smoothing: measured and filled runs apart, measurements moved by at most
+  clean.MAX_CORRECTION_SIGMA noise deviations, rarely measured neighbours out of
+  the frames (clean.frame_weights);
+* segmentation: the clean-up of the clusters is automatic (``merge_rms``,
+  ``min_part_markers``, ``n_parts``; the paper adjusted its parts by hand), the
+  Gaussian width is relative to each marker's best fit unless ``sigma`` is set;
+* deformation: sharpened weights β ∝ β_bary^4 (``beta_sharpness``), a ridge
+  toward rigid on the quadratic (``quadratic_damping`` 0.3; 0 = P&H Eq. 6), an
+  optional thin-plate residual (``residual_kernel``), the B-spline dilation
+  shrunk until the system is well conditioned (kernels._well_conditioned_kernel);
+  the paper exactly: ``beta_sharpness=1, quadratic_damping=0,
+  residual_kernel="cubic_bspline"``.
+"""
+
+STAGE_MODULES = ("clean", "rom", "segment", "segmentation", "mesh_fit", "deform", "render")

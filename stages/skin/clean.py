@@ -1,41 +1,47 @@
-"""Cleaning dense marker captures (Park & Hodgins 2006, §4).
+"""Cleaning dense marker captures (Park & Hodgins 2006, §4): the ``clean`` stage.
 
-Steps, each in the paper's words:
+The stage (:func:`clean`) runs these steps, each in the paper's words, each in
+one place:
 
-0. **reference pose** — the frame with the most visible markers (or the
-   ``reference_frame`` param).  Markers missing there get their reference
-   position from the nearest frame in which they are visible, carried over by a
-   rigid fit of their spatial neighbours (a warning names them); markers never
-   visible have none and are left NaN.
-1. **marker surface and local frames** (§4.1) — :mod:`mocapflow.stages.skin.surface`:
-   built automatically (or read from the ``surface`` override file), one-ring
+0. **reference pose** (:func:`mocapflow.stages.skin.predict.reference_pose`) —
+   the frame with the most visible markers (or the ``reference_frame`` param).
+   Markers missing there get their reference position from the nearest frame in
+   which they are visible, carried over by a rigid fit of their spatial
+   neighbours (a warning names them); markers never visible have none and are
+   left NaN.
+1. **marker surface and local frames** (§4.1) — :mod:`mocapflow.stages.skin.surface`
+   (:func:`~mocapflow.stages.skin.surface.build_marker_surface`): built
+   automatically (or read from the ``surface`` override file), one-ring
    neighbours, a local frame ``(t, b, n)`` per marker.
-2. **merging** (§4.2) — every missing sample of a marker is predicted from at
-   least 3 available neighbours by a rigid fit (Horn) into its local reference
-   frame.  In every frame the missing markers are processed greedily by their
-   number of available neighbours, and estimates are re-used as neighbours for
-   the next ones.  An unlabelled fragment is merged into a marker that is
-   missing over the whole fragment when its first predicted sample lies within
-   ``ε₁ = α₁·d̄`` of the prediction and every sample stays within
-   ``ε₂ = α₂·d̄`` (``d̄`` the marker's mean neighbour distance).  Ties between
-   markers or fragments are conflicts (reported, nothing merged unless one is
-   clearly closest); predictions are recomputed after every round of merges.
-3. **hole filling** (§4.3) — per marker a PCA model (``variance`` = 99 %) of the
-   marker and its one-ring in the local frame; each training frame (all members
-   present) is brought to the reference pose by the rotation that best aligns
-   the members (Eq. 5).  A missing sample is estimated from every model that
-   contains the marker (its own and its neighbours') with at least 3 visible
-   members: coefficients from the visible members, then the estimates are
-   averaged.  Only local neighbourhoods need complete frames, never the whole
-   body; a neighbourhood without enough complete frames drops its least
-   co-visible neighbours, then falls back to the rigid prediction.  Holes whose
-   models see too few members are filled in later passes from earlier
-   estimates (as the merge step does).  This is ``fill_model="pca"``; the
-   default ``"regression"`` estimates every hole first by a wider local model
-   (below) and leaves to these passes only what it cannot reach.
-4. **smoothing** (§4.4) — each trajectory is expressed in its local frame over
-   time, smoothed by ``x ← x − λ Δ⁴x`` (``smooth_iterations`` times), and moved
-   back to global coordinates.
+2. **merging** (§4.2) — :func:`mocapflow.stages.skin.merge.merge_fragments`,
+   predictions by :func:`mocapflow.stages.skin.predict.predict_missing`: every
+   missing sample of a marker is predicted from at least 3 available neighbours
+   by a rigid fit (Horn) into its local reference frame.  In every frame the
+   missing markers are processed greedily by their number of available
+   neighbours, and estimates are re-used as neighbours for the next ones.  An
+   unlabelled fragment is merged into a marker that is missing over the whole
+   fragment when its first predicted sample lies within ``ε₁ = α₁·d̄`` of the
+   prediction and every sample stays within ``ε₂ = α₂·d̄`` (``d̄`` the marker's
+   mean neighbour distance).  Ties between markers or fragments are conflicts
+   (reported, nothing merged unless one is clearly closest); predictions are
+   recomputed after every round of merges.
+3. **hole filling** (§4.3) — :func:`mocapflow.stages.skin.fill.fill_holes`: per
+   marker a PCA model (``variance`` = 99 %) of the marker and its one-ring in the
+   local frame; each training frame (all members present) is brought to the
+   reference pose by the rotation that best aligns the members (P&H Eq. 5).  A
+   missing sample is estimated from every model that contains the marker (its
+   own and its neighbours') with at least 3 visible members: coefficients from
+   the visible members, then the estimates are averaged.  Only local
+   neighbourhoods need complete frames, never the whole body; a neighbourhood
+   without enough complete frames drops its least co-visible neighbours, then
+   falls back to the rigid prediction.  Holes whose models see too few members
+   are filled in later passes from earlier estimates (as the merge step does).
+   This is ``fill_model="pca"``; the default ``"regression"`` estimates every
+   hole first by a wider local model (below, :mod:`mocapflow.stages.skin.regress`)
+   and leaves to these passes only what it cannot reach.
+4. **smoothing** (§4.4) — :func:`smooth_local`: each trajectory is expressed in
+   its local frame over time, smoothed by ``x ← x − λ Δ⁴x``
+   (``smooth_iterations`` times), and moved back to global coordinates.
 
 Nothing is invented: a marker never visible, or with fewer than 3 surface
 neighbours, keeps its NaNs (warning naming it, listed in the report).
@@ -46,20 +52,25 @@ captures with ground truth, see ``benchmarks/clean.py``):
 * the surface is automatic, so one-rings may straddle a joint or the armpit:
   every neighbour carries a *rigidity* weight (how constant its distance to the
   marker stays over the capture) used in all rigid fits, and a marker with
-  fewer than 3 rigid neighbours borrows rigid ones from its two-ring;
+  fewer than 3 rigid neighbours borrows rigid ones from its two-ring
+  (:mod:`mocapflow.stages.skin.rigidity`);
 * merge predictions carry the marker's own local coordinates measured at the
-  ends of its gap (interpolated across it) instead of the reference pose's;
+  ends of its gap (interpolated across it) instead of the reference pose's
+  (:func:`mocapflow.stages.skin.predict.local_targets`);
   predictions derived from estimates are trusted only one step at a time
   (``depths``), a fragment must also stay within ``ε₁`` on average, any other
-  missing marker predicted within :data:`AMBIGUITY_RATIO` times the distance
+  missing marker predicted within
+  :data:`~mocapflow.stages.skin.merge.AMBIGUITY_RATIO` times the distance
   makes it ambiguous, ``d̄`` is capped by the distance to the nearest marker,
   and fragments still unmerged are judged again against the PCA hole filling
   of the merged data (``pca_merge_rounds``; :data:`MERGE_FILL_PASSES` passes,
-  estimates re-used between rounds where no member changed);
-* in the §4.3 average a neighbour's model weighs :data:`NEIGHBOUR_MODEL_WEIGHT`
-  of the marker's own model (the paper: equal weights);
+  estimates re-used between rounds where no member changed; :func:`_pca_merge_rounds`);
+* in the §4.3 average a neighbour's model weighs
+  :data:`~mocapflow.stages.skin.fill.NEIGHBOUR_MODEL_WEIGHT` of the marker's own
+  model (the paper: equal weights);
 * ``fill_model="regression"`` (default): per gap, the marker's local
-  coordinates are regressed (ridge, :data:`REGRESSION_RIDGE`) on those of its
+  coordinates are regressed (ridge,
+  :data:`~mocapflow.stages.skin.regress.REGRESSION_RIDGE`) on those of its
   ``fill_predictors`` (32) most rigid nearby markers visible through the gap,
   in the predictors' local frame, trained on the 250 frames nearest the gap
   where the marker and those predictors are measured (no complete frame
@@ -80,35 +91,21 @@ from typing import Any, Literal
 import numpy as np
 
 from mocapflow.pipeline import Context, FilePath, stage
+from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
 from mocapflow.stages.motion.contacts import true_runs
 from mocapflow.stages.motion.datatypes import Markers
-from mocapflow.stages.motion.kinematics import absolute_orientation_batch
-from mocapflow.stages.skin.fill import (
-    NEIGHBOUR_MODEL_WEIGHT,
-    LocalPCA,
-    fill_holes,
-    train_local_pca,
-)
-from mocapflow.stages.skin.merge import AMBIGUITY_RATIO, merge_fragments, nearest_marker_distance
+from mocapflow.stages.skin.fill import fill_holes
+from mocapflow.stages.skin.merge import merge_fragments
 from mocapflow.stages.skin.predict import (
     MIN_NEIGHBOURS,
-    RIGID_ANCHOR,
-    CleanError,
     _apply,
     _apply_inv,
     _chunks,
     _names,
     choose_reference_frame,
-    local_targets,
-    predict_missing,
     reference_pose,
-    rigid_estimates,
 )
-from mocapflow.stages.skin.regress import (
-    REGRESSION_MIN_PREDICTORS,
-    REGRESSION_PREDICTORS,
-    REGRESSION_RIDGE,
-)
+from mocapflow.stages.skin.regress import REGRESSION_MIN_PREDICTORS, REGRESSION_PREDICTORS
 from mocapflow.stages.skin.surface import (
     MarkerSurface,
     build_marker_surface,
@@ -117,29 +114,14 @@ from mocapflow.stages.skin.surface import (
 )
 
 __all__ = [
-    "AMBIGUITY_RATIO",
     "MAX_CORRECTION_SIGMA",
-    "MIN_NEIGHBOURS",
-    "NEIGHBOUR_MODEL_WEIGHT",
-    "REGRESSION_PREDICTORS",
-    "REGRESSION_RIDGE",
-    "RIGID_ANCHOR",
+    "MERGE_FILL_PASSES",
+    "SMOOTH_FRAME_MIN_MEASURED",
     "STATUS",
     "CleanError",
-    "LocalPCA",
-    "choose_reference_frame",
     "clean",
-    "clean_markers",
-    "fill_holes",
     "frame_weights",
-    "local_targets",
-    "merge_fragments",
-    "nearest_marker_distance",
-    "predict_missing",
-    "reference_pose",
-    "rigid_estimates",
     "smooth_local",
-    "train_local_pca",
 ]
 
 #: The smoother moves a measured sample by at most this many noise standard
@@ -307,42 +289,18 @@ def smooth_local(
 # --------------------------------------------------------------------------- the stage
 
 
+class CleanError(ValueError):
+    """The capture cannot be cleaned (no markers, bad reference frame, ...)."""
+
+
 def _trajectory_count(positions: np.ndarray) -> int:
     return int(np.isfinite(positions).all(-1).any(0).sum())
 
 
-def clean_markers(
-    markers: Markers,
-    *,
-    alpha1: float = 0.5,
-    alpha2: float = 0.6,
-    variance: float = 0.99,
-    smooth_lambda: float = 0.1,
-    smooth_iterations: int = 10,
-    reference_frame: int | None = None,
-    surface: str | None = None,
-    merge: bool = True,
-    fill: bool = True,
-    fill_model: Literal["regression", "pca"] = "regression",
-    fill_predictors: int = REGRESSION_PREDICTORS,
-    pca_merge_rounds: int = 3,
-    ctx: Context | None = None,
-) -> tuple[Markers, dict[str, Any], MarkerSurface]:
-    """Clean a capture: merge, fill, smooth; see :func:`clean` for the parameters.
-
-    Returns
-    -------
-    markers : Markers
-        Cleaned; unmerged fragments kept in ``fragments``.
-    report : dict
-        JSON report plus ``status (F, M)`` int8 array (:data:`STATUS` codes).
-    surface : MarkerSurface
-    """
-    ctx = ctx or Context()
-    t0 = time.perf_counter()
-    timings: dict[str, float] = {}
-    P = markers.positions
-    F, M, _ = P.shape
+def _check_params(positions: np.ndarray, *, alpha1: float, alpha2: float, variance: float,
+                  fill_model: str, fill_predictors: int) -> None:
+    """Raise :class:`CleanError` for an empty capture or params out of range."""
+    F, M, _ = positions.shape
     if M == 0 or F == 0:
         raise CleanError("clean: the capture has no labelled markers or no frames")
     if not (0 < alpha1 and 0 < alpha2):
@@ -354,18 +312,26 @@ def clean_markers(
     if fill_predictors < REGRESSION_MIN_PREDICTORS:
         raise CleanError(f"clean: fill_predictors must be >= {REGRESSION_MIN_PREDICTORS}, "
                          f"got {fill_predictors}")
-    labels = markers.labels
-    vis0 = markers.visible
-    never = np.flatnonzero(~vis0.any(0))
+
+
+def _reference(
+    positions: np.ndarray, labels: list[str], reference_frame: int | None, ctx: Context
+) -> tuple[int, np.ndarray, dict[int, int], np.ndarray]:
+    """Step 0: the reference frame and pose, markers missing there carried over (warned).
+
+    Returns ``(frame, reference (M, 3), carried {marker: source frame},
+    unrecoverable (K,) markers never visible)``.
+    """
+    F = positions.shape[0]
     if reference_frame is None:
-        ref_frame = choose_reference_frame(P)
+        ref_frame = choose_reference_frame(positions)
     else:
         if not -F <= reference_frame < F:
             raise CleanError(
                 f"clean: reference_frame {reference_frame} out of range (capture has {F} frames)"
             )
         ref_frame = int(reference_frame) % F
-    reference, carried, unrecoverable = reference_pose(P, ref_frame)
+    reference, carried, unrecoverable = reference_pose(positions, ref_frame)
     if carried:
         ctx.warn(
             f"clean: {len(carried)} marker(s) missing in reference frame {ref_frame}; reference "
@@ -374,15 +340,24 @@ def clean_markers(
         )
     if len(unrecoverable):
         ctx.warn(f"clean: marker(s) never visible, left NaN: {_names(labels, unrecoverable)}")
-    timings["reference"] = time.perf_counter() - t0
+    return ref_frame, reference, carried, unrecoverable
 
-    t1 = time.perf_counter()
+
+def _marker_surface(
+    reference: np.ndarray, positions: np.ndarray, labels: list[str], surface: str | None,
+    ref_frame: int, ctx: Context,
+) -> tuple[MarkerSurface, np.ndarray]:
+    """Step 1 (§4.1): the marker surface, from the ``surface`` file or automatic.
+
+    Returns the surface and the markers with fewer than 3 neighbours (warned:
+    neither merged nor filled).
+    """
     if surface is not None:
         faces = read_surface_file(surface, labels)
-        surf = marker_surface_from_faces(reference, faces, labels=labels, positions=P,
+        surf = marker_surface_from_faces(reference, faces, labels=labels, positions=positions,
                                          source=str(surface).rsplit("/", 1)[-1])
     else:
-        surf = build_marker_surface(reference, positions=P, labels=labels)
+        surf = build_marker_surface(reference, positions=positions, labels=labels)
     surf.reference_frame = ref_frame  # carried into the exported surface mesh's attrs
     few = np.flatnonzero(np.isfinite(reference).all(1) & (surf.n_neighbours < MIN_NEIGHBOURS))
     if len(few):
@@ -390,127 +365,188 @@ def clean_markers(
             f"clean: marker(s) with fewer than {MIN_NEIGHBOURS} surface neighbours are neither "
             f"merged nor filled (holes stay NaN): {_names(labels, few)}"
         )
-    timings["surface"] = time.perf_counter() - t1
+    return surf, few
 
+
+def _pca_merge_rounds(
+    X: np.ndarray, assigned: np.ndarray, mrep: dict[str, Any], markers: Markers,
+    surf: MarkerSurface, *, alpha1: float, alpha2: float, variance: float, rounds: int,
+    ctx: Context,
+) -> np.ndarray:
+    """Step 2, beyond the paper: fragments left unmerged judged against the §4.3 PCA fill.
+
+    Up to ``rounds`` rounds, each filling the frames where fragments wait
+    (:data:`MERGE_FILL_PASSES` passes, models and estimates re-used between
+    rounds) and judging the fragments against its first pass; ``assigned`` and
+    ``mrep`` are updated in place.  Returns the merged positions ``(F, M, 3)``.
+    """
     frags = markers.fragments
-    U = frags.shape[1]
-    runs_before = sum(len(true_runs(vis0[:, m])) for m in range(M))
-    t2 = time.perf_counter()
-    if merge and U:
-        X, assigned, mrep = merge_fragments(
-            P, frags, surf, alpha1=alpha1, alpha2=alpha2,
-            fragment_labels=markers.fragment_labels, depths=(1,), ctx=ctx,
+    models = None
+    fill_cache: dict = {}  # the rounds' data differ only where fragments were merged
+    for k in range(rounds):
+        left = np.flatnonzero(assigned < 0)
+        if not len(left):
+            break
+        # judge the rest against the PCA hole filling of the merged data (§4.3)
+        waiting = np.isfinite(frags[:, left]).all(-1).any(1)
+        Xf, finfo0 = fill_holes(X, surf, variance=variance, models=models, frames=waiting,
+                                model="pca", cache=fill_cache, ctx=ctx,
+                                max_passes=MERGE_FILL_PASSES, rigid_fallback=False)
+        models = finfo0.get("model_list") or models
+        # trust the estimates of the first pass (from measured members) only
+        direct = np.where((finfo0["pass"] == 1)[..., None], Xf, np.nan)
+        X, a2, rep2 = merge_fragments(
+            X, frags[:, left], surf, alpha1=alpha1, alpha2=alpha2,
+            fragment_labels=[markers.fragment_labels[u] for u in left], predictions=direct,
+            competitors=Xf, ctx=ctx,
         )
-        models = None
-        fill_cache: dict = {}  # the rounds' data differ only where fragments were merged
-        for k in range(pca_merge_rounds if fill else 0):
-            left = np.flatnonzero(assigned < 0)
-            if not len(left):
-                break
-            # judge the rest against the PCA hole filling of the merged data (§4.3)
-            waiting = np.isfinite(frags[:, left]).all(-1).any(1)
-            Xf, finfo0 = fill_holes(X, surf, variance=variance, models=models, frames=waiting,
-                                    model="pca", cache=fill_cache, ctx=ctx,
-                                    max_passes=MERGE_FILL_PASSES, rigid_fallback=False)
-            models = finfo0.get("model_list") or models
-            # trust the estimates of the first pass (from measured members) only
-            direct = np.where((finfo0["pass"] == 1)[..., None], Xf, np.nan)
-            X, a2, rep2 = merge_fragments(
-                X, frags[:, left], surf, alpha1=alpha1, alpha2=alpha2,
-                fragment_labels=[markers.fragment_labels[u] for u in left], predictions=direct,
-                competitors=Xf, ctx=ctx,
-            )
-            assigned[left[a2 >= 0]] = a2[a2 >= 0]
-            for mg in rep2["merges"]:
-                mg["predictor"] = "pca"
-                mg["round"] = f"pca{k + 1}"
-            mrep["merges"] += rep2["merges"]
-            mrep["conflicts"] += rep2["conflicts"]
-            mrep["rejections"] = rep2["rejections"]
-            mrep["merged_by_depth"][f"pca{k + 1}"] = len(rep2["merges"])
-            if not rep2["merges"]:
-                break
-    else:
-        X, assigned = P.copy(), np.full(U, -1, dtype=np.int64)
+        assigned[left[a2 >= 0]] = a2[a2 >= 0]
+        for mg in rep2["merges"]:
+            mg["predictor"] = "pca"
+            mg["round"] = f"pca{k + 1}"
+        mrep["merges"] += rep2["merges"]
+        mrep["conflicts"] += rep2["conflicts"]
+        mrep["rejections"] = rep2["rejections"]
+        mrep["merged_by_depth"][f"pca{k + 1}"] = len(rep2["merges"])
+        if not rep2["merges"]:
+            break
+    return X
+
+
+def _merge(
+    markers: Markers, surf: MarkerSurface, *, merge: bool, alpha1: float, alpha2: float,
+    variance: float, pca_rounds: int, ctx: Context,
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """Step 2 (§4.2): fragments merged against rigid predictions, then the PCA rounds.
+
+    Returns ``(positions (F, M, 3), assigned (U,) marker per fragment or -1,
+    report)``.
+    """
+    P, frags = markers.positions, markers.fragments
+    U = frags.shape[1]
+    if not (merge and U):
         mrep = {"merges": [], "rejections": [], "conflicts": [], "merged_by_depth": {}}
-    timings["merge"] = time.perf_counter() - t2
-    status = np.full((F, M), STATUS["missing"], dtype=np.int8)
-    status[vis0] = STATUS["observed"]
-    vis1 = np.isfinite(X).all(-1)
-    status[vis1 & ~vis0] = STATUS["merged"]
-    holes_after_merge = int((~vis1).sum())
+        return P.copy(), np.full(U, -1, dtype=np.int64), mrep
+    X, assigned, mrep = merge_fragments(
+        P, frags, surf, alpha1=alpha1, alpha2=alpha2,
+        fragment_labels=markers.fragment_labels, depths=(1,), ctx=ctx,
+    )
+    X = _pca_merge_rounds(X, assigned, mrep, markers, surf, alpha1=alpha1, alpha2=alpha2,
+                          variance=variance, rounds=pca_rounds, ctx=ctx)
+    return X, assigned, mrep
 
-    t3 = time.perf_counter()
-    if fill:
-        Xf, finfo = fill_holes(X, surf, variance=variance, model=fill_model,
-                               n_predictors=fill_predictors, ctx=ctx)
-        finfo.pop("model_list", None)
-        finfo.pop("pass", None)
-    else:
-        Xf, finfo = X, {"filled_by_pass": []}
-    timings["fill"] = time.perf_counter() - t3
-    vis2 = np.isfinite(Xf).all(-1)
-    status[vis2 & ~vis1] = STATUS["filled"]
 
-    t4 = time.perf_counter()
-    Xs = smooth_local(Xf, surf, smooth_lambda=smooth_lambda,
-                      smooth_iterations=smooth_iterations, measured=vis1, ctx=ctx)
-    timings["smooth"] = time.perf_counter() - t4
-    timings["total"] = time.perf_counter() - t0
+def _fill(
+    X: np.ndarray, surf: MarkerSurface, *, fill: bool, variance: float, fill_model: str,
+    fill_predictors: int, ctx: Context,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Step 3 (§4.3): hole filling; the info without the models and the pass map."""
+    if not fill:
+        return X, {"filled_by_pass": []}
+    Xf, finfo = fill_holes(X, surf, variance=variance, model=fill_model,
+                           n_predictors=fill_predictors, ctx=ctx)
+    finfo.pop("model_list", None)
+    finfo.pop("pass", None)
+    return Xf, finfo
 
-    left = ~vis2
-    left_markers = np.flatnonzero(left.any(0))
-    unfillable = np.flatnonzero(left.any(0) & (surf.n_neighbours < MIN_NEIGHBOURS))
+
+def _status(observed: np.ndarray, merged: np.ndarray, filled: np.ndarray) -> np.ndarray:
+    """``(F, M)`` int8 :data:`STATUS` codes from the samples available after each step."""
+    status = np.full(observed.shape, STATUS["missing"], dtype=np.int8)
+    status[observed] = STATUS["observed"]
+    status[merged & ~observed] = STATUS["merged"]
+    status[filled & ~merged] = STATUS["filled"]
+    return status
+
+
+def _cleaned_markers(markers: Markers, positions: np.ndarray, status: np.ndarray,
+                     filled: np.ndarray, assigned: np.ndarray, ref_frame: int) -> Markers:
+    """The cleaned :class:`Markers`: residuals 0 where merged or filled (``filled``:
+    ``(F, M)`` samples available after filling), unmerged fragments kept, a summary
+    in ``attrs["clean"]``."""
     keep_frag = assigned < 0
     out = markers.replace(
-        positions=Xs,
+        positions=positions,
         residuals=None if markers.residuals is None else np.where(
-            status == STATUS["observed"], markers.residuals, np.where(vis2, 0.0, np.nan)),
-        fragments=frags[:, keep_frag],
+            status == STATUS["observed"], markers.residuals, np.where(filled, 0.0, np.nan)),
+        fragments=markers.fragments[:, keep_frag],
         fragment_labels=[lb for lb, k in zip(markers.fragment_labels, keep_frag) if k],
     )
     out.attrs["clean"] = {
         "reference_frame": ref_frame, "merged_fragments": int((~keep_frag).sum()),
         "filled_samples": int((status == STATUS["filled"]).sum()),
-        "missing_samples": int(left.sum()),
+        "missing_samples": int((~filled).sum()),
     }
+    return out
+
+
+def _surface_summary(surf: MarkerSurface, reference: np.ndarray) -> dict[str, Any]:
+    return {
+        "source": surf.source,
+        "n_faces": int(len(surf.faces)),
+        "mean_neighbours": float(np.mean(surf.n_neighbours[np.isfinite(reference).all(1)]))
+        if np.isfinite(reference).any() else 0.0,
+        "mean_neighbour_distance_mm": round(float(np.nanmean(surf.mean_distance)) * 1000, 2)
+        if np.isfinite(surf.mean_distance).any() else None,
+    }
+
+
+def _table1(markers: Markers, assigned: np.ndarray, status: np.ndarray, merged: np.ndarray,
+            filled: np.ndarray) -> dict[str, int]:
+    """The paper's Table 1: fragments before / after, merged, holes, filled, left.
+
+    ``merged`` / ``filled``: ``(F, M)`` samples available after merging / filling.
+    """
+    P, vis0 = markers.positions, markers.visible
+    M = P.shape[1]
+    U = markers.fragments.shape[1]
+    runs_before = sum(len(true_runs(vis0[:, m])) for m in range(M))
     n_traj = _trajectory_count(P)
+    keep_frag = assigned < 0
+    return {
+        "markers": M,
+        "fragments_before": n_traj + U,
+        "fragments_after": n_traj + int(keep_frag.sum()),
+        "runs_before": runs_before + U,
+        "merged": int((~keep_frag).sum()),
+        "holes": int((~merged).sum()),
+        "filled": int((status == STATUS["filled"]).sum()),
+        "left_unfilled": int((~filled).sum()),
+    }
+
+
+def _report(
+    markers: Markers, surf: MarkerSurface, reference: np.ndarray, status: np.ndarray,
+    assigned: np.ndarray, merged: np.ndarray, filled: np.ndarray, *, ref_frame: int,
+    carried: dict[int, int], unrecoverable: np.ndarray, few: np.ndarray,
+    mrep: dict[str, Any], finfo: dict[str, Any], timings: dict[str, float],
+    params: dict[str, Any],
+) -> dict[str, Any]:
+    """The clean report (see :func:`clean`); ``merged`` / ``filled``: ``(F, M)`` samples
+    available after merging / filling."""
+    labels = markers.labels
+    left = ~filled
+    left_markers = np.flatnonzero(left.any(0))
+    unfillable = np.flatnonzero(left.any(0) & (surf.n_neighbours < MIN_NEIGHBOURS))
+    never = np.flatnonzero(~markers.visible.any(0))
     report: dict[str, Any] = {
         "reference_frame": ref_frame,
         "reference_carried_over": {labels[m]: g for m, g in carried.items()},
-        "surface": {
-            "source": surf.source,
-            "n_faces": int(len(surf.faces)),
-            "mean_neighbours": float(np.mean(surf.n_neighbours[np.isfinite(reference).all(1)]))
-            if np.isfinite(reference).any() else 0.0,
-            "mean_neighbour_distance_mm": round(float(np.nanmean(surf.mean_distance)) * 1000, 2)
-            if np.isfinite(surf.mean_distance).any() else None,
-        },
-        "table1": {
-            "markers": M,
-            "fragments_before": n_traj + U,
-            "fragments_after": n_traj + int(keep_frag.sum()),
-            "runs_before": runs_before + U,
-            "merged": int((~keep_frag).sum()),
-            "holes": holes_after_merge,
-            "filled": int((status == STATUS["filled"]).sum()),
-            "left_unfilled": int(left.sum()),
-        },
+        "surface": _surface_summary(surf, reference),
+        "table1": _table1(markers, assigned, status, merged, filled),
         **mrep,
         "fill": finfo,
         "never_visible": [labels[i] for i in unrecoverable],
         "too_few_neighbours": [labels[i] for i in few],
         "markers_with_holes_left": [labels[i] for i in left_markers],
         "unfillable_markers": [labels[i] for i in unfillable],
-        "params": {"alpha1": alpha1, "alpha2": alpha2, "variance": variance,
-                   "smooth_lambda": smooth_lambda, "smooth_iterations": smooth_iterations,
-                   "fill_model": fill_model, "fill_predictors": fill_predictors},
+        "params": params,
         "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "status": status,
     }
     if never.size and not len(unrecoverable):
         report["never_visible"] = [labels[i] for i in never]
-    return out, report, surf
+    return report
 
 
 @stage("clean", outputs=("markers", "report", "surface"))
@@ -528,6 +564,7 @@ def clean(
     fill: bool = True,
     fill_model: Literal["regression", "pca"] = "regression",
     fill_predictors: int = REGRESSION_PREDICTORS,
+    pca_merge_rounds: int = 3,
     ctx: Context,
 ) -> dict[str, Any]:
     """Merge fragments, fill holes and smooth a dense marker capture (Park & Hodgins 2006 §4).
@@ -562,6 +599,10 @@ def clean(
         the PCA fill.
     fill_predictors : int
         Predictors per regression (32).
+    pca_merge_rounds : int
+        Rounds judging the fragments the rigid predictions left unmerged against
+        the PCA hole filling of the merged data (3; 0: rigid predictions only;
+        none without ``fill``).
 
     Returns
     -------
@@ -572,14 +613,50 @@ def clean(
         (fragments before/after, merges, holes, filled, left), ``merges`` /
         ``rejections`` / ``conflicts`` (fragment, label, reason), fill passes and
         models, never-visible and too-few-neighbour markers, timings;
-        ``surface``: the marker surface as a :class:`Mesh` (vertices = reference
-        pose of the markers, ``attrs["labels"]``).
+        ``surface``: the marker surface as a
+        :class:`~mocapflow.stages.motion.datatypes.Mesh` (vertices = reference pose
+        of the markers, ``attrs["labels"]``; :meth:`MarkerSurface.from_mesh` gives
+        the :class:`MarkerSurface` back).
     """
-    out, report, surf = clean_markers(
-        markers, alpha1=alpha1, alpha2=alpha2, variance=variance, smooth_lambda=smooth_lambda,
-        smooth_iterations=smooth_iterations, reference_frame=reference_frame, surface=surface,
-        merge=merge, fill=fill, fill_model=fill_model, fill_predictors=fill_predictors,
-        ctx=ctx,
-    )
-    return {"markers": out, "report": report, "surface": surf.to_mesh()}
+    t0 = time.perf_counter()
+    timings: dict[str, float] = {}
+    P = markers.positions
+    _check_params(P, alpha1=alpha1, alpha2=alpha2, variance=variance, fill_model=fill_model,
+                  fill_predictors=fill_predictors)
+    labels = markers.labels
+    ref_frame, reference, carried, unrecoverable = _reference(P, labels, reference_frame, ctx)
+    timings["reference"] = time.perf_counter() - t0
 
+    t1 = time.perf_counter()
+    surf, few = _marker_surface(reference, P, labels, surface, ref_frame, ctx)
+    timings["surface"] = time.perf_counter() - t1
+
+    t2 = time.perf_counter()
+    X, assigned, mrep = _merge(markers, surf, merge=merge, alpha1=alpha1, alpha2=alpha2,
+                               variance=variance, pca_rounds=pca_merge_rounds if fill else 0,
+                               ctx=ctx)
+    timings["merge"] = time.perf_counter() - t2
+    vis1 = np.isfinite(X).all(-1)
+
+    t3 = time.perf_counter()
+    Xf, finfo = _fill(X, surf, fill=fill, variance=variance, fill_model=fill_model,
+                      fill_predictors=fill_predictors, ctx=ctx)
+    timings["fill"] = time.perf_counter() - t3
+    vis2 = np.isfinite(Xf).all(-1)
+    status = _status(markers.visible, vis1, vis2)
+
+    t4 = time.perf_counter()
+    Xs = smooth_local(Xf, surf, smooth_lambda=smooth_lambda,
+                      smooth_iterations=smooth_iterations, measured=vis1, ctx=ctx)
+    timings["smooth"] = time.perf_counter() - t4
+    timings["total"] = time.perf_counter() - t0
+
+    report = _report(markers, surf, reference, status, assigned, vis1, vis2, ref_frame=ref_frame,
+                     carried=carried, unrecoverable=unrecoverable, few=few, mrep=mrep,
+                     finfo=finfo, timings=timings,
+                     params={"alpha1": alpha1, "alpha2": alpha2, "variance": variance,
+                             "smooth_lambda": smooth_lambda,
+                             "smooth_iterations": smooth_iterations, "fill_model": fill_model,
+                             "fill_predictors": fill_predictors})
+    out = _cleaned_markers(markers, Xs, status, vis2, assigned, ref_frame)
+    return {"markers": out, "report": report, "surface": surf.to_mesh()}

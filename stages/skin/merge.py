@@ -1,15 +1,23 @@
 """Merging unlabelled fragments into missing markers (Park & Hodgins 2006, §4.2).
 
-See :mod:`mocapflow.stages.skin.clean` for the whole procedure and where it goes
-beyond the paper.
+:func:`merge_fragments` runs rounds (:func:`_merge_rounds`): the rigid predictions
+of the missing samples in the frames that need them (:func:`_predict_round`, by
+:func:`mocapflow.stages.skin.predict.predict_missing`), every unmerged fragment
+judged against them (:func:`_judge_round`, :func:`_judge_fragment`: the entry test
+against ``ε₁ = α₁·d̄``, the tube ``ε₂ = α₂·d̄`` over the fragment, the mean
+distance and the ambiguity tests; :func:`_tolerances`), and the claims merged,
+closest first (:func:`_merge_claims`).  See :mod:`mocapflow.stages.skin.clean` for
+the whole procedure and where it goes beyond the paper.
 """
 
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from mocapflow.pipeline import Context
 from mocapflow.stages.skin.predict import (
@@ -18,9 +26,7 @@ from mocapflow.stages.skin.predict import (
     _predict_parallel,
     local_targets,
 )
-from mocapflow.stages.skin.surface import (
-    MarkerSurface,
-)
+from mocapflow.stages.skin.surface import MarkerSurface
 
 #: A fragment is merged only if every other missing marker's prediction is at
 #: least this many times farther from it (on average over its frames).
@@ -40,23 +46,21 @@ PCA_MEAN_TOLERANCE = 0.6
 PCA_NEAR_RATIO = 6.5
 NEAR_RADIUS = 1.0
 
+
 # --------------------------------------------------------------------------- merging (§4.2)
+
 
 def nearest_marker_distance(reference: np.ndarray) -> np.ndarray:
     """``(M,)`` distance from each marker to the nearest other one in the reference pose.
 
     NaN for markers without reference position.
     """
-    from scipy.spatial import cKDTree
-
     out = np.full(len(reference), np.nan)
     ok = np.flatnonzero(np.isfinite(reference).all(1))
     if len(ok) >= 2:
         d, _ = cKDTree(reference[ok]).query(reference[ok], k=2)
         out[ok] = d[:, 1]
     return out
-
-
 
 
 
@@ -242,6 +246,206 @@ def _judge_fragment(
             "mean": float(d_mean[c0])}
 
 
+@dataclass
+class _MergeRun:
+    """What one :func:`merge_fragments` call carries from round to round.
+
+    ``X`` the positions with the merges written in, ``dbar``, ``eps1``, ``eps2``
+    the markers' tolerances (:func:`_tolerances`), ``assigned`` the marker of
+    each fragment (-1), ``verdict`` the last rejection of each unmerged fragment,
+    ``merges`` / ``conflicts`` the report lists, ``dirty`` the frames whose data
+    or predictions changed since the fragments there were judged, ``stale`` the
+    frames to predict again.
+    """
+
+    X: np.ndarray
+    fragments: np.ndarray
+    frames_of: list[np.ndarray]
+    flabels: list[str]
+    labels: list[str]
+    dbar: np.ndarray
+    eps1: np.ndarray
+    eps2: np.ndarray
+    assigned: np.ndarray
+    dirty: np.ndarray
+    stale: np.ndarray
+    verdict: dict[int, dict[str, Any]] = field(default_factory=dict)
+    merges: list[dict[str, Any]] = field(default_factory=list)
+    conflicts: list[dict[str, Any]] = field(default_factory=list)
+
+
+def _tolerances(surface: MarkerSurface, alpha1: float,
+                alpha2: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(d̄, ε₁ = α₁ d̄, ε₂ = α₂ d̄)`` per marker, ``(M,)`` each (P&H §4.2), ``d̄`` the
+    mean neighbour distance capped by the distance to the nearest marker."""
+    dbar = np.fmin(surface.mean_distance, nearest_marker_distance(surface.reference))
+    return dbar, alpha1 * dbar, alpha2 * dbar
+
+
+def _near_markers(surface: MarkerSurface) -> np.ndarray:
+    """``(M, M)`` bool: markers within :data:`NEAR_RADIUS` mean neighbour distances of
+    each other in the reference pose."""
+    ref = surface.reference
+    gap = np.linalg.norm(ref[:, None] - ref[None], axis=-1)
+    with np.errstate(invalid="ignore"):
+        return gap < NEAR_RADIUS * surface.mean_distance[:, None]
+
+
+def _predict_round(run: _MergeRun, surface: MarkerSurface, fvis: np.ndarray, todo: list[int],
+                   Y: np.ndarray, E: np.ndarray, E_all: np.ndarray, depth: int,
+                   min_support: float, ctx: Context) -> np.ndarray:
+    """Rigid predictions of the round in the frames that need them (P&H §4.2).
+
+    The markers' local targets are recomputed; frames that are stale or whose
+    targets changed, and hold an unmerged fragment, are predicted again (trusted
+    ones into ``E``, all into ``E_all``, in place); frames whose predictions
+    changed become dirty.  Returns the new targets ``Y (F, M, 3)``.
+    """
+    Y_new = local_targets(run.X, surface.reference, surface.neighbours,
+                          rigidity=surface.rigidity)
+    changed = ~((Y_new == Y) | (np.isnan(Y_new) & np.isnan(Y))).all((1, 2))
+    frames = np.union1d(run.stale, np.flatnonzero(changed))
+    # predictions are only read in the frames of fragments still unmerged
+    frames = frames[fvis[frames][:, todo].any(1)]
+    if len(frames):
+        e, ea = _predict_parallel(run.X, surface, Y_new, frames, ctx, depth, min_support)
+        diff = ~(((e == E[frames]) | (np.isnan(e) & np.isnan(E[frames])))
+                 & ((ea == E_all[frames]) | (np.isnan(ea) & np.isnan(E_all[frames])))
+                 ).all((1, 2))
+        run.dirty[frames[diff]] = True
+        E[frames], E_all[frames] = e, ea
+    return Y_new
+
+
+def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarray, *,
+                 mean_tolerance: float, near: np.ndarray | None,
+                 near_ratio: float) -> dict[int, list[tuple[float, int, dict]]]:
+    """Judge every unmerged fragment whose frames changed (:func:`_judge_fragment`).
+
+    Rejections go to ``run.verdict`` (a new ambiguity also to ``run.conflicts``);
+    returns the claims ``{marker: [(mean distance, fragment, verdict), ...]}``.
+    """
+    avail = np.isfinite(run.X).all(-1)
+    index = PredictionIndex(avail, np.isfinite(E).all(-1))
+    claims: dict[int, list[tuple[float, int, dict]]] = {}
+    for u in todo:
+        T = run.frames_of[u]
+        if u in run.verdict and not run.dirty[T].any():
+            continue  # nothing it depends on changed
+        free = index.free(T[0], T[-1]) if _is_run(T) else ~avail[T].any(0)
+        v = _judge_fragment(run.fragments[T, u], T, free & np.isfinite(run.dbar),
+                            E, E_all, run.eps1, run.eps2, run.labels, index,
+                            mean_tolerance=mean_tolerance, near=near,
+                            near_ratio=near_ratio)
+        if "marker" in v:
+            claims.setdefault(v["marker"], []).append((v["mean"], u, v))
+            run.verdict.pop(u, None)
+        else:
+            if "conflict" in v and run.verdict.get(u, {}).get("reason") != v["reason"]:
+                run.conflicts.append({"fragment": run.flabels[u], **v["conflict"],
+                                      "resolution": "ambiguous: not merged"})
+            run.verdict[u] = {k: x for k, x in v.items() if k != "conflict"}
+    return claims
+
+
+def _merge_claims(run: _MergeRun, claims: dict[int, list[tuple[float, int, dict]]], *,
+                  rnd: int, predictor: str, depth: Any) -> int:
+    """Merge the claimed fragments, per marker closest first; a fragment overlapping
+    one merged before it is a conflict.  Returns the number of merges."""
+    mm = 1000.0
+    labels, flabels, frames_of = run.labels, run.flabels, run.frames_of
+    n_new = 0
+    for m, cl in claims.items():
+        cl.sort(key=lambda c: c[0])
+        taken = np.zeros(len(run.X), dtype=bool)
+        winner: dict[int, str] = {}
+        for _, u, v in cl:
+            T = frames_of[u]
+            if taken[T].any():
+                w = next(flabels[w_] for w_, _ in winner.items() if taken[frames_of[w_]].any())
+                run.conflicts.append({
+                    "fragment": flabels[u], "labels": [labels[m]],
+                    "resolution": f"overlaps fragment {w} merged into {labels[m]} (closer): "
+                                  "not merged"})
+                run.verdict[u] = {"reason": f"conflict with {w} for {labels[m]}"}
+                continue
+            taken[T] = True
+            winner[u] = flabels[u]
+            run.X[T, m] = run.fragments[T, u]
+            run.dirty[T] = True
+            run.stale = np.union1d(run.stale, T)
+            run.assigned[u] = m
+            n_new += 1
+            run.merges.append({
+                "fragment": flabels[u], "label": labels[m],
+                "first_frame": int(T[0]), "last_frame": int(T[-1]), "n_frames": len(T),
+                "entry_mm": round(v["entry"] * mm, 2), "mean_mm": round(v["mean"] * mm, 2),
+                "max_mm": round(v["max"] * mm, 2),
+                "eps1_mm": round(float(run.eps1[m] * mm), 2),
+                "eps2_mm": round(float(run.eps2[m] * mm), 2), "round": rnd,
+                "predictor": predictor,
+                "depth": depth,
+            })
+    return n_new
+
+
+def _rejections(run: _MergeRun) -> list[dict[str, Any]]:
+    """One entry per unmerged fragment: frames and the reason of its last verdict."""
+    return [
+        {"fragment": run.flabels[u], "n_frames": len(run.frames_of[u]),
+         "first_frame": int(run.frames_of[u][0]) if len(run.frames_of[u]) else None,
+         **run.verdict.get(u, {"reason": "not examined"})}
+        for u in range(len(run.assigned)) if run.assigned[u] < 0
+    ]
+
+
+def _merge_rounds(
+    run: _MergeRun, surface: MarkerSurface, fvis: np.ndarray, levels: list[Any], *,
+    rounds_per_level: int, predictions: np.ndarray | None, competitors: np.ndarray | None,
+    min_support: float, mean_tolerance: float, near: np.ndarray | None, near_ratio: float,
+    ctx: Context,
+) -> dict[str, int]:
+    """The rounds of :func:`merge_fragments`: predict, judge, merge, until nothing merges.
+
+    ``levels``: the prediction depths trusted in turn (``["given"]`` with
+    ``predictions``: one round).  Returns the merges per level.
+    """
+    F = len(run.X)
+    order = sorted((u for u in range(len(run.assigned)) if len(run.frames_of[u])),
+                   key=lambda u: -len(run.frames_of[u]))
+    n_by_depth: dict[str, int] = {}
+    E = np.full_like(run.X, np.nan)
+    E_all = np.full_like(run.X, np.nan)
+    Y = np.full_like(run.X, np.nan)
+    level, rounds_here = 0, 0
+    for rnd in range(len(levels) * rounds_per_level):
+        todo = [u for u in order if run.assigned[u] < 0]
+        if not todo:
+            break
+        key = levels[level]
+        if predictions is not None:
+            E = np.where(np.isfinite(run.X), np.nan, predictions)
+            E_all = E if competitors is None else np.where(np.isfinite(run.X), np.nan,
+                                                           competitors)
+        else:
+            Y = _predict_round(run, surface, fvis, todo, Y, E, E_all, key, min_support, ctx)
+        run.stale = np.zeros(0, dtype=np.int64)
+        claims = _judge_round(run, todo, E, E_all, mean_tolerance=mean_tolerance, near=near,
+                              near_ratio=near_ratio)
+        run.dirty[:] = False
+        n_new = _merge_claims(run, claims, rnd=rnd,
+                              predictor="rigid" if predictions is None else "given", depth=key)
+        n_by_depth[str(key)] = n_by_depth.get(str(key), 0) + n_new
+        rounds_here += 1
+        if n_new == 0 or rounds_here >= rounds_per_level or predictions is not None:
+            if level + 1 >= len(levels) or predictions is not None:
+                break
+            level, rounds_here = level + 1, 0
+            run.stale = np.arange(F)  # trust changes: every frame is predicted again
+            run.dirty[:] = True
+    return n_by_depth
+
+
 def merge_fragments(
     positions: np.ndarray,
     fragments: np.ndarray,
@@ -261,8 +465,9 @@ def merge_fragments(
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Merge unlabelled fragments into labelled markers (Park & Hodgins §4.2).
 
-    Rounds: predict the missing samples (:func:`predict_missing` with the
-    markers' local targets), judge every unmerged fragment (the ε₁ entry test,
+    Rounds: predict the missing samples
+    (:func:`~mocapflow.stages.skin.predict.predict_missing` with the markers' local
+    targets), judge every unmerged fragment (the ε₁ entry test,
     the ε₂ tube over its length, ambiguity tests), merge, repeat with the merged
     data.  Fragments whose frames saw no change since they were last judged are
     not judged again, and predictions are only made in frames that hold an
@@ -326,134 +531,30 @@ def merge_fragments(
         label and reason), ``merged_by_depth``.
     """
     ctx = ctx or Context()
-    X = positions.copy()
-    F, M, _ = X.shape
+    F = positions.shape[0]
     U = fragments.shape[1]
-    flabels = list(fragment_labels or [f"*{u + 1}" for u in range(U)])
-    labels = surface.labels
-    dbar = np.fmin(surface.mean_distance, nearest_marker_distance(surface.reference))
-    eps1, eps2 = alpha1 * dbar, alpha2 * dbar
+    fvis = np.isfinite(fragments).all(-1)
+    dbar, eps1, eps2 = _tolerances(surface, alpha1, alpha2)
+    run = _MergeRun(
+        X=positions.copy(), fragments=fragments,
+        frames_of=[np.flatnonzero(fvis[:, u]) for u in range(U)],
+        flabels=list(fragment_labels or [f"*{u + 1}" for u in range(U)]),
+        labels=surface.labels, dbar=dbar, eps1=eps1, eps2=eps2,
+        assigned=np.full(U, -1, dtype=np.int64),
+        dirty=np.ones(F, dtype=bool),  # frames whose predictions / data changed
+        stale=np.arange(F),
+    )
+    run.verdict = {u: {"reason": "empty fragment"} for u in range(U) if not len(run.frames_of[u])}
     given = predictions is not None
     if mean_tolerance is None:
         mean_tolerance = PCA_MEAN_TOLERANCE if given else 1.0
     if near_ratio is None:
         near_ratio = PCA_NEAR_RATIO if given else AMBIGUITY_RATIO
-    near = None
-    if near_ratio > AMBIGUITY_RATIO:
-        ref = surface.reference
-        gap = np.linalg.norm(ref[:, None] - ref[None], axis=-1)
-        with np.errstate(invalid="ignore"):
-            near = gap < NEAR_RADIUS * surface.mean_distance[:, None]
-    fvis = np.isfinite(fragments).all(-1)
-    frames_of = [np.flatnonzero(fvis[:, u]) for u in range(U)]
-    assigned = np.full(U, -1, dtype=np.int64)
-    verdict: dict[int, dict[str, Any]] = {u: {"reason": "empty fragment"} for u in range(U)
-                                          if not len(frames_of[u])}
-    merges: list[dict[str, Any]] = []
-    conflicts: list[dict[str, Any]] = []
-    order = sorted((u for u in range(U) if len(frames_of[u])), key=lambda u: -len(frames_of[u]))
-    mm = 1000.0
-    n_by_depth: dict[str, int] = {}
-    E = np.full_like(X, np.nan)
-    E_all = np.full_like(X, np.nan)
-    Y = np.full_like(X, np.nan)
-    levels: list[Any] = ["given"] if predictions is not None else list(depths)
-    level, rounds_here = 0, 0
-    dirty = np.ones(F, dtype=bool)  # frames whose predictions / data changed
-    stale = np.arange(F)
-    for rnd in range(len(levels) * rounds_per_level):
-        todo = [u for u in order if assigned[u] < 0]
-        if not todo:
-            break
-        key = levels[level]
-        if predictions is not None:
-            E = np.where(np.isfinite(X), np.nan, predictions)
-            E_all = E if competitors is None else np.where(np.isfinite(X), np.nan, competitors)
-        else:
-            Y_new = local_targets(X, surface.reference, surface.neighbours,
-                                  rigidity=surface.rigidity)
-            changed = ~((Y_new == Y) | (np.isnan(Y_new) & np.isnan(Y))).all((1, 2))
-            frames = np.union1d(stale, np.flatnonzero(changed))
-            # predictions are only read in the frames of fragments still unmerged
-            frames = frames[fvis[frames][:, todo].any(1)]
-            Y = Y_new
-            if len(frames):
-                e, ea = _predict_parallel(X, surface, Y, frames, ctx, key, min_support)
-                diff = ~(((e == E[frames]) | (np.isnan(e) & np.isnan(E[frames])))
-                         & ((ea == E_all[frames]) | (np.isnan(ea) & np.isnan(E_all[frames])))
-                         ).all((1, 2))
-                dirty[frames[diff]] = True
-                E[frames], E_all[frames] = e, ea
-        stale = np.zeros(0, dtype=np.int64)
-        avail = np.isfinite(X).all(-1)
-        index = PredictionIndex(avail, np.isfinite(E).all(-1))
-        claims: dict[int, list[tuple[float, int, dict]]] = {}
-        for u in todo:
-            T = frames_of[u]
-            if u in verdict and not dirty[T].any():
-                continue  # nothing it depends on changed
-            free = index.free(T[0], T[-1]) if _is_run(T) else ~avail[T].any(0)
-            v = _judge_fragment(fragments[T, u], T, free & np.isfinite(dbar),
-                                E, E_all, eps1, eps2, labels, index,
-                                mean_tolerance=mean_tolerance, near=near,
-                                near_ratio=near_ratio)
-            if "marker" in v:
-                claims.setdefault(v["marker"], []).append((v["mean"], u, v))
-                verdict.pop(u, None)
-            else:
-                if "conflict" in v and verdict.get(u, {}).get("reason") != v["reason"]:
-                    conflicts.append({"fragment": flabels[u], **v["conflict"],
-                                      "resolution": "ambiguous: not merged"})
-                verdict[u] = {k: x for k, x in v.items() if k != "conflict"}
-        dirty[:] = False
-        # resolve claims per marker: overlapping fragments conflict, closest first
-        n_new = 0
-        for m, cl in claims.items():
-            cl.sort(key=lambda c: c[0])
-            taken = np.zeros(F, dtype=bool)
-            winner: dict[int, str] = {}
-            for _, u, v in cl:
-                T = frames_of[u]
-                if taken[T].any():
-                    w = next(flabels[w_] for w_, _ in winner.items() if taken[frames_of[w_]].any())
-                    conflicts.append({
-                        "fragment": flabels[u], "labels": [labels[m]],
-                        "resolution": f"overlaps fragment {w} merged into {labels[m]} (closer): "
-                                      "not merged"})
-                    verdict[u] = {"reason": f"conflict with {w} for {labels[m]}"}
-                    continue
-                taken[T] = True
-                winner[u] = flabels[u]
-                X[T, m] = fragments[T, u]
-                dirty[T] = True
-                stale = np.union1d(stale, T)
-                assigned[u] = m
-                n_new += 1
-                merges.append({
-                    "fragment": flabels[u], "label": labels[m],
-                    "first_frame": int(T[0]), "last_frame": int(T[-1]), "n_frames": len(T),
-                    "entry_mm": round(v["entry"] * mm, 2), "mean_mm": round(v["mean"] * mm, 2),
-                    "max_mm": round(v["max"] * mm, 2),
-                    "eps1_mm": round(float(eps1[m] * mm), 2),
-                    "eps2_mm": round(float(eps2[m] * mm), 2), "round": rnd,
-                    "predictor": "rigid" if predictions is None else "given",
-                    "depth": key,
-                })
-        n_by_depth[str(key)] = n_by_depth.get(str(key), 0) + n_new
-        rounds_here += 1
-        if n_new == 0 or rounds_here >= rounds_per_level or predictions is not None:
-            if level + 1 >= len(levels) or predictions is not None:
-                break
-            level, rounds_here = level + 1, 0
-            stale = np.arange(F)  # trust changes: every frame is predicted again
-            dirty[:] = True
-    rejections = [
-        {"fragment": flabels[u], "n_frames": len(frames_of[u]),
-         "first_frame": int(frames_of[u][0]) if len(frames_of[u]) else None,
-         **verdict.get(u, {"reason": "not examined"})}
-        for u in range(U) if assigned[u] < 0
-    ]
-    return X, assigned, {"merges": merges, "rejections": rejections, "conflicts": conflicts,
-                         "merged_by_depth": n_by_depth}
-
-
+    near = _near_markers(surface) if near_ratio > AMBIGUITY_RATIO else None
+    n_by_depth = _merge_rounds(run, surface, fvis, ["given"] if given else list(depths),
+                               rounds_per_level=rounds_per_level, predictions=predictions,
+                               competitors=competitors, min_support=min_support,
+                               mean_tolerance=mean_tolerance, near=near, near_ratio=near_ratio,
+                               ctx=ctx)
+    return run.X, run.assigned, {"merges": run.merges, "rejections": _rejections(run),
+                                 "conflicts": run.conflicts, "merged_by_depth": n_by_depth}

@@ -2,10 +2,12 @@
 
 The deformation (:mod:`mocapflow.stages.skin.deform`) moves the vertices of a detailed
 mesh bound to the marker surface; this module makes that mesh fit the subject:
-a template (the procedural body or a user mesh) is brought onto the marker
-surface of the reference pose by a similarity transform from landmarks, then a
-non-rigid, Laplacian-regularised fit to the markers (stages ``template_mesh``
-and ``fit_mesh``).
+a template (the procedural body or a user mesh, stage ``template_mesh``) is
+brought onto the marker surface of the reference pose (stage ``fit_mesh``,
+:func:`fit_detailed_mesh`): an initial guess from landmarks or bounding boxes
+(:func:`_initial_alignment`), iterated closest-point similarity / affine
+alignment (:func:`_icp_alignment`), then a non-rigid, Laplacian-regularised fit
+to the markers (:func:`_nonrigid_fit`).
 """
 
 from __future__ import annotations
@@ -17,9 +19,14 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from mocapflow.pipeline import Context, FilePath, stage
+from mocapflow.stages.motion.absolute_orientation import absolute_orientation
 from mocapflow.stages.motion.datatypes import Mesh
 from mocapflow.stages.motion.geometry import vertex_normals
-from mocapflow.stages.skin.deform import DeformError, closest_points_on_triangles
+from mocapflow.stages.motion.simulate.capsules import procedural_body
+from mocapflow.stages.motion.simulate.makehuman import load_makehuman_body
+from mocapflow.stages.motion.simulate.skeleton import procedural_skeleton
+from mocapflow.stages.skin.binding import DeformError, closest_points_on_triangles
+from mocapflow.stages.skin.segmentation import Segmentation
 
 __all__ = [
     "fit_detailed_mesh",
@@ -27,12 +34,8 @@ __all__ = [
     "mesh_laplacian",
     "similarity_transform",
     "template_mesh",
-    "vertex_normals",
 ]
-from mocapflow.stages.motion.kinematics import (
-    absolute_orientation,
-)
-from mocapflow.stages.skin.segment import Segmentation
+
 
 # --------------------------------------------------------------------------- detailed mesh fitting
 
@@ -175,30 +178,79 @@ def fit_detailed_mesh(
     Y = np.asarray(targets, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     nV, M = len(V0), len(Y)
-    lm = dict(landmarks or {})
-    lm_m = np.array(sorted(lm), dtype=np.int64)
-    lm_v = np.array([lm[k] for k in lm_m], dtype=np.int64)
-    if lm_m.size and (lm_v.min() < 0 or lm_v.max() >= nV or lm_m.max() >= M):
-        raise DeformError("fit_mesh: landmark indices out of range of the markers or template")
-    # initial guess: centroids and RMS radii (or landmarks)
-    if lm_m.size >= 3:
-        s, R, t = similarity_transform(V0[lm_v], Y[lm_m])
-        A_tot = (s if allow_scale else 1.0) * R
-    elif allow_scale:  # bounding boxes: the markers span the body even where they are sparse
-        lo_v, hi_v, lo_y, hi_y = V0.min(0), V0.max(0), Y.min(0), Y.max(0)
-        ratios = (hi_y - lo_y) / np.maximum(hi_v - lo_v, 1e-12)
-        A_tot = np.eye(3) * float(np.median(ratios))  # robust to markerless fingers / soles
-        t = (lo_y + hi_y) / 2 - A_tot @ (lo_v + hi_v) / 2
-    else:
-        A_tot, t = np.eye(3), Y.mean(0) - V0.mean(0)
-    t_tot = t
+    lm_m, lm_v = _landmark_indices(landmarks, nV, M)
+    A_tot, t_tot = _initial_alignment(V0, Y, lm_m, lm_v, allow_scale=allow_scale)
     X = V0 @ A_tot.T + t_tot
     outward = 1.0 if _signed_volume(V0, faces) >= 0 else -1.0
     phases = ["similarity", "affine"] if allow_scale and M >= 12 else ["rigid"]
+    X, A_tot, t_tot = _icp_alignment(X, Y, faces, A_tot, t_tot, lm_m, lm_v, phases=phases,
+                                     iterations=rigid_iterations, trim=trim,
+                                     offset=marker_offset * outward)
+    U_, sv, Vt_ = np.linalg.svd(A_tot)
+    R_tot = U_ @ Vt_
+    S_tot = float(np.prod(sv) ** (1 / 3))
+    dist = _marker_correspondences(Y, X, faces, marker_offset * outward)[3]
+    aligned = {"rms_mm": float(np.sqrt(np.mean(dist**2)) * 1000),
+               "median_mm": float(np.median(dist) * 1000),
+               "p90_mm": float(np.percentile(dist, 90) * 1000)}  # fmt: skip
+    out = _nonrigid_fit(X, Y, faces, lm_m, lm_v, stiffness=stiffness,
+                        marker_offset=marker_offset, outward=outward)
+    dist = _marker_correspondences(Y, out, faces, marker_offset * outward)[3]
+    info = {
+        "scale": S_tot,
+        "axis_scales": [float(v) for v in sv],
+        "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(R_tot) - 1) / 2, -1, 1)))),
+        "translation_m": [float(v) for v in t_tot],
+        "aligned": aligned,
+        "fitted": {"rms_mm": float(np.sqrt(np.mean(dist**2)) * 1000),
+                   "median_mm": float(np.median(dist) * 1000),
+                   "max_mm": float(dist.max() * 1000)},
+    }  # fmt: skip
+    return out, info
+
+
+def _landmark_indices(landmarks: dict[int, int] | None, n_vertices: int,
+                      n_markers: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(markers, vertices)`` of the landmarks, ``(L,)`` each, sorted by marker."""
+    lm = dict(landmarks or {})
+    lm_m = np.array(sorted(lm), dtype=np.int64)
+    lm_v = np.array([lm[k] for k in lm_m], dtype=np.int64)
+    if lm_m.size and (lm_v.min() < 0 or lm_v.max() >= n_vertices or lm_m.max() >= n_markers):
+        raise DeformError("fit_mesh: landmark indices out of range of the markers or template")
+    return lm_m, lm_v
+
+
+def _initial_alignment(V0: np.ndarray, Y: np.ndarray, lm_m: np.ndarray, lm_v: np.ndarray, *,
+                       allow_scale: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Initial guess ``(A (3, 3), t (3,))`` of ``Y ≈ A V0 + t``: the similarity of 3+
+    landmarks, else bounding boxes (scale), else centroids."""
+    if lm_m.size >= 3:
+        s, R, t = similarity_transform(V0[lm_v], Y[lm_m])
+        return (s if allow_scale else 1.0) * R, t
+    if allow_scale:  # bounding boxes: the markers span the body even where they are sparse
+        lo_v, hi_v, lo_y, hi_y = V0.min(0), V0.max(0), Y.min(0), Y.max(0)
+        ratios = (hi_y - lo_y) / np.maximum(hi_v - lo_v, 1e-12)
+        A_tot = np.eye(3) * float(np.median(ratios))  # robust to markerless fingers / soles
+        return A_tot, (lo_y + hi_y) / 2 - A_tot @ (lo_v + hi_v) / 2
+    return np.eye(3), Y.mean(0) - V0.mean(0)
+
+
+def _icp_alignment(
+    X: np.ndarray, Y: np.ndarray, faces: np.ndarray, A_tot: np.ndarray, t_tot: np.ndarray,
+    lm_m: np.ndarray, lm_v: np.ndarray, *, phases: list[str], iterations: int, trim: float,
+    offset: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Iterated closest-point alignment, phase by phase (similarity first, robust; then
+    affine, proportions; or rigid), the worst ``trim`` of the correspondences ignored.
+
+    A phase is kept only if it fits better than the ones before; returns the
+    aligned vertices ``(V, 3)`` and the accumulated ``A (3, 3)``, ``t (3,)``.
+    """
+    M = len(Y)
     best: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
     for phase in phases:  # ICP: similarity first (robust), then affine (proportions)
-        for _ in range(rigid_iterations):
-            tri, bary, src, dist = _marker_correspondences(Y, X, faces, marker_offset * outward)
+        for _ in range(iterations):
+            tri, bary, src, dist = _marker_correspondences(Y, X, faces, offset)
             w = (dist <= np.quantile(dist, 1 - trim)).astype(float)
             if lm_m.size:
                 src[lm_m] = X[lm_v]
@@ -218,18 +270,21 @@ def fit_detailed_mesh(
             A_tot, t_tot = A @ A_tot, A @ t_tot + t
             if step < 1e-7:
                 break
-        d_phase = _marker_correspondences(Y, X, faces, marker_offset * outward)[3]
+        d_phase = _marker_correspondences(Y, X, faces, offset)[3]
         score = float(np.mean(np.sort(d_phase)[: max(1, int(len(d_phase) * (1 - trim)))] ** 2))
         if best is None or score < best[0]:  # keep a phase only if it fits better
             best = (score, X.copy(), A_tot.copy(), t_tot.copy())
     _, X, A_tot, t_tot = best
-    U_, sv, Vt_ = np.linalg.svd(A_tot)
-    R_tot = U_ @ Vt_
-    S_tot = float(np.prod(sv) ** (1 / 3))
-    dist = _marker_correspondences(Y, X, faces, marker_offset * outward)[3]
-    aligned = {"rms_mm": float(np.sqrt(np.mean(dist**2)) * 1000),
-               "median_mm": float(np.median(dist) * 1000),
-               "p90_mm": float(np.percentile(dist, 90) * 1000)}  # fmt: skip
+    return X, A_tot, t_tot
+
+
+def _nonrigid_fit(X: np.ndarray, Y: np.ndarray, faces: np.ndarray, lm_m: np.ndarray,
+                  lm_v: np.ndarray, *, stiffness: tuple[float, ...], marker_offset: float,
+                  outward: float) -> np.ndarray:
+    """The displacement field ``U`` minimising ``Σ_m |B_m (X + U) - y_m|² + λ |L U|²`` for
+    each stiffness ``λ`` in turn, correspondences recomputed between steps; returns
+    ``X + U``."""
+    nV, M = len(X), len(Y)
     L = mesh_laplacian(nV, faces)
     LtL = (L.T @ L).tocsr()
     ratio = nV / max(M, 1)
@@ -250,19 +305,7 @@ def fit_detailed_mesh(
         Amat = (lam * ratio * LtL + B.T @ B + 1e-8 * sp.identity(nV)).tocsc()
         rhs = B.T @ (tgt - B @ X)
         U = splu(Amat).solve(np.asarray(rhs))
-    out = X + U
-    dist = _marker_correspondences(Y, out, faces, marker_offset * outward)[3]
-    info = {
-        "scale": S_tot,
-        "axis_scales": [float(v) for v in sv],
-        "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(R_tot) - 1) / 2, -1, 1)))),
-        "translation_m": [float(v) for v in t_tot],
-        "aligned": aligned,
-        "fitted": {"rms_mm": float(np.sqrt(np.mean(dist**2)) * 1000),
-                   "median_mm": float(np.median(dist) * 1000),
-                   "max_mm": float(dist.max() * 1000)},
-    }  # fmt: skip
-    return out, info
+    return X + U
 
 
 def _closest_frame(vertices: np.ndarray, faces: np.ndarray, targets: np.ndarray) -> int:
@@ -383,9 +426,6 @@ def template_mesh(
     dict
         ``mesh``: rest :class:`Mesh` in metres, y up, facing +z.
     """
-    from mocapflow.stages.motion.simulate.body import load_makehuman_body, procedural_body
-    from mocapflow.stages.motion.simulate.motion import procedural_skeleton
-
     if body_mesh is not None:
         body = load_makehuman_body(body_mesh)
     else:

@@ -11,12 +11,11 @@ number of available neighbours, re-using estimates.  Used by merging
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 from mocapflow.pipeline import Context
-from mocapflow.stages.motion.kinematics import absolute_orientation_batch
-from mocapflow.stages.skin.surface import (
-    MarkerSurface,
-)
+from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
+from mocapflow.stages.skin.surface import MarkerSurface
 
 #: Fewest neighbours for a rigid fit (Horn needs 3 non-collinear points).
 MIN_NEIGHBOURS = 3
@@ -24,10 +23,6 @@ MIN_NEIGHBOURS = 3
 #: A rigid fit is trusted when its third most rigid point has at least this
 #: rigidity weight (three points that move with the marker).
 RIGID_ANCHOR = 0.2
-
-class CleanError(ValueError):
-    """The capture cannot be cleaned (no markers, bad reference frame, ...)."""
-
 
 # --------------------------------------------------------------------------- helpers
 
@@ -156,8 +151,6 @@ def _neighbour_fit(
 
 def _adjacency(neighbours: np.ndarray):
     """Sparse ``(M, M)`` matrix with a 1 at ``[j, k]`` for each neighbour ``k`` of ``j``."""
-    import scipy.sparse as sp
-
     M = len(neighbours)
     j, k = np.nonzero(neighbours >= 0)
     return sp.csr_matrix((np.ones(len(j)), (j, neighbours[j, k])), shape=(M, M))

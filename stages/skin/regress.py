@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
 from mocapflow.stages.motion.contacts import true_runs
-from mocapflow.stages.motion.kinematics import absolute_orientation_batch
 
 #: Predictors of the wide-neighbourhood regression: the marker's most rigid
 #: nearby markers (smallest spread of their distance to it) visible through a gap.

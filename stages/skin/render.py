@@ -38,8 +38,10 @@ import numpy as np
 from mocapflow.pipeline import Context, ParamError, stage
 from mocapflow.pipeline.codecs import Encoded, codec, exporter
 from mocapflow.stages.motion.datatypes import Markers, Mesh
-from mocapflow.stages.skin.deform import MODES, align_markers, closest_points_on_triangles, deform
-from mocapflow.stages.skin.segment import Segmentation
+from mocapflow.stages.skin.binding import closest_points_on_triangles
+from mocapflow.stages.skin.deform import align_markers, deform
+from mocapflow.stages.skin.parts import MODES
+from mocapflow.stages.skin.segmentation import Segmentation
 
 __all__ = [
     "RenderError",
@@ -398,6 +400,39 @@ def render_frames(
     F = panels[0]["vertices"].shape[0]
     if any(p["vertices"].shape[0] != F for p in panels):
         raise RenderError("render: panels have different frame counts")
+    focal, dist, d, upv = _camera(panels, view=view, up=up, follow=follow, width=width,
+                                  height=height)
+    try:
+        pl = pv.Plotter(
+            off_screen=True, shape=(1, len(panels)), window_size=(width * len(panels), height),
+            border=False,
+        )  # fmt: skip
+    except Exception as e:  # pragma: no cover - depends on the machine
+        raise RenderError(f"render: no off-screen OpenGL context ({e})") from e
+    pl.set_background(background)
+    meshes, marker_polys = _add_panels(pv, pl, panels, marker_size or max(3.0, height / 70))
+    out = np.empty((F, height, width * len(panels), 3), np.uint8)
+    for f in range(F):
+        for k, p in enumerate(panels):
+            pl.subplot(0, k)
+            _update_panel(pv, p, f, meshes[k], marker_polys[k], focal[f])
+            cam = pl.camera
+            cam.focal_point = focal[f]
+            cam.position = focal[f] + dist * d
+            cam.up = upv
+            cam.view_angle = 30.0
+            pl.renderer.ResetCameraClippingRange()
+        pl.render()
+        img = pl.screenshot(return_img=True)
+        out[f] = img[:height, : width * len(panels), :3]
+    pl.close()
+    return out
+
+
+def _camera(panels: list[dict[str, Any]], *, view: str, up: str, follow: bool, width: int,
+            height: int) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+    """Camera of every frame: focal points ``(F, 3)``, distance, direction from the focal
+    point ``(3,)`` and up vector ``(3,)`` (room left for titles and colour bars)."""
     seqs = [p["vertices"] for p in panels]
     focal = _camera_track(seqs, follow=follow)
     d = np.asarray(_VIEW_DIRS[view], dtype=float)
@@ -408,15 +443,12 @@ def render_frames(
     overlays = any(p.get("title") or p.get("scalars") is not None for p in panels)
     dist = _camera_distance(seqs, focal, -d, upv, width, height,
                             margin=1.35 if overlays else 1.12)  # fmt: skip
-    try:
-        pl = pv.Plotter(
-            off_screen=True, shape=(1, len(panels)), window_size=(width * len(panels), height),
-            border=False,
-        )  # fmt: skip
-    except Exception as e:  # pragma: no cover - depends on the machine
-        raise RenderError(f"render: no off-screen OpenGL context ({e})") from e
-    pl.set_background(background)
-    marker_size = marker_size or max(3.0, height / 70)
+    return focal, dist, d, upv
+
+
+def _add_panels(pv, pl, panels: list[dict[str, Any]], marker_size: float) -> tuple[list, list]:
+    """Add each panel's mesh (coloured, or scalars with a colour bar), marker points and
+    title to its subplot; returns the meshes and the marker point sets (None without)."""
     meshes, marker_polys = [], []
     for k, p in enumerate(panels):
         pl.subplot(0, k)
@@ -445,28 +477,20 @@ def render_frames(
         marker_polys.append(mpoly)
         if p.get("title"):
             pl.add_text(p["title"], position="upper_edge", font_size=9, color="black")
-    out = np.empty((F, height, width * len(panels), 3), np.uint8)
-    for f in range(F):
-        for k, p in enumerate(panels):
-            pl.subplot(0, k)
-            meshes[k].points = np.asarray(p["vertices"][f], dtype=np.float64)
-            if p.get("scalars") is not None:
-                meshes[k].point_data["scalars"][:] = p["scalars"][f]
-            if marker_polys[k] is not None:
-                m = p["markers"][f]
-                m = m[np.isfinite(m).all(1)]
-                marker_polys[k].copy_from(pv.PolyData(m if len(m) else focal[f][None]))
-            cam = pl.camera
-            cam.focal_point = focal[f]
-            cam.position = focal[f] + dist * d
-            cam.up = upv
-            cam.view_angle = 30.0
-            pl.renderer.ResetCameraClippingRange()
-        pl.render()
-        img = pl.screenshot(return_img=True)
-        out[f] = img[:height, : width * len(panels), :3]
-    pl.close()
-    return out
+    return meshes, marker_polys
+
+
+def _update_panel(pv, panel: dict[str, Any], f: int, mesh, marker_poly,
+                  focal: np.ndarray) -> None:
+    """Move a panel's mesh, scalars and visible markers to frame ``f`` (a panel without
+    visible markers shows one point at the focal point, hidden in the mesh)."""
+    mesh.points = np.asarray(panel["vertices"][f], dtype=np.float64)
+    if panel.get("scalars") is not None:
+        mesh.point_data["scalars"][:] = panel["scalars"][f]
+    if marker_poly is not None:
+        m = panel["markers"][f]
+        m = m[np.isfinite(m).all(1)]
+        marker_poly.copy_from(pv.PolyData(m if len(m) else focal[None]))
 
 
 def _frame_indices(n: int, stride: int, max_frames: int) -> np.ndarray:

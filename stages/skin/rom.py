@@ -23,7 +23,8 @@ import numpy as np
 
 from mocapflow.pipeline import Context, FilePath, stage
 from mocapflow.stages.motion.datatypes import Markers
-from mocapflow.stages.skin.segment import Segmentation
+from mocapflow.stages.motion.ingest import ingest_c3d
+from mocapflow.stages.skin.segmentation import Segmentation
 
 __all__ = ["ingest_rom", "match_labels", "match_markers"]
 
@@ -48,8 +49,6 @@ def ingest_rom(path: FilePath, *, rom: FilePath | None = None, ctx: Context) -> 
         ``"trial"``), ``path`` and ``note`` (see
         :func:`mocapflow.stages.motion.ingest.markers_report`).
     """
-    from mocapflow.stages.motion.ingest import ingest_c3d
-
     source = path if rom is None else rom
     out = ingest_c3d(source, ctx=ctx)
     if rom is None:
@@ -60,7 +59,6 @@ def ingest_rom(path: FilePath, *, rom: FilePath | None = None, ctx: Context) -> 
     report = {**out["report"], "segmented_from": "trial" if rom is None else "rom",
               "path": str(source), "note": note}
     return {"markers": out["markers"], "report": report}
-
 
 
 def match_labels(

@@ -1,32 +1,35 @@
-"""Near-rigid segmentation of a marker surface (Park & Hodgins 2006, §5.2).
+"""Near-rigid segmentation of a marker surface (Park & Hodgins 2006, §5.2): the ``segment`` stage.
 
 The marker surface (a triangle mesh whose vertices are the markers) is cut into
 near-rigid parts from a range-of-motion trial:
 
-1. every triangle gets its rotation sequence (reference pose -> each frame),
-2. triangles with similar rotation sequences are grouped by mean-shift
-   clustering (James & Twigg 2005),
-3. the clusters become marker parts and are cleaned up automatically: each
+1. every triangle gets its rotation sequence (reference pose -> each frame,
+   :func:`triangle_rotations`),
+2. triangles with similar rotation sequences (:func:`rotation_features`) are
+   grouped by mean-shift clustering (James & Twigg 2005; :func:`mean_shift`),
+3. the clusters become marker parts and are cleaned up automatically
+   (:func:`marker_labels_from_triangles`, :func:`clean_up_parts`): each
    marker takes the cluster of most of its triangles, disconnected pieces are
    split, adjacent parts are merged (most rigid union first) while their union
    stays rigid within ``merge_rms`` (the narrow kernel over-segments on
    purpose), parts smaller than ``min_part_markers`` are merged into the
    adjacent part that stays most rigid, and (optionally) adjacent parts are
    merged greedily until ``n_parts`` remain (the paper adjusted its 17 parts
-   by hand; a manual override is accepted),
+   by hand; a manual override is accepted, :func:`_apply_override`),
 4. boundary markers get soft weights ``alpha`` from a Gaussian likelihood of
-   their rigid-fit error against every neighbouring part; weights below the
-   threshold (0.2) are dropped, so a marker may belong to several parts,
-5. each part gets a local frame: origin at the weighted mean of its reference
-   positions, axes the eigenvectors of their covariance.
+   their rigid-fit error against every neighbouring part (:func:`soft_weights`);
+   weights below the threshold (0.2) are dropped, so a marker may belong to
+   several parts,
+5. each part gets a local frame (:func:`part_frames`): origin at the weighted
+   mean of its reference positions, axes the eigenvectors of their covariance.
 
-The result is a :class:`Segmentation`, stored with its own codec.
+The result is a :class:`~mocapflow.stages.skin.segmentation.Segmentation`, stored
+with its own codec (:mod:`mocapflow.stages.skin.segmentation`).
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -36,14 +39,11 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from mocapflow.pipeline import Context, FilePath, stage
-from mocapflow.pipeline.codecs import Encoded, codec
+from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
 from mocapflow.stages.motion.datatypes import Markers, Mesh
-from mocapflow.stages.motion.kinematics import absolute_orientation_batch
+from mocapflow.stages.skin.segmentation import Segmentation, SegmentationError
 
 __all__ = [
-    "SegmentationError",
-    "Segmentation",
-    "adjusted_rand_index",
     "clean_up_parts",
     "marker_adjacency",
     "marker_labels_from_triangles",
@@ -55,156 +55,6 @@ __all__ = [
     "soft_weights",
     "triangle_rotations",
 ]
-
-
-class SegmentationError(ValueError):
-    """The inputs of the segmentation are inconsistent or insufficient."""
-
-
-# --------------------------------------------------------------------------- data type
-
-
-@dataclass(eq=False)
-class Segmentation:
-    """Near-rigid parts of a marker surface.
-
-    Parameters
-    ----------
-    labels : list of str
-        ``M`` marker labels (the order of every per-marker array).
-    part_names : list of str
-        ``P`` part names.
-    weights : (M, P) float ndarray
-        Soft weights ``alpha`` of each marker for each part; rows sum to 1,
-        zero where the marker does not belong to the part.
-    reference : (M, 3) float ndarray
-        Reference positions of the markers (metres).
-    faces : (T, 3) int ndarray
-        Triangles of the marker surface (marker indices).
-    origins : (P, 3) float ndarray
-        Origin of each part's local frame (weighted mean reference position).
-    axes : (P, 3, 3) float ndarray
-        Columns are the local axes of each part (eigenvectors of the reference
-        covariance, decreasing variance, right-handed).
-    triangle_clusters : (T,) int ndarray
-        Raw mean-shift cluster of each triangle (before clean-up).
-    attrs : dict
-        Parameters and clean-up report.
-    """
-
-    labels: list[str]
-    part_names: list[str]
-    weights: np.ndarray
-    reference: np.ndarray
-    faces: np.ndarray
-    origins: np.ndarray
-    axes: np.ndarray
-    triangle_clusters: np.ndarray
-    attrs: dict[str, Any] = field(default_factory=dict)
-
-    def __post_init__(self) -> None:
-        self.labels = [str(x) for x in self.labels]
-        self.part_names = [str(x) for x in self.part_names]
-        self.weights = np.asarray(self.weights, dtype=np.float64)
-        self.reference = np.asarray(self.reference, dtype=np.float64)
-        self.faces = np.asarray(self.faces, dtype=np.int64).reshape(-1, 3)
-        self.origins = np.asarray(self.origins, dtype=np.float64)
-        self.axes = np.asarray(self.axes, dtype=np.float64)
-        self.triangle_clusters = np.asarray(self.triangle_clusters, dtype=np.int64)
-        M, P = len(self.labels), len(self.part_names)
-        if self.weights.shape != (M, P):
-            raise SegmentationError(f"weights: expected {(M, P)}, got {self.weights.shape}")
-        if self.reference.shape != (M, 3):
-            raise SegmentationError(f"reference: expected {(M, 3)}, got {self.reference.shape}")
-        if self.origins.shape != (P, 3) or self.axes.shape != (P, 3, 3):
-            raise SegmentationError("origins/axes disagree with the number of parts")
-
-    @property
-    def n_parts(self) -> int:
-        """Number of parts ``P``."""
-        return len(self.part_names)
-
-    @property
-    def hard_labels(self) -> np.ndarray:
-        """``(M,)`` int: the part of largest weight of each marker."""
-        return np.argmax(self.weights, axis=1)
-
-    def members(self, p: int) -> np.ndarray:
-        """Indices of the markers with a non-zero weight for part ``p``."""
-        return np.flatnonzero(self.weights[:, p] > 0)
-
-
-def _encode_segmentation(s: Segmentation) -> Encoded:
-    return Encoded(
-        "segmentation",
-        {
-            "weights": (s.weights, ("marker", "part")),
-            "reference": (s.reference, ("marker", "xyz")),
-            "faces": (s.faces, ("face", "corner")),
-            "origins": (s.origins, ("part", "xyz")),
-            "axes": (s.axes, ("part", "xyz", "axis")),
-            "triangle_clusters": (s.triangle_clusters, ("face",)),
-        },
-        {"labels": s.labels, "part_names": s.part_names, "attrs": s.attrs},
-    )
-
-
-def _decode_segmentation(e: Encoded) -> Segmentation:
-    a = e.arrays
-    return Segmentation(
-        labels=e.attrs["labels"],
-        part_names=e.attrs["part_names"],
-        weights=a["weights"][0],
-        reference=a["reference"][0],
-        faces=a["faces"][0],
-        origins=a["origins"][0],
-        axes=a["axes"][0],
-        triangle_clusters=a["triangle_clusters"][0],
-        attrs=e.attrs.get("attrs", {}),
-    )
-
-
-codec("segmentation", encode=_encode_segmentation, decode=_decode_segmentation)(Segmentation)
-
-
-# --------------------------------------------------------------------------- metrics
-
-
-def adjusted_rand_index(a: np.ndarray, b: np.ndarray) -> float:
-    """Adjusted Rand index of two labelings (Hubert & Arabie 1985).
-
-    Parameters
-    ----------
-    a, b : (N,) int ndarray
-        Cluster labels of the same ``N`` items (any integer values).
-
-    Returns
-    -------
-    float
-        1 for identical partitions (up to renaming), about 0 for chance.
-    """
-    a = np.asarray(a).ravel()
-    b = np.asarray(b).ravel()
-    if a.shape != b.shape:
-        raise ValueError(f"adjusted_rand_index: {a.shape} vs {b.shape} labels")
-    n = a.size
-    if n < 2:
-        return 1.0
-    _, ai = np.unique(a, return_inverse=True)
-    _, bi = np.unique(b, return_inverse=True)
-    table = sp.coo_matrix((np.ones(n), (ai, bi))).toarray()
-
-    def pairs(x: np.ndarray) -> float:
-        return float(np.sum(x * (x - 1)) / 2)
-
-    sum_ij = pairs(table)
-    sum_a = pairs(table.sum(1))
-    sum_b = pairs(table.sum(0))
-    expected = sum_a * sum_b / (n * (n - 1) / 2)
-    maximum = (sum_a + sum_b) / 2
-    if maximum == expected:
-        return 1.0
-    return float((sum_ij - expected) / (maximum - expected))
 
 
 # --------------------------------------------------------------------------- surface helpers
@@ -752,6 +602,76 @@ def _reference_and_faces(
     return np.asarray(ref[keep], dtype=np.float64), remap[faces], cols[keep]
 
 
+def _surface_markers(markers: Markers, surface: Mesh,
+                     ctx: Context) -> tuple[Markers, np.ndarray, np.ndarray]:
+    """The capture cut down to the markers on the surface (the others warned about).
+
+    Returns the markers ``(F, M', 3)`` in surface order, their reference
+    positions ``(M', 3)`` and the faces ``(T, 3)`` re-indexed onto them.
+    """
+    reference, faces, cols = _reference_and_faces(markers, surface)
+    left_out = sorted(set(markers.labels) - {markers.labels[i] for i in cols})
+    if left_out:
+        ctx.warn(
+            f"{len(left_out)} markers are not on the marker surface and are left "
+            f"out of the segmentation: {left_out[:10]}"
+        )
+    markers = markers.replace(
+        positions=markers.positions[:, cols], labels=[markers.labels[i] for i in cols],
+        residuals=None,
+    )  # fmt: skip
+    return markers, reference, faces
+
+
+def _cluster_triangles(positions: np.ndarray, reference: np.ndarray, faces: np.ndarray,
+                       n_markers: int, *, bandwidth: float,
+                       max_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """Steps 1–2 and the start of 3: triangle rotation sequences clustered by mean shift,
+    each marker taking the cluster of most of its triangles (markers on none get
+    clusters of their own).  Returns ``(triangle clusters (T,), marker clusters (M,))``."""
+    rot = triangle_rotations(positions, reference, faces)
+    feats = rotation_features(rot, max_frames=max_frames)
+    tri_labels, _ = mean_shift(feats, bandwidth)
+    cluster = marker_labels_from_triangles(tri_labels, faces, n_markers)
+    cluster[cluster < 0] = cluster.max() + 1 + np.arange(np.sum(cluster < 0))
+    return tri_labels, cluster
+
+
+def _warn_small_parts(names: list[str], alpha: np.ndarray, ctx: Context) -> None:
+    """Warn about parts with fewer than 10 markers (``deform`` keeps them rigid)."""
+    for p, n in enumerate(names):
+        k = int(np.sum(alpha[:, p] > 0))
+        if k < 10:
+            ctx.warn(
+                f"part {n!r} has {k} markers (< 10): deform will use a rigid "
+                "transform for it (the quadratic is under-determined)"
+            )
+
+
+def _segment_report(marker_labels: list[str], names: list[str], labels: np.ndarray,
+                    alpha: np.ndarray, fit_rms: np.ndarray, merges: list[dict[str, Any]], *,
+                    n_clusters: int, frames_used: int, override: bool) -> dict[str, Any]:
+    """The segment report: parts with their markers and rigid-fit RMS (mm), merges,
+    boundary markers (weights for more than one part)."""
+    boundary = np.flatnonzero((alpha > 0).sum(1) > 1)
+    return {
+        "n_clusters": n_clusters,
+        "n_parts": len(names),
+        "frames_used": frames_used,
+        "parts": {
+            n: {
+                "markers": [marker_labels[i] for i in np.flatnonzero(labels == p)],
+                "n_members": int(np.sum(alpha[:, p] > 0)),
+                "rigid_fit_rms_mm": float(fit_rms[p] * 1000) if np.isfinite(fit_rms[p]) else None,
+            }
+            for p, n in enumerate(names)
+        },
+        "merges": merges,
+        "boundary_markers": [marker_labels[i] for i in boundary],
+        "override": override,
+    }
+
+
 @stage("segment", outputs=("segmentation", "report"))
 def segment(
     markers: Markers,
@@ -811,17 +731,7 @@ def segment(
         ``segmentation`` (:class:`Segmentation`) and ``report`` (JSON: parts with
         their markers, rigid-fit RMS in mm, merges, boundary markers).
     """
-    reference, faces, cols = _reference_and_faces(markers, surface)
-    left_out = sorted(set(markers.labels) - {markers.labels[i] for i in cols})
-    if left_out:
-        ctx.warn(
-            f"{len(left_out)} markers are not on the marker surface and are left "
-            f"out of the segmentation: {left_out[:10]}"
-        )
-    markers = markers.replace(
-        positions=markers.positions[:, cols], labels=[markers.labels[i] for i in cols],
-        residuals=None,
-    )  # fmt: skip
+    markers, reference, faces = _surface_markers(markers, surface, ctx)
     M = markers.n_markers
     pos = markers.positions
     F = pos.shape[0]
@@ -836,12 +746,8 @@ def segment(
             f"markers on no surface triangle form their own parts: "
             f"{[markers.labels[i] for i in isolated[:10]]}"
         )
-
-    rot = triangle_rotations(pos_s, reference, faces)
-    feats = rotation_features(rot, max_frames=max_frames)
-    tri_labels, _ = mean_shift(feats, bandwidth)
-    cluster = marker_labels_from_triangles(tri_labels, faces, M)
-    cluster[cluster < 0] = cluster.max() + 1 + np.arange(np.sum(cluster < 0))
+    tri_labels, cluster = _cluster_triangles(pos_s, reference, faces, M, bandwidth=bandwidth,
+                                             max_frames=max_frames)
     pos_c = pos_s[np.unique(np.linspace(0, len(pos_s) - 1, min(len(pos_s), 120)).astype(int))]
     labels, merges = clean_up_parts(
         cluster, adjacency, reference, pos_c, merge_rms=merge_rms,
@@ -855,30 +761,10 @@ def segment(
         labels, adjacency, reference, pos_s, threshold=threshold, sigma=sigma
     )
     origins, axes = part_frames(reference, alpha)
-    for p, n in enumerate(names):
-        k = int(np.sum(alpha[:, p] > 0))
-        if k < 10:
-            ctx.warn(
-                f"part {n!r} has {k} markers (< 10): deform will use a rigid "
-                "transform for it (the quadratic is under-determined)"
-            )
-    boundary = np.flatnonzero((alpha > 0).sum(1) > 1)
-    report = {
-        "n_clusters": int(tri_labels.max() + 1),
-        "n_parts": len(names),
-        "frames_used": len(fidx),
-        "parts": {
-            n: {
-                "markers": [markers.labels[i] for i in np.flatnonzero(labels == p)],
-                "n_members": int(np.sum(alpha[:, p] > 0)),
-                "rigid_fit_rms_mm": float(fit_rms[p] * 1000) if np.isfinite(fit_rms[p]) else None,
-            }
-            for p, n in enumerate(names)
-        },
-        "merges": merges,
-        "boundary_markers": [markers.labels[i] for i in boundary],
-        "override": bool(manual),
-    }
+    _warn_small_parts(names, alpha, ctx)
+    report = _segment_report(markers.labels, names, labels, alpha, fit_rms, merges,
+                             n_clusters=int(tri_labels.max() + 1), frames_used=len(fidx),
+                             override=bool(manual))
     seg = Segmentation(
         labels=markers.labels,
         part_names=names,

@@ -31,7 +31,7 @@ from mocapflow.stages.skin.mesh_fit import fit_mesh, template_mesh
 from mocapflow.stages.skin.render import offscreen_available
 from mocapflow.stages.skin.segment import segment
 from mocapflow.stages.texture.pyramid import pyramid
-from mocapflow.stages.variation.clips import clips
+from mocapflow.stages.variation.inputs import clips
 from mocapflow.stages.variation.learn import learn
 from mocapflow.stages.variation.sample import sample
 

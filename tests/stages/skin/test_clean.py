@@ -10,27 +10,24 @@ import pytest
 
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, encode
+from mocapflow.stages.metrics.cleaning import gap_mask, region_errors, score_merges
 from mocapflow.stages.motion.datatypes import Markers, Mesh
-from mocapflow.stages.motion.kinematics import quat_from_rotvec, quat_to_matrix
-from mocapflow.stages.motion.simulate.capture import (
-    gap_mask,
-    region_errors,
-    score_merges,
-)
+from mocapflow.stages.motion.formats.c3d import read_c3d
+from mocapflow.stages.motion.rotations import quat_from_rotvec, quat_to_matrix
 from mocapflow.stages.skin.clean import (
     STATUS,
     CleanError,
+    _smooth_chunk,
     _smooth_run,
     clean,
-    clean_markers,
     frame_weights,
-    predict_missing,
     smooth_local,
 )
-from mocapflow.stages.skin.surface import SurfaceFileError, build_marker_surface
+from mocapflow.stages.skin.predict import predict_missing
+from mocapflow.stages.skin.surface import MarkerSurface, SurfaceFileError, build_marker_surface
 from tests.stages.conftest import simulated_capture
 
-DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data"
+DATA = Path(__file__).resolve().parents[3] / ".." / "shared" / "data"
 NOISE = 0.0003
 
 
@@ -43,7 +40,9 @@ def sim():
 @pytest.fixture(scope="module")
 def cleaned(sim):
     ctx = Context(part="sim")
-    out, rep, surf = clean_markers(sim.markers, ctx=ctx)
+    res = clean(sim.markers, ctx=ctx)
+    out, rep = res["markers"], res["report"]
+    surf = MarkerSurface.from_mesh(res["surface"])
     return out, rep, surf, ctx
 
 
@@ -101,7 +100,9 @@ def test_table2_gaps_in_known_data(sim):
                     fraction=0.1, clustered=False, rng=rng)
     assert mask.sum() > 400
     gapped = base.replace(positions=np.where(mask[..., None], np.nan, base.positions))
-    out, rep, surf = clean_markers(gapped, merge=False, ctx=Context())
+    res = clean(gapped, merge=False, ctx=Context())
+    out, rep = res["markers"], res["report"]
+    surf = MarkerSurface.from_mesh(res["surface"])
     e = region_errors(out.positions, tr["positions"], mask, tr["region"], surf.mean_distance)
     assert e["all"]["unfilled"] == 0 and rep["fill"]["regression"] > 0.9 * mask.sum()
     # regression fill (default): mean 0.015, max 0.08 of the mean neighbour distance here
@@ -109,7 +110,8 @@ def test_table2_gaps_in_known_data(sim):
     assert e["all"]["mean"] < 0.02 and e["all"]["max"] < 0.12
     assert e["all"]["mean_mm"] < 2.2
     # the paper's local PCA (fill_model="pca"): mean 0.016, 1.9 mm
-    outp, repp, _ = clean_markers(gapped, merge=False, fill_model="pca", ctx=Context())
+    res = clean(gapped, merge=False, fill_model="pca", ctx=Context())
+    outp, repp = res["markers"], res["report"]
     ep = region_errors(outp.positions, tr["positions"], mask, tr["region"],
                        surf.mean_distance)["all"]
     assert ep["unfilled"] == 0 and "regression" not in repp["fill"]
@@ -161,7 +163,8 @@ def test_rigid_motion_is_predicted_and_filled_exactly():
     assert ok.sum() > 0.95 * holes.sum()
     assert np.abs(E[ok] - P[ok]).max() < 1e-9
     m = Markers(gapped, [f"p{i}" for i in range(M)], 100.0)
-    out, rep, _ = clean_markers(m, merge=False, smooth_iterations=0, ctx=Context())
+    res = clean(m, merge=False, smooth_iterations=0, ctx=Context())
+    out, rep = res["markers"], res["report"]
     assert rep["table1"]["left_unfilled"] == 0
     assert np.abs(out.positions - P).max() < 1e-6
 
@@ -193,7 +196,8 @@ def test_fragments_of_a_rigid_patch_are_merged_back():
     labels = [f"p{i}" for i in range(M)]
     m = Markers(pos, labels, 100.0, fragments=fr,
                 fragment_labels=[f"*{u + 1}" for u in range(fr.shape[1])])
-    out, rep, _ = clean_markers(m, smooth_iterations=0, ctx=Context())
+    res = clean(m, smooth_iterations=0, ctx=Context())
+    out, rep = res["markers"], res["report"]
     sc = score_merges(rep["merges"], m.fragment_labels, np.array(truth), labels)
     assert sc["wrong"] == 0 and sc["merged"] == len(truth) - 1
     rej = {r["fragment"]: r["reason"] for r in rep["rejections"]}
@@ -248,8 +252,6 @@ def test_smoothing_frame_leaves_out_a_rarely_measured_neighbour():
     assert err.max() < 1.2e-3  # noise level (0.3 mm), not the neighbour's 7 cm jump
     # without the rule the jump leaks into the smoothed run
     keep_all = surf.rigidity
-    from mocapflow.stages.skin.clean import _smooth_chunk
-
     _, leak = _smooth_chunk((X, np.array([m]), surf.neighbours[[m]], keep_all[[m]],
                              surf.reference, 0.1, 10, measured))
     assert np.linalg.norm(leak[80:140, 0] - P[80:140, m], axis=-1).max() > 2 * err.max()
@@ -268,7 +270,8 @@ def test_never_visible_marker_stays_nan_with_a_warning(sim):
     pos = base.positions.copy()
     pos[:, 7] = np.nan
     ctx = Context()
-    out, rep, _ = clean_markers(base.replace(positions=pos), ctx=ctx)
+    res = clean(base.replace(positions=pos), ctx=ctx)
+    out, rep = res["markers"], res["report"]
     lab = base.labels[7]
     assert rep["never_visible"] == [lab]
     assert any("never visible" in w and lab in w for w in ctx.warnings)
@@ -291,8 +294,9 @@ def test_markers_with_fewer_than_three_neighbours(tmp_path):
     pos[10:20, 1] = np.nan
     pos[10:20, 30] = np.nan
     ctx = Context()
-    out, rep, _ = clean_markers(Markers(pos, [f"p{i}" for i in range(M)], 100.0),
-                                surface=str(path), smooth_iterations=0, ctx=ctx)
+    res = clean(Markers(pos, [f"p{i}" for i in range(M)], 100.0),
+                surface=str(path), smooth_iterations=0, ctx=ctx)
+    out, rep = res["markers"], res["report"]
     assert rep["too_few_neighbours"] == ["p0", "p1", "p2"]
     assert any("fewer than 3" in w and "p1" in w for w in ctx.warnings)
     assert not np.isfinite(out.positions[10:20, 1]).any()  # nothing invented
@@ -308,7 +312,9 @@ def test_reference_frame_with_missing_markers(sim):
     gone = [3, 40, 77]
     pos[frame - 5: frame + 5, gone] = np.nan
     ctx = Context()
-    out, rep, surf = clean_markers(base.replace(positions=pos), reference_frame=frame, ctx=ctx)
+    res = clean(base.replace(positions=pos), reference_frame=frame, ctx=ctx)
+    out, rep = res["markers"], res["report"]
+    surf = MarkerSurface.from_mesh(res["surface"])
     assert rep["reference_frame"] == frame
     carried = [base.labels.index(lb) for lb in rep["reference_carried_over"]]
     missing = np.flatnonzero(~np.isfinite(pos[frame]).all(1))
@@ -327,18 +333,18 @@ def test_reference_frame_with_missing_markers(sim):
 def test_bad_requests(tmp_path, sim):
     m = sim.markers
     with pytest.raises(CleanError, match="reference_frame 500 out of range"):
-        clean_markers(m, reference_frame=500)
+        clean(m, reference_frame=500)
     with pytest.raises(CleanError, match="alpha1 and alpha2 must be positive"):
-        clean_markers(m, alpha1=0.0)
+        clean(m, alpha1=0.0)
     with pytest.raises(CleanError, match="variance"):
-        clean_markers(m, variance=1.5)
+        clean(m, variance=1.5)
     bad = tmp_path / "surf.txt"
     bad.write_text(f"{m.labels[0]} {m.labels[1]} NOPE\n")
     with pytest.raises(SurfaceFileError, match=r"surf\.txt:1.*'NOPE'"):
-        clean_markers(m, surface=str(bad))
+        clean(m, surface=str(bad))
     empty = Markers(np.zeros((0, 0, 3)), [], 100.0)
     with pytest.raises(CleanError, match="no labelled markers"):
-        clean_markers(empty)
+        clean(empty)
 
 
 # --------------------------------------------------------------------------- stage contract
@@ -366,10 +372,9 @@ def test_stage_outputs_store_and_parallel_map_agrees(sim):
 
 @pytest.mark.skipif(not (DATA / "c3d").exists(), reason="no shared data")
 def test_real_fragmented_pig_file():
-    from mocapflow.stages.motion.formats.c3d import read_c3d
-
     m = read_c3d(DATA / "c3d" / "btkdata_PiG_Calibration-FlatFoot-Hole.c3d")
-    out, rep, _ = clean_markers(m, ctx=Context())
+    res = clean(m, ctx=Context())
+    out, rep = res["markers"], res["report"]
     # 64 fragments appear while every labelled marker is present: duplicates/ghosts;
     # *65 and *66 (frames 292-298, during RASI's hole) lie 1.8 m from RASI's prediction
     assert rep["merges"] == []

@@ -6,17 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import mocapflow.stages.skin.fill as cf
 from mocapflow.pipeline import Context
+from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
 from mocapflow.stages.motion.datatypes import Markers
-from mocapflow.stages.motion.kinematics import (
-    absolute_orientation_batch,
-    quat_from_rotvec,
-    quat_to_matrix,
-)
-from mocapflow.stages.skin.clean import clean_markers
-from mocapflow.stages.skin.fill import (
+from mocapflow.stages.motion.rotations import quat_from_rotvec, quat_to_matrix
+from mocapflow.stages.skin.clean import CleanError, clean
+from mocapflow.stages.skin.fill import fill_holes
+from mocapflow.stages.skin.local_pca import (
     PCA_FRAMES_PER_COORDINATE,
-    fill_holes,
     model_estimates,
     model_estimates_batch,
     train_local_pca,
@@ -216,8 +214,6 @@ def test_cache_between_calls_changes_nothing_but_the_work():
     X2[back] = P[back]
     plain, pinfo = fill_holes(X2, surf, model="pca", models=models)
     calls = []
-    import mocapflow.stages.skin.fill as cf
-
     real = cf.model_estimates_batch
 
     def counting(models, X, targets, **kw):  # estimates computed (not re-used)
@@ -260,7 +256,7 @@ def test_batched_estimates_equal_one_model_at_a_time(monkeypatch):
     rows = rng.random(len(X)) < 0.5
     masks = [None, rows, None, ~rows, None, rows]
     for pairs in (8000, 50):  # one batch; blocks of a few models
-        monkeypatch.setattr("mocapflow.stages.skin.fill.BATCH_PAIRS", pairs)
+        monkeypatch.setattr("mocapflow.stages.skin.local_pca.BATCH_PAIRS", pairs)
         batch = model_estimates_batch(models, X, targets, masks=masks, min_support=0.2,
                                       neighbour_weight=0.1)
         for md, mk, got in zip(models, masks, batch):
@@ -279,23 +275,24 @@ def test_fill_holes_rejects_an_unknown_model():
         fill_holes(X, build_marker_surface(P[0]), model="spline")
 
 
-def test_clean_markers_fill_model_param():
+def test_clean_fill_model_param():
     P = deforming_patch(240)
     X = P.copy()
     X[100:160, 24] = np.nan
     m = Markers(X, [f"p{i}" for i in range(49)], RATE)
-    out, rep, _ = clean_markers(m, merge=False, smooth_iterations=0, ctx=Context())
+    res = clean(m, merge=False, smooth_iterations=0, ctx=Context())
+    out, rep = res["markers"], res["report"]
     assert rep["params"]["fill_model"] == "regression" and rep["fill"]["regression"] == 60
     assert np.abs(out.positions[100:160, 24] - P[100:160, 24]).max() < 1e-3
-    out2, rep2, _ = clean_markers(m, merge=False, smooth_iterations=0, fill_model="pca",
-                                  ctx=Context())
+    res = clean(m, merge=False, smooth_iterations=0, fill_model="pca",
+                ctx=Context())
+    out2, rep2 = res["markers"], res["report"]
     assert "regression" not in rep2["fill"] and np.isfinite(out2.positions).all()
-    from mocapflow.stages.skin.clean import CleanError
-
+    # the raw function: the stage's own param check would raise ParamError first
     with pytest.raises(CleanError, match="fill_model"):
-        clean_markers(m, fill_model="nope")
+        clean.__wrapped__(m, fill_model="nope", ctx=Context())
     with pytest.raises(CleanError, match="fill_predictors must be >= 4"):
-        clean_markers(m, fill_predictors=2)
+        clean(m, fill_predictors=2)
 
 
 # --------------------------------------------------------------------------- rarely seen markers

@@ -20,14 +20,14 @@ import numpy as np
 import pytest
 
 import mocapflow.stages.skin.merge as cm
-from mocapflow.stages.motion import kinematics as kin
-from mocapflow.stages.motion.kinematics import (
+from mocapflow.stages.motion import absolute_orientation as kin
+from mocapflow.stages.motion.absolute_orientation import (
     DegenerateFitError,
     absolute_orientation,
     absolute_orientation_batch,
-    quat_from_rotvec,
-    quat_to_matrix,
 )
+from mocapflow.stages.motion.rotations import quat_from_rotvec, quat_to_matrix
+from mocapflow.stages.skin.surface import build_marker_surface
 from tests.stages.conftest import simulated_capture
 
 REL_TOL = 1e-7
@@ -251,8 +251,6 @@ def test_prediction_index_counts_and_next_prediction():
 
 
 def test_merge_with_index_equals_dense_merge(monkeypatch):
-    from mocapflow.stages.skin.surface import build_marker_surface
-
     sim = simulated_capture(n_markers=80, n_frames=120, motion="walk", rng=1,
                                  body_vertices=1000)
     m = sim.markers
@@ -280,8 +278,6 @@ def grid_case(offset_true, offset_wrong=0.004):
     marker 14's lies ``offset_wrong`` from the fragment; marker 15's (trusted
     only as a competitor) ``offset_true`` from it.
     """
-    from mocapflow.stages.skin.surface import build_marker_surface
-
     F, n = 20, 6
     gx, gy = np.meshgrid(np.arange(n) * 0.04, np.arange(n) * 0.04)
     ref = np.stack([gx.ravel(), gy.ravel(), 0.01 * np.sin(gx.ravel() * 20)], 1)

@@ -11,29 +11,27 @@ from scipy.spatial import cKDTree
 
 from mocapflow.pipeline import Context
 from mocapflow.stages.motion.datatypes import Markers, Mesh
+from mocapflow.stages.skin.binding import DeformError, bind_mesh, closest_points_on_triangles
 from mocapflow.stages.skin.deform import (
-    MODES,
-    DeformError,
-    bind_mesh,
-    closest_points_on_triangles,
-    cubic_bspline,
     deform,
     deform_positions,
-    dilation,
-    evaluate_part,
-    fit_part,
     frame_coefficients,
     operator_matrix,
-    prepare_part,
+    vertex_operator,
+)
+from mocapflow.stages.skin.kernels import (
+    cubic_bspline,
+    dilation,
     quadratic_basis,
     rbf_matrix,
     thin_plate,
     thin_plate_matrix,
-    vertex_operator,
 )
-from mocapflow.stages.skin.mesh_fit import fit_detailed_mesh, fit_mesh
-from mocapflow.stages.skin.segment import Segmentation, part_frames, segment
-from tests.stages.test_segment import deform_limb, grid_cylinder, limb_capture, rot_x, rot_y
+from mocapflow.stages.skin.mesh_fit import fit_detailed_mesh, fit_mesh, template_mesh
+from mocapflow.stages.skin.parts import MODES, evaluate_part, fit_part, prepare_part
+from mocapflow.stages.skin.segment import part_frames, segment
+from mocapflow.stages.skin.segmentation import Segmentation
+from tests.stages.skin.conftest import deform_limb, grid_cylinder, limb_capture, rot_x, rot_y
 
 
 def hard_segmentation(reference, parts, names, faces=None, labels=None):
@@ -409,8 +407,6 @@ def test_quadratic_damping(limb):
 
 
 def test_template_mesh_and_template_frame(limb):
-    from mocapflow.stages.skin.mesh_fit import template_mesh
-
     t = template_mesh(n_vertices=1500, ctx=Context())["mesh"]
     assert 1000 < len(t.vertices) < 2500 and not t.animated
     height = np.ptp(t.vertices[:, 1])

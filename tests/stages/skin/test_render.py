@@ -24,7 +24,7 @@ from mocapflow.stages.skin.render import (
     write_ply,
 )
 from mocapflow.stages.skin.segment import segment
-from tests.stages.test_segment import limb_capture
+from tests.stages.skin.conftest import limb_capture
 
 OK, WHY = offscreen_available()
 needs_gl = pytest.mark.skipif(not OK, reason=f"no off-screen OpenGL context here: {WHY}")

@@ -10,13 +10,17 @@ import numpy as np
 import pytest
 
 from mocapflow.pipeline import Context
+from mocapflow.pipeline.cli import main
+from mocapflow.pipeline.codecs import decode
+from mocapflow.pipeline.store import Store
 from mocapflow.stages.motion.datatypes import Markers
 from mocapflow.stages.motion.formats.c3d import read_c3d, write_c3d
+from mocapflow.stages.motion.simulate.capture import simulate_capture
 from mocapflow.stages.skin.rom import ingest_rom, match_labels, match_markers
-from mocapflow.stages.skin.segment import Segmentation
+from mocapflow.stages.skin.segmentation import Segmentation
 from tests.stages.conftest import simulated_capture
 
-SKIN = Path(__file__).parents[2] / "configs" / "skin.yaml"
+SKIN = Path(__file__).parents[3] / "configs" / "skin.yaml"
 SMALL = dict(n_markers=40, n_frames=60, rate=60.0, body_vertices=1200, ghost_rate=0.0)
 
 
@@ -45,8 +49,6 @@ def test_same_seed_same_marker_layout_across_motions():
 
 
 def test_stage_context_rng_gives_the_same_layout_for_the_same_part_id():
-    from mocapflow.stages.motion.simulate.capture import simulate_capture
-
     kw = {k: v for k, v in SMALL.items()}
     a = simulate_capture(motion="walk", seed=0, ctx=Context(part="seed=0", seed=0), **kw)
     b = simulate_capture(motion="range_of_motion", seed=0, ctx=Context(part="seed=0", seed=0),
@@ -126,8 +128,6 @@ def captures(tmp_path_factory):
 
 
 def _run(tmp_path, capsys, files, *extra):
-    from mocapflow.pipeline.cli import main
-
     capsys.readouterr()
     code = main(["run", str(SKIN), "--store", str(tmp_path / "store"), "--executor", "sync",
                  "--parts", str(files["run"]), "--parts", str(files["walk"]),
@@ -149,8 +149,6 @@ def test_skin_graph_segments_the_rom_trial_once_for_every_part(captures, tmp_pat
     (seg,) = [t for t in tasks if t["node"] == "segment"]
     assert seg["part"] is None
     # the same command again is all hits (the ROM read once is keyed by its content)
-    from mocapflow.pipeline.cli import main
-
     assert main(["plan", str(SKIN), "--store", str(tmp_path / "store"), "--parts",
                  str(files["run"]), "--parts", str(files["walk"]), "--target", "deform",
                  "--set", "template.n_vertices=1500", "--set", f"params.rom={files['rom']}",
@@ -170,9 +168,6 @@ def test_skin_graph_segments_the_rom_trial_once_for_every_part(captures, tmp_pat
     deform = {t["part"]: t for t in tasks if t["node"] == "deform"}
     assert set(deform) == {run_part, walk_part}
     # the missing markers leave no hole in the mesh: every vertex of every frame is finite
-    from mocapflow.pipeline.codecs import decode
-    from mocapflow.pipeline.store import Store
-
     mesh = decode(Store(tmp_path / "store").load("deform", deform[walk_part]["key"], "mesh"))
     assert mesh.vertices.ndim == 3 and mesh.vertices.shape[0] == SMALL["n_frames"]
     assert np.isfinite(mesh.vertices).all()

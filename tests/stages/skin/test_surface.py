@@ -7,24 +7,24 @@ import json
 import numpy as np
 import pytest
 
+from mocapflow.stages.skin.manifold import (
+    fill_surface_holes,
+    insert_markers,
+    orient_faces,
+    pinched_markers,
+    surface_topology,
+)
+from mocapflow.stages.skin.rigidity import edge_stretch, rigidity_weights, supplement_rigid
 from mocapflow.stages.skin.surface import (
     SurfaceFileError,
     SurfaceInputError,
     build_marker_surface,
-    edge_stretch,
-    fill_surface_holes,
-    insert_markers,
     local_frames,
     marker_surface_from_faces,
     one_ring,
-    orient_faces,
-    pinched_markers,
     read_surface_file,
-    rigidity_weights,
-    supplement_rigid,
-    surface_topology,
-    triangulate_markers,
 )
+from mocapflow.stages.skin.triangulate import triangulate_markers
 
 
 def cylinder_markers(n_around: int = 12, n_along: int = 8, radius: float = 0.1,
