@@ -6,11 +6,19 @@ User errors (bad config, missing file, bad flag, ``--frozen`` mismatch, failed
 tasks) print one line on stderr and exit non-zero (2 for usage/config errors,
 1 for failed tasks, store problems and lock mismatches); ``--debug`` adds the
 traceback.
+
+This module parses arguments and prints; what the verbs do lives in library
+modules: :mod:`~mocapflow.pipeline.runner` (run), :mod:`~mocapflow.pipeline.plan`
+(plan, status, explain, the gc keep set), :mod:`~mocapflow.pipeline.lock`,
+:mod:`~mocapflow.pipeline.export`, :mod:`~mocapflow.pipeline.show`,
+:mod:`~mocapflow.pipeline.demo` and the :class:`~mocapflow.pipeline.store.Store`
+(verify, gc).
 """
 
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import logging
 import os
@@ -20,15 +28,36 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-__all__ = ["build_parser", "export_results", "main"]
+from mocapflow.pipeline import registry
+from mocapflow.pipeline.config import ConfigError, load_stage_modules
+from mocapflow.pipeline.demo import DemoError, DemoStep, load_demo_spec, run_demo
+from mocapflow.pipeline.execute import OK, TaskRecord
+from mocapflow.pipeline.executors import (
+    Executor,
+    ExecutorError,
+    SlurmOptions,
+    make_executor,
+    slurm_job_script,
+)
+from mocapflow.pipeline.export import EXPORT_LAYOUT, export_results
+from mocapflow.pipeline.graph import Graph, file_overrides, load_graph, task_name
+from mocapflow.pipeline.lock import (
+    FrozenError,
+    default_lock_path,
+    lock_document,
+    read_lock,
+    write_lock,
+)
+from mocapflow.pipeline.plan import explain, gc_keep_set, plan, task_status
+from mocapflow.pipeline.progress import Progress
+from mocapflow.pipeline.registry import ParamError
+from mocapflow.pipeline.runner import RunResult, run
+from mocapflow.pipeline.show import entry_summary, find_entry
+from mocapflow.pipeline.store import Store, StoreError
+
+__all__ = ["build_parser", "main"]
 
 DEFAULT_STORE = ".mocapflow"
-EXPORT_LAYOUT = ("Files are written as DIR/<node>/<part label>/<output>.<ext>; the part label "
-                 "is the part file's stem, '.seed<S>' appended per seed fan-out, 'seed<S>' for "
-                 "a seed-only part and 'all' for a gather node ('-<6 hex>' is appended when two "
-                 "parts share a stem). Registered types use their exporter (BVH, C3D, OBJ, "
-                 "PNG/MP4, …); JSON outputs become <output>.json, arrays <output>.npy, records "
-                 "<output>.json + <output>.<array>.npy.")
 EPILOG = """examples:
   mocapflow run configs/texture.yaml --parts 'takes/*.bvh' --set synth.length=2048
   mocapflow plan configs/skin.yaml --json
@@ -203,9 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
 # --------------------------------------------------------------------------- helpers
 
 
-def _store(args: argparse.Namespace):
-    from mocapflow.pipeline.store import Store
-
+def _store(args: argparse.Namespace) -> Store:
     root = args.store or os.environ.get("MOCAPFLOW_STORE") or DEFAULT_STORE
     try:
         return Store(root)
@@ -214,22 +241,15 @@ def _store(args: argparse.Namespace):
 
 
 def _load(args: argparse.Namespace, config: str | None = None, *, parts=None, sets=None,
-          targets=None, all_nodes: bool = False):
-    from mocapflow.pipeline.config import load_config, load_stage_modules
-    from mocapflow.pipeline.graph import build_graph
-
-    load_stage_modules()
-    cfg = load_config(config or args.config,
+          targets=None, all_nodes: bool = False) -> Graph:
+    return load_graph(config or args.config,
                       sets=sets if sets is not None else (getattr(args, "sets", None) or []),
-                      parts=parts if parts is not None else getattr(args, "parts", None))
-    if all_nodes:
-        targets = list(cfg.nodes)
-    return build_graph(cfg, targets if targets is not None else getattr(args, "targets", None))
+                      parts=parts if parts is not None else getattr(args, "parts", None),
+                      targets=targets if targets is not None else getattr(args, "targets", None),
+                      all_nodes=all_nodes)
 
 
-def _executor(args: argparse.Namespace):
-    from mocapflow.pipeline.executors import make_executor
-
+def _executor(args: argparse.Namespace) -> Executor:
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
     slurm = ex_opts(args)
@@ -237,17 +257,11 @@ def _executor(args: argparse.Namespace):
                          scheduler_file=args.scheduler_file, slurm=slurm)
 
 
-def _progress(args: argparse.Namespace, total: int, label: str = ""):
-    from mocapflow.pipeline.progress import Progress
-
+def _progress(args: argparse.Namespace, total: int, label: str = "") -> Progress:
     return Progress(total, enabled=not getattr(args, "quiet", False), label=label)
 
 
-def _name(node: str, part: str | None) -> str:
-    return node if part is None else f"{node}/{part}"
-
-
-def _task_json(r: dict[str, Any]) -> dict[str, Any]:
+def _task_json(r: TaskRecord) -> dict[str, Any]:
     return {k: r.get(k) for k in ("node", "part", "stage", "status", "key", "seconds", "error",
                                   "outputs", "warnings")}
 
@@ -256,21 +270,21 @@ def _print_json(doc: Any) -> None:
     sys.stdout.write(json.dumps(doc, indent=1, default=str) + "\n")
 
 
-def _run_graph(args: argparse.Namespace, graph, store, executor, *, lock=None, label=""):
-    from mocapflow.pipeline.runner import run
-
+def _run_graph(args: argparse.Namespace, graph: Graph, store: Store, executor: Executor, *,
+               lock=None, label: str = "") -> RunResult:
     progress = _progress(args, len(graph.tasks), label)
     return run(graph, store, executor=executor, force=getattr(args, "force", None) or (),
                fail_fast=getattr(args, "fail_fast", False), lock=lock, progress=progress,
                command=sys.argv)
 
 
-def _raise_failures(result, args: argparse.Namespace | None = None, store=None) -> None:
+def _raise_failures(result: RunResult, args: argparse.Namespace | None = None,
+                    store: Store | None = None) -> None:
     failed = result.failed()
     if failed:
         if args is not None and getattr(args, "debug", False):
             for r in failed:
-                print(f"--- {_name(r['node'], r['part'])}\n{r.get('traceback') or r['error']}",
+                print(f"--- {task_name(r.node, r.part)}\n{r.traceback or r.error}",
                       file=sys.stderr)
         r = failed[0]
         more = f" (and {len(failed) - 1} more failed)" if len(failed) > 1 else ""
@@ -278,26 +292,23 @@ def _raise_failures(result, args: argparse.Namespace | None = None, store=None) 
         tail = f"; {skipped} skipped" if skipped else ""
         where = (f" [tracebacks: {store.root}/runs/{result.run_id}.json]"
                  if store is not None else "")
-        raise Failed(f"{len(failed)} task(s) failed: {_name(r['node'], r['part'])}: "
-                     f"{r['error']}{more}{tail}{where}")
+        raise Failed(f"{len(failed)} task(s) failed: {task_name(r.node, r.part)}: "
+                     f"{r.error}{more}{tail}{where}")
     if not result.ok:
-        r = next(r for r in result.records if r["status"] not in ("hit", "computed"))
-        raise Failed(f"{_name(r['node'], r['part'])} {r['status']}: {r['error']}")
+        r = next(r for r in result.records if r.status not in OK)
+        raise Failed(f"{task_name(r.node, r.part)} {r.status}: {r.error}")
 
 
-def _print_warnings(result) -> None:
+def _print_warnings(result: RunResult) -> None:
     for r in result.records:
-        for w in r.get("warnings") or []:
-            print(f"warning: {_name(r['node'], r['part'])}: {w}", file=sys.stderr)
+        for w in r.warnings:
+            print(f"warning: {task_name(r.node, r.part)}: {w}", file=sys.stderr)
 
 
 # --------------------------------------------------------------------------- verbs
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from mocapflow.pipeline.executors import slurm_job_script
-    from mocapflow.pipeline.runner import FrozenError, default_lock_path, read_lock
-
     if args.print_job_script:
         if args.executor != "slurm":
             raise UserError("--print-job-script needs --executor slurm")
@@ -328,18 +339,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def ex_opts(args: argparse.Namespace):
+def ex_opts(args: argparse.Namespace) -> SlurmOptions:
     """Slurm options from parsed arguments."""
-    from mocapflow.pipeline.executors import SlurmOptions
-
     return SlurmOptions(queue=args.slurm_queue, cores=args.slurm_cores, memory=args.slurm_memory,
                         walltime=args.slurm_walltime, jobs=args.slurm_jobs,
                         account=args.slurm_account)
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
-    from mocapflow.pipeline.runner import plan
-
     graph = _load(args)
     plans = plan(graph, _store(args), force=args.force)
     if args.json:
@@ -348,31 +355,15 @@ def cmd_plan(args: argparse.Namespace) -> int:
     counts: dict[str, int] = {}
     for p in plans:
         counts[p.status] = counts.get(p.status, 0) + 1
-        print(f"{p.status:<8} {_name(p.node, p.part)}: {p.reason}")
+        print(f"{p.status:<8} {task_name(p.node, p.part)}: {p.reason}")
     print(f"{len(plans)} tasks: " + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())),
           file=sys.stderr)
     return 0
 
 
 def cmd_status(args: argparse.Namespace) -> int:
-    from mocapflow.pipeline.runner import last_records, plan
-
     graph = _load(args)
-    store = _store(args)
-    plans = plan(graph, store, reasons=False)
-    history = last_records(store, statuses=None)
-    rows = []
-    for p in plans:
-        last = history.get((p.node, p.part))
-        rows.append({
-            "node": p.node, "part": p.part, "stage": p.stage,
-            "status": last.get("status") if last else None,
-            "up_to_date": p.status == "hit",
-            "key": p.key if p.key is not None else (last.get("key") if last else None),
-            "seconds": last.get("seconds") if last else None,
-            "error": last.get("error") if last else None,
-            "last_run": last.get("run_id") if last else None,
-        })
+    rows = task_status(graph, _store(args))
     if args.json:
         _print_json({"graph": graph.config.name, "tasks": rows})
         return 0
@@ -387,13 +378,11 @@ def cmd_status(args: argparse.Namespace) -> int:
         print(f"{node}: {fresh}/{len(nr)} up to date; last run: {lt}")
         for r in nr:
             if r["status"] == "failed":
-                print(f"  failed {_name(r['node'], r['part'])}: {r['error']}")
+                print(f"  failed {task_name(r['node'], r['part'])}: {r['error']}")
     return 0
 
 
 def cmd_explain(args: argparse.Namespace) -> int:
-    from mocapflow.pipeline.runner import explain
-
     graph = _load(args)
     try:
         items = explain(graph, _store(args), args.node)
@@ -403,7 +392,7 @@ def cmd_explain(args: argparse.Namespace) -> int:
         _print_json({"tasks": items})
         return 0
     for it in items:
-        name = _name(it["node"], it["part"])
+        name = task_name(it["node"], it["part"])
         if not it["changes"]:
             print(f"{name}: unchanged since run {it['last_run']} (key {str(it['key'])[:12]})")
             continue
@@ -415,8 +404,6 @@ def cmd_explain(args: argparse.Namespace) -> int:
 
 
 def cmd_dag(args: argparse.Namespace) -> int:
-    from mocapflow.pipeline.graph import file_overrides
-
     graph = _load(args)
     cfg = graph.config
     if args.dot:
@@ -461,11 +448,6 @@ def _fmt_ann(ann: Any) -> str:
 
 
 def cmd_stages(args: argparse.Namespace) -> int:
-    import inspect
-
-    from mocapflow.pipeline import registry
-    from mocapflow.pipeline.config import load_stage_modules
-
     load_stage_modules(discover=True)
     stages = registry.registered_stages()
     if args.json:
@@ -491,47 +473,13 @@ def cmd_stages(args: argparse.Namespace) -> int:
     return 0
 
 
-def _resolve_entry(store, entry: str) -> tuple[str, str]:
-    stage, sep, key = entry.partition("/")
-    entries = store.entries()
-    if sep:
-        cands = [(s, k) for s, k in entries if s == stage and k.startswith(key)]
-    else:
-        cands = [(s, k) for s, k in entries if k.startswith(entry)]
-    if not cands:
-        raise UserError(f"show {entry}: no committed entry matches in store {store.root}")
-    if len(cands) > 1:
-        names = ", ".join(f"{s}/{k[:12]}" for s, k in cands[:5])
-        raise UserError(f"show {entry}: {len(cands)} entries match ({names}…); give more of "
-                        "the key")
-    return cands[0]
-
-
-def _entry_summary(store, stage: str, key: str) -> dict[str, Any]:
-    import zarr
-
-    man = store.manifest(stage, key)
-    group = zarr.open_group(store.entry_path(stage, key), mode="r")
-    outputs = {}
-    for out, info in sorted(man["outputs"].items()):
-        g = group[out]
-        meta = dict(g.attrs).get("mocapflow", {})
-        arrays = {}
-        for name in meta.get("arrays", []):
-            a = g[name]
-            arrays[name] = {"shape": list(a.shape), "dtype": str(a.dtype),
-                            "dims": list(a.metadata.dimension_names or ()),
-                            "chunks": list(a.chunks)}
-        outputs[out] = {"type": info.get("type"), "digest": info.get("digest"),
-                        "arrays": arrays, "attrs": meta.get("attrs", {})}
-    return {"entry": f"{stage}/{key}", "path": store.entry_path(stage, key), "manifest": man,
-            "outputs": outputs}
-
-
 def cmd_show(args: argparse.Namespace) -> int:
     store = _store(args)
-    stage, key = _resolve_entry(store, args.entry)
-    doc = _entry_summary(store, stage, key)
+    try:
+        stage, key = find_entry(store, args.entry)
+    except StoreError as e:
+        raise UserError(f"show {args.entry}: {e}") from None
+    doc = entry_summary(store, stage, key)
     if args.json:
         _print_json(doc)
         return 0
@@ -566,70 +514,6 @@ def cmd_show(args: argparse.Namespace) -> int:
     return 0
 
 
-def _export_value(enc, value: Any, directory: Path, stem: str) -> list[Path]:
-    import numpy as np
-
-    from mocapflow.pipeline.codecs import find_exporter
-
-    directory.mkdir(parents=True, exist_ok=True)
-    fn = find_exporter(enc.type)
-    if fn is not None:
-        return [Path(p) for p in fn(value, directory, stem)]
-    written = []
-    if enc.type == "ndarray":
-        p = directory / f"{stem}.npy"
-        np.save(p, enc.arrays["data"][0])
-        return [p]
-    if enc.type == "json":
-        p = directory / f"{stem}.json"
-        p.write_text(json.dumps(enc.attrs.get("value"), indent=1) + "\n")
-        return [p]
-    attrs = dict(enc.attrs)
-    if enc.type != "record":
-        attrs = {"type": enc.type, "attrs": attrs}
-    attrs_arrays = {n: f"{stem}.{n}.npy" for n in enc.arrays}
-    if attrs_arrays:
-        attrs = {**attrs, "_arrays": attrs_arrays}
-    p = directory / f"{stem}.json"
-    p.write_text(json.dumps(attrs, indent=1) + "\n")
-    written.append(p)
-    for n, (a, _) in enc.arrays.items():
-        q = directory / attrs_arrays[n]
-        np.save(q, a)
-        written.append(q)
-    return written
-
-
-def export_results(graph, store, records: Sequence[dict[str, Any]], directory: str | Path
-                   ) -> list[Path]:
-    """Write the outputs of the graph's target nodes as files (see ``EXPORT_LAYOUT``).
-
-    Returns
-    -------
-    list of Path
-        Every file written.
-    """
-    from mocapflow.pipeline.codecs import decode
-    from mocapflow.pipeline.graph import part_label
-    from mocapflow.pipeline.registry import discover
-
-    discover()  # every family's codecs and exporters
-    directory = Path(directory)
-    written: list[Path] = []
-    for node in graph.targets:
-        recs = [r for r in records if r["node"] == node]
-        labels = [part_label(r["part"]) for r in recs]
-        for r, label in zip(recs, labels):
-            if labels.count(label) > 1:  # same stem in two folders: add a short part digest
-                from mocapflow.pipeline.keys import digest
-
-                label = f"{label}-{digest(str(r['part']))[:6]}"
-            for out, enc in store.load_outputs(r["stage"], r["key"]).items():
-                value = decode(enc)
-                written += _export_value(enc, value, directory / node / label, out)
-    return written
-
-
 def cmd_export(args: argparse.Namespace) -> int:
     graph = _load(args)
     store = _store(args)
@@ -661,23 +545,11 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 
 def cmd_gc(args: argparse.Namespace) -> int:
-    from mocapflow.pipeline.runner import plan
-
     store = _store(args)
     keep = None
     if args.keep_config or args.keep_runs is not None:
-        keep = set()
-        for cfg in args.keep_config:
-            graph = _load(args, cfg, sets=[], all_nodes=True)
-            for p in plan(graph, store, reasons=False):
-                if p.key is not None:
-                    keep.add((p.stage, p.key))
-        if args.keep_runs is not None:
-            runs = store.runs()
-            for rec in runs[-args.keep_runs:] if args.keep_runs > 0 else []:
-                for t in rec.get("tasks") or []:
-                    if t.get("key") and t.get("stage"):
-                        keep.add((t["stage"], t["key"]))
+        graphs = (_load(args, cfg, sets=[], all_nodes=True) for cfg in args.keep_config)
+        keep = gc_keep_set(store, graphs, last_runs=args.keep_runs)
     report = store.gc(keep=keep, dry_run=args.dry_run, staging_min_age_s=args.min_age)
     if args.json:
         _print_json(report)
@@ -690,8 +562,6 @@ def cmd_gc(args: argparse.Namespace) -> int:
 
 
 def cmd_lock(args: argparse.Namespace) -> int:
-    from mocapflow.pipeline.runner import default_lock_path, lock_document, write_lock
-
     graph = _load(args)
     store = _store(args)
     with _executor(args) as ex:
@@ -704,80 +574,29 @@ def cmd_lock(args: argparse.Namespace) -> int:
     return 0
 
 
-def _demo_spec(args: argparse.Namespace) -> tuple[dict, Any]:
-    import yaml
-
-    if args.spec:
-        path = Path(args.spec)
-        try:
-            text = path.read_text()
-        except OSError as e:
-            raise UserError(f"--spec {path}: {e}") from None
-        base: Any = path.parent
-    else:
-        from importlib.resources import files
-
-        base = files("mocapflow.configs")
-        try:
-            text = (base / "demo.yaml").read_text()
-        except (FileNotFoundError, OSError):
-            raise UserError("the installed package has no configs/demo.yaml") from None
-    try:
-        doc = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise UserError(f"demo.yaml: malformed YAML: {e}".replace("\n", " ")) from None
-    if not isinstance(doc, dict) or not isinstance(doc.get("steps"), list):
-        raise UserError("demo.yaml: expected a mapping with a steps: list")
-    return doc, base
-
-
-def _subst_out(value: Any, out: str) -> Any:
-    if isinstance(value, str):
-        return value.replace("{out}", out)
-    if isinstance(value, list):
-        return [_subst_out(v, out) for v in value]
-    if isinstance(value, dict):
-        return {k: _subst_out(v, out) for k, v in value.items()}
-    return value
-
-
 def cmd_demo(args: argparse.Namespace) -> int:
-    from importlib.resources import as_file
-
-    from mocapflow.pipeline.store import Store
-
-    doc, base = _demo_spec(args)
+    spec = load_demo_spec(args.spec)
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     store = Store(args.store or out / "store")
-    summary = []
+
+    def announce(step: DemoStep) -> None:
+        if step.description:
+            print(f"== {step.label}: {step.description}", file=sys.stderr)
+
     with _executor(args) as ex:
-        for i, step in enumerate(doc["steps"]):
-            if not isinstance(step, dict) or "config" not in step:
-                raise UserError(f"demo.yaml: steps[{i}]: expected a mapping with config:")
-            unknown = set(step) - {"config", "parts", "targets", "set", "export_to", "name",
-                                   "description"}
-            if unknown:
-                raise UserError(f"demo.yaml: steps[{i}]: unknown key {sorted(unknown)[0]!r}")
-            cfg_name = str(step["config"])
-            parts = _subst_out(step.get("parts"), str(out))
-            sets = _subst_out(step.get("set") or {}, str(out))
-            targets = step.get("targets")
-            export_to = out / str(step.get("export_to") or Path(cfg_name).stem)
-            label = step.get("name") or Path(cfg_name).stem
-            if step.get("description"):
-                print(f"== {label}: {step['description']}", file=sys.stderr)
-            with as_file(base / cfg_name) as cfg_path:
-                graph = _load(args, str(cfg_path), parts=parts, sets=sets, targets=targets)
-                result = _run_graph(args, graph, store, ex, label=label)
+
+        def run_step(graph: Graph, step: DemoStep) -> RunResult:
+            result = _run_graph(args, graph, store, ex, label=step.label)
             _print_warnings(result)
             _raise_failures(result, args, store)
-            files = export_results(graph, store, result.records, export_to)
-            summary.append((label, export_to, len(files), result.counts))
+            return result
+
+        summary = run_demo(spec, out, store, ex, announce=announce, run_graph=run_step)
     print(f"demo results in {out}")
-    for label, where, n, counts in summary:
-        print(f"  {label}: {n} file(s) in {where}  ({counts['computed']} computed, "
-              f"{counts['hit']} hit)")
+    for s in summary:
+        print(f"  {s.label}: {s.files} file(s) in {s.export_to}  ({s.counts['computed']} "
+              f"computed, {s.counts['hit']} hit)")
     print(f"  store: {store.root}")
     return 0
 
@@ -809,17 +628,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     debug = bool(getattr(args, "debug", False) or args.debug_top)
     _setup_logging(debug)
-    from mocapflow.pipeline.config import ConfigError
-    from mocapflow.pipeline.executors import ExecutorError
-    from mocapflow.pipeline.registry import ParamError
-    from mocapflow.pipeline.runner import FrozenError
-
     try:
         return VERBS[args.verb](args)
     except (UserError, Failed) as e:
         code = e.exit_code
         msg = str(e)
-    except (ConfigError, ParamError, ExecutorError) as e:
+    except (ConfigError, ParamError, ExecutorError, DemoError) as e:
         code, msg = 2, str(e)
     except FrozenError as e:
         code, msg = 1, str(e)

@@ -5,13 +5,12 @@ fan out (see the project README for the format).  Loading it checks
 everything the engine can check before running anything; every problem is a
 :class:`ConfigError` whose message is one line ``FILE:LINE: key: problem``.
 
-Interpolation
--------------
-``${params.NAME}`` is replaced by the shared param ``NAME`` (``params:`` at the top
-level) and ``${env:VAR,default}`` by the environment variable ``VAR`` (or
-``default``).  A string that is exactly one reference keeps the value's type
-(an environment value is then parsed as YAML, like ``--set`` values); a
-reference inside a longer string is formatted into it.
+:func:`parse_config` reads the document with line numbers
+(:mod:`~mocapflow.pipeline.config_yaml`), applies shared-param overrides,
+interpolates ``${params.NAME}`` and ``${env:VAR,default}``
+(:mod:`~mocapflow.pipeline.config_interpolation`), then validates, in this
+order: name and description, parts, nodes (stage, inputs, seeds, gather,
+params), wiring, cycles, targets, file params.
 
 Command-line overrides
 ----------------------
@@ -22,10 +21,8 @@ config's parts).
 
 from __future__ import annotations
 
-import difflib
 import glob
 import importlib
-import json
 import os
 import re
 import types
@@ -35,15 +32,27 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from mocapflow.pipeline import registry
+from mocapflow.pipeline.config_interpolation import interpolate
+from mocapflow.pipeline.config_yaml import (
+    ConfigError,
+    FileErrors,
+    LineDict,
+    LineList,
+    close_match,
+    line_of,
+    load_yaml,
+    parse_yaml_value,
+)
 from mocapflow.pipeline.registry import FilePath, ParamError, StageSpec
 
 __all__ = [
+    "CMDLINE",
+    "STAGE_MODULES_ENV",
     "ConfigError",
     "GraphConfig",
     "NodeConfig",
+    "expand_parts",
     "filepath_params",
     "load_config",
     "load_stage_modules",
@@ -59,144 +68,6 @@ STAGE_MODULES_ENV = "MOCAPFLOW_STAGE_MODULES"
 CMDLINE = "<command line>"
 
 _NODE_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
-_REF = re.compile(r"\$\{([^}]*)\}")
-
-
-class ConfigError(ValueError):
-    """A problem in a graph config; ``str(err)`` is ``FILE:LINE: key: problem``.
-
-    Parameters
-    ----------
-    problem : str
-        What is wrong.
-    file : str
-        Config file (or ``<command line>``).
-    line : int, optional
-        1-based line of the offending key.
-    key : str, optional
-        Dotted key path (``nodes.clean.params.alpha1``).
-    """
-
-    def __init__(
-        self, problem: str, *, file: str = "", line: int | None = None, key: str = ""
-    ) -> None:
-        self.problem = problem
-        self.file = file
-        self.line = line
-        self.key = key
-        where = file + (f":{line}" if line else "")
-        parts = [p for p in (where, key, problem) if p]
-        super().__init__(": ".join(parts).replace("\n", " "))
-
-
-# --------------------------------------------------------------------------- YAML with lines
-
-
-class _LDict(dict):
-    """A mapping that remembers the 1-based line of each key."""
-
-    line: int = 0
-
-    def __init__(self, *a: Any, **k: Any) -> None:
-        super().__init__(*a, **k)
-        self.lines: dict[Any, int] = {}
-
-
-class _LList(list):
-    """A sequence that remembers the 1-based line of each item."""
-
-    line: int = 0
-
-    def __init__(self, *a: Any, **k: Any) -> None:
-        super().__init__(*a, **k)
-        self.lines: list[int] = []
-
-
-class _Loader(yaml.SafeLoader):
-    """SafeLoader whose mappings and sequences carry line numbers."""
-
-
-def _construct_mapping(loader: _Loader, node: yaml.MappingNode) -> _LDict:
-    loader.flatten_mapping(node)
-    out = _LDict()
-    out.line = node.start_mark.line + 1
-    for key_node, value_node in node.value:
-        key = loader.construct_object(key_node, deep=True)
-        if not isinstance(key, (str, int, float, bool)) and key is not None:
-            raise yaml.constructor.ConstructorError(
-                None, None, "a key must be a scalar", key_node.start_mark
-            )
-        if key in out:
-            raise yaml.constructor.ConstructorError(
-                None, None, f"duplicate key {key!r}", key_node.start_mark
-            )
-        out[key] = loader.construct_object(value_node, deep=True)
-        out.lines[key] = key_node.start_mark.line + 1
-    return out
-
-
-def _construct_sequence(loader: _Loader, node: yaml.SequenceNode) -> _LList:
-    out = _LList()
-    out.line = node.start_mark.line + 1
-    for item in node.value:
-        out.append(loader.construct_object(item, deep=True))
-        out.lines.append(item.start_mark.line + 1)
-    return out
-
-
-_Loader.add_constructor("tag:yaml.org,2002:map", _construct_mapping)
-_Loader.add_constructor("tag:yaml.org,2002:seq", _construct_sequence)
-
-
-_PLACEHOLDER = "__mocapflow_ref_{}__"
-_PLACEHOLDER_RE = re.compile(r"__mocapflow_ref_(\d+)__")
-
-
-def _protect_refs(text: str) -> tuple[str, list[str]]:
-    """Replace ``${...}`` by plain-scalar placeholders so ``{rate: ${params.rate}}`` parses."""
-    table: list[str] = []
-
-    def sub(m: re.Match) -> str:
-        table.append(m.group(0))
-        return _PLACEHOLDER.format(len(table) - 1)
-
-    return _REF.sub(sub, text), table
-
-
-def _restore_refs(value: Any, table: list[str]) -> Any:
-    if isinstance(value, str):
-        if "__mocapflow_ref_" not in value:
-            return value
-        return _PLACEHOLDER_RE.sub(lambda m: table[int(m.group(1))], value)
-    if isinstance(value, dict):
-        for k in list(value):
-            value[k] = _restore_refs(value[k], table)
-    elif isinstance(value, list):
-        for i, v in enumerate(value):
-            value[i] = _restore_refs(v, table)
-    return value
-
-
-def _load_yaml(text: str, file: str) -> Any:
-    text, table = _protect_refs(text)
-    try:
-        return _restore_refs(yaml.load(text, Loader=_Loader), table)  # noqa: S506 - SafeLoader
-    except yaml.MarkedYAMLError as e:
-        mark = e.problem_mark or e.context_mark
-        line = mark.line + 1 if mark is not None else None
-        problem = " ".join(str(x) for x in (e.context, e.problem) if x) or "malformed YAML"
-        raise ConfigError(f"malformed YAML: {problem}", file=file, line=line, key="yaml") from None
-    except yaml.YAMLError as e:
-        raise ConfigError(f"malformed YAML: {e}", file=file, key="yaml") from None
-
-
-def _line_of(container: Any, key: Any) -> int | None:
-    lines = getattr(container, "lines", None)
-    if isinstance(lines, dict):
-        return lines.get(key) or getattr(container, "line", None)
-    if isinstance(lines, list) and isinstance(key, int) and key < len(lines):
-        return lines[key]
-    return getattr(container, "line", None)
 
 
 # --------------------------------------------------------------------------- spec
@@ -282,7 +153,7 @@ class GraphConfig:
         return str(self.path)
 
 
-# --------------------------------------------------------------------------- helpers
+# --------------------------------------------------------------------------- stages
 
 
 def resolve_stage(name: str) -> StageSpec:
@@ -335,128 +206,7 @@ def filepath_params(spec: StageSpec) -> tuple[str, ...]:
     return tuple(n for n, (ann, _) in spec.params.items() if is_filepath_annotation(ann))
 
 
-def _parse_yaml_value(text: str) -> Any:
-    try:
-        return yaml.safe_load(text) if text.strip() else None
-    except yaml.YAMLError:
-        return text
-
-
-def _close(name: str, options: Iterable[str]) -> str:
-    m = difflib.get_close_matches(str(name), [str(o) for o in options], n=1)
-    return f" (did you mean {m[0]!r}?)" if m else ""
-
-
-class _Ctx:
-    """Error factory bound to one file."""
-
-    def __init__(self, file: str) -> None:
-        self.file = file
-
-    def err(self, key: str, problem: str, line: int | None = None) -> ConfigError:
-        return ConfigError(problem, file=self.file, line=line, key=key)
-
-
-# --------------------------------------------------------------------------- interpolation
-
-
-def _resolve_ref(ref: str, params: Mapping[str, Any], env: Mapping[str, str], c: _Ctx,
-                 key: str, line: int | None, stack: tuple[str, ...]) -> Any:
-    ref = ref.strip()
-    if ref.startswith("env:"):
-        body = ref[4:]
-        var, sep, default = body.partition(",")
-        var = var.strip()
-        if not var:
-            raise c.err(key, f"empty environment reference ${{{ref}}}", line)
-        if var in env:
-            return _parse_yaml_value(env[var])
-        if sep:
-            return _parse_yaml_value(default.strip())
-        raise c.err(key, f"environment variable {var} is not set and has no default", line)
-    if ref.startswith("params."):
-        name = ref[len("params."):]
-        if name in stack:
-            raise c.err(key, f"circular reference ${{{ref}}}", line)
-        if name not in params:
-            raise c.err(key, f"unknown shared param ${{{ref}}}{_close(name, params)}", line)
-        return _interpolate(params[name], params, env, c, key, line, (*stack, name))
-    raise c.err(key, f"cannot interpolate ${{{ref}}} "
-                "(use ${params.NAME} or ${env:VAR,default})", line)
-
-
-def _interpolate(value: Any, params: Mapping[str, Any], env: Mapping[str, str], c: _Ctx,
-                 key: str, line: int | None, stack: tuple[str, ...] = ()) -> Any:
-    """Interpolate ``${...}`` references in ``value`` (recursively), keeping line info."""
-    if isinstance(value, str):
-        whole = _REF.fullmatch(value.strip())
-        if whole:
-            return _resolve_ref(whole.group(1), params, env, c, key, line, stack)
-        if "${" not in value:
-            return value
-
-        def sub(m: re.Match) -> str:
-            v = _resolve_ref(m.group(1), params, env, c, key, line, stack)
-            return v if isinstance(v, str) else json.dumps(v)
-
-        return _REF.sub(sub, value)
-    if isinstance(value, dict):
-        out = _LDict()
-        out.line = getattr(value, "line", line or 0)
-        for k, v in value.items():
-            kl = _line_of(value, k) or line
-            out[k] = _interpolate(v, params, env, c, f"{key}.{k}" if key else str(k), kl, stack)
-            out.lines[k] = kl or 0
-        return out
-    if isinstance(value, list):
-        out_l = _LList()
-        out_l.line = getattr(value, "line", line or 0)
-        for i, v in enumerate(value):
-            il = _line_of(value, i) or line
-            out_l.append(_interpolate(v, params, env, c, f"{key}[{i}]", il, stack))
-            out_l.lines.append(il or 0)
-        return out_l
-    return value
-
-
-# --------------------------------------------------------------------------- parts
-
-
-def expand_parts(entries: Sequence[Any], c: _Ctx, key: str, lines: Sequence[int] | None = None
-                 ) -> list[str]:
-    """Expand part entries (paths or globs, relative to the working directory).
-
-    Returns
-    -------
-    list of str
-        Part ids: each path as given (globs: as matched), duplicates removed.
-    """
-    out: list[str] = []
-    seen: set[str] = set()
-    for i, entry in enumerate(entries):
-        line = lines[i] if lines is not None and i < len(lines) else None
-        k = f"{key}[{i}]" if lines is not None else key
-        if not isinstance(entry, str) or not entry:
-            raise c.err(k, f"a part must be a file path or glob, got {entry!r}", line)
-        if glob.has_magic(entry):
-            found = sorted(p for p in glob.glob(entry, recursive=True) if os.path.isfile(p))
-            if not found:
-                raise c.err(k, f"no file matches {entry!r}", line)
-        else:
-            if not os.path.exists(entry):
-                raise c.err(k, f"missing input file {entry!r}", line)
-            if os.path.isdir(entry):
-                raise c.err(k, f"{entry!r} is a directory (use a glob such as {entry}/*.bvh)",
-                            line)
-            found = [entry]
-        for p in found:
-            if p not in seen:
-                seen.add(p)
-                out.append(p)
-    return out
-
-
-# --------------------------------------------------------------------------- main entry
+# --------------------------------------------------------------------------- load
 
 
 def load_config(
@@ -510,13 +260,16 @@ def _parse_sets(sets: Iterable[str] | Mapping[str, Any]) -> list[tuple[str, str,
             lhs, eq, rhs = str(s).partition("=")
             if not eq:
                 raise ConfigError("expected NODE.PARAM=VALUE", file=CMDLINE, key=f"--set {s}")
-            pairs.append((lhs.strip(), _parse_yaml_value(rhs)))
+            pairs.append((lhs.strip(), parse_yaml_value(rhs)))
     for lhs, value in pairs:
         node, dot, param = lhs.partition(".")
         if not dot or not node or not param:
             raise ConfigError("expected NODE.PARAM=VALUE", file=CMDLINE, key=f"--set {lhs}")
         items.append((node, param, value))
     return items
+
+
+# --------------------------------------------------------------------------- parse
 
 
 def parse_config(
@@ -529,116 +282,17 @@ def parse_config(
     env: Mapping[str, str] | None = None,
 ) -> GraphConfig:
     """Validate config text (see :func:`load_config`)."""
-    c = _Ctx(file)
+    c = FileErrors(file)
     env = os.environ if env is None else env
     set_items = _parse_sets(sets)
-    doc = _load_yaml(text, file)
-    if not isinstance(doc, dict):
-        raise c.err("", "a graph config must be a YAML mapping with a nodes: key",
-                    getattr(doc, "line", 1))
-    for k in doc:
-        if k not in TOP_KEYS:
-            raise c.err(str(k), f"unknown top-level key{_close(k, TOP_KEYS)}", _line_of(doc, k))
-    if "nodes" not in doc:
-        raise c.err("nodes", "missing (a graph needs at least one node)", 1)
-
-    # shared params (+ overrides), then interpolate the rest of the document
-    shared_raw = doc.get("params") or _LDict()
-    if not isinstance(shared_raw, dict):
-        raise c.err("params", "must be a mapping", _line_of(doc, "params"))
-    shared_raw = _LDict(shared_raw) if not isinstance(shared_raw, _LDict) else shared_raw
-    for node, param, value in set_items:
-        if node == "params" and "params" not in (doc.get("nodes") or {}):
-            if param not in shared_raw:
-                raise ConfigError(f"unknown shared param{_close(param, shared_raw)} (shared "
-                                  f"params: {', '.join(map(str, shared_raw)) or 'none'})",
-                                  file=CMDLINE, key=f"--set params.{param}")
-            shared_raw[param] = value
-    shared: dict[str, Any] = {}
-    for k, v in shared_raw.items():
-        shared[k] = _interpolate(v, shared_raw, env, c, f"params.{k}", _line_of(shared_raw, k),
-                                 (str(k),))
-    rest = {k: v for k, v in doc.items() if k != "params"}
-    rest_i = _LDict()
-    rest_i.lines = dict(doc.lines)
-    for k, v in rest.items():
-        rest_i[k] = _interpolate(v, shared, env, c, str(k), _line_of(doc, k))
-    doc_i = rest_i
-
-    name = doc_i.get("graph", path.stem if path is not None else "graph")
-    if not isinstance(name, str):
-        raise c.err("graph", "must be a string", _line_of(doc, "graph"))
-    description = doc_i.get("description", "") or ""
-    if not isinstance(description, str):
-        raise c.err("description", "must be a string", _line_of(doc, "description"))
-
-    # parts
-    if parts is not None:
-        part_ids = expand_parts(list(parts), _Ctx(CMDLINE), "--parts")
-    else:
-        raw_parts = doc_i.get("parts") or []
-        if isinstance(raw_parts, str):
-            raw_parts = _LList([raw_parts])
-            raw_parts.lines = [_line_of(doc, "parts") or 0]
-        if not isinstance(raw_parts, list):
-            raise c.err("parts", "must be a list of paths/globs", _line_of(doc, "parts"))
-        part_ids = expand_parts(raw_parts, c, "parts", getattr(raw_parts, "lines", None))
-
-    # nodes
-    raw_nodes = doc_i["nodes"]
-    if not isinstance(raw_nodes, dict) or not raw_nodes:
-        raise c.err("nodes", "must be a non-empty mapping of node names", _line_of(doc, "nodes"))
-    node_sets: dict[str, dict[str, Any]] = {}
-    for node, param, value in set_items:
-        if node == "params" and "params" not in raw_nodes:
-            continue
-        if node not in raw_nodes:
-            raise ConfigError(f"unknown node {node!r}{_close(node, raw_nodes)}", file=CMDLINE,
-                              key=f"--set {node}.{param}")
-        node_sets.setdefault(node, {})[param] = value
-
-    nodes: dict[str, NodeConfig] = {}
-    for nname in raw_nodes:
-        if not isinstance(nname, str):
-            raise c.err(f"nodes.{nname}", f"node name {nname!r} is not a string (YAML reads "
-                        "yes/no/on/off/true/false and numbers as such: quote the name)",
-                        _line_of(raw_nodes, nname))
-    for nname, body in raw_nodes.items():
-        nodes[str(nname)] = _parse_node(str(nname), body, raw_nodes, c, bool(part_ids),
-                                        node_sets.get(str(nname), {}))
-    _check_wiring(nodes, raw_nodes, c)
-    order = _toposort(nodes, raw_nodes, c)
-    nodes = {n: nodes[n] for n in order}
-
-    # targets
-    raw_targets = doc_i.get("targets")
-    if raw_targets is None:
-        targets = list(nodes)
-    else:
-        if isinstance(raw_targets, str):
-            raw_targets = [raw_targets]
-        if not isinstance(raw_targets, list) or not raw_targets:
-            raise c.err("targets", "must be a list of node names", _line_of(doc, "targets"))
-        targets = []
-        for i, t in enumerate(raw_targets):
-            if t not in nodes:
-                raise c.err(f"targets[{i}]", f"unknown node {t!r}{_close(str(t), nodes)}",
-                            _line_of(raw_targets, i) or _line_of(doc, "targets"))
-            targets.append(t)
-
-    # file params must exist
-    for n in nodes.values():
-        for p in filepath_params(n.spec):
-            v = n.params.get(p)
-            if v is not None and not os.path.isfile(str(v)):
-                raise c.err(f"nodes.{n.name}.params.{p}", f"missing input file {v!r}",
-                            n.param_lines.get(p, n.line))
-
-    overrides: dict[str, Any] = {}
-    if set_items:
-        overrides["set"] = {f"{a}.{b}": v for a, b, v in set_items}
-    if parts is not None:
-        overrides["parts"] = list(parts)
+    doc = _load_document(text, c)
+    shared = _shared_params(doc, set_items, env, c)
+    doc_i = _interpolate_document(doc, shared, env, c)
+    name, description = _name_and_description(doc_i, doc, path, c)
+    part_ids = _part_ids(doc_i, doc, parts, c)
+    nodes = _parse_nodes(doc_i, doc, set_items, bool(part_ids), c)
+    targets = _targets(doc_i, doc, nodes, c)
+    _check_file_params(nodes, c)
     return GraphConfig(
         name=name,
         path=path if path is not None else Path(file),
@@ -647,43 +301,264 @@ def parse_config(
         parts=part_ids,
         targets=targets,
         nodes=nodes,
-        overrides=overrides,
+        overrides=_overrides(set_items, parts),
     )
 
 
-def _parse_node(name: str, body: Any, raw_nodes: Any, c: _Ctx, has_parts: bool,
+def _load_document(text: str, c: FileErrors) -> LineDict:
+    """The YAML document: a mapping of known top-level keys, with ``nodes:``."""
+    doc = load_yaml(text, c.file)
+    if not isinstance(doc, dict):
+        raise c.err("", "a graph config must be a YAML mapping with a nodes: key",
+                    getattr(doc, "line", 1))
+    for k in doc:
+        if k not in TOP_KEYS:
+            raise c.err(str(k), f"unknown top-level key{close_match(k, TOP_KEYS)}",
+                        line_of(doc, k))
+    if "nodes" not in doc:
+        raise c.err("nodes", "missing (a graph needs at least one node)", 1)
+    return doc
+
+
+def _shared_params(doc: LineDict, set_items: list[tuple[str, str, Any]],
+                   env: Mapping[str, str], c: FileErrors) -> dict[str, Any]:
+    """``params:`` with ``--set params.NAME=...`` applied, each value interpolated."""
+    shared_raw = doc.get("params") or LineDict()
+    if not isinstance(shared_raw, dict):
+        raise c.err("params", "must be a mapping", line_of(doc, "params"))
+    shared_raw = LineDict(shared_raw) if not isinstance(shared_raw, LineDict) else shared_raw
+    for node, param, value in set_items:
+        if node == "params" and "params" not in (doc.get("nodes") or {}):
+            if param not in shared_raw:
+                raise ConfigError(f"unknown shared param{close_match(param, shared_raw)} "
+                                  f"(shared params: {', '.join(map(str, shared_raw)) or 'none'})",
+                                  file=CMDLINE, key=f"--set params.{param}")
+            shared_raw[param] = value
+    shared: dict[str, Any] = {}
+    for k, v in shared_raw.items():
+        shared[k] = interpolate(v, shared_raw, env, c, f"params.{k}", line_of(shared_raw, k),
+                                (str(k),))
+    return shared
+
+
+def _interpolate_document(doc: LineDict, shared: Mapping[str, Any], env: Mapping[str, str],
+                          c: FileErrors) -> LineDict:
+    """Every top-level value but ``params:``, interpolated (lines kept)."""
+    rest = {k: v for k, v in doc.items() if k != "params"}
+    rest_i = LineDict()
+    rest_i.lines = dict(doc.lines)
+    for k, v in rest.items():
+        rest_i[k] = interpolate(v, shared, env, c, str(k), line_of(doc, k))
+    return rest_i
+
+
+def _name_and_description(doc_i: LineDict, doc: LineDict, path: Path | None, c: FileErrors
+                          ) -> tuple[str, str]:
+    """``graph:`` (default: the file stem) and ``description:``."""
+    name = doc_i.get("graph", path.stem if path is not None else "graph")
+    if not isinstance(name, str):
+        raise c.err("graph", "must be a string", line_of(doc, "graph"))
+    description = doc_i.get("description", "") or ""
+    if not isinstance(description, str):
+        raise c.err("description", "must be a string", line_of(doc, "description"))
+    return name, description
+
+
+def _part_ids(doc_i: LineDict, doc: LineDict, parts: Sequence[str] | None, c: FileErrors
+              ) -> list[str]:
+    """Part ids from ``--parts`` (when given) or ``parts:``."""
+    if parts is not None:
+        return expand_parts(list(parts), FileErrors(CMDLINE), "--parts")
+    raw_parts = doc_i.get("parts") or []
+    if isinstance(raw_parts, str):
+        raw_parts = LineList([raw_parts])
+        raw_parts.lines = [line_of(doc, "parts") or 0]
+    if not isinstance(raw_parts, list):
+        raise c.err("parts", "must be a list of paths/globs", line_of(doc, "parts"))
+    return expand_parts(raw_parts, c, "parts", getattr(raw_parts, "lines", None))
+
+
+def _parse_nodes(doc_i: LineDict, doc: LineDict, set_items: list[tuple[str, str, Any]],
+                 has_parts: bool, c: FileErrors) -> dict[str, NodeConfig]:
+    """Every node validated, wiring checked, in topological order."""
+    raw_nodes = doc_i["nodes"]
+    if not isinstance(raw_nodes, dict) or not raw_nodes:
+        raise c.err("nodes", "must be a non-empty mapping of node names", line_of(doc, "nodes"))
+    node_sets = _node_sets(set_items, raw_nodes)
+    for nname in raw_nodes:
+        if not isinstance(nname, str):
+            raise c.err(f"nodes.{nname}", f"node name {nname!r} is not a string (YAML reads "
+                        "yes/no/on/off/true/false and numbers as such: quote the name)",
+                        line_of(raw_nodes, nname))
+    nodes: dict[str, NodeConfig] = {}
+    for nname, body in raw_nodes.items():
+        nodes[str(nname)] = _parse_node(str(nname), body, raw_nodes, c, has_parts,
+                                        node_sets.get(str(nname), {}))
+    _check_wiring(nodes, raw_nodes, c)
+    order = _toposort(nodes, raw_nodes, c)
+    return {n: nodes[n] for n in order}
+
+
+def _node_sets(set_items: list[tuple[str, str, Any]], raw_nodes: Mapping[str, Any]
+               ) -> dict[str, dict[str, Any]]:
+    """``node -> {param: value}`` from ``--set NODE.PARAM=VALUE`` (unknown nodes are errors)."""
+    node_sets: dict[str, dict[str, Any]] = {}
+    for node, param, value in set_items:
+        if node == "params" and "params" not in raw_nodes:
+            continue
+        if node not in raw_nodes:
+            raise ConfigError(f"unknown node {node!r}{close_match(node, raw_nodes)}",
+                              file=CMDLINE, key=f"--set {node}.{param}")
+        node_sets.setdefault(node, {})[param] = value
+    return node_sets
+
+
+def _targets(doc_i: LineDict, doc: LineDict, nodes: Mapping[str, NodeConfig], c: FileErrors
+             ) -> list[str]:
+    """``targets:`` (default: every node), each a known node."""
+    raw_targets = doc_i.get("targets")
+    if raw_targets is None:
+        return list(nodes)
+    if isinstance(raw_targets, str):
+        raw_targets = [raw_targets]
+    if not isinstance(raw_targets, list) or not raw_targets:
+        raise c.err("targets", "must be a list of node names", line_of(doc, "targets"))
+    targets = []
+    for i, t in enumerate(raw_targets):
+        if t not in nodes:
+            raise c.err(f"targets[{i}]", f"unknown node {t!r}{close_match(str(t), nodes)}",
+                        line_of(raw_targets, i) or line_of(doc, "targets"))
+        targets.append(t)
+    return targets
+
+
+def _check_file_params(nodes: Mapping[str, NodeConfig], c: FileErrors) -> None:
+    """Every ``FilePath`` param that is set names an existing file."""
+    for n in nodes.values():
+        for p in filepath_params(n.spec):
+            v = n.params.get(p)
+            if v is not None and not os.path.isfile(str(v)):
+                raise c.err(f"nodes.{n.name}.params.{p}", f"missing input file {v!r}",
+                            n.param_lines.get(p, n.line))
+
+
+def _overrides(set_items: list[tuple[str, str, Any]], parts: Sequence[str] | None
+               ) -> dict[str, Any]:
+    """The command-line overrides as recorded in run records and locks."""
+    overrides: dict[str, Any] = {}
+    if set_items:
+        overrides["set"] = {f"{a}.{b}": v for a, b, v in set_items}
+    if parts is not None:
+        overrides["parts"] = list(parts)
+    return overrides
+
+
+# --------------------------------------------------------------------------- parts
+
+
+def expand_parts(entries: Sequence[Any], c: FileErrors, key: str,
+                 lines: Sequence[int] | None = None) -> list[str]:
+    """Expand part entries (paths or globs, relative to the working directory).
+
+    Returns
+    -------
+    list of str
+        Part ids: each path as given (globs: as matched), duplicates removed.
+    """
+    out: list[str] = []
+    seen: set[str] = set()
+    for i, entry in enumerate(entries):
+        line = lines[i] if lines is not None and i < len(lines) else None
+        k = f"{key}[{i}]" if lines is not None else key
+        if not isinstance(entry, str) or not entry:
+            raise c.err(k, f"a part must be a file path or glob, got {entry!r}", line)
+        if glob.has_magic(entry):
+            found = sorted(p for p in glob.glob(entry, recursive=True) if os.path.isfile(p))
+            if not found:
+                raise c.err(k, f"no file matches {entry!r}", line)
+        else:
+            if not os.path.exists(entry):
+                raise c.err(k, f"missing input file {entry!r}", line)
+            if os.path.isdir(entry):
+                raise c.err(k, f"{entry!r} is a directory (use a glob such as {entry}/*.bvh)",
+                            line)
+            found = [entry]
+        for p in found:
+            if p not in seen:
+                seen.add(p)
+                out.append(p)
+    return out
+
+
+# --------------------------------------------------------------------------- nodes
+
+
+def _parse_node(name: str, body: Any, raw_nodes: Any, c: FileErrors, has_parts: bool,
                 sets: dict[str, Any]) -> NodeConfig:
-    nline = _line_of(raw_nodes, name)
+    """One node: stage, inputs, seeds, gather, params (``sets``: its ``--set`` values)."""
+    nline = line_of(raw_nodes, name)
     key = f"nodes.{name}"
+    spec = _node_stage(name, body, key, nline, c)
+    inputs = _node_inputs(body, spec, raw_nodes, has_parts, key, nline, c)
+    seeds = None
+    if "seeds" in body and body["seeds"] is not None:
+        seeds = _parse_seeds(body["seeds"], c, f"{key}.seeds", line_of(body, "seeds"))
+    gather = body.get("gather", False)
+    if not isinstance(gather, bool):
+        raise c.err(f"{key}.gather", "must be true or false", line_of(body, "gather"))
+    params, lines = _node_params(name, body, spec, sets, seeds, key, nline, c)
+    description = body.get("description", "") or ""
+    return NodeConfig(
+        name=name,
+        stage=body["stage"],
+        inputs=inputs,
+        params=params,
+        seeds=seeds,
+        gather=gather,
+        line=nline or 0,
+        description=str(description),
+        param_lines={p: ln for p, ln in lines.items() if ln},
+    )
+
+
+def _node_stage(name: str, body: Any, key: str, nline: int | None, c: FileErrors
+                ) -> StageSpec:
+    """The node's stage (the node name and keys checked first)."""
     if not _NODE_NAME.match(name):
         raise c.err(key, "a node name must be letters, digits, _ or - (no dots or slashes)", nline)
     if not isinstance(body, dict):
         raise c.err(key, "a node must be a mapping with a stage: key", nline)
     for k in body:
         if k not in NODE_KEYS:
-            raise c.err(f"{key}.{k}", f"unknown node key{_close(k, NODE_KEYS)}", _line_of(body, k))
+            raise c.err(f"{key}.{k}", f"unknown node key{close_match(k, NODE_KEYS)}",
+                        line_of(body, k))
     if "stage" not in body:
         raise c.err(key, "missing stage:", nline)
     sname = body["stage"]
-    sline = _line_of(body, "stage")
+    sline = line_of(body, "stage")
     if not isinstance(sname, str):
         raise c.err(f"{key}.stage", "must be a stage name", sline)
     try:
-        spec = resolve_stage(sname)
+        return resolve_stage(sname)
     except KeyError as e:
         raise c.err(f"{key}.stage", str(e.args[0]), sline) from None
 
-    # inputs
-    raw_inputs = body.get("inputs") or _LDict()
-    iline = _line_of(body, "inputs") or nline
+
+def _node_inputs(body: Mapping[str, Any], spec: StageSpec, raw_nodes: Any, has_parts: bool,
+                 key: str, nline: int | None, c: FileErrors) -> dict[str, Any]:
+    """``input -> "part" | (node, output)``: every input of the stage wired, once."""
+    sname = body["stage"]
+    raw_inputs = body.get("inputs") or LineDict()
+    iline = line_of(body, "inputs") or nline
     if not isinstance(raw_inputs, dict):
         raise c.err(f"{key}.inputs", "must be a mapping input: node.output", iline)
     inputs: dict[str, Any] = {}
     for iname, wire in raw_inputs.items():
         ik = f"{key}.inputs.{iname}"
-        il = _line_of(raw_inputs, iname)
+        il = line_of(raw_inputs, iname)
         if iname not in spec.inputs:
-            raise c.err(ik, f"stage {sname!r} has no input {iname!r}{_close(iname, spec.inputs)}"
+            raise c.err(ik, f"stage {sname!r} has no input {iname!r}"
+                        f"{close_match(iname, spec.inputs)}"
                         f" (inputs: {', '.join(spec.inputs) or 'none'})", il)
         if wire == "part":
             if not has_parts:
@@ -695,27 +570,25 @@ def _parse_node(name: str, body: Any, raw_nodes: Any, c: _Ctx, has_parts: bool,
             raise c.err(ik, f"expected node.output or part, got {wire!r}", il)
         up, out = wire.split(".")
         if up not in raw_nodes:
-            raise c.err(ik, f"unknown node {up!r}{_close(up, raw_nodes)}", il)
+            raise c.err(ik, f"unknown node {up!r}{close_match(up, raw_nodes)}", il)
         inputs[iname] = (up, out)
     for iname in spec.inputs:
         if iname not in inputs:
             raise c.err(f"{key}.inputs.{iname}", f"input of stage {sname!r} is not wired", iline)
+    return inputs
 
-    # seeds / gather
-    seeds = None
-    if "seeds" in body and body["seeds"] is not None:
-        seeds = _parse_seeds(body["seeds"], c, f"{key}.seeds", _line_of(body, "seeds"))
-    gather = body.get("gather", False)
-    if not isinstance(gather, bool):
-        raise c.err(f"{key}.gather", "must be true or false", _line_of(body, "gather"))
 
-    # params
-    raw_params = body.get("params") or _LDict()
-    pline = _line_of(body, "params") or nline
+def _node_params(name: str, body: Mapping[str, Any], spec: StageSpec, sets: dict[str, Any],
+                 seeds: list[int] | None, key: str, nline: int | None, c: FileErrors
+                 ) -> tuple[dict[str, Any], dict[str, int]]:
+    """(validated params with defaults, ``param -> line`` (0: set on the command line))."""
+    sname = body["stage"]
+    raw_params = body.get("params") or LineDict()
+    pline = line_of(body, "params") or nline
     if not isinstance(raw_params, dict):
         raise c.err(f"{key}.params", "must be a mapping", pline)
     given = dict(raw_params)
-    lines = {p: _line_of(raw_params, p) or pline for p in raw_params}
+    lines = {p: line_of(raw_params, p) or pline for p in raw_params}
     for p, v in sets.items():
         given[p] = v
         lines[p] = 0
@@ -723,7 +596,7 @@ def _parse_node(name: str, body: Any, raw_nodes: Any, c: _Ctx, has_parts: bool,
         where_file = c.file if lines[p] else CMDLINE
         pk = f"{key}.params.{p}" if lines[p] else f"--set {name}.{p}"
         if p not in spec.params:
-            raise ConfigError(f"unknown param for stage {sname!r}{_close(p, spec.params)}",
+            raise ConfigError(f"unknown param for stage {sname!r}{close_match(p, spec.params)}",
                               file=where_file, line=lines[p] or None, key=pk)
         if seeds is not None and p == "seed":
             raise ConfigError("seed is set per task by seeds:", file=where_file,
@@ -738,21 +611,10 @@ def _parse_node(name: str, body: Any, raw_nodes: Any, c: _Ctx, has_parts: bool,
         params = registry.validate_params(spec, given)
     except ParamError as e:
         raise c.err(f"{key}.params", str(e), pline) from None
-    description = body.get("description", "") or ""
-    return NodeConfig(
-        name=name,
-        stage=sname,
-        inputs=inputs,
-        params=params,
-        seeds=seeds,
-        gather=gather,
-        line=nline or 0,
-        description=str(description),
-        param_lines={p: ln for p, ln in lines.items() if ln},
-    )
+    return params, lines
 
 
-def _parse_seeds(raw: Any, c: _Ctx, key: str, line: int | None) -> list[int]:
+def _parse_seeds(raw: Any, c: FileErrors, key: str, line: int | None) -> list[int]:
     if isinstance(raw, dict):
         if set(raw) != {"count"}:
             raise c.err(key, "expected a list of seeds or {count: N}", line)
@@ -766,14 +628,14 @@ def _parse_seeds(raw: Any, c: _Ctx, key: str, line: int | None) -> list[int]:
     for i, s in enumerate(raw):
         if not isinstance(s, int) or isinstance(s, bool):
             raise c.err(f"{key}[{i}]", f"a seed must be an integer, got {s!r}",
-                        _line_of(raw, i) or line)
+                        line_of(raw, i) or line)
         if s in seeds:
-            raise c.err(f"{key}[{i}]", f"duplicate seed {s}", _line_of(raw, i) or line)
+            raise c.err(f"{key}[{i}]", f"duplicate seed {s}", line_of(raw, i) or line)
         seeds.append(s)
     return seeds
 
 
-def _check_wiring(nodes: dict[str, NodeConfig], raw_nodes: Any, c: _Ctx) -> None:
+def _check_wiring(nodes: dict[str, NodeConfig], raw_nodes: Any, c: FileErrors) -> None:
     for n in nodes.values():
         raw_inputs = raw_nodes[n.name].get("inputs") or {}
         for iname, wire in n.inputs.items():
@@ -784,11 +646,11 @@ def _check_wiring(nodes: dict[str, NodeConfig], raw_nodes: Any, c: _Ctx) -> None
             if out not in outs:
                 raise c.err(f"nodes.{n.name}.inputs.{iname}",
                             f"node {up!r} (stage {nodes[up].stage!r}) has no output {out!r}"
-                            f"{_close(out, outs)} (outputs: {', '.join(outs)})",
-                            _line_of(raw_inputs, iname))
+                            f"{close_match(out, outs)} (outputs: {', '.join(outs)})",
+                            line_of(raw_inputs, iname))
 
 
-def _toposort(nodes: dict[str, NodeConfig], raw_nodes: Any, c: _Ctx) -> list[str]:
+def _toposort(nodes: dict[str, NodeConfig], raw_nodes: Any, c: FileErrors) -> list[str]:
     order: list[str] = []
     state: dict[str, int] = {}
 
@@ -804,7 +666,7 @@ def _toposort(nodes: dict[str, NodeConfig], raw_nodes: Any, c: _Ctx) -> list[str
                          if isinstance(w, tuple) and w[0] == nxt)
             raw_inputs = raw_nodes[first].get("inputs") or {}
             raise c.err(f"nodes.{first}.inputs.{iname}", f"cycle {' -> '.join(reversed(cyc))}",
-                        _line_of(raw_inputs, iname))
+                        line_of(raw_inputs, iname))
         state[n] = 1
         for up in nodes[n].upstream():
             visit(up, [*path, n])

@@ -3,7 +3,10 @@ Dask cluster (``--address`` / ``--scheduler-file``) or Slurm (dask-jobqueue).
 
 An executor runs a list of :class:`Call` (one per (node, part)), each a picklable
 module-level function whose extra positional arguments are the results of its
-dependencies.  Results are small references, never data.  ``ctx.map`` inside a
+dependencies.  Results are small references, never data: anything with a
+``status`` and an ``index`` (the engine's are
+:class:`~mocapflow.pipeline.execute.TaskRecord`); for a call it could not run
+(it raised, or was cancelled) an executor reports a :class:`CallOutcome`.  ``ctx.map`` inside a
 stage uses the same executor: :func:`task_mapper` returns a map that submits the
 sub-items to the cluster from inside the task (``distributed.worker_client``),
 or ``None`` (a plain map) outside a worker.
@@ -19,6 +22,7 @@ from typing import Any
 
 __all__ = [
     "Call",
+    "CallOutcome",
     "DistributedExecutor",
     "Executor",
     "ExecutorError",
@@ -47,7 +51,8 @@ class Call:
     key : str
         Dask key (unique per run: includes the run id).
     fn : callable
-        Module-level function, called as ``fn(*args, *dep_results)``.
+        Module-level function, called as ``fn(*args, *dep_results)``; its result
+        has ``status`` (``"hit"``/``"computed"`` for success) and ``index``.
     args : tuple
         Picklable leading arguments.
     deps : tuple of int
@@ -56,17 +61,35 @@ class Call:
 
     index: int
     key: str
-    fn: Callable[..., dict]
+    fn: Callable[..., Any]
     args: tuple
     deps: tuple[int, ...] = ()
 
 
-def _failed(call: Call, error: str) -> dict:
-    return {"status": "failed", "error": error, "index": call.index}
+@dataclass(frozen=True)
+class CallOutcome:
+    """What an executor reports for a call it could not run to a result of its own.
+
+    Attributes
+    ----------
+    index : int
+        The call's index.
+    status : {"failed", "skipped"}
+    error : str
+        ``"TypeName: message"`` of what the call raised, or why it was skipped.
+    """
+
+    index: int
+    status: str
+    error: str
 
 
-def _cancelled(call: Call) -> dict:
-    return {"status": "skipped", "error": "cancelled (--fail-fast)", "index": call.index}
+def _failed(call: Call, error: str) -> CallOutcome:
+    return CallOutcome(call.index, "failed", error)
+
+
+def _cancelled(call: Call) -> CallOutcome:
+    return CallOutcome(call.index, "skipped", "cancelled (--fail-fast)")
 
 
 class Executor:
@@ -75,8 +98,8 @@ class Executor:
     name = "base"
     workers = 1
 
-    def run(self, calls: Sequence[Call], *, on_done: Callable[[dict], None] | None = None,
-            fail_fast: bool = False) -> dict[int, dict]:
+    def run(self, calls: Sequence[Call], *, on_done: Callable[[Any], None] | None = None,
+            fail_fast: bool = False) -> dict[int, Any]:
         raise NotImplementedError
 
     def describe(self) -> str:
@@ -98,9 +121,9 @@ class SyncExecutor(Executor):
 
     name = "sync"
 
-    def run(self, calls: Sequence[Call], *, on_done: Callable[[dict], None] | None = None,
-            fail_fast: bool = False) -> dict[int, dict]:
-        results: dict[int, dict] = {}
+    def run(self, calls: Sequence[Call], *, on_done: Callable[[Any], None] | None = None,
+            fail_fast: bool = False) -> dict[int, Any]:
+        results: dict[int, Any] = {}
         stop = False
         for call in calls:
             if stop:
@@ -113,7 +136,7 @@ class SyncExecutor(Executor):
             results[call.index] = res
             if on_done is not None:
                 on_done(res)
-            if fail_fast and res.get("status") == "failed":
+            if fail_fast and res.status == "failed":
                 stop = True
         return results
 
@@ -157,8 +180,8 @@ class DistributedExecutor(Executor):
     def describe(self) -> str:
         return self._description
 
-    def run(self, calls: Sequence[Call], *, on_done: Callable[[dict], None] | None = None,
-            fail_fast: bool = False) -> dict[int, dict]:
+    def run(self, calls: Sequence[Call], *, on_done: Callable[[Any], None] | None = None,
+            fail_fast: bool = False) -> dict[int, Any]:
         """Submit each call once its dependencies are done, with their results as arguments.
 
         Dependencies are resolved here, not through Dask futures: results are tiny
@@ -176,14 +199,14 @@ class DistributedExecutor(Executor):
         for c in calls:
             for d in c.deps:
                 children.setdefault(d, []).append(c.index)
-        results: dict[int, dict] = {}
+        results: dict[int, Any] = {}
         running: dict[str, Any] = {}
         ac = as_completed([], loop=client.loop)
         stop = False
 
         def launch(call: Call) -> None:
             dep_results = [results[d] for d in call.deps]
-            if any(r.get("status") not in ("hit", "computed") for r in dep_results):
+            if any(r.status not in ("hit", "computed") for r in dep_results):
                 try:
                     res = call.fn(*call.args, *dep_results)
                 except Exception as e:
@@ -194,12 +217,12 @@ class DistributedExecutor(Executor):
             running[fut.key] = fut
             ac.add(fut)
 
-        def finish(call: Call, res: dict) -> None:
+        def finish(call: Call, res: Any) -> None:
             nonlocal stop
             results[call.index] = res
             if on_done is not None:
                 on_done(res)
-            if fail_fast and res.get("status") == "failed":
+            if fail_fast and res.status == "failed":
                 stop = True
             if stop:
                 return

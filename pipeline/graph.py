@@ -13,6 +13,9 @@ Rules (see the README's config format):
   a node with a single part).
 * ``gather: true`` makes one task over all parts; each input becomes a list
   ordered by part.
+* Task inputs are wires (:mod:`~mocapflow.pipeline.wires`): a part's file, every
+  part's file (gather), one upstream output, or one output of each upstream
+  task (gather).
 * A stage may declare *file overrides* (``StageSpec.extra["file_overrides"] =
   {input: param}``): when the node sets ``param`` (a ``FilePath`` param), its
   input wired to ``part`` reads that file instead of each part's file, so the
@@ -22,15 +25,37 @@ Rules (see the README's config format):
 
 from __future__ import annotations
 
+import difflib
 import os
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 from mocapflow.pipeline import registry
-from mocapflow.pipeline.config import ConfigError, GraphConfig, NodeConfig
+from mocapflow.pipeline.config import (
+    CMDLINE,
+    ConfigError,
+    GraphConfig,
+    NodeConfig,
+    load_config,
+    load_stage_modules,
+)
+from mocapflow.pipeline.wires import FilesWire, FileWire, TasksWire, TaskWire, Wire
 
-__all__ = ["Graph", "Task", "build_graph", "file_overrides", "part_label"]
+__all__ = [
+    "Graph",
+    "Task",
+    "build_graph",
+    "file_overrides",
+    "load_graph",
+    "part_label",
+    "task_name",
+]
+
+
+def task_name(node: str, part: str | None) -> str:
+    """``node`` or ``node/part`` (how messages name a task)."""
+    return node if part is None else f"{node}/{part}"
 
 
 @dataclass(frozen=True)
@@ -50,8 +75,8 @@ class Task:
     seed : int
         Seed of the context (the fan-out seed, else the ``seed`` param, else 0).
     inputs : dict
-        ``input -> ("file", path)``, ``("files", [paths])``,
-        ``("task", index, output)`` or ``("tasks", [(index, output), ...])``.
+        ``input -> wire``: :class:`~mocapflow.pipeline.wires.FileWire`,
+        ``FilesWire``, ``TaskWire`` or ``TasksWire``.
     """
 
     index: int
@@ -59,33 +84,21 @@ class Task:
     part: str | None
     stage: str
     params: dict[str, Any]
-    inputs: dict[str, tuple]
+    inputs: dict[str, Wire]
     seed: int = 0
 
     @property
     def name(self) -> str:
         """``node`` or ``node/part``."""
-        return self.node if self.part is None else f"{self.node}/{self.part}"
+        return task_name(self.node, self.part)
 
     def deps(self) -> list[int]:
         """Indices of the upstream tasks (unique, sorted)."""
-        out: set[int] = set()
-        for w in self.inputs.values():
-            if w[0] == "task":
-                out.add(w[1])
-            elif w[0] == "tasks":
-                out.update(i for i, _ in w[1])
-        return sorted(out)
+        return sorted({i for w in self.inputs.values() for i in w.tasks()})
 
     def files(self) -> list[str]:
         """Raw input files of the task (file inputs only)."""
-        out: list[str] = []
-        for w in self.inputs.values():
-            if w[0] == "file":
-                out.append(w[1])
-            elif w[0] == "files":
-                out.extend(w[1])
-        return out
+        return [p for w in self.inputs.values() for p in w.files()]
 
 
 @dataclass
@@ -147,8 +160,6 @@ class Graph:
         """
         node, _, part = spec.partition("/")
         if node not in self.nodes:
-            import difflib
-
             close = difflib.get_close_matches(node, self.nodes, n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             raise KeyError(f"unknown node {node!r}{hint}")
@@ -283,12 +294,9 @@ def build_graph(config: GraphConfig, targets: Sequence[str] | None = None) -> Gr
     targets = list(targets) if targets else list(config.targets)
     for t in targets:
         if t not in config.nodes:
-            import difflib
-
             close = difflib.get_close_matches(t, list(config.nodes), n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise ConfigError(f"unknown node {t!r}{hint}", file="<command line>",
-                              key="--target")
+            raise ConfigError(f"unknown node {t!r}{hint}", file=CMDLINE, key="--target")
     needed: set[str] = set()
     stack = list(targets)
     while stack:
@@ -309,24 +317,7 @@ def build_graph(config: GraphConfig, targets: Sequence[str] | None = None) -> Gr
         node = config.nodes[name]
         overridden = file_overrides(node)
         for part in node_parts[name]:
-            inputs: dict[str, tuple] = {}
-            for iname, w in node.inputs.items():
-                if iname in overridden:
-                    inputs[iname] = ("file", overridden[iname])
-                    continue
-                if w == "part":
-                    if node.gather:
-                        inputs[iname] = ("files", list(config.parts))
-                    else:
-                        inputs[iname] = ("file", part_match(part))  # type: ignore[misc]
-                    continue
-                up, out = w
-                up_parts = node_parts[up]
-                if node.gather:
-                    inputs[iname] = ("tasks", [(index[(up, p)], out) for p in up_parts])
-                else:
-                    p = _matcher(up_parts)(part)
-                    inputs[iname] = ("task", index[(up, p)], out)
+            inputs = _task_inputs(node, part, config, node_parts, index, overridden, part_match)
             params = _resolve_sidecars(node.stage, dict(node.params), inputs)
             seed = params.get("seed") if isinstance(params.get("seed"), int) else 0
             if node.seeds is not None:
@@ -341,8 +332,62 @@ def build_graph(config: GraphConfig, targets: Sequence[str] | None = None) -> Gr
                  tasks=tasks)
 
 
+def _task_inputs(node: NodeConfig, part: str | None, config: GraphConfig,
+                 node_parts: Mapping[str, list[str | None]],
+                 index: Mapping[tuple[str, str | None], int], overridden: Mapping[str, str],
+                 part_match: Any) -> dict[str, Wire]:
+    """The wires of the task ``(node, part)`` (its upstream tasks are already indexed)."""
+    inputs: dict[str, Wire] = {}
+    for iname, w in node.inputs.items():
+        if iname in overridden:
+            inputs[iname] = FileWire(overridden[iname])
+            continue
+        if w == "part":
+            if node.gather:
+                inputs[iname] = FilesWire(tuple(config.parts))
+            else:
+                inputs[iname] = FileWire(part_match(part))
+            continue
+        up, out = w
+        up_parts = node_parts[up]
+        if node.gather:
+            inputs[iname] = TasksWire(tuple(TaskWire(index[(up, p)], out) for p in up_parts))
+        else:
+            p = _matcher(up_parts)(part)
+            inputs[iname] = TaskWire(index[(up, p)], out)
+    return inputs
+
+
+def load_graph(path: str | os.PathLike, *, sets: Iterable[str] | Mapping[str, Any] = (),
+               parts: Sequence[str] | None = None, targets: Sequence[str] | None = None,
+               all_nodes: bool = False) -> Graph:
+    """Read a config and expand it into a graph (what every CLI verb does first).
+
+    Parameters
+    ----------
+    path : path-like
+        The YAML file.
+    sets, parts
+        Overrides, as for :func:`~mocapflow.pipeline.config.load_config`.
+    targets : sequence of str, optional
+        Target nodes (default: the config's targets).
+    all_nodes : bool
+        Every node of the config is a target (``targets`` is ignored).
+
+    Returns
+    -------
+    Graph
+        The modules named in ``MOCAPFLOW_STAGE_MODULES`` are imported first.
+    """
+    load_stage_modules()
+    cfg = load_config(path, sets=sets, parts=parts)
+    if all_nodes:
+        targets = list(cfg.nodes)
+    return build_graph(cfg, targets)
+
+
 def _resolve_sidecars(
-    stage: str, params: dict[str, Any], inputs: dict[str, tuple]
+    stage: str, params: dict[str, Any], inputs: Mapping[str, Wire]
 ) -> dict[str, Any]:
     """Fill ``FilePath`` params left ``None`` whose stage declares a sidecar resolver.
 
@@ -351,7 +396,7 @@ def _resolve_sidecars(
     """
     spec = registry.lookup(stage)
     resolvers = spec.extra.get("sidecars", {}) if spec is not None else {}
-    files = [w[1] for w in inputs.values() if w[0] == "file"]
+    files = [w.path for w in inputs.values() if isinstance(w, FileWire)]
     if not resolvers or len(files) != 1:
         return params
     for name, resolve in resolvers.items():

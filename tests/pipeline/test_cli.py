@@ -1,5 +1,5 @@
 """The mocapflow command: JSON output, one-line errors, crash safety, concurrency,
-export / show / verify / gc / lock --frozen / demo."""
+show / verify / gc / lock --frozen, verbs and flags."""
 
 from __future__ import annotations
 
@@ -10,7 +10,6 @@ import signal
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from mocapflow.pipeline.store import Store
@@ -129,32 +128,6 @@ def test_explain_plan_dag_stages_show(cli, toy_config, tmp_path):
     assert code == 0 and out.startswith("entry ") and "data: float64 (dim_0=5)" in out
 
 
-def test_export_layout_and_content(cli, toy_config, tmp_path):
-    out_dir = tmp_path / "out"
-    code, out, err = cli("export", toy_config, "--to", out_dir, "--store", tmp_path / "s",
-                         *SYNC, "--target", "scale", "--target", "total")
-    assert code == 0
-    total = np.load(out_dir / "total" / "all" / "total.npy")
-    np.testing.assert_array_equal(total, [2 * (5 * i + 15) for i in range(5)])
-    assert json.loads((out_dir / "total" / "all" / "report.json").read_text()) == {
-        "parts": 5, "grand_total": float(total.sum())}
-    np.testing.assert_array_equal(np.load(out_dir / "scale" / "trial002" / "values.npy"),
-                                  2 * (np.arange(5.0) + 3))
-    assert len(out.splitlines()) == 7
-    # a record output: attrs as JSON, arrays as .npy
-    cfg = write_config(tmp_path / "r.yaml", """\
-        nodes:
-          src: {stage: toy_source, params: {n: 8}}
-          stats: {stage: toy_stats, inputs: {values: src.values}}
-        targets: [stats]
-        """)
-    code, out, err = cli("export", cfg, "--to", out_dir, "--store", tmp_path / "s", *SYNC)
-    rec = json.loads((out_dir / "stats" / "all" / "stats.json").read_text())
-    assert rec["mean"] == 3.5 and rec["_arrays"]["hist"] == "stats.hist.npy"
-    np.testing.assert_array_equal(np.load(out_dir / "stats" / "all" / "stats.hist.npy"),
-                                  [2, 2, 2, 2])
-
-
 def test_lock_and_frozen(cli, toy_config, data_dir, tmp_path):
     code, out, _ = cli("lock", toy_config, "--store", tmp_path / "s", *SYNC)
     lock = Path(out.strip())
@@ -262,40 +235,6 @@ def test_verify_detects_a_missing_chunk(cli, toy_config, tmp_path):
     assert err.strip() == f"mocapflow: error: verify: 2 problem(s) in {s}"
 
 
-def test_demo_steps_chain_through_exports(cli, tmp_path):
-    (tmp_path / "cfg").mkdir()
-    write_config(tmp_path / "cfg" / "first.yaml", """\
-        nodes:
-          src: {stage: toy_source, seeds: {count: 2}, params: {n: 4, noise: 1.0}}
-        """)
-    write_config(tmp_path / "cfg" / "second.yaml", """\
-        parts: [none.npy]
-        nodes:
-          read: {stage: toy_read_file, inputs: {path: part}}
-          total: {stage: toy_sum, inputs: {values: read.values}, gather: true}
-        targets: [total]
-        """)
-    spec = write_config(tmp_path / "cfg" / "demo.yaml", """\
-        steps:
-          - config: first.yaml
-            export_to: first
-            set: {src.value: 2.0}
-          - config: second.yaml
-            name: sums
-            parts: ["{out}/first/src/*/values.npy"]
-            export_to: second
-        """)
-    out = tmp_path / "demo"
-    code, text, err = cli("demo", "--out", out, "--spec", spec, *SYNC, "-q")
-    assert code == 0, err
-    assert text.splitlines()[0] == f"demo results in {out}"
-    firsts = sorted((out / "first" / "src").glob("*/values.npy"))
-    assert [p.parent.name for p in firsts] == ["seed0", "seed1"]
-    want = [np.load(p).sum() for p in firsts]
-    np.testing.assert_allclose(np.load(out / "second" / "total" / "all" / "total.npy"), want)
-    assert Store(out / "store").verify() == []
-
-
 def test_verbs_and_flags_keep_their_names():
     from mocapflow.pipeline.cli import build_parser
 
@@ -313,27 +252,3 @@ def test_verbs_and_flags_keep_their_names():
                               "--parts", "x/*.bvh", "--parts", "y.bvh", "--target", "t"])
     assert args.sets == ["a.b=1", "c.d=x"] and args.parts == ["x/*.bvh", "y.bvh"]
     assert args.executor == "local" and args.targets == ["t"]
-
-
-def test_progress_bar_and_plain_lines():
-    import io
-
-    from mocapflow.pipeline.progress import Progress
-
-    tty = io.StringIO()
-    p = Progress(3, stream=tty, tty=True)
-    for status in ("hit", "computed", "failed"):
-        p.update({"node": "n", "part": "a.bvh", "status": status, "seconds": 0.5,
-                  "error": "ValueError: bad" if status == "failed" else None})
-    p.close()
-    text = tty.getvalue()
-    assert "\r" in text and "] 3/3 hit 1 computed 1 failed 1" in text
-    assert "failed   n/a.bvh: ValueError: bad" in text
-    assert text.endswith("3 tasks: 1 hit, 1 computed, 1 failed, 0 skipped in 0.0s\n")
-    plain = io.StringIO()
-    p = Progress(2, stream=plain, tty=False)
-    p.update({"node": "n", "part": None, "status": "hit"})
-    p.update({"node": "m", "part": "b", "status": "computed", "seconds": 1.25})
-    p.close()
-    assert plain.getvalue().splitlines() == [
-        "[2/2] computed m/b 1.25s", "2 tasks: 1 hit, 1 computed, 0 failed, 0 skipped in 0.0s"]

@@ -6,6 +6,7 @@ import pytest
 
 from mocapflow.pipeline.config import ConfigError, parse_config
 from mocapflow.pipeline.graph import build_graph, part_label
+from mocapflow.pipeline.wires import FileWire, TasksWire, TaskWire
 
 
 def _graph(text, targets=None):
@@ -23,15 +24,16 @@ nodes:
     files = [str(data_dir / f"trial{i:03d}.txt") for i in range(5)]
     assert g.nodes == ["read", "scale", "total"]
     assert [t.part for t in g.node_tasks("read")] == files
-    assert [t.inputs["path"] for t in g.node_tasks("read")] == [("file", f) for f in files]
+    assert [t.inputs["path"] for t in g.node_tasks("read")] == [FileWire(f) for f in files]
     assert len(g.tasks) == 11
     for t in g.tasks:
         assert all(d < t.index for d in t.deps())
     scale = g.task("scale", files[2])
-    assert scale.inputs == {"values": ("task", g.task("read", files[2]).index, "values")}
+    assert scale.inputs == {"values": TaskWire(g.task("read", files[2]).index, "values")}
     total = g.task("total", None)
-    assert total.inputs["values"][0] == "tasks"
-    assert [g.tasks[i].part for i, _ in total.inputs["values"][1]] == files  # ordered by part
+    assert isinstance(total.inputs["values"], TasksWire)
+    # ordered by part
+    assert [g.tasks[w.index].part for w in total.inputs["values"].sources] == files
 
 
 def test_seed_fanout_prefix_matching_and_broadcast(data_dir):
@@ -68,7 +70,7 @@ nodes:
         f"{f0}#seed=0", f"{f0}#seed=1", f"{f1}#seed=0", f"{f1}#seed=1"]
     # the seeded task for part q reads the file-level task whose part is q's prefix
     t = g.task("seeded", f"{f1}#seed=1")
-    assert g.tasks[t.inputs["values"][1]].part == f1 and t.seed == 1 and "seed" not in t.params
+    assert g.tasks[t.inputs["values"].index].part == f1 and t.seed == 1 and "seed" not in t.params
     # downstream of a seeded node: one task per seeded part
     assert [t.part for t in g.node_tasks("mix")] == [t.part for t in g.node_tasks("seeded")]
     assert [t.part for t in g.node_tasks("below_gather")] == ["seed=5"]
@@ -84,7 +86,7 @@ nodes:
   pair: {{stage: toy_sum, inputs: {{values: read.values}}}}
 """)
     total = g.task("total", None).index
-    assert [t.inputs["values"] for t in g.node_tasks("per")] == [("task", total, "total")]
+    assert [t.inputs["values"] for t in g.node_tasks("per")] == [TaskWire(total, "total")]
     g2 = _graph(f"""
 parts: ["{data_dir}/trial00[012].txt"]
 nodes:
@@ -122,8 +124,8 @@ nodes:
     total = g.task("total", None).index
     tasks = g.node_tasks("pair")
     assert [t.part for t in tasks] == ["seed=0", "seed=1", "seed=2"]
-    assert all(t.inputs["total"] == ("task", total, "total") for t in tasks)
-    assert [g.tasks[t.inputs["values"][1]].part for t in tasks] == ["seed=0", "seed=1", "seed=2"]
+    assert all(t.inputs["total"] == TaskWire(total, "total") for t in tasks)
+    assert [g.tasks[t.inputs["values"].index].part for t in tasks] == ["seed=0", "seed=1", "seed=2"]
 
 
 def test_mismatched_fanouts_are_an_error():

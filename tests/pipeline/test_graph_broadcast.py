@@ -14,6 +14,7 @@ from mocapflow.pipeline.graph import build_graph, file_overrides
 from mocapflow.pipeline.runner import run
 from mocapflow.pipeline.store import Store
 from mocapflow.pipeline.testing import read_numbers
+from mocapflow.pipeline.wires import FileWire, TasksWire, TaskWire
 
 
 @stage("toy_read_shared", outputs=("values",))
@@ -55,16 +56,16 @@ def test_override_makes_one_task_broadcast_to_every_part(data_dir, shared_file):
     files = [str(data_dir / f"trial{i:03d}.txt") for i in range(3)]
     (ref,) = g.node_tasks("ref")
     assert ref.part is None
-    assert ref.inputs == {"path": ("file", str(shared_file))}
+    assert ref.inputs == {"path": FileWire(str(shared_file))}
     assert file_overrides(g.config.nodes["ref"]) == {"path": str(shared_file)}
     (scaled,) = g.node_tasks("ref_scaled")  # single upstream task: a single task
     assert scaled.part is None and scaled.deps() == [ref.index]
     # per-part nodes are unaffected
     assert [t.part for t in g.node_tasks("read")] == files
-    assert [t.inputs["path"] for t in g.node_tasks("read")] == [("file", f) for f in files]
+    assert [t.inputs["path"] for t in g.node_tasks("read")] == [FileWire(f) for f in files]
     # a gather over a broadcast node reads its one task
     (both,) = g.node_tasks("both")
-    assert both.inputs["values"] == ("tasks", [(scaled.index, "values")])
+    assert both.inputs["values"] == TasksWire((TaskWire(scaled.index, "values"),))
 
 
 def test_broadcast_task_feeds_every_part_of_a_mixed_node(data_dir, shared_file):
@@ -74,14 +75,14 @@ def test_broadcast_task_feeds_every_part_of_a_mixed_node(data_dir, shared_file):
     )
     g = _graph(text, ["mixed", "pair"])
     (ref,) = g.node_tasks("ref")
-    assert [t.inputs["values"] for t in g.node_tasks("mixed")] == [("task", ref.index, "values")]
+    assert [t.inputs["values"] for t in g.node_tasks("mixed")] == [TaskWire(ref.index, "values")]
 
 
 def test_no_override_keeps_one_task_per_part(data_dir):
     g = _graph(_config(data_dir, None), ["ref_scaled"])
     files = [str(data_dir / f"trial{i:03d}.txt") for i in range(3)]
     assert [t.part for t in g.node_tasks("ref")] == files
-    assert [t.inputs["path"] for t in g.node_tasks("ref")] == [("file", f) for f in files]
+    assert [t.inputs["path"] for t in g.node_tasks("ref")] == [FileWire(f) for f in files]
     assert [t.part for t in g.node_tasks("ref_scaled")] == files
     assert file_overrides(g.config.nodes["ref"]) == {}
 

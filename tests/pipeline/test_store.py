@@ -1,4 +1,4 @@
-"""The Zarr v3 store: exact round trips, crash safety, races, verify, gc, run records."""
+"""The store: exact round trips on every backend, commit once, crash safety, races."""
 
 from __future__ import annotations
 
@@ -15,46 +15,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import zarr
 
 from mocapflow.pipeline import store as store_mod
+from mocapflow.pipeline import store_zarr
 from mocapflow.pipeline.codecs import Encoded, digest_encoded, encode
 from mocapflow.pipeline.store import EntryNotFoundError, Store
+from tests.pipeline.helpers import sample_outputs
 
 REPO = Path(__file__).resolve().parents[2]
 
+
 # --------------------------------------------------------------------------- fixtures
-
-
-def _outputs(n_frames: int = 10) -> dict[str, Encoded]:
-    rng = np.random.default_rng(0)
-    pos = rng.normal(size=(n_frames, 4, 3))
-    pos[2, 1] = np.nan
-    pos[5:, 3] = np.nan
-    markers = Encoded(
-        "markers",
-        {
-            "positions": (pos, ("frame", "marker", "xyz")),
-            "residuals": (rng.random((n_frames, 4)).astype(np.float32), ("frame", "marker")),
-            "labels": (np.array(["LASI", "RASI", "C7", "T10"]), ("marker",)),
-            "fragments": (np.zeros((n_frames, 0, 3)), ("frame", "fragment", "xyz")),
-            "flags": (rng.random(n_frames) > 0.5, ("frame",)),
-            "ids": (np.arange(n_frames, dtype=">i2"), ("frame",)),  # big-endian in
-            "bytes": (np.arange(7, dtype=np.uint8), ("k",)),
-            "z": (np.array([1 + 2j, -0.0 - 1j]), ("c",)),
-            "times": (np.array(["2024-01-01", "NaT"], dtype="datetime64[ns]"), ("t",)),
-            "scalar": (np.array(3.25), ()),
-        },
-        {"rate": 120.0, "first_frame": np.int64(7), "nan": float("nan"), "big": 2**60,
-         "names": ("a",), "by_id": {3: "x"}},
-    )
-    return {
-        "markers": markers,
-        "report": encode({"merges": [[1, 2]], "variance": 0.99, "note": "ok"}),
-        "record": encode({"basis": rng.normal(size=(3, 5)), "mean": np.zeros(0), "k": 3}),
-        "empty": encode(np.zeros((0, 5, 3))),
-        "names": Encoded("names", {"n": (np.array(["x", "yy"], dtype=object), ("i",))}, {}),
-    }
 
 
 def _same_array(a: np.ndarray, b: np.ndarray) -> bool:
@@ -86,7 +57,7 @@ def any_store(request, tmp_path):
 
 def test_round_trip_exact(any_store):
     st = any_store
-    outs = _outputs()
+    outs = sample_outputs()
     assert not st.has("clean", "k1")
     digests = st.commit("clean", "k1", outs, {"components": {"params": {"alpha1": 0.5}}})
     assert st.has("clean", "k1") and st.entries() == [("clean", "k1")]
@@ -123,41 +94,6 @@ def test_round_trip_exact(any_store):
     assert st.verify() == []
 
 
-def test_float64_bits_exact(tmp_path):
-    st = Store(tmp_path)
-    x = np.array([0.1, -0.0, 5e-324, np.inf, -np.inf, np.nan, 1.7976931348623157e308])
-    nan_payload = np.frombuffer(np.uint64(0x7FF8_0000_0000_1234).tobytes(), dtype=np.float64)
-    x = np.concatenate([x, nan_payload])
-    st.commit("s", "k", {"x": encode(x)}, {})
-    assert st.load("s", "k", "x").arrays["data"][0].tobytes() == x.tobytes()
-
-
-def test_layout_dimension_names_and_chunks(tmp_path):
-    st = Store(tmp_path / "s", chunk_frames=4)
-    st.commit("clean", "k1", _outputs(10), {})
-    entry = Path(st.entry_path("clean", "k1"))
-    assert (entry / "_COMMIT.json").is_file() and (entry / "zarr.json").is_file()
-    g = zarr.open_group(store=str(entry / "markers"), mode="r")
-    assert g.metadata.zarr_format == 3
-    assert g.attrs["mocapflow"]["type"] == "markers"
-    arr = g["positions"]
-    assert arr.metadata.dimension_names == ("frame", "marker", "xyz")
-    assert arr.chunks == (4, 4, 3)  # chunked along frame only
-    assert arr.nchunks == 3 and arr.nchunks_initialized == 3
-    assert g["labels"].chunks == (4,)  # no frame axis: one chunk
-    assert not (Path(st.root) / "staging").exists() or not os.listdir(Path(st.root) / "staging")
-
-
-def test_xarray_opens_an_output(tmp_path):
-    xr = pytest.importorskip("xarray")
-    st = Store(tmp_path / "s", chunk_frames=4)
-    outs = {"markers": Encoded("m", {"positions": _outputs()["markers"].arrays["positions"]})}
-    st.commit("clean", "k1", outs, {})
-    ds = xr.open_zarr(st.entry_path("clean", "k1") + "/markers", consolidated=False)
-    assert ds["positions"].dims == ("frame", "marker", "xyz")
-    np.testing.assert_array_equal(ds["positions"].values, outs["markers"].arrays["positions"][0])
-
-
 def test_commit_existing_entry_writes_nothing(tmp_path):
     st = Store(tmp_path)
     d1 = st.commit("s", "k", {"x": encode(np.arange(3.0))}, {"n": 1})
@@ -188,7 +124,7 @@ def test_errors_name_what_is_wrong(tmp_path, monkeypatch):
     def boom(sink, buffer, **kw):
         raise OSError("disk full")
 
-    monkeypatch.setattr(store_mod, "_flush", boom)
+    monkeypatch.setattr(store_zarr, "_flush", boom)
     with pytest.raises(OSError, match="disk full"):
         st.commit("s", "k3", {"x": encode(np.arange(3.0))}, {})
     assert not st.has("s", "k3")
@@ -204,88 +140,6 @@ def test_pickle_carries_only_root_and_options(tmp_path):
     assert st2 == st and st2.chunk_frames == 16 and st2.has("s", "k") and st2.is_local
 
 
-def test_chunk_layout(monkeypatch):
-    f = store_mod._chunk_layout
-    assert f((10, 4, 3), ("frame", "m", "xyz"), 8, 4) == ((4, 4, 3), 0)
-    assert f((0, 4, 3), ("frame", "m", "xyz"), 8, 4) == ((1, 4, 3), 0)
-    assert f((3, 10), ("joint", "frame"), 8, 4) == ((3, 4), 1)
-    assert f((5, 6), ("a", "b"), 8, 4) == ((5, 6), None)
-    assert f((), (), 8, 4) == ((), None)
-    monkeypatch.setattr(store_mod, "MAX_CHUNK_BYTES", 1000)
-    assert f((100, 10), ("a", "b"), 8, 4) == ((12, 10), 0)  # big non-frame array: rows
-    assert f((100, 10), ("frame", "b"), 8, 64) == ((12, 10), 0)  # frames capped by bytes
-
-
-# --------------------------------------------------------------------------- verify
-
-
-def _chunk_files(entry: Path, output: str, array: str) -> list[Path]:
-    return sorted(p for p in (entry / output / array / "c").rglob("*") if p.is_file())
-
-
-def test_verify_catches_deleted_and_corrupted_chunks(tmp_path):
-    st = Store(tmp_path, chunk_frames=4)
-    st.commit("clean", "k1", _outputs(12), {})
-    st.commit("clean", "k2", _outputs(12), {})
-    assert st.verify() == []
-    e1 = Path(st.entry_path("clean", "k1"))
-    chunks = _chunk_files(e1, "markers", "positions")
-    assert len(chunks) == 3
-    chunks[1].unlink()
-    # Zarr itself does not notice: the missing chunk reads back as the fill value
-    silently = st.load("clean", "k1", "markers").arrays["positions"][0]
-    assert np.all(silently[4:8] == 0.0)
-    problems = st.verify()
-    assert any("clean/k1: missing file markers/positions/c/1/0/0" in p for p in problems)
-    assert any(p.startswith("clean/k1/markers: digest mismatch") for p in problems)
-    assert not any("clean/k2" in p for p in problems)
-
-    e2 = Path(st.entry_path("clean", "k2"))
-    target = _chunk_files(e2, "record", "basis")[0]
-    data = bytearray(target.read_bytes())
-    data[len(data) // 2] ^= 0x01
-    target.write_bytes(bytes(data))
-    (e2 / "record" / "stray.bin").write_bytes(b"x")
-    problems = st.verify(entries=[("clean", "k2")])
-    assert any(p.startswith("clean/k2: corrupt chunk record/basis/c/0/0") for p in problems)
-    assert "clean/k2: unexpected file record/stray.bin" in problems
-    assert st.verify(entries=[("clean", "nope")]) == ["clean/nope: not committed (no readable "
-                                                       "_COMMIT.json)"]
-
-
-def test_verify_on_memory_url():
-    import fsspec
-
-    name = f"mocapflow-test-{uuid.uuid4().hex[:8]}"
-    st = Store(f"memory://{name}", chunk_frames=4)
-    st.commit("clean", "k1", _outputs(12), {})
-    assert st.verify() == []
-    fs = fsspec.filesystem("memory")
-    fs.rm(f"/{name}/entries/clean/k1/markers/positions/c/2/0/0")
-    problems = st.verify()
-    assert any("missing file markers/positions/c/2/0/0" in p for p in problems)
-    assert any("digest mismatch" in p for p in problems)
-    fs.rm(f"/{name}", recursive=True)
-
-
-def test_half_written_url_entry_is_collected():
-    import fsspec
-
-    name = f"mocapflow-test-{uuid.uuid4().hex[:8]}"
-    st = Store(f"memory://{name}")
-    st.commit("s", "a", {"x": encode(np.arange(3.0))}, {})
-    st.commit("s", "b", {"x": encode(np.arange(4.0))}, {})
-    fs = fsspec.filesystem("memory")
-    fs.rm(f"/{name}/entries/s/b/_COMMIT.json")  # as if the writer died before the manifest
-    assert not st.has("s", "b") and st.entries() == [("s", "a")] and st.verify() == []
-    report = st.gc()
-    assert report["incomplete"] == [f"memory:///{name}/entries/s/b"]
-    assert not fs.exists(f"/{name}/entries/s/b") and st.has("s", "a")
-    st.gc(keep=set())
-    assert st.entries() == []
-    fs.rm(f"/{name}", recursive=True)
-
-
 def test_corrupt_manifest_means_not_committed(tmp_path):
     st = Store(tmp_path)
     st.commit("s", "k", {"x": encode(np.arange(3.0))}, {})
@@ -293,17 +147,18 @@ def test_corrupt_manifest_means_not_committed(tmp_path):
     assert not st.has("s", "k") and st.manifest("s", "k") is None
 
 
-# --------------------------------------------------------------------------- crash, race, gc
+# --------------------------------------------------------------------------- crash, race
+
 
 _WRITER_SCRIPT = """
 import json, os, sys, time
 import numpy as np
-from mocapflow.pipeline import store as store_mod
+from mocapflow.pipeline import store_zarr
 from mocapflow.pipeline.codecs import Encoded
 from mocapflow.pipeline.store import Store
 
 root, key, mode, go, ready = sys.argv[1:6]
-original_flush = store_mod._flush
+original_flush = store_zarr._flush
 calls = []
 
 def slow_flush(sink, buffer, **kw):
@@ -315,7 +170,7 @@ def slow_flush(sink, buffer, **kw):
     if mode == "race":
         time.sleep(0.15)
 
-store_mod._flush = slow_flush
+store_zarr._flush = slow_flush
 saw_existing = []
 original_publish = Store._publish
 
@@ -442,67 +297,3 @@ def test_two_writers_race_on_one_key(tmp_path):
     assert st.manifest("synth", "k1")["writer"] in writers  # the loser did not replace it
     assert st.verify() == []
     assert os.listdir(tmp_path / "store" / "staging") == []
-
-
-def test_gc_rules(tmp_path):
-    st = Store(tmp_path)
-    for k in ("a", "b", "c"):
-        st.commit("s", k, {"x": encode(np.arange(3.0) + ord(k))}, {})
-    staging = tmp_path / "staging"
-    live = staging / "s-live-1"
-    live.mkdir(parents=True)
-    (live / "_WRITER.json").write_text(json.dumps(store_mod._writer_info()))  # us: alive
-    unknown = staging / "s-unknown-1"
-    unknown.mkdir()
-    report = st.gc(staging_min_age_s=3600)
-    assert report["staging"] == [] and live.exists() and unknown.exists()
-    old = time.time() - 7200
-    os.utime(unknown, (old, old))
-    report = st.gc(staging_min_age_s=3600, keep={("s", "a"), ("s", "c")}, dry_run=True)
-    assert report["staging"] == [str(unknown)]
-    assert report["unreachable"] == [st.entry_path("s", "b")]
-    assert st.has("s", "b") and unknown.exists()
-    st.gc(staging_min_age_s=3600, keep={("s", "a"), ("s", "c")})
-    assert st.entries() == [("s", "a"), ("s", "c")] and not unknown.exists() and live.exists()
-    assert st.delete("s", "a") and not st.has("s", "a") and not st.delete("s", "a")
-
-
-# --------------------------------------------------------------------------- records
-
-
-@pytest.mark.parametrize("kind", ["local", "memory"])
-def test_run_records(tmp_path, kind):
-    root = str(tmp_path) if kind == "local" else f"memory://runs-{uuid.uuid4().hex[:8]}"
-    st = Store(root)
-    assert st.runs() == [] and st.last_task_record("clean", "t1") is None
-
-    def task(node, part, status, key):
-        return {"node": node, "part": part, "stage": node, "key": key, "components": {},
-                "status": status}
-
-    st.write_run("r2", {"started_at": 200.0, "tasks": [task("clean", "t1", "failed", "k2")]})
-    st.write_run("r1", {"started_at": "1970-01-01T00:01:40+00:00",
-                        "tasks": [task("clean", "t1", "computed", "k1"),
-                                  task("learn", None, "computed", "g1")]})
-    st.write_run("r3", {"started_at": 300.0, "tasks": [task("clean", "t2", "hit", "k3")]})
-    assert [r["run_id"] for r in st.runs()] == ["r1", "r2", "r3"]
-    last = st.last_task_record("clean", "t1")
-    assert last["key"] == "k2" and last["run_id"] == "r2"
-    assert st.last_task_record("clean", "t1", statuses={"hit", "computed"})["key"] == "k1"
-    assert st.last_task_record("learn", None)["key"] == "g1"
-    assert st.last_task_record("learn", "t1") is None
-    st.write_run("r2", {"started_at": 50.0, "tasks": []})  # replaced: now the oldest
-    assert [r["run_id"] for r in st.runs()] == ["r2", "r1", "r3"]
-    assert st.last_task_record("clean", "t1")["key"] == "k1"
-    with pytest.raises(ValueError, match="run id"):
-        st.write_run("../x", {})
-
-
-def test_file_memo(tmp_path):
-    st = Store(tmp_path)
-    assert st.load_file_memo() == {}
-    st.save_file_memo({"/a": [1, 2, 3, "d1"]})
-    st.save_file_memo({"/b": [4, 5, 6, "d2"]})  # merged, not replaced
-    assert st.load_file_memo() == {"/a": [1, 2, 3, "d1"], "/b": [4, 5, 6, "d2"]}
-    (tmp_path / "cache" / "file_digests.json").write_text("{broken")
-    assert st.load_file_memo() == {}

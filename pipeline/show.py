@@ -1,0 +1,58 @@
+"""Finding a committed entry by key prefix and describing it (``mocapflow show``)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from mocapflow.pipeline.store import EntryNotFoundError, Store, StoreError
+from mocapflow.pipeline.store_zarr import describe_outputs
+
+__all__ = ["AmbiguousEntryError", "entry_summary", "find_entry"]
+
+
+class AmbiguousEntryError(StoreError, LookupError):
+    """More than one committed entry matches a key prefix."""
+
+
+def find_entry(store: Store, entry: str) -> tuple[str, str]:
+    """The committed ``(stage, key)`` named by ``STAGE/KEY-PREFIX`` or ``KEY-PREFIX``.
+
+    Raises
+    ------
+    EntryNotFoundError
+        No committed entry matches.
+    AmbiguousEntryError
+        Several do (the message names up to five).
+    """
+    stage, sep, key = entry.partition("/")
+    entries = store.entries()
+    if sep:
+        cands = [(s, k) for s, k in entries if s == stage and k.startswith(key)]
+    else:
+        cands = [(s, k) for s, k in entries if k.startswith(entry)]
+    if not cands:
+        raise EntryNotFoundError(f"no committed entry matches in store {store.root}")
+    if len(cands) > 1:
+        names = ", ".join(f"{s}/{k[:12]}" for s, k in cands[:5])
+        raise AmbiguousEntryError(f"{len(cands)} entries match ({names}…); give more of "
+                                  "the key")
+    return cands[0]
+
+
+def entry_summary(store: Store, stage: str, key: str) -> dict[str, Any]:
+    """Manifest and outputs of a committed entry, without reading any array data.
+
+    Returns
+    -------
+    dict
+        ``{"entry": "stage/key", "path", "manifest", "outputs": {output: {"type",
+        "digest", "arrays": {name: {"shape", "dtype", "dims", "chunks"}}, "attrs"}}}``.
+    """
+    man = store.manifest(stage, key)
+    described = describe_outputs(store.entry_path(stage, key), sorted(man["outputs"]))
+    outputs = {}
+    for out, info in sorted(man["outputs"].items()):
+        outputs[out] = {"type": info.get("type"), "digest": info.get("digest"),
+                        **described[out]}
+    return {"entry": f"{stage}/{key}", "path": store.entry_path(stage, key), "manifest": man,
+            "outputs": outputs}
