@@ -189,7 +189,7 @@ class DistributedExecutor(Executor):
         over every worker.  A call whose dependency failed runs here (it only
         records itself as skipped).
         """
-        from distributed import as_completed
+        from distributed import as_completed  # noqa: PLC0415 (heavy)
 
         client = self.client
         by_index = {c.index: c for c in calls}
@@ -267,7 +267,7 @@ class DistributedExecutor(Executor):
 
 
 def _distributed_map(fn: Callable[[Any], Any], items: list[Any]) -> list[Any]:
-    from distributed import worker_client
+    from distributed import worker_client  # noqa: PLC0415 (heavy)
 
     with worker_client() as client:
         futs = client.map(fn, items, pure=False)
@@ -285,7 +285,7 @@ def task_mapper() -> Callable[[Callable[[Any], Any], list[Any]], list[Any]] | No
         Elsewhere ``None``: the context maps sequentially.
     """
     try:
-        from distributed import get_worker
+        from distributed import get_worker  # noqa: PLC0415 (heavy)
 
         get_worker()
     except (ImportError, ValueError):
@@ -331,7 +331,7 @@ class SlurmOptions:
 
 def _slurm_cluster(opts: SlurmOptions):
     try:
-        from dask_jobqueue import SLURMCluster
+        from dask_jobqueue import SLURMCluster  # noqa: PLC0415 (heavy)
     except ImportError as e:  # pragma: no cover - dependency declared
         raise ExecutorError(f"--executor slurm needs dask-jobqueue ({e})") from None
     return SLURMCluster(**opts.cluster_kwargs())
@@ -348,7 +348,7 @@ def slurm_job_script(opts: SlurmOptions) -> str:
 
 def _local_factory(workers: int):
     def start():
-        from distributed import Client, LocalCluster
+        from distributed import Client, LocalCluster  # noqa: PLC0415 (heavy)
 
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                dashboard_address=":0", silence_logs=logging.ERROR)
@@ -365,7 +365,7 @@ def _local_factory(workers: int):
 
 def _external_factory(address: str | None, scheduler_file: str | None):
     def start():
-        from distributed import Client
+        from distributed import Client  # noqa: PLC0415 (heavy)
 
         try:
             if scheduler_file:
@@ -387,7 +387,7 @@ def _external_factory(address: str | None, scheduler_file: str | None):
 
 def _slurm_factory(opts: SlurmOptions):
     def start():
-        from distributed import Client
+        from distributed import Client  # noqa: PLC0415 (heavy)
 
         cluster = _slurm_cluster(opts)
         cluster.scale(jobs=opts.jobs)

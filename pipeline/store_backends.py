@@ -192,7 +192,8 @@ class FsspecBackend:
     is_local = False
 
     def __init__(self, url: str, storage_options: dict | None) -> None:
-        from fsspec.core import url_to_fs  # only URL roots need fsspec (~60 ms to import)
+        # only URL roots need fsspec (~60 ms to import)
+        from fsspec.core import url_to_fs  # noqa: PLC0415
 
         self.fs, path = url_to_fs(url, **(storage_options or {}))
         self.root = path.rstrip("/") or "/"

@@ -173,10 +173,10 @@ def _flush(sink: Any, buffer: dict, *, final: bool = False) -> None:
 async def _awrite_entry(
     sink: Any, outputs: Mapping[str, Encoded], root_attrs: dict, chunk_frames: int
 ) -> None:
-    import zarr.api.asynchronous as za
-    from zarr.codecs import ZstdCodec
-    from zarr.errors import UnstableSpecificationWarning
-    from zarr.storage import MemoryStore
+    import zarr.api.asynchronous as za  # noqa: PLC0415 (heavy)
+    from zarr.codecs import ZstdCodec  # noqa: PLC0415 (heavy)
+    from zarr.errors import UnstableSpecificationWarning  # noqa: PLC0415 (heavy)
+    from zarr.storage import MemoryStore  # noqa: PLC0415 (heavy)
 
     buffer: dict = {}
     root = await za.open_group(
@@ -243,7 +243,7 @@ def write_entry(
 
 async def _aopen_output(zstore: Any, output: str) -> tuple[dict, dict[str, Any]]:
     """(mocapflow attrs, ``array name -> AsyncArray``) of one output group."""
-    import zarr.api.asynchronous as za
+    import zarr.api.asynchronous as za  # noqa: PLC0415 (heavy)
 
     group = await za.open_group(store=zstore, path=output, mode="r")
     meta = dict(group.attrs).get("mocapflow")
@@ -300,7 +300,7 @@ def describe_outputs(location: str, outputs: Iterable[str]) -> dict[str, dict[st
         ``output -> {"arrays": {name: {"shape", "dtype", "dims", "chunks"}},
         "attrs": {...}}``.
     """
-    import zarr
+    import zarr  # noqa: PLC0415 (heavy)
 
     group = zarr.open_group(location, mode="r")
     out = {}
@@ -365,19 +365,19 @@ def bad_chunks(zstore: Any, output: str) -> list[str]:
 
 def local_store(path: str) -> Any:
     """A read-only Zarr store on a local directory."""
-    from zarr.storage import LocalStore
+    from zarr.storage import LocalStore  # noqa: PLC0415 (heavy)
 
     return LocalStore(path, read_only=True)
 
 
 def fsspec_store(url: str, storage_options: dict | None) -> Any:
     """A read-only Zarr store on an fsspec URL."""
-    from zarr.storage import FsspecStore
+    from zarr.storage import FsspecStore  # noqa: PLC0415 (heavy)
 
     return FsspecStore.from_url(url, storage_options=storage_options, read_only=True)
 
 
 def _sync(coro: Any) -> Any:
-    from zarr.core.sync import sync
+    from zarr.core.sync import sync  # noqa: PLC0415 (heavy)
 
     return sync(coro)

@@ -133,7 +133,7 @@ def write_mp4(frames: np.ndarray, path: str | Path, *, rate: float = 30.0) -> Pa
     -------
     Path
     """
-    import imageio.v2 as imageio
+    import imageio.v2 as imageio  # noqa: PLC0415 (heavy)
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -184,7 +184,7 @@ def write_ply(vertices: np.ndarray, faces: np.ndarray, path: str | Path) -> Path
 
 
 def _write_vtp(vertices: np.ndarray, faces: np.ndarray, path: Path, scalars=None) -> Path:
-    import pyvista as pv
+    import pyvista as pv  # noqa: PLC0415 (heavy)
 
     cells = np.hstack([np.full((len(faces), 1), 3), faces]).astype(np.int64).ravel()
     poly = pv.PolyData(np.asarray(vertices, dtype=np.float64), cells)
@@ -268,7 +268,7 @@ def export_video(video: Video, directory: Path, stem: str, **options: Any) -> li
     -------
     list of Path
     """
-    import imageio.v2 as imageio
+    import imageio.v2 as imageio  # noqa: PLC0415 (heavy)
 
     directory = Path(directory)
     written = [write_mp4(video.frames, directory / f"{stem}.mp4", rate=video.rate)]
@@ -287,7 +287,7 @@ def export_video(video: Video, directory: Path, stem: str, **options: Any) -> li
 
 def _pyvista():
     os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")
-    import pyvista as pv
+    import pyvista as pv  # noqa: PLC0415 (heavy)
 
     pv.OFF_SCREEN = True
     return pv

@@ -69,7 +69,7 @@ codec("stickstrip", encode=_encode, decode=_decode)(StickStrip)
 
 @exporter("stickstrip")
 def _export(obj: StickStrip, directory: Path, stem: str, **options: Any) -> list[Path]:
-    import imageio.v3 as iio
+    import imageio.v3 as iio  # noqa: PLC0415 (heavy)
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -82,7 +82,7 @@ def _export(obj: StickStrip, directory: Path, stem: str, **options: Any) -> list
 
 
 def _write_mp4(frames: np.ndarray, path: Path, rate: float) -> None:
-    import imageio.v2 as imageio
+    import imageio.v2 as imageio  # noqa: PLC0415 (heavy)
 
     with imageio.get_writer(path, fps=rate, codec="libx264", macro_block_size=1) as w:
         for f in frames:
@@ -126,10 +126,10 @@ def render_strip(
     image : (H, W, 3) uint8 ndarray
     frames : list of int
     """
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 (heavy)
 
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 (heavy)
 
     pos = motion_positions(motion)
     F = motion.n_frames
@@ -185,10 +185,10 @@ def render_video(
     -------
     (N, h, w, 3) uint8 ndarray
     """
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 (heavy)
 
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 (heavy)
 
     pos = motion_positions(motion)
     h, v = _axes(view)

@@ -63,7 +63,7 @@ codec("figures", encode=_encode_figures, decode=_decode_figures)(Figures)
 @exporter("figures")
 def export_figures(obj: Figures, directory: Path, stem: str) -> list[Path]:
     """Write each figure as ``<stem>_<name>.png``."""
-    import matplotlib.image as mpimg
+    import matplotlib.image as mpimg  # noqa: PLC0415 (heavy)
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
@@ -78,17 +78,17 @@ def export_figures(obj: Figures, directory: Path, stem: str) -> list[Path]:
 def _render(fig) -> np.ndarray:
     fig.canvas.draw()
     img = np.asarray(fig.canvas.buffer_rgba()).copy()
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 (heavy)
 
     plt.close(fig)
     return img
 
 
 def _figure(nrows: int, ncols: int, size: tuple[float, float]):
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 (heavy)
 
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # noqa: PLC0415 (heavy)
 
     return plt.subplots(nrows, ncols, figsize=size, dpi=100, squeeze=False)
 
@@ -99,7 +99,7 @@ def _full(clips: Clips, names: list[str]) -> list[np.ndarray]:
 
 
 def _colors(n: int):
-    import matplotlib
+    import matplotlib  # noqa: PLC0415 (heavy)
 
     cmap = matplotlib.colormaps["viridis"]
     return [cmap(x) for x in np.linspace(0.0, 0.9, max(n, 1))]

@@ -254,7 +254,7 @@ def procedural_body(
     BodyError
         A skeleton without bones.
     """
-    import pyvista as pv
+    import pyvista as pv  # noqa: PLC0415 (heavy)
 
     caps = body_capsules(skeleton)
     pad = float(caps.radius.max()) + 3 * resolution
