@@ -18,6 +18,7 @@ import json
 import re
 import subprocess
 import sys
+import tomllib
 from pathlib import Path
 
 import pytest
@@ -264,3 +265,20 @@ def test_editing_code_changes_exactly_the_stages_that_reach_it(monkeypatch, fing
                      f"{s.module}:{s.func.__qualname__}", exclude=("mocapflow.pipeline",)))}
     assert not (changed & untouched), "a stage that does not reach the code changed"
     assert changed == set(registered_stages()) - untouched
+
+
+def test_every_package_directory_is_in_the_wheel():
+    """A sub-package missing from pyproject's ``packages`` works editable, not from a wheel."""
+    tool = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    dirs = tool["package-dir"]
+
+    def directory(package: str) -> Path:
+        prefix = max((p for p in dirs if package == p or package.startswith(p + ".")), key=len)
+        rest = package[len(prefix):].lstrip(".").replace(".", "/")
+        return (ROOT / dirs[prefix] / rest).resolve()
+
+    listed = {directory(p) for p in tool["packages"]}
+    on_disk = {p.parent.resolve() for d in ("pipeline", "stages", "configs", "mocapflow")
+               for p in (ROOT / d).rglob("__init__.py")}
+    assert sorted(map(str, on_disk - listed)) == []
+    assert sorted(map(str, listed - on_disk)) == []
