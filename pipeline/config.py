@@ -157,15 +157,16 @@ class GraphConfig:
 
 
 def resolve_stage(name: str) -> StageSpec:
-    """The stage registered as ``name``, discovering the installed families if needed.
+    """The stage registered as ``name``, importing only its module where it can.
+
+    See :func:`mocapflow.pipeline.registry.find_stage`.
 
     Raises
     ------
     KeyError
         Unknown stage (the message has close matches).
     """
-    spec = registry.lookup(name)
-    return spec if spec is not None else registry.get_stage(name)
+    return registry.find_stage(name)
 
 
 def load_stage_modules(modules: Iterable[str] | None = None, *, discover: bool = False) -> None:

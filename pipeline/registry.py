@@ -32,6 +32,8 @@ __all__ = [
     "ParamError",
     "StageSpec",
     "discover",
+    "family_modules",
+    "find_stage",
     "get_stage",
     "lookup",
     "registered_stages",
@@ -266,23 +268,61 @@ def discover() -> None:
         load_family(ep.value)
 
 
-def load_family(target: str) -> None:
-    """Import one stage family named like an entry point value.
+def family_modules(target: str) -> tuple[str, dict[str, tuple[str, ...] | None]]:
+    """The modules of one stage family named like an entry point value.
 
     Parameters
     ----------
     target : str
-        ``"package.module"`` (imported for its registrations) or
-        ``"package:ATTR"`` where ``ATTR`` is a tuple of submodule names of
-        ``package`` that register stages, codecs or exporters (each imported).
+        ``"package.module"`` (a module imported for its registrations), or
+        ``"package:ATTR"`` where ``ATTR`` names the family's submodules that
+        register stages, codecs or exporters: a mapping ``submodule -> stage
+        names it defines`` (the engine then imports only the submodule of a
+        stage it needs), or a plain sequence of submodule names.
+
+    Returns
+    -------
+    package : str
+    modules : dict
+        ``full module name -> stage names`` (``None``: not declared).
     """
     module, _, attr = target.partition(":")
     mod = importlib.import_module(module.strip())
     if not attr:
-        return
-    names = getattr(mod, attr.strip())
-    for name in names:
-        importlib.import_module(f"{mod.__name__}.{name}")
+        return mod.__name__, {mod.__name__: None}
+    declared = getattr(mod, attr.strip())
+    if isinstance(declared, Mapping):
+        return mod.__name__, {f"{mod.__name__}.{m}": tuple(n) for m, n in declared.items()}
+    return mod.__name__, {f"{mod.__name__}.{m}": None for m in declared}
+
+
+def load_family(target: str) -> None:
+    """Import every module of one stage family (see :func:`family_modules`)."""
+    for name in family_modules(target)[1]:
+        importlib.import_module(name)
+
+
+def find_stage(name: str) -> StageSpec:
+    """The stage ``name``, importing only the module that declares it where possible.
+
+    Families that declare their stage names (:func:`family_modules`) are looked
+    up without importing their other modules; otherwise every family is loaded.
+
+    Raises
+    ------
+    KeyError
+        Unknown stage (the message has close matches).
+    """
+    spec = _REGISTRY.get(name)
+    if spec is not None:
+        return spec
+    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        for module, names in family_modules(ep.value)[1].items():
+            if names is not None and name in names:
+                importlib.import_module(module)
+                if name in _REGISTRY:
+                    return _REGISTRY[name]
+    return get_stage(name)
 
 
 def registered_stages() -> dict[str, StageSpec]:

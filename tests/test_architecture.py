@@ -19,12 +19,13 @@ import re
 import subprocess
 import sys
 import tomllib
+from importlib import metadata
 from pathlib import Path
 
 import pytest
 
 from mocapflow.pipeline import fingerprint
-from mocapflow.pipeline.registry import registered_stages
+from mocapflow.pipeline.registry import ENTRY_POINT_GROUP, family_modules, registered_stages
 from mocapflow.pipeline.task_keys import stage_fingerprint
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -282,3 +283,28 @@ def test_every_package_directory_is_in_the_wheel():
                for p in (ROOT / d).rglob("__init__.py")}
     assert sorted(map(str, on_disk - listed)) == []
     assert sorted(map(str, listed - on_disk)) == []
+
+
+def test_declared_stage_names_match_the_decorators():
+    """Each family's STAGE_MODULES names exactly the stages its modules register."""
+    stages = registered_stages()
+    seen = set()
+    for ep in metadata.entry_points(group=ENTRY_POINT_GROUP):
+        package, modules = family_modules(ep.value)
+        for module, names in modules.items():
+            defined = {n for n, s in stages.items() if s.module == module}
+            assert names is not None, f"{package}: declare the stage names of {module}"
+            assert set(names) == defined, module
+            seen |= defined
+    assert seen == {n for n, s in stages.items() if s.module.startswith("mocapflow.stages")}
+
+
+def test_a_stage_name_imports_only_its_module():
+    out = _python("import sys, json\nfrom mocapflow.pipeline.config import resolve_stage\n"
+                  "resolve_stage('pyramid')\n"
+                  "print(json.dumps(sorted(m for m in sys.modules if m.startswith('mocapflow'))))")
+    loaded = json.loads(out)
+    assert "mocapflow.stages.texture.pyramid" in loaded
+    assert not [m for m in loaded if m.startswith(("mocapflow.stages.skin.",
+                                                   "mocapflow.stages.variation.",
+                                                   "mocapflow.stages.texture.synth"))]

@@ -19,12 +19,14 @@ simulators.  Every paper package builds on it; it imports only the engine.
   capture stage).
 """
 
-#: Modules of this package that register stages, codecs or exporters (the
-#: ``mocapflow.stages`` entry point ``motion`` names this tuple).
-STAGE_MODULES = (
-    "datatypes",
-    "ingest",
-    "export",
-    "simulate.motion",
-    "simulate.capture",
-)
+#: The modules of this family that register stages, codecs or exporters, each with
+#: the names of the stages it defines: the ``mocapflow.stages`` entry point of the
+#: family names this mapping, so the engine imports only the module of a stage it
+#: needs (tests/test_architecture.py checks the names against the decorators).
+STAGE_MODULES = {
+    "datatypes": (),
+    "ingest": ("ingest_amc", "ingest_bvh", "ingest_c3d", "ingest_strokes", "ingest_strokes_set"),
+    "export": (),
+    "simulate.motion": ("simulate_range_of_motion", "simulate_walk"),
+    "simulate.capture": ("simulate_capture",),
+}

@@ -77,4 +77,16 @@ Departures from the paper (each module docstring says why, with measurements):
   residual_kernel="cubic_bspline"``.
 """
 
-STAGE_MODULES = ("clean", "rom", "segment", "segmentation", "mesh_fit", "deform", "render")
+#: The modules of this family that register stages, codecs or exporters, each with
+#: the names of the stages it defines: the ``mocapflow.stages`` entry point of the
+#: family names this mapping, so the engine imports only the module of a stage it
+#: needs (tests/test_architecture.py checks the names against the decorators).
+STAGE_MODULES = {
+    "clean": ("clean",),
+    "rom": ("ingest_rom", "match_markers"),
+    "segment": ("segment",),
+    "segmentation": (),
+    "mesh_fit": ("fit_mesh", "template_mesh"),
+    "deform": ("deform",),
+    "render": ("render", "render_error", "render_modes"),
+}

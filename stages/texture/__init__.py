@@ -76,4 +76,12 @@ How refinement keeps the coarse plan (the drawn line tried first, joins
 in :mod:`~mocapflow.stages.texture.refine`.
 """
 
-STAGE_MODULES = ("pyramid", "synth", "stickfigure")
+#: The modules of this family that register stages, codecs or exporters, each with
+#: the names of the stages it defines: the ``mocapflow.stages`` entry point of the
+#: family names this mapping, so the engine imports only the module of a stage it
+#: needs (tests/test_architecture.py checks the names against the decorators).
+STAGE_MODULES = {
+    "pyramid": ("pyramid",),
+    "synth": ("synth",),
+    "stickfigure": ("stickfigure",),
+}

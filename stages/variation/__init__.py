@@ -59,4 +59,16 @@ Departures the module docstrings state (each can be switched off):
   ``None`` is the paper's white noise).
 """
 
-STAGE_MODULES = ("clips", "inputs", "model", "learn", "sample", "ik", "plots")
+#: The modules of this family that register stages, codecs or exporters, each with
+#: the names of the stages it defines: the ``mocapflow.stages`` entry point of the
+#: family names this mapping, so the engine imports only the module of a stage it
+#: needs (tests/test_architecture.py checks the names against the decorators).
+STAGE_MODULES = {
+    "clips": (),
+    "inputs": ("clips",),
+    "model": (),
+    "learn": ("learn",),
+    "sample": ("sample", "sample_noise"),
+    "ik": ("ik",),
+    "plots": ("variation_plots",),
+}
