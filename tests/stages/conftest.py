@@ -29,3 +29,14 @@ def simulated_capture(*, rng: int = 0, **params):
     body = capture_body(out["motion"], body_mesh=params.get("body_mesh"),
                         body_vertices=params.get("body_vertices", 3000))
     return SimpleNamespace(**out, body=body)
+
+
+#: Measurement noise of the shared walk capture (metres, per axis).
+WALK_CAPTURE_NOISE = 0.0003
+
+
+@pytest.fixture(scope="session")
+def sim():
+    """A simulated 120-marker, 200-frame walk capture (noise ``WALK_CAPTURE_NOISE``)."""
+    return simulated_capture(n_markers=120, n_frames=200, motion="walk", rng=0,
+                             body_vertices=1500, noise=WALK_CAPTURE_NOISE)

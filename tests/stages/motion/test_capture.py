@@ -21,16 +21,10 @@ from mocapflow.stages.motion.simulate.optical import (
     segment_distance,
 )
 from mocapflow.stages.motion.simulate.skeleton import procedural_skeleton
-from tests.stages.conftest import simulated_capture
+from tests.stages.conftest import WALK_CAPTURE_NOISE, simulated_capture
 
 DATA = Path(__file__).resolve().parents[3] / ".." / "shared" / "data"
-NOISE = 0.0003
-
-
-@pytest.fixture(scope="module")
-def sim():
-    return simulated_capture(n_markers=120, n_frames=200, motion="walk", rng=0,
-                                  body_vertices=1500, noise=NOISE)
+NOISE = WALK_CAPTURE_NOISE
 
 
 def test_capture_shapes_labels_and_noise(sim):

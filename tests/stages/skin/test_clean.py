@@ -25,16 +25,10 @@ from mocapflow.stages.skin.clean import (
 )
 from mocapflow.stages.skin.predict import predict_missing
 from mocapflow.stages.skin.surface import MarkerSurface, SurfaceFileError, build_marker_surface
-from tests.stages.conftest import simulated_capture
+from tests.stages.conftest import WALK_CAPTURE_NOISE
 
 DATA = Path(__file__).resolve().parents[3] / ".." / "shared" / "data"
-NOISE = 0.0003
-
-
-@pytest.fixture(scope="module")
-def sim():
-    return simulated_capture(n_markers=120, n_frames=200, motion="walk", rng=0,
-                                  body_vertices=1500, noise=NOISE)
+NOISE = WALK_CAPTURE_NOISE
 
 
 @pytest.fixture(scope="module")
