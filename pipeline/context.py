@@ -1,17 +1,21 @@
-"""The context a stage receives: seeded randomness, parallel map, warnings, progress.
+"""The context a stage receives: seeded randomness, parallel map, warnings, step timings.
 
 Stages take it as the keyword-only ``ctx`` parameter.  Everything random in a
 stage must come from ``ctx.rng`` (seeded from the ``seed`` param and the part
 id), so stochastic stages stay pure and cacheable.  Work that splits naturally
 (per body part, per marker, per DBN node, per frame chunk) goes through
 ``ctx.map``, which the engine backs with the same executor the run uses.
+Timings of a stage's own steps go through ``ctx.timer`` (the engine keeps them
+in the entry manifest and the run record): an output must never carry a time.
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
-from collections.abc import Callable, Iterable
+import time
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -61,6 +65,12 @@ class Context:
         The generator ``ctx.rng``; by default one seeded from ``seed`` and
         ``part`` (:func:`part_seed`).  The engine never passes one; it is for
         Python callers that need a stream of their own.
+
+    Attributes
+    ----------
+    timings : dict
+        ``step -> seconds`` measured by :meth:`timer` (the engine stores them in
+        the manifest's ``timings["steps"]`` and in the run record).
     """
 
     part: str | None = None
@@ -70,6 +80,7 @@ class Context:
     warnings: list[str] = field(default_factory=list)
     workers: int = 1
     rng: np.random.Generator | None = None
+    timings: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.rng is None:
@@ -90,6 +101,21 @@ class Context:
         """Record a warning; the engine stores it in the entry manifest and prints it."""
         self.warnings.append(str(message))
         log.warning("%s%s", f"[{self.part}] " if self.part else "", message)
+
+    @contextlib.contextmanager
+    def timer(self, step: str) -> Iterator[None]:
+        """Time a named step of the stage: ``with ctx.timer("fill"): ...``.
+
+        The seconds add up over every use of one name (a step run per pass).
+        They are kept in :attr:`timings`, which the engine stores with the
+        entry's manifest and the run record, never in an output: an output that
+        carries a time differs on every run, in every store.
+        """
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.timings[step] = self.timings.get(step, 0.0) + time.perf_counter() - t0
 
     def progress(self, done: int, total: int, label: str = "") -> None:
         """Report progress of long work inside the stage."""

@@ -10,17 +10,31 @@ the store, calls the stage with a seeded :class:`~mocapflow.pipeline.context.Con
 encodes and commits the outputs with a manifest, retrying as the stage allows.
 It returns a :class:`TaskRecord` (never raises for stage errors): a small
 reference to the entry, not the data.
+
+What goes into an entry depends only on the key: before the stage runs, the
+worker re-reads its raw input files and checks their content digests against
+the planned ones, and checks them again before the commit
+(:func:`~mocapflow.pipeline.task_keys.read_inputs_check`); the stage runs with
+BLAS and OpenMP pools at one thread (:func:`single_threaded_blas`), so its
+floating-point results do not depend on the thread count; times and the host go
+to the manifest (``timings``, with the stage's own ``ctx.timer`` steps under
+``timings["steps"]``), never into an output.
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import socket
+import sys
+import threading
 import time
 import traceback
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
+
+from threadpoolctl import ThreadpoolController
 
 from mocapflow.pipeline import codecs, keys, registry
 from mocapflow.pipeline.config import resolve_stage
@@ -28,7 +42,12 @@ from mocapflow.pipeline.context import Context
 from mocapflow.pipeline.executors import CallOutcome, task_mapper
 from mocapflow.pipeline.graph import task_name
 from mocapflow.pipeline.store import Store
-from mocapflow.pipeline.task_keys import compute_key, key_inputs
+from mocapflow.pipeline.task_keys import (
+    InputChangedError,
+    compute_key,
+    key_inputs,
+    read_inputs_check,
+)
 from mocapflow.pipeline.wires import FilesWire, FileWire, TasksWire, TaskWire, Wire
 
 __all__ = [
@@ -38,6 +57,7 @@ __all__ = [
     "execute_task",
     "load_input",
     "manifest_digests",
+    "single_threaded_blas",
     "worker_stage",
 ]
 
@@ -71,7 +91,9 @@ class TaskRecord:
     traceback : str or None
         Of a stage failure (kept in run records).
     timings : dict or None
-        ``load``, ``compute``, ``encode``, ``commit`` seconds of a computed task.
+        ``load``, ``check`` (re-reading the input files), ``compute``, ``encode``,
+        ``commit`` seconds of a computed task, and ``steps``: the stage's own
+        ``ctx.timer`` steps (``step -> seconds``).
 
     Notes
     -----
@@ -91,7 +113,7 @@ class TaskRecord:
     outputs: dict[str, str] | None = None
     warnings: tuple[str, ...] = ()
     traceback: str | None = None
-    timings: dict[str, float] | None = None
+    timings: dict[str, Any] | None = None
 
     @property
     def ok(self) -> bool:
@@ -165,6 +187,44 @@ def error_line(e: BaseException) -> str:
     text = str(e).strip().splitlines()
     msg = text[0] if text else ""
     return f"{type(e).__name__}: {msg}" if msg else type(e).__name__
+
+
+_BLAS_LOCK = threading.Lock()
+#: ``depth``: tasks of this process inside :func:`single_threaded_blas`; ``limiter``:
+#: what restores the pools; ``controller``/``modules``: the pools found, and
+#: ``len(sys.modules)`` when they were looked up (a new import may load a new BLAS).
+_BLAS: dict[str, Any] = {"depth": 0, "limiter": None, "controller": None, "modules": -1}
+
+
+@contextlib.contextmanager
+def single_threaded_blas() -> Iterator[None]:
+    """BLAS and OpenMP thread pools at one thread while a task of this process runs a stage.
+
+    A threaded BLAS splits sums (dot products, ``gemv``, LAPACK panels)
+    differently for each thread count, so the same stage on the same inputs may
+    differ in the last bits between ``OPENBLAS_NUM_THREADS=1`` and ``=2``: with
+    one thread per task a stage's outputs do not depend on the machine, the
+    environment or the executor (Dask worker processes start with one thread
+    already).  Parallelism comes from tasks and ``ctx.map``.  Re-entrant and
+    thread-safe: the pools are limited while any task runs and restored after
+    the last; the pools are looked up again only when modules were imported
+    since (``threadpoolctl``'s lookup costs ~3 ms, the limit ~0.1 ms).
+    """
+    with _BLAS_LOCK:
+        if _BLAS["depth"] == 0:
+            if _BLAS["controller"] is None or _BLAS["modules"] != len(sys.modules):
+                _BLAS["modules"] = len(sys.modules)
+                _BLAS["controller"] = ThreadpoolController()
+            _BLAS["limiter"] = _BLAS["controller"].limit(limits=1)
+        _BLAS["depth"] += 1
+    try:
+        yield
+    finally:
+        with _BLAS_LOCK:
+            _BLAS["depth"] -= 1
+            if _BLAS["depth"] == 0:
+                _BLAS["limiter"].restore_original_limits()
+                _BLAS["limiter"] = None
 
 
 def worker_stage(name: str, module: str) -> registry.StageSpec:
@@ -300,7 +360,10 @@ def _compute_with_retries(store: Store, spec: TaskSpec, sspec: registry.StageSpe
     for attempt in range(1, attempts + 1):
         try:
             return _compute(store, spec, sspec, refs, key, comps, existing, attempt, t0)
-        except Exception as e:  # noqa: PERF203 - retry loop
+        except InputChangedError as e:  # noqa: PERF203 - retry loop; a retry reads the same file
+            return spec.record("failed", error=error_line(e), seconds=time.perf_counter() - t0,
+                               key=key, components=comps)
+        except Exception as e:
             last_exc, tb = e, traceback.format_exc()
     assert last_exc is not None
     err = error_line(last_exc) + (f" (after {attempts} attempts)" if attempts > 1 else "")
@@ -311,7 +374,11 @@ def _compute_with_retries(store: Store, spec: TaskSpec, sspec: registry.StageSpe
 def _compute(store: Store, spec: TaskSpec, sspec: registry.StageSpec,
              refs: Mapping[int, TaskRecord], key: str, comps: dict, existing: dict | None,
              attempt: int, t0: float) -> TaskRecord:
-    """Load the inputs, call the stage, encode its outputs and commit them (one attempt)."""
+    """Load the inputs, call the stage, encode its outputs and commit them (one attempt).
+
+    The raw input files are checked against their planned digests before the
+    stage runs and again before the commit (:class:`InputChangedError` otherwise).
+    """
     t_load = time.perf_counter()
     args = [load_input(store, spec.inputs[name], refs) for name in sspec.inputs]
     kwargs = dict(spec.params)
@@ -320,19 +387,27 @@ def _compute(store: Store, spec: TaskSpec, sspec: registry.StageSpec,
         ctx = Context(part=spec.part, seed=spec.seed,
                       mapper=task_mapper(), workers=spec.workers)
         kwargs["ctx"] = ctx
+    t_check = time.perf_counter()
+    files = read_inputs_check(spec.file_digests)
     t_call = time.perf_counter()
-    result = sspec.func(*args, **kwargs)
+    with single_threaded_blas():
+        result = sspec.func(*args, **kwargs)
     t_enc = time.perf_counter()
     encoded = _encode_outputs(sspec, result)
+    files.recheck()
     warnings = list(ctx.warnings) if ctx is not None else []
-    manifest = _manifest(spec, refs, comps, warnings, attempt,
-                         {"load": t_call - t_load, "compute": t_enc - t_call})
+    timings: dict[str, Any] = {"load": t_check - t_load, "check": t_call - t_check,
+                               "compute": t_enc - t_call}
+    if ctx is not None and ctx.timings:
+        timings["steps"] = dict(ctx.timings)
+    manifest = _manifest(spec, refs, comps, warnings, attempt, timings)
     if existing is not None:  # --force on a committed entry: replace it only if it differs
         new = {o: codecs.digest_encoded(e) for o, e in encoded.items()}
         old = manifest_digests(existing)
         if new == old:
             return spec.record("computed", key=key, components=comps, outputs=old,
-                               warnings=tuple(warnings), seconds=time.perf_counter() - t0)
+                               warnings=tuple(warnings), seconds=time.perf_counter() - t0,
+                               timings=timings)
         warnings.append(f"--force: outputs differ from the committed entry {spec.stage}/{key} "
                         "(is the stage deterministic?); replacing it")
         store.delete(spec.stage, key)
@@ -364,7 +439,7 @@ def _encode_outputs(sspec: registry.StageSpec, result: Any) -> dict[str, codecs.
 
 
 def _manifest(spec: TaskSpec, refs: Mapping[int, TaskRecord], comps: dict, warnings: list[str],
-              attempt: int, timings: dict[str, float]) -> dict[str, Any]:
+              attempt: int, timings: dict[str, Any]) -> dict[str, Any]:
     """The manifest fields the task adds (the store adds stage, key, outputs, format).
 
     ``warnings`` is kept by reference: a warning added before the commit is in it.

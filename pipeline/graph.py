@@ -2,7 +2,14 @@
 
 Rules (see the README's config format):
 
-* A node wired to ``part`` runs once per file part; its part id is the path as given.
+* A node wired to ``part`` runs once per file part.  A part id is the file's
+  normalised path relative to the config file's folder, or its absolute path
+  when the part was given as one (``parts:`` entries are resolved against the
+  config's folder, ``--parts`` against the working directory; see
+  :func:`~mocapflow.pipeline.config.expand_parts`): the working directory never
+  enters a part id, so a graph has the same tasks and keys from any folder.
+  Task wires name the absolute file (:meth:`GraphConfig.part_path
+  <mocapflow.pipeline.config.GraphConfig.part_path>`).
 * Any other node takes its parts from its inputs: the finest part list among
   them (a node below ``seeds:`` has ``"<part>#seed=<s>"`` ids).  The task for part
   ``q`` reads, from an upstream node, the task whose part is ``q`` or a prefix of
@@ -313,11 +320,13 @@ def build_graph(config: GraphConfig, targets: Sequence[str] | None = None) -> Gr
     index: dict[tuple[str, str | None], int] = {}
     order = [n for n in config.nodes if n in needed]
     part_match = _matcher(config.parts) if config.parts else None
+    matchers: dict[str, Any] = {}  # upstream node -> matcher (built once, not per task)
     for name in order:
         node = config.nodes[name]
         overridden = file_overrides(node)
         for part in node_parts[name]:
-            inputs = _task_inputs(node, part, config, node_parts, index, overridden, part_match)
+            inputs = _task_inputs(node, part, config, node_parts, index, overridden, part_match,
+                                  matchers)
             params = _resolve_sidecars(node.stage, dict(node.params), inputs)
             seed = params.get("seed") if isinstance(params.get("seed"), int) else 0
             if node.seeds is not None:
@@ -335,7 +344,7 @@ def build_graph(config: GraphConfig, targets: Sequence[str] | None = None) -> Gr
 def _task_inputs(node: NodeConfig, part: str | None, config: GraphConfig,
                  node_parts: Mapping[str, list[str | None]],
                  index: Mapping[tuple[str, str | None], int], overridden: Mapping[str, str],
-                 part_match: Any) -> dict[str, Wire]:
+                 part_match: Any, matchers: dict[str, Any]) -> dict[str, Wire]:
     """The wires of the task ``(node, part)`` (its upstream tasks are already indexed)."""
     inputs: dict[str, Wire] = {}
     for iname, w in node.inputs.items():
@@ -344,16 +353,19 @@ def _task_inputs(node: NodeConfig, part: str | None, config: GraphConfig,
             continue
         if w == "part":
             if node.gather:
-                inputs[iname] = FilesWire(tuple(config.parts))
+                inputs[iname] = FilesWire(tuple(config.part_path(p) for p in config.parts))
             else:
-                inputs[iname] = FileWire(part_match(part))
+                inputs[iname] = FileWire(config.part_path(part_match(part)))
             continue
         up, out = w
         up_parts = node_parts[up]
         if node.gather:
             inputs[iname] = TasksWire(tuple(TaskWire(index[(up, p)], out) for p in up_parts))
         else:
-            p = _matcher(up_parts)(part)
+            match = matchers.get(up)
+            if match is None:
+                match = matchers[up] = _matcher(up_parts)
+            p = match(part)
             inputs[iname] = TaskWire(index[(up, p)], out)
     return inputs
 

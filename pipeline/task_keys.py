@@ -7,11 +7,21 @@ part id, the *digests* of its inputs (:func:`key_inputs`: upstream output
 digests, raw files by content, from :func:`hash_files`) and the versions of
 result-changing packages.  Node names, paths, the store and the run id are not
 in it.
+
+The driver hashes raw files when it plans (:func:`hash_files`, memoised); the
+worker that computes a task checks that the files it reads still have those
+digests (:func:`read_inputs_check`, then :meth:`InputFiles.recheck` before the
+commit), so an input overwritten after planning never gets an entry keyed by
+its old content.
 """
 
 from __future__ import annotations
 
+import hashlib
+import os
+import stat
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from mocapflow.pipeline import fingerprint, keys, registry
@@ -20,7 +30,17 @@ from mocapflow.pipeline.graph import Graph
 from mocapflow.pipeline.store import Store
 from mocapflow.pipeline.wires import FilesWire, FileWire, TaskWire, Wire
 
-__all__ = ["compute_key", "hash_files", "key_inputs", "key_params", "stage_fingerprint"]
+__all__ = [
+    "InputChangedError",
+    "InputFiles",
+    "compute_key",
+    "content_digest",
+    "hash_files",
+    "key_inputs",
+    "key_params",
+    "read_inputs_check",
+    "stage_fingerprint",
+]
 
 
 def stage_fingerprint(spec: registry.StageSpec) -> str:
@@ -138,9 +158,10 @@ def hash_files(graph: Graph, store: Store) -> dict[str, str | None]:
     memo = store.load_file_memo()
     before = dict(memo)
     out: dict[str, str | None] = {}
+    dirs: dict[str, str] = {}  # each folder resolved once in this pass
     for p in dict.fromkeys(paths):
         try:
-            out[p] = keys.file_digest(p, memo)
+            out[p] = keys.file_digest(p, memo, dirs=dirs)
         except OSError:
             out[p] = None
     if memo != before:
@@ -149,3 +170,122 @@ def hash_files(graph: Graph, store: Store) -> dict[str, str | None]:
         except OSError:
             pass
     return out
+
+
+# --------------------------------------------------------------------------- what workers read
+
+
+class InputChangedError(RuntimeError):
+    """An input file no longer has the content the task's key was computed from."""
+
+
+def content_digest(path: str) -> str:
+    """Digest of what ``path`` holds now, read in full (no memo; same value as
+    :func:`~mocapflow.pipeline.keys.file_digest`).
+
+    Raises
+    ------
+    OSError
+        The file (or a file under the directory) cannot be read.
+    """
+    real = os.path.realpath(path)
+    if os.path.isdir(real):
+        items = []
+        for dirpath, dirnames, filenames in os.walk(real):
+            dirnames.sort()
+            for name in sorted(filenames):
+                full = os.path.join(dirpath, name)
+                rel = os.path.relpath(full, real).replace(os.sep, "/")
+                items.append([rel, content_digest(full)])
+        return keys.digest_of(["directory", items])
+    with open(real, "rb") as f:
+        return hashlib.file_digest(f, lambda: hashlib.blake2b(digest_size=32)).hexdigest()
+
+
+def _signature(path: str) -> tuple[int, ...] | None:
+    """``(inode, size, mtime_ns, ctime_ns)`` of a regular file; ``None`` for a directory.
+
+    ``ctime`` changes on every write and cannot be set back by a user, so an
+    unchanged signature means unchanged bytes.
+    """
+    st = os.stat(path)
+    if stat.S_ISDIR(st.st_mode):
+        return None
+    return (st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
+@dataclass(frozen=True)
+class InputFiles:
+    """The raw input files of one task as the worker found them (:func:`read_inputs_check`).
+
+    Attributes
+    ----------
+    digests : dict
+        ``path -> digest`` the key was computed from.
+    signatures : dict
+        ``path -> (inode, size, mtime_ns, ctime_ns)`` when checked (``None``: a directory).
+    """
+
+    digests: dict[str, str]
+    signatures: dict[str, tuple[int, ...] | None]
+
+    def recheck(self) -> None:
+        """Before the commit: every file is still the one that was checked.
+
+        Raises
+        ------
+        InputChangedError
+            A file was written (or replaced) while the task ran.
+        """
+        for path, sig in self.signatures.items():
+            try:
+                same = (_signature(path) == sig if sig is not None
+                        else content_digest(path) == self.digests[path])
+            except OSError:
+                same = False
+            if not same:
+                raise InputChangedError(
+                    f"input file {path} changed while the task read it; nothing was "
+                    "committed (run again once it is stable)")
+
+
+def read_inputs_check(file_digests: Mapping[str, str | None]) -> InputFiles:
+    """Check that each input file holds what the key says, by reading it in full now.
+
+    Parameters
+    ----------
+    file_digests : dict
+        ``path -> digest`` of the task's raw files, as planned (``None``: unreadable then).
+
+    Returns
+    -------
+    InputFiles
+        For :meth:`InputFiles.recheck` after the stage has read them.
+
+    Raises
+    ------
+    InputChangedError
+        A file's content differs from its planned digest (or it is gone).
+    """
+    digests: dict[str, str] = {}
+    sigs: dict[str, tuple[int, ...] | None] = {}
+    for path, planned in file_digests.items():
+        if planned is None:
+            continue
+        try:
+            before = _signature(path)
+            now = content_digest(path)
+            after = _signature(path)
+        except OSError as e:
+            raise InputChangedError(f"input file {path} cannot be read since planning "
+                                    f"({e.strerror or e}); nothing was committed") from None
+        if now != planned:
+            raise InputChangedError(
+                f"input file {path} changed since planning (content {planned[:12]} when "
+                f"planned, {now[:12]} now); nothing was committed (run again to use the "
+                "new content)")
+        if before != after:
+            raise InputChangedError(f"input file {path} changed while the task read it; "
+                                    "nothing was committed (run again once it is stable)")
+        digests[path], sigs[path] = planned, after
+    return InputFiles(digests, sigs)

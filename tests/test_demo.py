@@ -1,7 +1,6 @@
 """The README's demo command, end to end: every shipped graph on self-generated data."""
 
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,10 +11,8 @@ from mocapflow.stages.motion.formats.c3d import read_c3d
 
 
 @pytest.mark.slow
-def test_demo_runs_every_graph_and_a_rerun_is_all_hits(tmp_path):
-    out = tmp_path / "demo"
-    cmd = [sys.executable, "-m", "mocapflow", "demo", "--out", str(out), "-q"]
-    first = subprocess.run(cmd, capture_output=True, text=True, timeout=1200)
+def test_demo_runs_every_graph_and_a_rerun_is_all_hits(demo_run):
+    out, cmd, first = demo_run.out, demo_run.cmd, demo_run.proc  # shared with the lock tests
     assert first.returncode == 0, first.stderr[-3000:]
 
     capture = read_c3d(out / "data" / "capture" / "seed0" / "markers.c3d")

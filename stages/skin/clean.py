@@ -85,7 +85,6 @@ captures with ground truth, see ``benchmarks/clean.py``):
 
 from __future__ import annotations
 
-import time
 from typing import Any, Literal
 
 import numpy as np
@@ -519,8 +518,7 @@ def _report(
     markers: Markers, surf: MarkerSurface, reference: np.ndarray, status: np.ndarray,
     assigned: np.ndarray, merged: np.ndarray, filled: np.ndarray, *, ref_frame: int,
     carried: dict[int, int], unrecoverable: np.ndarray, few: np.ndarray,
-    mrep: dict[str, Any], finfo: dict[str, Any], timings: dict[str, float],
-    params: dict[str, Any],
+    mrep: dict[str, Any], finfo: dict[str, Any], params: dict[str, Any],
 ) -> dict[str, Any]:
     """The clean report (see :func:`clean`); ``merged`` / ``filled``: ``(F, M)`` samples
     available after merging / filling."""
@@ -541,7 +539,6 @@ def _report(
         "markers_with_holes_left": [labels[i] for i in left_markers],
         "unfillable_markers": [labels[i] for i in unfillable],
         "params": params,
-        "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "status": status,
     }
     if never.size and not len(unrecoverable):
@@ -612,48 +609,39 @@ def clean(
         1 merged, 2 filled) and JSON: reference frame, surface, ``table1``
         (fragments before/after, merges, holes, filled, left), ``merges`` /
         ``rejections`` / ``conflicts`` (fragment, label, reason), fill passes and
-        models, never-visible and too-few-neighbour markers, timings;
+        models, never-visible and too-few-neighbour markers (step timings go to
+        ``ctx.timer``: the manifest, never the report);
         ``surface``: the marker surface as a
         :class:`~mocapflow.stages.motion.datatypes.Mesh` (vertices = reference pose
         of the markers, ``attrs["labels"]``; :meth:`MarkerSurface.from_mesh` gives
         the :class:`MarkerSurface` back).
     """
-    t0 = time.perf_counter()
-    timings: dict[str, float] = {}
     P = markers.positions
     _check_params(P, alpha1=alpha1, alpha2=alpha2, variance=variance, fill_model=fill_model,
                   fill_predictors=fill_predictors)
     labels = markers.labels
-    ref_frame, reference, carried, unrecoverable = _reference(P, labels, reference_frame, ctx)
-    timings["reference"] = time.perf_counter() - t0
-
-    t1 = time.perf_counter()
-    surf, few = _marker_surface(reference, P, labels, surface, ref_frame, ctx)
-    timings["surface"] = time.perf_counter() - t1
-
-    t2 = time.perf_counter()
-    X, assigned, mrep = _merge(markers, surf, merge=merge, alpha1=alpha1, alpha2=alpha2,
-                               variance=variance, pca_rounds=pca_merge_rounds if fill else 0,
-                               ctx=ctx)
-    timings["merge"] = time.perf_counter() - t2
+    with ctx.timer("reference"):
+        ref_frame, reference, carried, unrecoverable = _reference(P, labels, reference_frame,
+                                                                  ctx)
+    with ctx.timer("surface"):
+        surf, few = _marker_surface(reference, P, labels, surface, ref_frame, ctx)
+    with ctx.timer("merge"):
+        X, assigned, mrep = _merge(markers, surf, merge=merge, alpha1=alpha1, alpha2=alpha2,
+                                   variance=variance, pca_rounds=pca_merge_rounds if fill else 0,
+                                   ctx=ctx)
     vis1 = np.isfinite(X).all(-1)
-
-    t3 = time.perf_counter()
-    Xf, finfo = _fill(X, surf, fill=fill, variance=variance, fill_model=fill_model,
-                      fill_predictors=fill_predictors, ctx=ctx)
-    timings["fill"] = time.perf_counter() - t3
+    with ctx.timer("fill"):
+        Xf, finfo = _fill(X, surf, fill=fill, variance=variance, fill_model=fill_model,
+                          fill_predictors=fill_predictors, ctx=ctx)
     vis2 = np.isfinite(Xf).all(-1)
     status = _status(markers.visible, vis1, vis2)
-
-    t4 = time.perf_counter()
-    Xs = smooth_local(Xf, surf, smooth_lambda=smooth_lambda,
-                      smooth_iterations=smooth_iterations, measured=vis1, ctx=ctx)
-    timings["smooth"] = time.perf_counter() - t4
-    timings["total"] = time.perf_counter() - t0
+    with ctx.timer("smooth"):
+        Xs = smooth_local(Xf, surf, smooth_lambda=smooth_lambda,
+                          smooth_iterations=smooth_iterations, measured=vis1, ctx=ctx)
 
     report = _report(markers, surf, reference, status, assigned, vis1, vis2, ref_frame=ref_frame,
                      carried=carried, unrecoverable=unrecoverable, few=few, mrep=mrep,
-                     finfo=finfo, timings=timings,
+                     finfo=finfo,
                      params={"alpha1": alpha1, "alpha2": alpha2, "variance": variance,
                              "smooth_lambda": smooth_lambda,
                              "smooth_iterations": smooth_iterations, "fill_model": fill_model,

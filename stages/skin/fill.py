@@ -53,7 +53,6 @@ beyond the paper.
 
 from __future__ import annotations
 
-import time
 from dataclasses import replace
 from typing import Any, Literal
 
@@ -506,7 +505,7 @@ def fill_by_local_pca(
     earlier estimates.  When a pass fills nothing, interior holes are
     interpolated in time and the support requirement drops to any 3 visible
     members.  Writes into ``X`` and ``fill_pass`` (in place) and records
-    ``trained``, ``model_list``, ``models``, ``pass_seconds``, ``filled_by_pass``
+    ``trained``, ``model_list``, ``models``, ``filled_by_pass``
     and ``interpolated`` in ``info``.
 
     Parameters
@@ -538,7 +537,6 @@ def fill_by_local_pca(
     info["model_list"] = [md for ch in model_chunks for md in ch]
     info["models"] = _model_summary(model_chunks)
     support = min_support
-    info["pass_seconds"] = []
     ids = [list(range(a, a + len(ch)))
            for a, ch in zip(np.cumsum([0] + [len(ch) for ch in model_chunks]), model_chunks)]
     all_models = info["model_list"]
@@ -546,14 +544,14 @@ def fill_by_local_pca(
         cache.clear()  # other models: nothing to re-use
         cache["models"] = [id(md) for md in all_models]
     for p in range(max_passes):
-        t_pass = time.perf_counter()
         todo = holes & ~np.isfinite(X).all(-1)
         if not todo.any():
             break
         key = (p, support, neighbour_weight)
         prev = cache.get(key) if cache is not None and p < CACHED_PASSES else None
-        outs = _pass_estimates(X, todo, all_models, ids, prev, support=support,
-                               neighbour_weight=neighbour_weight, ctx=ctx)
+        with ctx.timer("fill_passes"):
+            outs = _pass_estimates(X, todo, all_models, ids, prev, support=support,
+                                   neighbour_weight=neighbour_weight, ctx=ctx)
         if outs is None:
             break
         if cache is not None and p < CACHED_PASSES:
@@ -563,7 +561,6 @@ def fill_by_local_pca(
         if n_new:
             fill_pass[new] = len(info["filled_by_pass"]) + 1
         info["filled_by_pass"].append(n_new)
-        info["pass_seconds"].append(round(time.perf_counter() - t_pass, 3))
         if n_new == 0:
             if support == 0:
                 break

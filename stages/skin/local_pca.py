@@ -235,10 +235,10 @@ def model_estimates_batch(
 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """:func:`model_estimates` of several models at once.
 
-    The pose fits of every model and frame are one batched Horn solve over
-    the members padded to the largest model (padding weighs 0); only the
-    coefficient solves run per model.  A pass of the fill calls this once per
-    chunk of models instead of once per model.
+    The pose fits of the models of one member count, over every frame, are one
+    batched Horn solve (no padding, so a model's result does not depend on the
+    other models of the call); only the coefficient solves run per model.  A
+    pass of the fill calls this once per chunk of models instead of once per model.
 
     Parameters
     ----------
@@ -275,14 +275,21 @@ def model_estimates_batch(
                 tgt[~mk, i] = False
     support = _third_anchor(vis * mw[None])
     pick = tgt.any(-1) & (vis.sum(-1) >= MIN_NEIGHBOURS) & (support >= min_support)  # (F, m)
+    # models of one size at a time, unpadded: a model's sums then never depend on
+    # which other models share its call (the fill's chunks follow the worker count);
     # blocks of models that fit in cache, each one batched pose solve
-    block = np.cumsum(pick.sum(0)) // BATCH_PAIRS
-    out: list = []
-    for b in np.unique(block):
-        sel = np.flatnonzero(block == b)
-        out += _estimate_block([models[i] for i in sel], X, vis[:, sel], tgt[:, sel],
-                               pick[:, sel], mem[sel], mw[sel], mean[sel],
-                               iterations=iterations, neighbour_weight=neighbour_weight)
+    sizes = np.array([len(md.members) for md in models])
+    out: list = [None] * nm
+    for n in np.unique(sizes):
+        group = np.flatnonzero(sizes == n)
+        block = np.cumsum(pick[:, group].sum(0)) // BATCH_PAIRS
+        for b in np.unique(block):
+            sel = group[block == b]
+            res = _estimate_block([models[i] for i in sel], X, vis[:, sel, :n], tgt[:, sel, :n],
+                                  pick[:, sel], mem[sel, :n], mw[sel, :n], mean[sel, :n],
+                                  iterations=iterations, neighbour_weight=neighbour_weight)
+            for i, r in zip(sel, res):
+                out[i] = r
     return out
 
 

@@ -46,7 +46,7 @@ def ingest_rom(path: FilePath, *, rom: FilePath | None = None, ctx: Context) -> 
     dict
         ``markers``: :class:`Markers` ``(F, M, 3)`` of the ROM trial;
         ``report``: the ingest summary plus ``segmented_from`` (``"rom"`` or
-        ``"trial"``), ``path`` and ``note`` (see
+        ``"trial"``), ``path`` (the file's name) and ``note`` (see
         :func:`mocapflow.stages.motion.ingest.markers_report`).
     """
     source = path if rom is None else rom
@@ -57,7 +57,7 @@ def ingest_rom(path: FilePath, *, rom: FilePath | None = None, ctx: Context) -> 
     else:
         note = f"segmentation from the range-of-motion trial {Path(rom).name}"
     report = {**out["report"], "segmented_from": "trial" if rom is None else "rom",
-              "path": str(source), "note": note}
+              "path": Path(source).name, "note": note}  # the name: no path in outputs
     return {"markers": out["markers"], "report": report}
 
 

@@ -24,7 +24,6 @@ input frame copied into each output frame) into a motion on the input skeleton:
 """
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import numpy as np
@@ -306,7 +305,6 @@ def assemble_motion(
     report : dict
         ``seams``, ``smoothing``, constraint errors, ``path``.
     """
-    t0 = time.perf_counter()
     warn = warn or (lambda msg: None)
     src = np.asarray(source_index, dtype=np.int64)
     L = src.size
@@ -331,7 +329,6 @@ def assemble_motion(
             warn=warn,
         )
         sm_report.update(widened)
-    t_smooth = time.perf_counter() - t0
 
     if plant:
         feat[:, 1:3] = _planted_velocity(pyramid, motion, rot, feat, src, loop)
@@ -354,6 +351,5 @@ def assemble_motion(
         "constraint_max_fk_m": fk,
         "path": path_info,
         "foot_ik_max_m": ik_max,
-        "seconds_smoothing": t_smooth,
     }
     return out, report

@@ -456,10 +456,13 @@ def test_bad_path_raises(run_synth, pyr, walk):
 
 
 def test_stage_outputs_and_randomness_from_ctx(pyr, walk):
-    out = synth(pyr, walk, length=200, seed=4, ctx=Context(part="walk#seed=4", seed=4))
+    ctx = Context(part="walk#seed=4", seed=4)
+    out = synth(pyr, walk, length=200, seed=4, ctx=ctx)
     assert set(out) == {"motion", "source_index", "report"}
     assert out["motion"].n_frames == 200 and out["source_index"].shape == (200,)
-    assert out["report"]["seed"] == 4 and out["report"]["seconds"]["total"] > 0
+    # step times go to the context (the engine's manifest), never into the report
+    assert out["report"]["seed"] == 4 and "seconds" not in out["report"]
+    assert set(ctx.timings) == {"search", "assemble"} and ctx.timings["search"] > 0
     again = synth(pyr, walk, length=200, seed=4, ctx=Context(part="walk#seed=4", seed=4))
     np.testing.assert_array_equal(out["source_index"], again["source_index"])
 
