@@ -8,9 +8,17 @@ everything the engine can check before running anything; every problem is a
 :func:`parse_config` reads the document with line numbers
 (:mod:`~mocapflow.pipeline.config_yaml`), applies shared-param overrides,
 interpolates ``${params.NAME}`` and ``${env:VAR,default}``
-(:mod:`~mocapflow.pipeline.config_interpolation`), then validates, in this
+(:mod:`~mocapflow.pipeline.config_interpolation`), expands parts
+(:mod:`~mocapflow.pipeline.config_parts`), then validates, in this
 order: name and description, parts, nodes (stage, inputs, seeds, gather,
-params), wiring, cycles, targets, file params.
+params), wiring, cycles, fan-out, targets, file params.
+
+Loading is bounded (see :mod:`~mocapflow.pipeline.config_yaml` for the YAML
+limits): a graph fans out to at most :data:`MAX_TASKS` tasks (parts × seeds,
+counted per node before any task is made), seeds are integers in
+``[0, 2**32)`` (the context keeps 32 bits of a seed), and numbers in params are
+checked by :func:`~mocapflow.pipeline.registry.coerce` (finite, at most
+:data:`~mocapflow.pipeline.registry.MAX_PARAM_MAGNITUDE` in magnitude).
 
 Command-line overrides
 ----------------------
@@ -21,7 +29,6 @@ config's parts).
 
 from __future__ import annotations
 
-import glob
 import importlib
 import os
 import re
@@ -33,8 +40,10 @@ from pathlib import Path
 from typing import Any
 
 from mocapflow.pipeline import registry
-from mocapflow.pipeline.config_interpolation import interpolate
+from mocapflow.pipeline.config_interpolation import Budget, interpolate
+from mocapflow.pipeline.config_parts import expand_parts
 from mocapflow.pipeline.config_yaml import (
+    MAX_CONFIG_BYTES,
     ConfigError,
     FileErrors,
     LineDict,
@@ -43,11 +52,14 @@ from mocapflow.pipeline.config_yaml import (
     line_of,
     load_yaml,
     parse_yaml_value,
+    short,
 )
 from mocapflow.pipeline.registry import FilePath, ParamError, StageSpec
 
 __all__ = [
     "CMDLINE",
+    "MAX_SEED",
+    "MAX_TASKS",
     "STAGE_MODULES_ENV",
     "ConfigError",
     "GraphConfig",
@@ -66,6 +78,10 @@ NODE_KEYS = ("stage", "inputs", "params", "seeds", "gather", "description")
 #: registrations (a quick way to use stage families that are not installed).
 STAGE_MODULES_ENV = "MOCAPFLOW_STAGE_MODULES"
 CMDLINE = "<command line>"
+#: Most tasks a graph may fan out to (every node's parts × seeds, summed).
+MAX_TASKS = 1_000_000
+#: Seeds are below this (``ctx.rng`` is seeded from 32 bits of the seed).
+MAX_SEED = 2**32
 
 _NODE_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_\-]*$")
 
@@ -129,13 +145,19 @@ class GraphConfig:
     params : dict
         Shared params after overrides and interpolation.
     parts : list of str
-        File parts (globs expanded, in config order, duplicates removed).
+        Part ids (globs expanded, in config order, duplicates removed): each
+        file's normalised path relative to :attr:`root`, or its absolute path
+        when it was given as one (see :func:`expand_parts`).
     targets : list of str
         Default target nodes (all nodes when the config names none).
     nodes : dict
         ``name -> NodeConfig`` in topological order (ties in config order).
     overrides : dict
         The command-line overrides applied (``set``, ``parts``).
+    root : str or None
+        Absolute folder that relative part ids are relative to: the config
+        file's folder (the working directory for a config given as text).
+        ``None``: part ids are the files' paths.
     """
 
     name: str
@@ -146,6 +168,13 @@ class GraphConfig:
     targets: list[str]
     nodes: dict[str, NodeConfig]
     overrides: dict[str, Any] = field(default_factory=dict)
+    root: str | None = None
+
+    def part_path(self, part: str) -> str:
+        """The file of part id ``part`` (absolute when :attr:`root` is set)."""
+        if self.root is None or os.path.isabs(part):
+            return part
+        return os.path.normpath(os.path.join(self.root, part))
 
     @property
     def file(self) -> str:
@@ -243,6 +272,8 @@ def load_config(
     path = Path(path)
     file = str(path)
     try:
+        if path.stat().st_size > MAX_CONFIG_BYTES:
+            raise ConfigError(f"config is larger than {MAX_CONFIG_BYTES >> 20} MiB", file=file)
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ConfigError("config file not found", file=file) from None
@@ -261,7 +292,8 @@ def _parse_sets(sets: Iterable[str] | Mapping[str, Any]) -> list[tuple[str, str,
             lhs, eq, rhs = str(s).partition("=")
             if not eq:
                 raise ConfigError("expected NODE.PARAM=VALUE", file=CMDLINE, key=f"--set {s}")
-            pairs.append((lhs.strip(), parse_yaml_value(rhs)))
+            pairs.append((lhs.strip(), parse_yaml_value(rhs, file=CMDLINE,
+                                                        key=f"--set {lhs.strip()}")))
     for lhs, value in pairs:
         node, dot, param = lhs.partition(".")
         if not dot or not node or not param:
@@ -290,8 +322,10 @@ def parse_config(
     shared = _shared_params(doc, set_items, env, c)
     doc_i = _interpolate_document(doc, shared, env, c)
     name, description = _name_and_description(doc_i, doc, path, c)
-    part_ids = _part_ids(doc_i, doc, parts, c)
+    root = os.path.abspath(path.parent if path is not None else os.curdir)
+    part_ids = _part_ids(doc_i, doc, parts, c, root)
     nodes = _parse_nodes(doc_i, doc, set_items, bool(part_ids), c)
+    _check_fan_out(nodes, doc_i["nodes"], len(part_ids), c)
     targets = _targets(doc_i, doc, nodes, c)
     _check_file_params(nodes, c)
     return GraphConfig(
@@ -303,6 +337,7 @@ def parse_config(
         targets=targets,
         nodes=nodes,
         overrides=_overrides(set_items, parts),
+        root=root,
     )
 
 
@@ -336,9 +371,10 @@ def _shared_params(doc: LineDict, set_items: list[tuple[str, str, Any]],
                                   file=CMDLINE, key=f"--set params.{param}")
             shared_raw[param] = value
     shared: dict[str, Any] = {}
+    budget = Budget()
     for k, v in shared_raw.items():
         shared[k] = interpolate(v, shared_raw, env, c, f"params.{k}", line_of(shared_raw, k),
-                                (str(k),))
+                                (str(k),), budget=budget, depth=2)
     return shared
 
 
@@ -348,8 +384,10 @@ def _interpolate_document(doc: LineDict, shared: Mapping[str, Any], env: Mapping
     rest = {k: v for k, v in doc.items() if k != "params"}
     rest_i = LineDict()
     rest_i.lines = dict(doc.lines)
+    budget = Budget()
     for k, v in rest.items():
-        rest_i[k] = interpolate(v, shared, env, c, str(k), line_of(doc, k))
+        rest_i[k] = interpolate(v, shared, env, c, str(k), line_of(doc, k), budget=budget,
+                                depth=1)
     return rest_i
 
 
@@ -365,18 +403,20 @@ def _name_and_description(doc_i: LineDict, doc: LineDict, path: Path | None, c: 
     return name, description
 
 
-def _part_ids(doc_i: LineDict, doc: LineDict, parts: Sequence[str] | None, c: FileErrors
-              ) -> list[str]:
-    """Part ids from ``--parts`` (when given) or ``parts:``."""
+def _part_ids(doc_i: LineDict, doc: LineDict, parts: Sequence[str] | None, c: FileErrors,
+              root: str) -> list[str]:
+    """Part ids from ``--parts`` (when given: relative to the working directory) or
+    ``parts:`` (relative to the config's folder ``root``), expressed relative to ``root``."""
     if parts is not None:
-        return expand_parts(list(parts), FileErrors(CMDLINE), "--parts")
+        return expand_parts(list(parts), FileErrors(CMDLINE), "--parts", relative_to=root)
     raw_parts = doc_i.get("parts") or []
     if isinstance(raw_parts, str):
         raw_parts = LineList([raw_parts])
         raw_parts.lines = [line_of(doc, "parts") or 0]
     if not isinstance(raw_parts, list):
         raise c.err("parts", "must be a list of paths/globs", line_of(doc, "parts"))
-    return expand_parts(raw_parts, c, "parts", getattr(raw_parts, "lines", None))
+    return expand_parts(raw_parts, c, "parts", getattr(raw_parts, "lines", None), base=root,
+                        relative_to=root)
 
 
 def _parse_nodes(doc_i: LineDict, doc: LineDict, set_items: list[tuple[str, str, Any]],
@@ -452,43 +492,6 @@ def _overrides(set_items: list[tuple[str, str, Any]], parts: Sequence[str] | Non
     if parts is not None:
         overrides["parts"] = list(parts)
     return overrides
-
-
-# --------------------------------------------------------------------------- parts
-
-
-def expand_parts(entries: Sequence[Any], c: FileErrors, key: str,
-                 lines: Sequence[int] | None = None) -> list[str]:
-    """Expand part entries (paths or globs, relative to the working directory).
-
-    Returns
-    -------
-    list of str
-        Part ids: each path as given (globs: as matched), duplicates removed.
-    """
-    out: list[str] = []
-    seen: set[str] = set()
-    for i, entry in enumerate(entries):
-        line = lines[i] if lines is not None and i < len(lines) else None
-        k = f"{key}[{i}]" if lines is not None else key
-        if not isinstance(entry, str) or not entry:
-            raise c.err(k, f"a part must be a file path or glob, got {entry!r}", line)
-        if glob.has_magic(entry):
-            found = sorted(p for p in glob.glob(entry, recursive=True) if os.path.isfile(p))
-            if not found:
-                raise c.err(k, f"no file matches {entry!r}", line)
-        else:
-            if not os.path.exists(entry):
-                raise c.err(k, f"missing input file {entry!r}", line)
-            if os.path.isdir(entry):
-                raise c.err(k, f"{entry!r} is a directory (use a glob such as {entry}/*.bvh)",
-                            line)
-            found = [entry]
-        for p in found:
-            if p not in seen:
-                seen.add(p)
-                out.append(p)
-    return out
 
 
 # --------------------------------------------------------------------------- nodes
@@ -568,7 +571,7 @@ def _node_inputs(body: Mapping[str, Any], spec: StageSpec, raw_nodes: Any, has_p
             inputs[iname] = "part"
             continue
         if not isinstance(wire, str) or wire.count(".") != 1:
-            raise c.err(ik, f"expected node.output or part, got {wire!r}", il)
+            raise c.err(ik, f"expected node.output or part, got {short(wire)}", il)
         up, out = wire.split(".")
         if up not in raw_nodes:
             raise c.err(ik, f"unknown node {up!r}{close_match(up, raw_nodes)}", il)
@@ -603,9 +606,12 @@ def _node_params(name: str, body: Mapping[str, Any], spec: StageSpec, sets: dict
             raise ConfigError("seed is set per task by seeds:", file=where_file,
                               line=lines[p] or None, key=pk)
         try:
-            registry.coerce(v, spec.params[p][0], where=f"{sname}.{p}")
+            value = registry.coerce(v, spec.params[p][0], where=f"{sname}.{p}")
         except ParamError as e:
             raise ConfigError(str(e), file=where_file, line=lines[p] or None, key=pk) from None
+        if p == "seed" and isinstance(value, int) and not 0 <= value < MAX_SEED:
+            raise ConfigError(f"a seed must be in [0, 2**32), got {short(value)}",
+                              file=where_file, line=lines[p] or None, key=pk)
     if seeds is not None and "seed" in spec.params:
         given.setdefault("seed", seeds[0])
     try:
@@ -620,20 +626,57 @@ def _parse_seeds(raw: Any, c: FileErrors, key: str, line: int | None) -> list[in
         if set(raw) != {"count"}:
             raise c.err(key, "expected a list of seeds or {count: N}", line)
         n = raw["count"]
+        cline = line_of(raw, "count") or line
         if not isinstance(n, int) or isinstance(n, bool) or n < 1:
-            raise c.err(f"{key}.count", f"expected a positive integer, got {n!r}", line)
+            raise c.err(f"{key}.count", f"expected a positive integer, got {short(n)}", cline)
+        if n > MAX_TASKS:
+            raise c.err(f"{key}.count", f"{short(n)} seeds: more than the {MAX_TASKS:,} tasks "
+                        "a graph may have", cline)
         return list(range(n))
     if isinstance(raw, bool) or not isinstance(raw, list) or not raw:
         raise c.err(key, "expected a non-empty list of seeds or {count: N}", line)
     seeds: list[int] = []
+    seen: set[int] = set()
     for i, s in enumerate(raw):
+        sline = line_of(raw, i) or line
         if not isinstance(s, int) or isinstance(s, bool):
-            raise c.err(f"{key}[{i}]", f"a seed must be an integer, got {s!r}",
-                        line_of(raw, i) or line)
-        if s in seeds:
-            raise c.err(f"{key}[{i}]", f"duplicate seed {s}", line_of(raw, i) or line)
+            raise c.err(f"{key}[{i}]", f"a seed must be an integer, got {short(s)}", sline)
+        if not 0 <= s < MAX_SEED:
+            raise c.err(f"{key}[{i}]", f"a seed must be in [0, 2**32), got {short(s)}", sline)
+        if s in seen:
+            raise c.err(f"{key}[{i}]", f"duplicate seed {s}", sline)
+        seen.add(s)
         seeds.append(s)
     return seeds
+
+
+def _check_fan_out(nodes: Mapping[str, NodeConfig], raw_nodes: Any, n_parts: int,
+                   c: FileErrors) -> None:
+    """At most :data:`MAX_TASKS` tasks in all (counted per node, in topological order).
+
+    A node runs once per part of its finest input (once with no input, or as a
+    gather), times its seeds; inputs that a file override replaces do not count.
+    """
+    fan: dict[str, int] = {}
+    total = 0
+    for name, n in nodes.items():
+        overridden = n.spec.extra.get("file_overrides", {})
+        base = 1
+        if not n.gather:
+            for iname, w in n.inputs.items():
+                if w == "part" and n.params.get(overridden.get(iname, "")) is not None:
+                    continue  # read once from the file the param names
+                base = max(base, n_parts if w == "part" else fan[w[0]])
+        seeds = len(n.seeds) if n.seeds is not None else 1
+        fan[name] = base * seeds
+        total += fan[name]
+        if total > MAX_TASKS:
+            body = raw_nodes[name]
+            how = f" ({base:,} per seed × {seeds:,} seeds)" if seeds > 1 else ""
+            key, line = (f"nodes.{name}.seeds", line_of(body, "seeds")) if seeds > 1 else (
+                f"nodes.{name}", n.line or None)
+            raise c.err(key, f"fans out to {fan[name]:,} tasks{how}: the graph would have "
+                        f"{total:,} tasks, more than the {MAX_TASKS:,} it may have", line)
 
 
 def _check_wiring(nodes: dict[str, NodeConfig], raw_nodes: Any, c: FileErrors) -> None:
@@ -652,28 +695,36 @@ def _check_wiring(nodes: dict[str, NodeConfig], raw_nodes: Any, c: FileErrors) -
 
 
 def _toposort(nodes: dict[str, NodeConfig], raw_nodes: Any, c: FileErrors) -> list[str]:
+    """Upstream before downstream (ties in config order); iterative, so chains of any length."""
     order: list[str] = []
-    state: dict[str, int] = {}
-
-    def visit(n: str, path: list[str]) -> None:
-        if state.get(n) == 2:
-            return
-        if state.get(n) == 1:
-            cyc = path[path.index(n):] + [n]
-            first = cyc[0]
-            # name the input of the first node of the cycle that closes it
-            nxt = cyc[1]
-            iname = next(i for i, w in nodes[first].inputs.items()
-                         if isinstance(w, tuple) and w[0] == nxt)
-            raw_inputs = raw_nodes[first].get("inputs") or {}
-            raise c.err(f"nodes.{first}.inputs.{iname}", f"cycle {' -> '.join(reversed(cyc))}",
-                        line_of(raw_inputs, iname))
-        state[n] = 1
-        for up in nodes[n].upstream():
-            visit(up, [*path, n])
-        state[n] = 2
-        order.append(n)
-
-    for n in nodes:
-        visit(n, [])
+    state: dict[str, int] = {}  # 1: on the path being visited, 2: done
+    for root in nodes:
+        if state.get(root):
+            continue
+        state[root] = 1
+        stack = [(root, iter(nodes[root].upstream()))]
+        while stack:
+            n, ups = stack[-1]
+            up = next(ups, None)
+            if up is None:
+                stack.pop()
+                state[n] = 2
+                order.append(n)
+            elif state.get(up) == 1:
+                path = [m for m, _ in stack]
+                _raise_cycle(path[path.index(up):] + [up], nodes, raw_nodes, c)
+            elif not state.get(up):
+                state[up] = 1
+                stack.append((up, iter(nodes[up].upstream())))
     return order
+
+
+def _raise_cycle(cyc: list[str], nodes: dict[str, NodeConfig], raw_nodes: Any,
+                 c: FileErrors) -> None:
+    """The error of a cycle, at the input of its first node that closes it."""
+    first, nxt = cyc[0], cyc[1]
+    iname = next(i for i, w in nodes[first].inputs.items()
+                 if isinstance(w, tuple) and w[0] == nxt)
+    raw_inputs = raw_nodes[first].get("inputs") or {}
+    raise c.err(f"nodes.{first}.inputs.{iname}", f"cycle {' -> '.join(reversed(cyc))}",
+                line_of(raw_inputs, iname))

@@ -7,6 +7,14 @@ string that is exactly one reference keeps the value's type (an environment
 value is then parsed as YAML, like ``--set`` values); a reference inside a
 longer string is formatted into it (non-strings as JSON).  Line information of
 the loaded document is kept, so later errors still name their line.
+
+Interpolation is bounded like YAML loading (a reference may name a value that
+holds references, so a few lines could otherwise expand without end): one pass
+makes at most :data:`~mocapflow.pipeline.config_yaml.MAX_NODES` values and
+:data:`~mocapflow.pipeline.config_yaml.MAX_CONFIG_BYTES` characters of
+formatted text (:class:`Budget`), nests at most
+:data:`~mocapflow.pipeline.config_yaml.MAX_DEPTH` levels, and follows chains of
+at most :data:`MAX_REF_CHAIN` references.
 """
 
 from __future__ import annotations
@@ -17,6 +25,9 @@ from collections.abc import Mapping
 from typing import Any
 
 from mocapflow.pipeline.config_yaml import (
+    MAX_CONFIG_BYTES,
+    MAX_DEPTH,
+    MAX_NODES,
     REF,
     FileErrors,
     LineDict,
@@ -26,11 +37,35 @@ from mocapflow.pipeline.config_yaml import (
     parse_yaml_value,
 )
 
-__all__ = ["interpolate"]
+__all__ = ["MAX_REF_CHAIN", "Budget", "interpolate"]
+
+#: Longest chain of ``${params.NAME}`` references (a param naming a param naming ...).
+MAX_REF_CHAIN = 32
+
+
+class Budget:
+    """What one interpolation pass may still make: values and characters of text."""
+
+    def __init__(self, nodes: int = MAX_NODES, chars: int = MAX_CONFIG_BYTES) -> None:
+        self.nodes = nodes
+        self.chars = chars
+
+    def spend(self, c: FileErrors, key: str, line: int | None, *, nodes: int = 0,
+              chars: int = 0) -> None:
+        """Take ``nodes`` values and ``chars`` characters, or raise naming ``key``."""
+        self.nodes -= nodes
+        self.chars -= chars
+        if self.nodes < 0:
+            raise c.err(key, f"${{...}} references expand to more than {MAX_NODES:,} values",
+                        line)
+        if self.chars < 0:
+            raise c.err(key, "${...} references expand to more than "
+                        f"{MAX_CONFIG_BYTES >> 20} MiB of text", line)
 
 
 def _resolve_ref(ref: str, params: Mapping[str, Any], env: Mapping[str, str], c: FileErrors,
-                 key: str, line: int | None, stack: tuple[str, ...]) -> Any:
+                 key: str, line: int | None, stack: tuple[str, ...], budget: Budget,
+                 depth: int) -> Any:
     ref = ref.strip()
     if ref.startswith("env:"):
         body = ref[4:]
@@ -39,9 +74,9 @@ def _resolve_ref(ref: str, params: Mapping[str, Any], env: Mapping[str, str], c:
         if not var:
             raise c.err(key, f"empty environment reference ${{{ref}}}", line)
         if var in env:
-            return parse_yaml_value(env[var])
+            return parse_yaml_value(env[var], file=c.file, key=key, line=line)
         if sep:
-            return parse_yaml_value(default.strip())
+            return parse_yaml_value(default.strip(), file=c.file, key=key, line=line)
         raise c.err(key, f"environment variable {var} is not set and has no default", line)
     if ref.startswith("params."):
         name = ref[len("params."):]
@@ -49,13 +84,18 @@ def _resolve_ref(ref: str, params: Mapping[str, Any], env: Mapping[str, str], c:
             raise c.err(key, f"circular reference ${{{ref}}}", line)
         if name not in params:
             raise c.err(key, f"unknown shared param ${{{ref}}}{close_match(name, params)}", line)
-        return interpolate(params[name], params, env, c, key, line, (*stack, name))
+        if len(stack) >= MAX_REF_CHAIN:
+            raise c.err(key, f"more than {MAX_REF_CHAIN} ${{params.NAME}} references in a chain "
+                        f"(${{params.{stack[0]}}} -> ... -> ${{{ref}}})", line)
+        return interpolate(params[name], params, env, c, key, line, (*stack, name),
+                           budget=budget, depth=depth)
     raise c.err(key, f"cannot interpolate ${{{ref}}} "
                 "(use ${params.NAME} or ${env:VAR,default})", line)
 
 
 def interpolate(value: Any, params: Mapping[str, Any], env: Mapping[str, str], c: FileErrors,
-                key: str, line: int | None, stack: tuple[str, ...] = ()) -> Any:
+                key: str, line: int | None, stack: tuple[str, ...] = (), *,
+                budget: Budget | None = None, depth: int = 0) -> Any:
     """Interpolate ``${...}`` references in ``value`` (recursively), keeping line info.
 
     Parameters
@@ -75,17 +115,34 @@ def interpolate(value: Any, params: Mapping[str, Any], env: Mapping[str, str], c
         Its line.
     stack : tuple of str
         Shared params being resolved (to detect cycles).
+    budget : Budget, optional
+        What the pass may still make (default: a fresh one for this value).
+    depth : int
+        Nesting level of ``value`` in the document (a top-level value: 1).
+
+    Raises
+    ------
+    ConfigError
+        Unknown or circular references, unset variables, and a pass over its
+        :class:`Budget`, :data:`~mocapflow.pipeline.config_yaml.MAX_DEPTH` or
+        :data:`MAX_REF_CHAIN`.
     """
+    budget = Budget() if budget is None else budget
+    budget.spend(c, key, line, nodes=1)
+    if depth > MAX_DEPTH:
+        raise c.err(key, f"nesting deeper than {MAX_DEPTH} levels", line)
     if isinstance(value, str):
         whole = REF.fullmatch(value.strip())
         if whole:
-            return _resolve_ref(whole.group(1), params, env, c, key, line, stack)
+            return _resolve_ref(whole.group(1), params, env, c, key, line, stack, budget, depth)
         if "${" not in value:
             return value
 
         def sub(m: re.Match) -> str:
-            v = _resolve_ref(m.group(1), params, env, c, key, line, stack)
-            return v if isinstance(v, str) else json.dumps(v)
+            v = _resolve_ref(m.group(1), params, env, c, key, line, stack, budget, depth)
+            text = v if isinstance(v, str) else json.dumps(v)
+            budget.spend(c, key, line, chars=len(text))
+            return text
 
         return REF.sub(sub, value)
     if isinstance(value, dict):
@@ -93,7 +150,8 @@ def interpolate(value: Any, params: Mapping[str, Any], env: Mapping[str, str], c
         out.line = getattr(value, "line", line or 0)
         for k, v in value.items():
             kl = line_of(value, k) or line
-            out[k] = interpolate(v, params, env, c, f"{key}.{k}" if key else str(k), kl, stack)
+            out[k] = interpolate(v, params, env, c, f"{key}.{k}" if key else str(k), kl, stack,
+                                 budget=budget, depth=depth + 1)
             out.lines[k] = kl or 0
         return out
     if isinstance(value, list):
@@ -101,7 +159,8 @@ def interpolate(value: Any, params: Mapping[str, Any], env: Mapping[str, str], c
         out_l.line = getattr(value, "line", line or 0)
         for i, v in enumerate(value):
             il = line_of(value, i) or line
-            out_l.append(interpolate(v, params, env, c, f"{key}[{i}]", il, stack))
+            out_l.append(interpolate(v, params, env, c, f"{key}[{i}]", il, stack,
+                                     budget=budget, depth=depth + 1))
             out_l.lines.append(il or 0)
         return out_l
     return value

@@ -18,6 +18,8 @@ import difflib
 import functools
 import importlib
 import inspect
+import math
+import reprlib
 import types
 import typing
 from collections.abc import Callable, Mapping
@@ -28,6 +30,7 @@ from typing import Any, Literal, NewType, get_args, get_origin
 from mocapflow.pipeline.context import Context
 
 __all__ = [
+    "MAX_PARAM_MAGNITUDE",
     "FilePath",
     "ParamError",
     "StageSpec",
@@ -46,6 +49,13 @@ __all__ = [
 FilePath = NewType("FilePath", str)
 
 ENTRY_POINT_GROUP = "mocapflow.stages"
+#: Largest magnitude of a number param (``int`` or ``float``); see :func:`coerce`.
+MAX_PARAM_MAGNITUDE = 1e12
+#: A ``seed`` param is an integer in ``[0, SEED_LIMIT)`` (the context keeps 32 bits).
+SEED_LIMIT = 2**32
+_show = reprlib.Repr()
+_show.maxstring = _show.maxother = 60
+_show.maxlong = 30
 
 
 class ParamError(ValueError):
@@ -367,8 +377,10 @@ def validate_params(spec: StageSpec, given: Mapping[str, Any]) -> dict[str, Any]
     Raises
     ------
     ParamError
-        Unknown param, missing required param, or a value of the wrong type
-        (the message names the param).
+        Unknown param, missing required param, a value of the wrong type or out
+        of range (see :func:`coerce`; a ``seed`` param must be an integer in
+        ``[0, 2**32)``: the context keeps 32 bits of it, so larger seeds would
+        repeat smaller ones).  The message names the param.
     """
     unknown = sorted(set(given) - set(spec.params))
     if unknown:
@@ -381,6 +393,10 @@ def validate_params(spec: StageSpec, given: Mapping[str, Any]) -> dict[str, Any]
     for pname, (ann, default) in spec.params.items():
         if pname in given:
             out[pname] = coerce(given[pname], ann, where=f"{spec.name}.{pname}")
+            v = out[pname]
+            if pname == "seed" and isinstance(v, int) and not 0 <= v < SEED_LIMIT:
+                raise ParamError(f"param {spec.name}.seed: a seed must be in [0, 2**32), got "
+                                 f"{_show.repr(v)}")
         elif default is inspect.Parameter.empty:
             raise ParamError(f"missing required param {pname!r} for stage {spec.name!r}")
         else:
@@ -394,6 +410,18 @@ def coerce(value: Any, ann: Any, *, where: str) -> Any:
     Supported annotations: ``Any``, ``bool``, ``int``, ``float``, ``str``,
     ``None``, ``Literal[...]``, ``X | Y`` / ``Optional``, ``list[T]``,
     ``tuple[T, ...]``, ``dict[K, V]``.
+
+    Numbers: an ``int`` param takes an integer (not a bool, not ``3.0``), a
+    ``float`` param an integer or a float; either must be finite (``.inf`` and
+    ``.nan`` are refused) and at most :data:`MAX_PARAM_MAGNITUDE` (``1e12``) in
+    magnitude, so a value no stage can mean (``1e14`` frames, a 400-digit
+    number) fails here, naming the param, not later in a worker.  Values of an
+    ``Any`` annotation are passed as given.
+
+    Raises
+    ------
+    ParamError
+        ``"param STAGE.NAME: ..."`` (values shown shortened).
     """
     if ann is Any or ann is inspect.Parameter.empty:
         return value
@@ -405,35 +433,38 @@ def coerce(value: Any, ann: Any, *, where: str) -> Any:
             try:
                 return coerce(value, a, where=where)
             except ParamError as e:
-                errors.append(str(e))
-        raise ParamError(f"param {where}: {value!r} does not fit {_fmt(ann)}")
+                errors.append(e)
+        for e in errors:  # a member of the value's kind found a deeper problem: say it
+            if isinstance(e, _RangeError) or not str(e).startswith(f"param {where}: "):
+                raise e
+        raise ParamError(f"param {where}: {_show.repr(value)} does not fit {_fmt(ann)}")
     if origin is Literal:
         if value in args and type(value) in {type(a) for a in args}:
             return value
-        raise ParamError(f"param {where}: {value!r} is not one of {list(args)}")
+        raise ParamError(f"param {where}: {_show.repr(value)} is not one of {list(args)}")
     if ann is type(None) or ann is None:
         if value is None:
             return None
-        raise ParamError(f"param {where}: expected null, got {value!r}")
+        raise ParamError(f"param {where}: expected null, got {_show.repr(value)}")
     if ann is bool:
         if isinstance(value, bool):
             return value
-        raise ParamError(f"param {where}: expected a boolean, got {value!r}")
+        raise ParamError(f"param {where}: expected a boolean, got {_show.repr(value)}")
     if ann is int:
         if isinstance(value, int) and not isinstance(value, bool):
-            return value
-        raise ParamError(f"param {where}: expected an integer, got {value!r}")
+            return _check_number(value, where)
+        raise ParamError(f"param {where}: expected an integer, got {_show.repr(value)}")
     if ann is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-        raise ParamError(f"param {where}: expected a number, got {value!r}")
+            return float(_check_number(value, where))
+        raise ParamError(f"param {where}: expected a number, got {_show.repr(value)}")
     if ann is str:
         if isinstance(value, str):
             return value
-        raise ParamError(f"param {where}: expected a string, got {value!r}")
+        raise ParamError(f"param {where}: expected a string, got {_show.repr(value)}")
     if origin in (list, tuple) or ann in (list, tuple):
         if not isinstance(value, (list, tuple)):
-            raise ParamError(f"param {where}: expected a list, got {value!r}")
+            raise ParamError(f"param {where}: expected a list, got {_show.repr(value)}")
         if origin is tuple and args and not (len(args) == 2 and args[1] is Ellipsis):
             if len(args) != len(value):
                 raise ParamError(f"param {where}: expected {len(args)} items, got {len(value)}")
@@ -443,12 +474,26 @@ def coerce(value: Any, ann: Any, *, where: str) -> Any:
         return [coerce(v, item, where=f"{where}[{i}]") for i, v in enumerate(value)]
     if origin is dict or ann is dict:
         if not isinstance(value, Mapping):
-            raise ParamError(f"param {where}: expected a mapping, got {value!r}")
+            raise ParamError(f"param {where}: expected a mapping, got {_show.repr(value)}")
         kt, vt = args if args else (Any, Any)
         return {
             coerce(k, kt, where=f"{where} key"): coerce(v, vt, where=f"{where}.{k}")
             for k, v in value.items()
         }
+    return value
+
+
+class _RangeError(ParamError):
+    """A number of the right kind, but not finite or too large."""
+
+
+def _check_number(value: int | float, where: str) -> int | float:
+    """``value`` if finite and at most :data:`MAX_PARAM_MAGNITUDE` in magnitude."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise _RangeError(f"param {where}: expected a finite number, got {value!r}")
+    if abs(value) > MAX_PARAM_MAGNITUDE:
+        raise _RangeError(f"param {where}: {_show.repr(value)} is out of range (at most 1e12 in "
+                         "magnitude)")
     return value
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import pytest
 
 from mocapflow.pipeline.config import ConfigError, load_config, parse_config
@@ -114,3 +116,95 @@ def test_seeds_count_and_list(tmp_path):
     assert cfg.nodes["b"].seeds == [7, 9]
     with pytest.raises(ConfigError, match="seed is set per task by seeds:"):
         parse_config("nodes:\n  a: {stage: toy_source, seeds: [1], params: {seed: 3}}\n")
+
+
+# --------------------------------------------------------------------------- numbers, fan-out
+
+NUMBERS = [
+    # (params flow mapping, key, message fragment)
+    ("{value: .inf}", "value", "param toy_source.value: expected a finite number, got inf"),
+    ("{value: -.inf}", "value", "expected a finite number, got -inf"),
+    ("{value: .nan}", "value", "expected a finite number, got nan"),
+    ("{value: " + "9" * 400 + ".0}", "value", "expected a finite number, got inf"),
+    ("{value: 1.0e+14}", "value", "100000000000000.0 is out of range (at most 1e12"),
+    ("{n: 100000000000000}", "n", "100000000000000 is out of range (at most 1e12"),
+    ("{value: -1000000000001}", "value", "-1000000000001 is out of range"),
+    ("{n: 3.0}", "n", "expected an integer, got 3.0"),
+    ("{seed: 4294967296}", "seed", "a seed must be in [0, 2**32), got 4294967296"),
+    ("{seed: -1}", "seed", "a seed must be in [0, 2**32), got -1"),
+]
+
+
+@pytest.mark.parametrize("params, key, fragment", NUMBERS, ids=[n[0][:24] for n in NUMBERS])
+def test_numbers_are_finite_in_range_and_integral(tmp_path, params, key, fragment):
+    path = write_config(tmp_path / "g.yaml", f"nodes:\n  a:\n    stage: toy_source\n"
+                                             f"    params: {params}\n")
+    with pytest.raises(ConfigError) as e:
+        load_config(path)
+    assert str(e.value).startswith(f"{path}:4: nodes.a.params.{key}: "), str(e.value)
+    assert fragment in str(e.value) and len(str(e.value)) < 300
+
+
+def test_numbers_at_the_limits_are_accepted(tmp_path):
+    cfg = parse_config("nodes:\n  a: {stage: toy_source, params: {n: 1000000000000, "
+                       "value: -1.0e+12, seed: 4294967295}}\n"
+                       "  b: {stage: toy_clip, inputs: {values: a.values}, params: {lo: 1}}\n")
+    assert cfg.nodes["a"].params == {"n": 10**12, "value": -1e12, "noise": 0.0,
+                                     "seed": 2**32 - 1}
+    assert cfg.nodes["b"].params["lo"] == 1.0 and type(cfg.nodes["b"].params["lo"]) is float
+
+
+@pytest.mark.parametrize("seeds, key, fragment", [
+    ("{count: 100000000}", "nodes.a.seeds.count", "100000000 seeds: more than the 1,000,000 "
+                                                   "tasks a graph may have"),
+    ("[0, 4294967296]", "nodes.a.seeds[1]", "a seed must be in [0, 2**32), got 4294967296"),
+    ("[-3]", "nodes.a.seeds[0]", "a seed must be in [0, 2**32), got -3"),
+])
+def test_seeds_are_bounded_before_any_list_is_made(tmp_path, seeds, key, fragment):
+    path = write_config(tmp_path / "g.yaml", f"nodes:\n  a:\n    stage: toy_source\n"
+                                             f"    seeds: {seeds}\n")
+    t0 = time.perf_counter()
+    with pytest.raises(ConfigError) as e:
+        load_config(path)
+    assert time.perf_counter() - t0 < 1.0
+    assert str(e.value) == f"{path}:4: {key}: {fragment}"
+
+
+def test_fan_out_cap_names_the_node(tmp_path, data_dir):
+    path = write_config(tmp_path / "g.yaml", f"""\
+        parts: [{data_dir}/*.txt]
+        nodes:
+          read: {{stage: toy_read_file, inputs: {{path: part}}}}
+          add:
+            stage: toy_add
+            inputs: {{values: read.values}}
+            seeds: {{count: 100000}}
+          scale:
+            stage: toy_scale
+            inputs: {{values: add.values}}
+        """)
+    with pytest.raises(ConfigError) as e:
+        load_config(path)
+    assert str(e.value) == (
+        f"{path}:8: nodes.scale: fans out to 500,000 tasks: the graph would have 1,000,005 "
+        "tasks, more than the 1,000,000 it may have")
+    with pytest.raises(ConfigError, match=r"g2\.yaml:7: nodes\.add\.seeds: fans out to 1,000,005 "
+                                          r"tasks \(5 per seed × 200,001 seeds\): the graph"):
+        load_config(write_config(tmp_path / "g2.yaml",
+                                 path.read_text().replace("100000", "200001")))
+    cfg = load_config(write_config(tmp_path / "g3.yaml",
+                                   path.read_text().replace("100000", "99999")))
+    assert len(cfg.nodes["add"].seeds) == 99_999  # 5 + 2 × 499,995 tasks: under the cap
+
+
+def test_a_chain_of_3000_nodes_sorts_without_recursion():
+    text = "nodes:\n" + "".join(
+        f"  n{i}: {{stage: toy_add, inputs: {{values: n{i - 1}.values}}}}\n"
+        for i in range(3000, 0, -1)) + "  n0: {stage: toy_source}\n"
+    cfg = parse_config(text)
+    assert list(cfg.nodes) == [f"n{i}" for i in range(3001)]
+    cyc = text.replace("  n0: {stage: toy_source}\n",
+                       "  n0: {stage: toy_add, inputs: {values: n3000.values}}\n")
+    with pytest.raises(ConfigError, match=r"^<string>:2: nodes\.n3000\.inputs\.values: cycle "
+                                          r"n3000 -> n0 -> n1 -> n2 "):
+        parse_config(cyc)

@@ -55,7 +55,8 @@ def test_validate_params_fills_defaults_and_coerces_int_to_float():
         ({"required": True, "n": True}, "expected an integer"),
         ({"required": "yes"}, "expected a boolean"),
         ({"required": True, "mode": "c"}, "not one of"),
-        ({"required": True, "names": [1]}, "does not fit"),
+        ({"required": True, "names": [1]}, r"names\[0\]: expected a string, got 1$"),
+        ({"required": True, "names": "x"}, "'x' does not fit list"),
     ],
 )
 def test_validate_params_rejects_bad_values(given, message):
@@ -124,3 +125,33 @@ def test_digest_distinguishes_dtype_shape_and_attrs():
 def test_unstorable_output_names_the_type():
     with pytest.raises(TypeError, match="cannot store a object"):
         encode(object())
+
+
+@stage("_test_registry_numbers", outputs=("out",))
+def _numbers(*, rate: float | None = None, counts: list[int] | None = None, seed: int = 0):
+    return {"out": rate}
+
+
+@pytest.mark.parametrize("given, message", [
+    ({"rate": float("inf")}, r"param _test_registry_numbers\.rate: expected a finite number, "
+                             r"got inf$"),
+    ({"rate": float("nan")}, "expected a finite number, got nan"),
+    ({"rate": 10**400}, r"rate: 1000000000000\.\.\.0+ is out of range \(at most "
+                        r"1e12 in magnitude\)$"),
+    ({"rate": 2e12}, "2000000000000.0 is out of range"),
+    ({"counts": [1, 10**13]}, r"counts\[1\]: 10000000000000 is out of range"),
+    ({"counts": list(range(10_000)) + ["x"]}, r"counts\[10000\]: expected an integer, got 'x'"),
+    ({"rate": "x" * 10_000}, r"rate: 'x+\.\.\.x+' does not fit float \| None$"),
+    ({"seed": 2**32}, r"seed: a seed must be in \[0, 2\*\*32\), got 4294967296"),
+])
+def test_numbers_finite_in_range_messages_short(given, message):
+    # a union keeps the range message of the member that fits the kind
+    with pytest.raises(ParamError, match=message) as e:
+        validate_params(get_stage("_test_registry_numbers"), given)
+    assert len(str(e.value)) < 160
+
+
+def test_stages_called_from_python_validate_numbers_too():
+    assert _numbers(rate=3) == {"out": 3.0}
+    with pytest.raises(ParamError, match="expected a finite number"):
+        _numbers(rate=float("-inf"))
