@@ -5,7 +5,10 @@ Verbs: ``run``, ``plan``, ``status``, ``explain``, ``dag``, ``stages``, ``show``
 User errors (bad config, missing file, bad flag, ``--frozen`` mismatch, failed
 tasks) print one line on stderr and exit non-zero (2 for usage/config errors,
 1 for failed tasks, store problems and lock mismatches); ``--debug`` adds the
-traceback.
+traceback.  A store that cannot be written (read-only, full) still serves
+every verb that only reads it (``run`` with every task a hit, ``export``,
+``show``, ``status``, ``plan``, ``verify``); a run whose record cannot be
+written warns once.
 
 This module parses arguments and prints; what the verbs do lives in library
 modules: :mod:`~mocapflow.pipeline.runner` (run), :mod:`~mocapflow.pipeline.plan`
@@ -39,7 +42,7 @@ from mocapflow.pipeline.executors import (
     make_executor,
     slurm_job_script,
 )
-from mocapflow.pipeline.export import EXPORT_LAYOUT, export_results
+from mocapflow.pipeline.export import EXPORT_LAYOUT, ExportError, export_results
 from mocapflow.pipeline.graph import Graph, file_overrides, load_graph, task_name
 from mocapflow.pipeline.lock import (
     FrozenError,
@@ -48,8 +51,8 @@ from mocapflow.pipeline.lock import (
     read_lock,
     write_lock,
 )
-from mocapflow.pipeline.plan import explain, gc_keep_set, plan, task_status
-from mocapflow.pipeline.progress import Progress
+from mocapflow.pipeline.plan import explain, gc_keep_set, paused_gc, plan, task_status
+from mocapflow.pipeline.progress import Progress, StageWarningFilter, warning_lines
 from mocapflow.pipeline.registry import ParamError
 from mocapflow.pipeline.runner import RunResult, run
 from mocapflow.pipeline.show import entry_summary, find_entry
@@ -121,6 +124,9 @@ def _exec_args(p: argparse.ArgumentParser) -> None:
                    help="use the Dask scheduler described by this file")
     g.add_argument("--force", action="append", default=[], metavar="NODE",
                    help="recompute NODE even when cached (repeatable)")
+    g.add_argument("--worker-timeout", type=float, default=None, metavar="SECONDS",
+                   help="wait this long for a first Dask worker, and at most this long with "
+                        "none during a run (default 60; slurm 600; 0: for ever)")
     g.add_argument("--fail-fast", action="store_true",
                    help="stop at the first failed task (default: run all independent work)")
     s = p.add_argument_group("slurm (--executor slurm)")
@@ -242,11 +248,13 @@ def _store(args: argparse.Namespace) -> Store:
 
 def _load(args: argparse.Namespace, config: str | None = None, *, parts=None, sets=None,
           targets=None, all_nodes: bool = False) -> Graph:
-    return load_graph(config or args.config,
-                      sets=sets if sets is not None else (getattr(args, "sets", None) or []),
-                      parts=parts if parts is not None else getattr(args, "parts", None),
-                      targets=targets if targets is not None else getattr(args, "targets", None),
-                      all_nodes=all_nodes)
+    with paused_gc():  # a task per part: many objects, no cycles
+        return load_graph(config or args.config,
+                          sets=sets if sets is not None else (getattr(args, "sets", None) or []),
+                          parts=parts if parts is not None else getattr(args, "parts", None),
+                          targets=(targets if targets is not None
+                                   else getattr(args, "targets", None)),
+                          all_nodes=all_nodes)
 
 
 def _executor(args: argparse.Namespace) -> Executor:
@@ -254,7 +262,9 @@ def _executor(args: argparse.Namespace) -> Executor:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
     slurm = ex_opts(args)
     return make_executor(args.executor, workers=args.workers, address=args.address,
-                         scheduler_file=args.scheduler_file, slurm=slurm)
+                         scheduler_file=args.scheduler_file, slurm=slurm,
+                         store=args.store or os.environ.get("MOCAPFLOW_STORE"),
+                         worker_timeout=args.worker_timeout)
 
 
 def _progress(args: argparse.Namespace, total: int, label: str = "") -> Progress:
@@ -291,18 +301,17 @@ def _raise_failures(result: RunResult, args: argparse.Namespace | None = None,
         skipped = result.counts["skipped"]
         tail = f"; {skipped} skipped" if skipped else ""
         where = (f" [tracebacks: {store.root}/runs/{result.run_id}.json]"
-                 if store is not None else "")
+                 if store is not None and store.has_run(result.run_id) else "")
         raise Failed(f"{len(failed)} task(s) failed: {task_name(r.node, r.part)}: "
                      f"{r.error}{more}{tail}{where}")
-    if not result.ok:
-        r = next(r for r in result.records if r.status not in OK)
+    r = next((r for r in result.records if r.status not in OK), None)
+    if r is not None:  # (every task committed but the lock differs: the caller says so)
         raise Failed(f"{task_name(r.node, r.part)} {r.status}: {r.error}")
 
 
 def _print_warnings(result: RunResult) -> None:
-    for r in result.records:
-        for w in r.warnings:
-            print(f"warning: {task_name(r.node, r.part)}: {w}", file=sys.stderr)
+    for line in warning_lines(result.records):  # once per message, with a count
+        print(line, file=sys.stderr)
 
 
 # --------------------------------------------------------------------------- verbs
@@ -614,6 +623,7 @@ def _setup_logging(debug: bool) -> None:
     if not any(getattr(h, "_mocapflow", False) for h in log.handlers):
         h = logging.StreamHandler(sys.stderr)
         h.setFormatter(logging.Formatter("%(levelname)s: %(message)s"))
+        h.addFilter(StageWarningFilter())  # stage warnings: printed from the records
         h._mocapflow = True  # type: ignore[attr-defined]
         log.addHandler(h)
         log.propagate = False
@@ -635,6 +645,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         msg = str(e)
     except (ConfigError, ParamError, ExecutorError, DemoError) as e:
         code, msg = 2, str(e)
+    except (StoreError, ExportError) as e:  # a store or export path that cannot be used
+        code, msg = 1, str(e)
     except FrozenError as e:
         code, msg = 1, str(e)
     except FileNotFoundError as e:

@@ -5,7 +5,12 @@ documents, list, remove, measure, and hand Zarr a store for one entry.
 
 * :class:`LocalBackend`: a directory tree on this machine.  ``write_atomic`` is a
   write to a temporary name and ``os.replace``; the store itself publishes
-  entries with ``os.rename`` (only local roots can).
+  entries with ``os.rename`` (only local roots can).  It never follows a
+  symlink below the root: documents are opened with ``O_NOFOLLOW`` (and only
+  when they are regular files, so a FIFO cannot block a reader),
+  :meth:`~LocalBackend.real_dir` checks every directory between the root and
+  an entry, and :meth:`~LocalBackend.odd_files` lists symlinks and special
+  files inside one (``verify`` reports them; nothing reads through them).
 * :class:`FsspecBackend`: any fsspec filesystem (``memory://``, ``s3://``, ...).
   No atomic rename: documents are written in place.
 * :class:`KeySink`: where :mod:`~mocapflow.pipeline.store_zarr` puts the Zarr keys
@@ -17,9 +22,11 @@ a local store never needs it, and it costs about 60 ms at import.
 
 from __future__ import annotations
 
+import errno
 import os
 import posixpath
 import shutil
+import stat
 import uuid
 from collections.abc import Mapping
 from datetime import UTC, datetime
@@ -64,6 +71,18 @@ class Backend(Protocol):
     def listdir(self, path: str) -> list[str]:
         """Sorted names in a directory (empty when it does not exist)."""
 
+    def subdirs(self, path: str) -> list[str]:
+        """Sorted names of the real (not symlinked) subdirectories of a directory."""
+
+    def is_file(self, path: str) -> bool:
+        """Whether ``path`` is a regular file (a symlink is not)."""
+
+    def real_dir(self, path: str) -> bool:
+        """Whether ``path`` and every directory between the root and it are real directories."""
+
+    def odd_files(self, path: str) -> list[tuple[str, str]]:
+        """``(relative path, what it is)`` of each symlink or special file under ``path``."""
+
     def isdir(self, path: str) -> bool:
         """Whether ``path`` is a directory."""
 
@@ -86,6 +105,10 @@ class Backend(Protocol):
         """A read-only Zarr store rooted at ``path``."""
 
 
+#: Most bytes one ``read(2)`` returns on Linux.
+_MAX_READ = 0x7FFFF000
+
+
 class LocalBackend:
     """Storage operations on a local directory tree."""
 
@@ -97,11 +120,25 @@ class LocalBackend:
     join = staticmethod(os.path.join)
 
     def read(self, path: str) -> bytes | None:
+        """The file's bytes; ``None`` if missing, a symlink or not a regular file."""
         try:
-            with open(path, "rb") as f:
-                return f.read()
+            fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_NONBLOCK | os.O_CLOEXEC)
         except (FileNotFoundError, NotADirectoryError, IsADirectoryError):
             return None
+        except OSError as e:
+            if e.errno == errno.ELOOP:  # a symlink: never followed
+                return None
+            raise
+        try:  # (plain os calls: this is every task's cache check)
+            st = os.fstat(fd)
+            if not stat.S_ISREG(st.st_mode):
+                return None
+            data = os.read(fd, st.st_size + 1)  # a regular file reads short only at EOF
+            if len(data) > st.st_size or len(data) >= _MAX_READ:  # it grew, or is over 2 GB
+                data += b"".join(iter(lambda: os.read(fd, 1 << 24), b""))
+            return data
+        finally:
+            os.close(fd)
 
     def write(self, path: str, data: bytes) -> None:
         os.makedirs(os.path.dirname(path), exist_ok=True)
@@ -149,6 +186,56 @@ class LocalBackend:
         except (FileNotFoundError, NotADirectoryError):
             return []
 
+    def subdirs(self, path: str) -> list[str]:
+        try:
+            with os.scandir(path) as it:
+                return sorted(e.name for e in it if e.is_dir(follow_symlinks=False))
+        except (FileNotFoundError, NotADirectoryError):
+            return []
+
+    def is_file(self, path: str) -> bool:
+        try:
+            return stat.S_ISREG(os.lstat(path).st_mode)
+        except (FileNotFoundError, NotADirectoryError):
+            return False
+
+    def real_dir(self, path: str) -> bool:
+        cur = self.root.rstrip(os.sep) or os.sep
+        if path.rstrip(os.sep) == cur:
+            return True
+        if not path.startswith(cur.rstrip(os.sep) + os.sep):
+            return False  # not below the root (store paths are joined, never relative)
+        for part in path[len(cur.rstrip(os.sep)) + 1:].split(os.sep):
+            if part in ("", os.curdir, os.pardir):
+                return False
+            cur = os.path.join(cur, part)
+            try:  # one lstat per level: a symlink is not a directory here
+                if not stat.S_ISDIR(os.lstat(cur).st_mode):
+                    return False
+            except (FileNotFoundError, NotADirectoryError):
+                return False
+        return True
+
+    def odd_files(self, path: str) -> list[tuple[str, str]]:
+        out: list[tuple[str, str]] = []
+        todo = [(path, "")]
+        while todo:
+            d, rel = todo.pop()
+            try:
+                it = os.scandir(d)
+            except (FileNotFoundError, NotADirectoryError):
+                continue
+            with it:
+                for e in it:
+                    name = rel + e.name
+                    if e.is_symlink():
+                        out.append((name, f"a symlink to {_readlink(e.path)}"))
+                    elif e.is_dir(follow_symlinks=False):
+                        todo.append((e.path, name + "/"))
+                    elif not e.is_file(follow_symlinks=False):
+                        out.append((name, "not a regular file"))
+        return sorted(out)
+
     def isdir(self, path: str) -> bool:
         return os.path.isdir(path)
 
@@ -159,7 +246,16 @@ class LocalBackend:
             return None
 
     def rmtree(self, path: str) -> None:
-        shutil.rmtree(path, ignore_errors=True)
+        """Remove a tree (a symlink: the link only); raises what is not "already gone"."""
+        if os.path.islink(path):
+            self.remove(path)
+            return
+
+        def gone_is_fine(func: Any, p: str, exc_info: Any) -> None:
+            if not isinstance(exc_info[1], FileNotFoundError):
+                raise exc_info[1]
+
+        shutil.rmtree(path, onerror=gone_is_fine)
 
     def find(self, path: str) -> list[str]:
         out = []
@@ -170,6 +266,8 @@ class LocalBackend:
         return sorted(out)
 
     def du(self, path: str) -> int:
+        if os.path.islink(path):
+            return 0
         total = 0
         for dirpath, _, files in os.walk(path):
             for f in files:
@@ -238,6 +336,17 @@ class FsspecBackend:
     def isdir(self, path: str) -> bool:
         return self.fs.isdir(path)
 
+    subdirs = listdir  # object stores have no symlinks
+
+    def is_file(self, path: str) -> bool:
+        return self.fs.exists(path)
+
+    def real_dir(self, path: str) -> bool:
+        return True
+
+    def odd_files(self, path: str) -> list[tuple[str, str]]:
+        return []
+
     def mtime(self, path: str) -> float | None:
         try:
             info = self.fs.info(path)
@@ -276,6 +385,13 @@ class FsspecBackend:
 
     def zarr_store(self, path: str) -> Any:
         return store_zarr.fsspec_store(self.url(path), self.storage_options)
+
+
+def _readlink(path: str) -> str:
+    try:
+        return os.readlink(path)
+    except OSError:
+        return "?"
 
 
 class KeySink:

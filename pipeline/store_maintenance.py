@@ -2,7 +2,8 @@
 
 * :func:`verify` re-reads committed entries and compares them with their
   manifests (Zarr reads a missing chunk back as the fill value without error,
-  so only the digests tell);
+  so only the digests tell), and reports symlinks and special files in the
+  entry tree without reading through them;
 * :func:`writer_info` is the ``_WRITER.json`` a writer leaves in the directory
   it is filling; :func:`writer_alive` and :func:`debris_verdict` decide from it
   (or from the directory's age) whether that directory is debris;
@@ -117,19 +118,53 @@ def debris_verdict(store: Store, path: str, min_age: float, now: float) -> bool:
 
 
 def verify(store: Store, *, entries: Iterable[tuple[str, str]] | None = None) -> list[str]:
-    """Problems of committed entries, one line each (see :meth:`Store.verify`)."""
+    """Problems of committed entries, one line each (see :meth:`Store.verify`).
+
+    With every entry (``entries`` not given), symlinks where the store keeps
+    directories (``entries/``, a stage directory, an entry directory) are
+    problems too: such entries are not committed and never read.
+    """
     problems: list[str] = []
-    for stage, key in store.entries() if entries is None else entries:
+    if entries is None:
+        problems.extend(_linked_dirs(store))
+        entries = store.entries()
+    for stage, key in entries:
         problems.extend(verify_entry(store, stage, key))
     return problems
 
 
+def _linked_dirs(store: Store) -> list[str]:
+    """``entries/``, stage and entry directories that are symlinks (local roots)."""
+    if not store.is_local:
+        return []
+    base = store.location("entries")
+    if os.path.islink(base):
+        return [f"entries/ is a symlink to {os.readlink(base)} (not followed)"]
+    out = []
+    for stage in store.backend.listdir(base):
+        sd = os.path.join(base, stage)
+        if os.path.islink(sd):
+            out.append(f"entries/{stage} is a symlink to {os.readlink(sd)} (not followed)")
+            continue
+        for key in store.backend.listdir(sd):
+            if os.path.islink(os.path.join(sd, key)):
+                out.extend(store.odd_paths(stage, key))
+    return out
+
+
 def verify_entry(store: Store, stage: str, key: str) -> list[str]:
-    """Problems of one entry: not committed, misnamed, unreadable, corrupt, missing/extra files."""
+    """Problems of one entry: not committed, misnamed, unreadable, corrupt, missing/extra files.
+
+    An entry holding a symlink or a special file is reported (each such file)
+    and not read.
+    """
     where = f"{stage}/{key}"
+    odd = store.odd_paths(stage, key)
     man = store.manifest(stage, key)
     if man is None:
-        return [f"{where}: not committed (no readable {MANIFEST})"]
+        return odd or [f"{where}: not committed (no readable {MANIFEST})"]
+    if odd:
+        return odd
     problems = []
     if man.get("stage") != stage or man.get("key") != key:
         problems.append(
@@ -213,11 +248,13 @@ def _sweep_entries(store: Store, report: dict, keep: set[tuple[str, str]] | None
     """Entry dirs without a manifest (debris) go, and committed ones not in ``keep``."""
     b = store.backend
     base = store.location("entries")
-    for stage in b.listdir(base):
+    for stage in b.subdirs(base) if b.real_dir(base) else ():
         sd = b.join(base, stage)
         for key in b.listdir(sd):
             path = b.join(sd, key)
-            if store.manifest_at(path) is None:
+            if b.is_local and os.path.islink(path):
+                bucket = "incomplete"  # a symlink where an entry belongs: the link goes
+            elif store.manifest_at(path) is None:
                 if not debris_verdict(store, path, min_age, now):
                     continue
                 bucket = "incomplete"

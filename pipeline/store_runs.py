@@ -4,7 +4,7 @@
   timings, errors with tracebacks), written atomically, read back oldest first;
   parsed records are cached by file signature, so ``plan`` and ``status`` over
   many runs re-read only what changed;
-* ``cache/file_digests.json``: ``realpath -> [size, mtime_ns, inode, digest]``,
+* ``cache/file_digests.json``: ``realpath -> [size, mtime_ns, inode, ctime_ns, digest]``,
   so unchanged input files are not hashed again.
 
 :class:`~mocapflow.pipeline.store.Store` holds one :class:`RunRecords` and
@@ -73,7 +73,7 @@ class RunRecords:
         path = self._path("runs", f"{check_name(run_id, 'run id')}.json")
         rec = dict(record)
         rec.setdefault("run_id", run_id)
-        self.backend.write_atomic(path, dump_json(rec))
+        self.backend.write_atomic(path, dump_json(rec, compact=True))
         return self.backend.url(path)
 
     def runs(self) -> list[dict]:
@@ -154,7 +154,8 @@ class RunRecords:
         return self._path("cache", "file_digests.json")
 
     def load_file_memo(self) -> dict:
-        """The persistent file-digest memo (``realpath -> [size, mtime_ns, inode, digest]``)."""
+        """The persistent file-digest memo (``realpath -> [size, mtime_ns, inode, ctime_ns,
+        digest]``)."""
         raw = self.backend.read(self._memo_path())
         if raw is None:
             return {}
@@ -168,4 +169,4 @@ class RunRecords:
         """Merge ``memo`` into the persistent memo (atomic replace)."""
         merged = self.load_file_memo()
         merged.update(memo)
-        self.backend.write_atomic(self._memo_path(), dump_json(merged))
+        self.backend.write_atomic(self._memo_path(), dump_json(merged, compact=True))

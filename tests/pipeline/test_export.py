@@ -1,11 +1,19 @@
-"""Export: layout DIR/<node>/<part label>/<output>.<ext>, arrays, JSON values, records."""
+"""Export: layout DIR/<node>/<part label>/<output>.<ext>, arrays, JSON values, records;
+every written path stays under --to (labels made safe, symlinks out refused)."""
 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
+from mocapflow.pipeline.config import load_config
+from mocapflow.pipeline.export import export_results, safe_label
+from mocapflow.pipeline.graph import build_graph
+from mocapflow.pipeline.runner import run
+from mocapflow.pipeline.store import Store
 from mocapflow.pipeline.testing import write_config
 
 SYNC = ("--executor", "sync")
@@ -35,3 +43,63 @@ def test_export_layout_and_content(cli, toy_config, tmp_path):
     assert rec["mean"] == 3.5 and rec["_arrays"]["hist"] == "stats.hist.npy"
     np.testing.assert_array_equal(np.load(out_dir / "stats" / "all" / "stats.hist.npy"),
                                   [2, 2, 2, 2])
+
+
+def test_safe_label():
+    assert safe_label("cmu_131_02.seed3") == "cmu_131_02.seed3"  # ordinary labels unchanged
+    assert safe_label("Take 01") == "Take 01"
+    assert safe_label("a.seed/../../x") == "a.seed_.._.._x"
+    assert safe_label("..") == "_.." and safe_label(".") == "_." and safe_label("") == "_"
+    assert safe_label("a\\b\x00c\nd") == "a_b_c_d"
+    long = safe_label("é" * 300)
+    assert len(long.encode()) <= 200 and long != safe_label("é" * 301)
+
+
+def test_export_labels_cannot_leave_to(cli, tmp_path, monkeypatch):
+    """Part ids whose labels hold ``/`` or ``..``: written under --to, never outside."""
+    work = tmp_path / "w"
+    (work / "d" / "a#seed=x").mkdir(parents=True)
+    (work / "d" / "a#seed=x" / "v.txt").write_text("1 2 3\n")
+    monkeypatch.chdir(work)
+    cfg = write_config(work / "x.yaml", """\
+        parts: ["d/a#seed=x/v.txt"]
+        nodes:
+          read: {stage: toy_read_file, inputs: {path: part}}
+        """)
+    code, out, err = cli("export", cfg, "--to", work / "out", "--store", work / "s", *SYNC,
+                         "-q")
+    assert code == 0, err
+    written = [Path(p) for p in out.split()]
+    assert written == [work / "out" / "read" / "a.seedx_v.txt" / "values.npy"]  # not a.seedx/v
+    assert np.load(written[0]).tolist() == [1.0, 2.0, 3.0]
+    # records naming parts that climb out (whatever made them): still under --to
+    graph = build_graph(load_config(cfg))
+    store = Store(work / "s")
+    rec = next(r for r in run(graph, store).records if r.node == "read")
+    evil = [replace(rec, part=p) for p in ("x#seed=/../../../../victim", "..", "a\\..\\b")]
+    files = export_results(graph, store, evil, work / "out2")
+    assert sorted(f.parent.name for f in files) == ["_.", "b", "x.seed_.._.._.._.._victim"]
+    assert all(f.resolve().is_relative_to(work / "out2") for f in files)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["w"]
+
+
+def test_export_through_a_symlink_out_of_to_is_refused(cli, toy_config, tmp_path):
+    out_dir = tmp_path / "out"
+    outside = tmp_path / "outside"
+    (out_dir / "total").mkdir(parents=True)
+    outside.mkdir()
+    (out_dir / "total" / "all").symlink_to(outside)
+    code, out, err = cli("export", toy_config, "--to", out_dir, "--store", tmp_path / "s", *SYNC,
+                         "--target", "total", "-q")
+    assert code == 1 and out == ""
+    assert err.strip().splitlines() == [
+        f"mocapflow: error: export: {out_dir}/total/all resolves to {outside}, outside the "
+        f"export directory {out_dir} (a symlink?); not writing there"]
+    assert list(outside.iterdir()) == []
+    (out_dir / "total" / "all").unlink()
+    (out_dir / "total" / "all").mkdir()
+    (out_dir / "total" / "all" / "total.npy").symlink_to(outside / "total.npy")
+    code, out, err = cli("export", toy_config, "--to", out_dir, "--store", tmp_path / "s", *SYNC,
+                         "--target", "total", "-q")
+    assert code == 1 and "is a symlink pointing outside the export directory" in err
+    assert list(outside.iterdir()) == []

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import pickle
+import re
+import shlex
+import shutil
 import signal
 import subprocess
 import sys
@@ -19,7 +23,8 @@ import pytest
 from mocapflow.pipeline import store as store_mod
 from mocapflow.pipeline import store_zarr
 from mocapflow.pipeline.codecs import Encoded, digest_encoded, encode
-from mocapflow.pipeline.store import EntryNotFoundError, Store
+from mocapflow.pipeline.store import EntryNotFoundError, Store, StoreAccessError
+from mocapflow.pipeline.store_backends import LocalBackend
 from tests.pipeline.helpers import sample_outputs
 
 REPO = Path(__file__).resolve().parents[2]
@@ -297,3 +302,171 @@ def test_two_writers_race_on_one_key(tmp_path):
     assert st.manifest("synth", "k1")["writer"] in writers  # the loser did not replace it
     assert st.verify() == []
     assert os.listdir(tmp_path / "store" / "staging") == []
+
+
+# --------------------------------------------------------------------------- unwritable stores
+
+
+def test_write_failures_are_one_line_naming_the_store(tmp_path, monkeypatch, caplog):
+    """Simulated (monkeypatched backend writes; the mount tests below use real ones)."""
+    st = Store(tmp_path / "s")
+    st.commit("clean", "k0", {"x": encode(np.arange(3.0))}, {})
+
+    def full(*a, **k):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(LocalBackend, "put_many", full)
+    with pytest.raises(StoreAccessError) as e:
+        st.commit("clean", "k1", sample_outputs(4), {})
+    assert str(e.value) == f"store {st.root}: no space left on device (writing entry clean/k1)"
+    assert isinstance(e.value, OSError) and e.value.errno == errno.ENOSPC
+    assert pickle.loads(pickle.dumps(e.value)).args == e.value.args
+    assert not st.has("clean", "k1") and os.listdir(tmp_path / "s" / "staging") == []
+
+    def denied(*a, **k):
+        raise PermissionError(errno.EACCES, "Permission denied")
+
+    monkeypatch.setattr(LocalBackend, "write_atomic", denied)
+    with caplog.at_level("WARNING", logger="mocapflow"):
+        assert st.write_run("r1", {"tasks": []}) is None  # best-effort: one warning
+    assert [r.getMessage() for r in caplog.records] == [
+        f"run record not written: store {st.root}: permission denied (writing the run record "
+        "runs/r1.json)"]
+    with pytest.raises(StoreAccessError, match="permission denied"):
+        st.write_run("r1", {"tasks": []}, required=True)
+    with pytest.raises(OSError, match=r"^store .*: permission denied \(writing the file-digest"):
+        st.save_file_memo({"x": [1]})
+    assert st.load("clean", "k0", "x").arrays["data"][0].tolist() == [0.0, 1.0, 2.0]
+
+
+def _can_mount() -> bool:
+    if shutil.which("unshare") is None:
+        return False
+    probe = subprocess.run(["unshare", "-m", "--propagation", "private", "sh", "-c",
+                            "mount -t tmpfs -o size=64k tmpfs /tmp"], capture_output=True)
+    return probe.returncode == 0
+
+
+needs_mounts = pytest.mark.skipif(not _can_mount(), reason="needs unshare -m and mount (root "
+                                                           "in a mount namespace)")
+
+#: Runs ``mocapflow`` verbs in one interpreter (argv[1]: JSON list of argument lists).
+_CLI_SCRIPT = r"""
+import contextlib, io, json, logging, os, sys
+from mocapflow.pipeline.cli import main
+results = []
+for args in json.loads(sys.argv[1]):
+    if args[0] == "fill":  # write a file until the disk is full
+        with open(args[1], "wb") as f:
+            try:
+                while True:
+                    f.write(b"x" * 65536)
+                    f.flush()
+            except OSError:
+                pass
+        results.append({"args": args, "code": 0, "out": "", "err": ""})
+        continue
+    if args[0] == "rm":
+        os.unlink(args[1])
+        results.append({"args": args, "code": 0, "out": "", "err": ""})
+        continue
+    logging.getLogger("mocapflow").handlers.clear()  # the CLI binds its handler to stderr
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main(args)
+    results.append({"args": args, "code": code, "out": out.getvalue(), "err": err.getvalue()})
+print(json.dumps(results))
+"""
+
+
+def _in_mount_namespace(setup: str, commands: list[list], env: dict, cwd: Path) -> list[dict]:
+    """Run ``setup`` (mounts) then the CLI commands, in a private mount namespace."""
+    py = f"{shlex.quote(sys.executable)} -c {shlex.quote(_CLI_SCRIPT)} " + shlex.quote(
+        json.dumps([[str(a) for a in c] for c in commands]))
+    proc = subprocess.run(["unshare", "-m", "--propagation", "private", "sh", "-c",
+                           f"{setup} && exec {py}"], env=env, cwd=cwd, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.splitlines()[-1])
+
+
+def _tree(root: Path) -> dict[str, tuple[int, int]]:
+    return {str(p.relative_to(root)): (p.stat().st_size, p.stat().st_mtime_ns)
+            for p in root.rglob("*")}
+
+
+@needs_mounts
+def test_read_only_store_serves_every_read(cli, cli_env, toy_config, tmp_path):
+    """A real read-only bind mount of the store (``unshare -m``; root ignores chmod)."""
+    s = tmp_path / "s"
+    code, _, _ = cli("run", toy_config, "--store", s, "--executor", "sync", "-q")
+    assert code == 0
+    debris = s / "staging" / "dead-writer"
+    debris.mkdir(parents=True)
+    (debris / "_WRITER.json").write_text('{"pid": 999999999, "host": "elsewhere", '
+                                         '"started": 0}')
+    stage, key = Store(s).entries()[0]
+    before = _tree(s)
+    sync = ("--store", s, "--executor", "sync", "-q")
+    res = _in_mount_namespace(f"mount --bind {s} {s} && mount -o remount,bind,ro {s} {s}", [
+        ["run", toy_config, *sync],
+        ["export", toy_config, *sync, "--to", tmp_path / "out"],
+        ["show", key[:12], "--store", s],
+        ["status", toy_config, "--store", s],
+        ["plan", toy_config, "--store", s],
+        ["verify", "--store", s],
+        ["run", toy_config, *sync, "--set", "add.amount=5"],
+        ["gc", "--store", s],
+    ], cli_env, tmp_path)
+    by = {r["args"][0] + ("-changed" if "--set" in r["args"] else ""): r for r in res}
+    warn = re.compile(rf"^WARNING: run record not written: store {re.escape(str(s))}: "
+                      r"read-only file system \(writing the run record runs/[\w.-]+\.json\)$")
+    for verb in ("run", "export"):  # every task a hit: exit 0, one warning
+        assert by[verb]["code"] == 0, by[verb]
+        lines = [x for x in by[verb]["err"].splitlines() if not x.startswith("exported ")]
+        assert len(lines) == 1 and warn.match(lines[0]), by[verb]["err"]
+    assert (tmp_path / "out" / "total" / "all" / "total.npy").is_file()
+    for verb in ("show", "status", "plan", "verify"):
+        assert by[verb]["code"] == 0 and "Traceback" not in by[verb]["err"], by[verb]
+    assert "WARNING" not in by["verify"]["err"] and "entries verified" in by["verify"]["err"]
+    assert by["show"]["out"].startswith(f"entry {stage}/{key}")
+    changed = by["run-changed"]  # work to do: each task fails in one line, nothing hidden
+    err = changed["err"].strip().splitlines()
+    assert changed["code"] == 1 and len(err) == 2 and warn.match(err[0]), changed["err"]
+    assert err[1].startswith("mocapflow: error: 5 task(s) failed: add/") and (
+        f"StoreAccessError: store {s}: read-only file system (writing entry toy_add/" in err[1])
+    assert "[tracebacks:" not in err[1]  # the run record could not be written
+    assert by["gc"]["code"] == 1 and by["gc"]["err"] == (
+        f"mocapflow: error: store {s}: read-only file system (collecting garbage)\n")
+    assert _tree(s) == before  # nothing changed in the store
+
+
+@needs_mounts
+def test_full_store_one_line_task_error_not_hidden(cli_env, toy_config, tmp_path):
+    """A real full disk: a 2 MiB tmpfs holding the store, filled up by a file."""
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    s = mnt / "s"
+    sync = ("--store", s, "--executor", "sync", "-q")
+    res = _in_mount_namespace(f"mount -t tmpfs -o size=2m tmpfs {mnt}", [
+        ["run", toy_config, *sync],
+        ["fill", mnt / "filler"],
+        ["run", toy_config, *sync, "--set", "add.amount=5"],
+        ["run", toy_config, *sync],
+        ["verify", "--store", s],
+        ["rm", mnt / "filler"],
+        ["run", toy_config, *sync, "--set", "add.amount=5"],
+        ["verify", "--store", s],
+    ], cli_env, tmp_path)
+    assert res[0]["code"] == 0 and res[0]["err"] == ""
+    full = res[2]
+    err = full["err"].strip().splitlines()
+    assert full["code"] == 1 and len(err) == 2, full["err"]
+    assert re.match(rf"^WARNING: run record not written: store {re.escape(str(s))}: no space "
+                    r"left on device \(writing the run record runs/", err[0]), err[0]
+    assert err[1].startswith("mocapflow: error: 5 task(s) failed: add/"), err[1]
+    assert f"StoreAccessError: store {s}: no space left on device (writing entry toy_add/" in err[1]
+    assert "Traceback" not in full["err"]
+    assert res[3]["code"] == 0 and "no space left on device" in res[3]["err"]  # all hits
+    assert res[4]["code"] == 0 and "entries verified" in res[4]["err"]
+    assert res[6]["code"] == 0 and res[6]["err"] == "" and res[7]["code"] == 0  # room again
