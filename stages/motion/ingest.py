@@ -12,6 +12,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -26,6 +27,9 @@ from mocapflow.stages.motion.formats.strokes import StrokesFileError, read_strok
 from mocapflow.stages.motion.kinematics import resample_motion
 
 __all__ = [
+    "MAX_RESAMPLED_SAMPLES",
+    "MAX_UPSAMPLE",
+    "IngestError",
     "amc_skeleton_path",
     "gap_statistics",
     "ingest_amc",
@@ -143,11 +147,35 @@ def ingest_c3d(path: FilePath, *, ctx: Context) -> dict:
 # --------------------------------------------------------------------------- motion
 
 
-def _resampled(motion: Motion, rate: float | None) -> Motion:
+#: Most frames a resample may make per source frame (e.g. 30 Hz -> 480 Hz).
+MAX_UPSAMPLE = 16
+#: Most frames x joints a resample may make (rotations of 1 GiB).
+MAX_RESAMPLED_SAMPLES = 1 << 25
+
+
+class IngestError(ValueError):
+    """An ingest param does not fit the file read (the message names the file and the param)."""
+
+
+def _resampled(motion: Motion, rate: float | None, path: str) -> Motion:
+    """``motion`` at ``rate`` (unchanged when ``None`` or equal), refusing huge targets.
+
+    The target frame count ``floor((F - 1) * rate / motion.rate) + 1`` is checked
+    before anything is allocated: at most :data:`MAX_UPSAMPLE` per source frame and
+    :data:`MAX_RESAMPLED_SAMPLES` frames x joints.
+    """
     if rate is None or abs(rate - motion.rate) <= 1e-9 * motion.rate:
         return motion
-    if not rate > 0:
-        raise ValueError(f"rate must be positive, got {rate}")
+    if not (rate > 0 and math.isfinite(rate)):
+        raise IngestError(f"{path}: rate: must be a finite number > 0, got {rate}")
+    F, J = motion.n_frames, motion.skeleton.n_joints
+    n_new = math.floor((F - 1) / motion.rate * rate + 1e-9) + 1
+    if n_new > MAX_UPSAMPLE * F or n_new * J > MAX_RESAMPLED_SAMPLES:
+        raise IngestError(
+            f"{path}: rate: resampling {F} frames at {motion.rate:.6g} Hz (the file's frame "
+            f"time) to {rate:.6g} Hz would make {n_new} frames of {J} joints; at most "
+            f"{MAX_UPSAMPLE} per source frame and {MAX_RESAMPLED_SAMPLES} frames x joints"
+        )
     return resample_motion(motion, rate)
 
 
@@ -171,7 +199,7 @@ def ingest_bvh(
     dict
         ``motion``: :class:`Motion` with ``root_position (F, 3)``, ``rotations (F, J, 4)``.
     """
-    return {"motion": _resampled(read_bvh(path, unit=unit), rate)}
+    return {"motion": _resampled(read_bvh(path, unit=unit), rate, path)}
 
 
 def amc_skeleton_path(amc: str | Path) -> Path:
@@ -218,7 +246,7 @@ def ingest_amc(
             f"{path}: no ASF skeleton {asf_path} beside it; pass the 'asf' param"
         )
     motion = read_amc(path, read_asf(asf_path))
-    return {"motion": _resampled(motion, rate)}
+    return {"motion": _resampled(motion, rate, path)}
 
 
 # --------------------------------------------------------------------------- strokes

@@ -25,6 +25,7 @@ say ``length 0.45``: 0.056444 m per unit); ``angle deg|rad``.  AMC ``:DEGREES``
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from typing import Any
@@ -32,6 +33,8 @@ from typing import Any
 import numpy as np
 
 from mocapflow.stages.motion.datatypes import Motion, Skeleton
+from mocapflow.stages.motion.formats import MAX_DISTANCE_M
+from mocapflow.stages.motion.formats.bvh import MAX_DEPTH
 from mocapflow.stages.motion.formats.text import read_text
 from mocapflow.stages.motion.rotations import (
     euler_to_quat,
@@ -77,11 +80,17 @@ def _read_lines(path: str) -> list[str]:
     return read_text(path).splitlines()
 
 
-def _floats(tokens: list[str], path: str, line: int, what: str) -> list[float]:
+def _floats(tokens: list[str], path: str, line: int, what: str, n: int = 1) -> list[float]:
+    """The first ``n`` of ``tokens`` as finite floats (an error naming ``what`` otherwise)."""
     try:
-        return [float(t) for t in tokens]
+        vals = [float(t) for t in tokens[:n]]
     except ValueError:
         raise ASFError(f"{path}:{line}: bad number in {what}: {' '.join(tokens)!r}") from None
+    if len(vals) < n:
+        raise ASFError(f"{path}:{line}: {what} needs {n} numbers, got {' '.join(tokens)!r}")
+    if not all(math.isfinite(v) for v in vals):
+        raise ASFError(f"{path}:{line}: {what} is not finite: {' '.join(tokens[:n])!r}")
+    return vals
 
 
 # --------------------------------------------------------------------------- ASF
@@ -98,6 +107,8 @@ def _parse_limits(tokens: list[str], path: str, line: int) -> list[list[float | 
                 x = float(v)
             except ValueError:
                 raise ASFError(f"{path}:{line}: bad limit {v!r}") from None
+            if math.isnan(x):
+                raise ASFError(f"{path}:{line}: limits: NaN limit {v!r}")
             vals.append(None if np.isinf(x) else x)
         out.append(vals)
     return out
@@ -190,6 +201,8 @@ class _ASFReader:
             raise ASFError(f"{p}:{i}: units entry without a value")
         if key in ("mass", "length"):
             self.units[key] = _floats(toks[1:2], p, i, f"units {key}")[0]
+            if key == "length" and not self.units[key] > 0:
+                raise ASFError(f"{p}:{i}: units length must be > 0, got {toks[1]!r}")
         elif key == "angle":
             if toks[1].lower() not in ("deg", "rad"):
                 raise ASFError(f"{p}:{i}: unknown angle unit {toks[1]!r} (deg or rad)")
@@ -202,11 +215,15 @@ class _ASFReader:
             bad = [t for t in root["order"] if t not in ("TX", "TY", "TZ", "RX", "RY", "RZ")]
             if bad:
                 raise ASFError(f"{p}:{i}: unknown root order entries {bad}")
+            if len(set(root["order"])) != len(root["order"]):
+                raise ASFError(f"{p}:{i}: root order repeats an entry: {' '.join(root['order'])}")
         elif key == "axis":
+            if len(toks) < 2:
+                raise ASFError(f"{p}:{i}: root axis needs an order such as XYZ")
             root["axis"] = toks[1].upper()
             _check_axis_order(root["axis"], p, i)
         elif key in ("position", "orientation"):
-            root[key] = _floats(toks[1:4], p, i, f"root {key}")
+            root[key] = _floats(toks[1:4], p, i, f"root {key}", 3)
 
     def _bonedata(self, i: int, toks: list[str], key: str) -> None:
         p, bone = self.path, self.bone
@@ -218,25 +235,31 @@ class _ASFReader:
                 raise ASFError(f"{p}:{i}: 'end' without 'begin'")
             if "name" not in bone or "direction" not in bone or "length" not in bone:
                 raise ASFError(f"{p}:{self.bone_line}: bone needs name, direction and length")
+            if bone["name"] in self.bones or bone["name"] == "root":
+                raise ASFError(f"{p}:{self.bone_line}: bone name {bone['name']!r} is used twice")
             self.bones[bone["name"]] = bone
             self.bone = None
         elif bone is None:
             raise ASFError(f"{p}:{i}: {toks[0]!r} outside a bone's begin/end")
         elif key == "id":
-            bone["id"] = int(_floats(toks[1:2], p, i, "id")[0])
+            v = _floats(toks[1:2], p, i, "id")[0]
+            if v != int(v):
+                raise ASFError(f"{p}:{i}: id must be an integer, got {toks[1]!r}")
+            bone["id"] = int(v)
         elif key == "name":
+            if len(toks) < 2:
+                raise ASFError(f"{p}:{i}: name without a value")
             bone["name"] = toks[1]
         elif key == "direction":
-            d = np.array(_floats(toks[1:4], p, i, "direction"))
-            if d.shape != (3,):
-                raise ASFError(f"{p}:{i}: direction needs 3 numbers")
-            bone["direction"] = d.tolist()
+            bone["direction"] = _floats(toks[1:4], p, i, "direction", 3)
         elif key == "length":
             bone["length"] = _floats(toks[1:2], p, i, "length")[0]
+            if bone["length"] < 0:
+                raise ASFError(f"{p}:{i}: length must not be negative, got {toks[1]!r}")
         elif key == "axis":
             if len(toks) < 5:
                 raise ASFError(f"{p}:{i}: axis needs 3 angles and an order")
-            bone["axis"] = _floats(toks[1:4], p, i, "axis")
+            bone["axis"] = _floats(toks[1:4], p, i, "axis", 3)
             bone["axis_order"] = toks[4].upper()
             _check_axis_order(bone["axis_order"], p, i)
         elif key == "dof":
@@ -246,6 +269,8 @@ class _ASFReader:
                 raise ASFError(
                     f"{p}:{i}: unsupported dof {bad} (only rotational rx ry rz are read)"
                 )
+            if len(set(dof)) != len(dof):
+                raise ASFError(f"{p}:{i}: dof repeats an axis: {' '.join(dof)}")
             bone["dof"] = dof
         elif key == "limits":
             bone["limits"] = _parse_limits(toks[1:], p, i)
@@ -274,6 +299,37 @@ def _check_axis_order(order: str, path: str, line: int) -> None:
         raise ASFError(f"{path}:{line}: unknown rotation order {order!r}")
 
 
+def _bone_offsets(p: str, names: list[str], parents: list[int], bones: dict, scale: float):
+    """Joint offsets ``(J, 3)`` (root's left zero) and End Sites of the leaf bones, metres.
+
+    A bone farther than :data:`MAX_DISTANCE_M` from its parent is an error naming it.
+    """
+    offsets = np.zeros((len(names), 3))
+    ends_p, ends_o = [], []
+    has_child = set(parents)
+    for j, name in enumerate(names):
+        if j == 0:
+            continue
+        for bone, k in ((names[parents[j]], None), (name, j)):
+            if bone == "root" or (k is not None and j in has_child):
+                continue
+            b = bones[bone]
+            with np.errstate(over="ignore", invalid="ignore"):
+                off = np.asarray(b["direction"]) * b["length"] * scale
+            if not (np.abs(off) <= MAX_DISTANCE_M).all():
+                raise ASFError(
+                    f"{p}: :bonedata: bone {bone!r} (length {b['length']:g}) ends "
+                    f"{np.abs(off).max():.3g} m from its start (beyond {MAX_DISTANCE_M:g} m: a "
+                    "wrong :units length?)"
+                )
+            if k is None:
+                offsets[j] = off
+            else:
+                ends_p.append(j)
+                ends_o.append(off)
+    return offsets, ends_p, ends_o
+
+
 def _build_skeleton(p, units, root, bones, hierarchy) -> Skeleton:
     children: dict[str, list[str]] = {}
     for parent, kids, line in hierarchy:
@@ -283,34 +339,34 @@ def _build_skeleton(p, units, root, bones, hierarchy) -> Skeleton:
         children.setdefault(parent, []).extend(kids)
     names = ["root"]
     parents = [-1]
+    depth = [0]
+    placed = {"root"}
     stack = [(k, 0) for k in reversed(children.get("root", []))]
     while stack:
         name, par = stack.pop()
-        if name in names:
-            raise ASFError(f"{p}: bone {name!r} appears twice in :hierarchy")
+        if name in placed:
+            raise ASFError(f"{p}: :hierarchy: bone {name!r} appears twice")
+        placed.add(name)
+        if depth[par] >= MAX_DEPTH:
+            raise ASFError(f"{p}: :hierarchy: bone {name!r} nests deeper than {MAX_DEPTH} bones")
         names.append(name)
         parents.append(par)
+        depth.append(depth[par] + 1)
         j = len(names) - 1
         stack.extend((k, j) for k in reversed(children.get(name, [])))
-    missing = sorted(set(bones) - set(names))
+    missing = sorted(set(bones) - placed)
     if missing:
         raise ASFError(f"{p}: bones not connected to the root in :hierarchy: {missing}")
     scale = _INCH / float(units["length"])
-    offsets = np.zeros((len(names), 3))
-    ends_p, ends_o = [], []
-    has_child = set(parents)
-    for j, name in enumerate(names):
-        if j == 0:
-            continue
-        par = names[parents[j]]
-        if par != "root":
-            b = bones[par]
-            offsets[j] = np.asarray(b["direction"]) * b["length"] * scale
-        if j not in has_child:
-            b = bones[name]
-            ends_p.append(j)
-            ends_o.append(np.asarray(b["direction"]) * b["length"] * scale)
+    if not math.isfinite(scale):
+        raise ASFError(f"{p}: :units length {units['length']!r} is too small (scale not finite)")
+    offsets, ends_p, ends_o = _bone_offsets(p, names, parents, bones, scale)
     offsets[0] = np.asarray(root["position"]) * scale
+    if not (np.abs(offsets[0]) <= MAX_DISTANCE_M).all():
+        raise ASFError(
+            f"{p}: :root position is {offsets[0].tolist()} m (beyond "
+            f"{MAX_DISTANCE_M:g} m: a wrong :units length?)"
+        )
     unit_name = "cmu" if abs(float(units["length"]) - 0.45) < 1e-12 else f"in/{units['length']}"
     channels = [["Xposition", "Yposition", "Zposition", "Zrotation", "Yrotation", "Xrotation"]]
     channels += [["Zrotation", "Yrotation", "Xrotation"] for _ in names[1:]]
@@ -322,7 +378,7 @@ def _build_skeleton(p, units, root, bones, hierarchy) -> Skeleton:
         end_parents=np.array(ends_p, dtype=np.int64),
         end_offsets=np.array(ends_o).reshape(-1, 3),
         attrs={
-            "source_file": p,
+            "source_file": os.path.basename(p),  # no path in outputs
             "source_format": "asf",
             "source_unit": unit_name,
             "source_scale": scale,
@@ -375,6 +431,8 @@ def _parse_amc(path: str, info: dict[str, Any]):
         if len(toks) == 1 and toks[0].lstrip("-").isdigit():
             if cur is not None:
                 _check_frame(cur, layout, path, frame_lines[-1])
+            if abs(int(toks[0])) >= 1 << 31:
+                raise AMCError(f"{path}:{i}: frame number {toks[0]} is too large")
             cur = {}
             frames.append(cur)
             frame_lines.append(i)
@@ -426,16 +484,38 @@ def _dof_matrix(path: str, info: dict[str, Any]):
     try:
         data = np.array(tokens, dtype=np.float64).reshape(len(frames), len(cols))
     except ValueError:
+        data = None
+    if data is None or not np.isfinite(data).all():
         for fr in frames:
             for b in bones_in_order:
                 for t in fr[b]:
                     try:
-                        float(t)
+                        ok = math.isfinite(float(t))
                     except ValueError:
+                        ok = False
+                    if not ok:
                         line = fr[f"@{b}"][0]
-                        raise AMCError(f"{path}:{line}: bad number {t!r} for bone {b!r}") from None
-        raise
+                        raise AMCError(f"{path}:{line}: bad number {t!r} for bone {b!r}")
+    if data is None:  # pragma: no cover - every frame was checked to hold every bone
+        raise AMCError(
+            f"{path}: the frames hold {len(tokens)} values, not {len(frames)} x {len(cols)}"
+        )
     return data, cols, numbers, angle
+
+
+def _check_budget(path: str, info: dict[str, Any], n_frames: int) -> None:
+    """Refuse frames x dof-less bones the AMC's bytes do not back (memory of ``(F, J, 4)``).
+
+    Bones with dofs have a line per frame; bones without cost memory without bytes,
+    so ``F`` x their number may not exceed the AMC size plus 2**20.
+    """
+    idle = sum(1 for n in info["names"][1:] if not info["bones"][n]["dof"])
+    size = os.path.getsize(path)
+    if n_frames * idle > size + (1 << 20):
+        raise AMCError(
+            f"{path}: {n_frames} frames of {idle} bones without dof make {n_frames * idle} "
+            f"bone samples, more than a {size}-byte file can describe"
+        )
 
 
 def amc_dofs(path: str | os.PathLike, skeleton: Skeleton) -> tuple[np.ndarray, list[str]]:
@@ -506,6 +586,7 @@ def read_amc(path: str | os.PathLike, skeleton: Skeleton, *, rate: float = 120.0
     info = _asf_info(skeleton, p)
     data, cols, numbers, angle = _dof_matrix(p, info)
     F = data.shape[0]
+    _check_budget(p, info, F)
     to_rad = np.pi / 180.0 if angle == "deg" else 1.0
     asf_to_rad = np.pi / 180.0 if info["units"]["angle"] == "deg" else 1.0
     scale = float(skeleton.attrs.get("source_scale", _INCH / float(info["units"]["length"])))
@@ -544,7 +625,7 @@ def read_amc(path: str | os.PathLike, skeleton: Skeleton, *, rate: float = 120.0
         rotations=rotations,
         rate=rate,
         attrs={
-            "source_file": p,
+            "source_file": os.path.basename(p),  # no path in outputs
             "source_format": "amc",
             "source_unit": skeleton.attrs.get("source_unit", "cmu"),
             "source_scale": scale,

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from mocapflow.stages.motion.datatypes import UNIT_SCALE, Motion, Skeleton
+from mocapflow.stages.motion.formats import MAX_DISTANCE_M
 from mocapflow.stages.motion.formats.text import read_text
 from mocapflow.stages.motion.rotations import (
     euler_to_quat,
@@ -59,6 +60,9 @@ _AUTO_UNITS = ("m", "dm", "cmu", "in", "cm", "mm")
 _TYPICAL_HEIGHT_M = 1.7
 
 _CHANNELS = {f"{a}{k}": f"{a.upper()}{k}" for a in "xyzXYZ" for k in ("position", "rotation")}
+
+#: Deepest joint nesting :func:`read_bvh` accepts (real skeletons nest 5-30 deep).
+MAX_DEPTH = 256
 
 
 class BVHError(ValueError):
@@ -102,10 +106,10 @@ class _Tokens:
         self.i += 1
         return tok
 
-    def expect(self, word: str) -> int:
-        tok, line = self.next(f"{word!r}")
+    def expect(self, word: str, where: str) -> int:
+        tok, line = self.next(f"{word!r} of {where}")
         if tok != word:
-            raise self.error(f"expected {word!r}, found {tok!r}", line)
+            raise self.error(f"{where}: expected {word!r}, found {tok!r}", line)
         return line
 
     def rest_of_line(self, line: int) -> list[str]:
@@ -124,18 +128,53 @@ class _Tokens:
 
 
 def _parse_hierarchy(tk: _Tokens) -> tuple[list[_Joint], list[tuple[int, np.ndarray]]]:
+    """Joints (parents before children, depth first) and End Sites ``(joint, offset)``.
+
+    Iterative, with the open joints on a stack: nesting deeper than
+    :data:`MAX_DEPTH` joints is an error naming the joint, and two joints with
+    one name are an error naming both lines.
+    """
     tok, line = tk.next("'HIERARCHY'")
     if tok.upper() != "HIERARCHY":
         raise tk.error(f"expected 'HIERARCHY', found {tok!r}", line)
     tok, line = tk.next("'ROOT'")
     if tok.upper() != "ROOT":
-        raise tk.error(f"expected 'ROOT', found {tok!r}", line)
+        raise tk.error(f"expected 'ROOT' after HIERARCHY, found {tok!r}", line)
     joints: list[_Joint] = []
     ends: list[tuple[int, np.ndarray]] = []
-    _parse_joint(tk, joints, ends, parent=-1, line=line)
+    seen: dict[str, int] = {}
+    stack = [_open_joint(tk, joints, seen, parent=-1, line=line)]
+    while stack:
+        j = stack[-1]
+        name = joints[j].name
+        tok, tline = tk.next(f"'}}' closing joint {name!r} (opened line {joints[j].line})")
+        word = tok.upper()
+        if word == "}":
+            stack.pop()
+        elif word == "JOINT":
+            if len(stack) >= MAX_DEPTH:
+                raise tk.error(
+                    f"JOINT inside joint {name!r}: the hierarchy nests deeper than "
+                    f"{MAX_DEPTH} joints",
+                    tline,
+                )
+            stack.append(_open_joint(tk, joints, seen, parent=j, line=tline))
+        elif word == "END":
+            site = tk.next("'Site'")
+            if site[0].upper() != "SITE":
+                raise tk.error(f"expected 'End Site', found 'End {site[0]}'", site[1])
+            tk.expect("{", f"End Site of {name!r}")
+            ends.append((j, _parse_offset(tk, f"End Site of {name!r}")))
+            tk.expect("}", f"End Site of {name!r}")
+        else:
+            raise tk.error(
+                f"expected 'JOINT', 'End Site' or '}}' in joint {name!r}, found {tok!r}", tline
+            )
     nxt = tk.peek()
     if nxt is not None:
-        raise tk.error(f"unexpected {nxt[0]!r} after the root joint's closing brace", nxt[1])
+        raise tk.error(
+            f"hierarchy: unexpected {nxt[0]!r} after the root joint's closing brace", nxt[1]
+        )
     return joints, ends
 
 
@@ -145,66 +184,62 @@ def _joint_name(tk: _Tokens, line: int) -> str:
         tk.i -= 1
         words = words[:-1]
     if not words:
-        raise tk.error("joint without a name", line)
+        raise tk.error("JOINT without a name", line)
     return " ".join(words)
 
 
 def _parse_offset(tk: _Tokens, what: str) -> np.ndarray:
-    tk.expect("OFFSET")
-    return np.array([tk.number(f"{what} OFFSET") for _ in range(3)])
+    line = tk.expect("OFFSET", what)
+    off = np.array([tk.number(f"{what} OFFSET") for _ in range(3)])
+    if not np.isfinite(off).all():
+        raise tk.error(f"OFFSET of {what} is not finite: {' '.join(map(str, off))}", line)
+    return off
 
 
-def _parse_joint(
-    tk: _Tokens, joints: list[_Joint], ends: list[tuple[int, np.ndarray]], parent: int, line: int
-) -> None:
+def _open_joint(
+    tk: _Tokens, joints: list[_Joint], seen: dict[str, int], parent: int, line: int
+) -> int:
+    """Read a joint's name, ``{``, OFFSET and CHANNELS; append it; return its index."""
     name = _joint_name(tk, line)
-    j = len(joints)
+    if name in seen:
+        raise tk.error(f"JOINT name {name!r} is used twice (lines {seen[name]} and {line})", line)
+    seen[name] = line
     joint = _Joint(name, parent, line)
     joints.append(joint)
-    tk.expect("{")
+    tk.expect("{", f"joint {name!r}")
     joint.offset = _parse_offset(tk, f"joint {name!r}")
     tok = tk.peek()
     if tok is not None and tok[0].upper() == "CHANNELS":
-        tk.next("CHANNELS")
-        count_line = tk.peek()[1] if tk.peek() else tk.last_line
-        n = tk.number(f"joint {name!r} CHANNELS count")
-        if n != int(n) or n < 0:
-            raise tk.error(f"bad channel count {n} for joint {name!r}", count_line)
-        for _ in range(int(n)):
-            ch, ch_line = tk.next(f"a channel name of joint {name!r}")
-            if ch not in _CHANNELS:
-                raise tk.error(
-                    f"unknown channel {ch!r} of joint {name!r} "
-                    "(expected X/Y/Z position or rotation)",
-                    ch_line,
-                )
-            joint.channels.append(_CHANNELS[ch])
-        rot = "".join(c[0] for c in joint.channels if c.endswith("rotation"))
-        if len(set(rot)) != len(rot):
+        _parse_channels(tk, joint)
+    return len(joints) - 1
+
+
+def _parse_channels(tk: _Tokens, joint: _Joint) -> None:
+    name = joint.name
+    tk.next("CHANNELS")
+    count_line = tk.peek()[1] if tk.peek() else tk.last_line
+    n = tk.number(f"joint {name!r} CHANNELS count")
+    if not (math.isfinite(n) and n == int(n) and 0 <= n <= 6):
+        raise tk.error(
+            f"bad CHANNELS count {n} for joint {name!r} (0 to 6: X/Y/Z position and rotation)",
+            count_line,
+        )
+    for _ in range(int(n)):
+        ch, ch_line = tk.next(f"a channel name of joint {name!r}")
+        if ch not in _CHANNELS:
             raise tk.error(
-                f"unknown rotation order {rot!r} of joint {name!r} (an axis repeats)", count_line
+                f"unknown channel {ch!r} of joint {name!r} (expected X/Y/Z position or rotation)",
+                ch_line,
             )
-        pos = [c for c in joint.channels if c.endswith("position")]
-        if len(set(pos)) != len(pos):
-            raise tk.error(f"repeated position channel in joint {name!r}", count_line)
-    while True:
-        tok, tline = tk.next(f"'}}' closing joint {name!r} (opened line {line})")
-        word = tok.upper()
-        if word == "}":
-            return
-        if word == "JOINT":
-            _parse_joint(tk, joints, ends, parent=j, line=tline)
-        elif word == "END":
-            site = tk.next("'Site'")
-            if site[0].upper() != "SITE":
-                raise tk.error(f"expected 'End Site', found 'End {site[0]}'", site[1])
-            tk.expect("{")
-            ends.append((j, _parse_offset(tk, f"End Site of {name!r}")))
-            tk.expect("}")
-        else:
-            raise tk.error(
-                f"expected 'JOINT', 'End Site' or '}}' in joint {name!r}, found {tok!r}", tline
-            )
+        joint.channels.append(_CHANNELS[ch])
+    rot = "".join(c[0] for c in joint.channels if c.endswith("rotation"))
+    if len(set(rot)) != len(rot):
+        raise tk.error(
+            f"unknown rotation order {rot!r} of joint {name!r} (an axis repeats)", count_line
+        )
+    pos = [c for c in joint.channels if c.endswith("position")]
+    if len(set(pos)) != len(pos):
+        raise tk.error(f"repeated position channel in joint {name!r}", count_line)
 
 
 def _snap_rate(frame_time: float, text: str) -> float:
@@ -254,8 +289,8 @@ def guess_unit(extent: float) -> str:
 
 def _resolve_unit(unit: str | float, extent: float, path: str) -> tuple[str, float]:
     if isinstance(unit, int | float) and not isinstance(unit, bool):
-        if not unit > 0:
-            raise BVHError(f"{path}: unit scale must be > 0, got {unit}")
+        if not (unit > 0 and math.isfinite(unit)):
+            raise BVHError(f"{path}: unit scale must be a finite number > 0, got {unit}")
         return f"{float(unit)!r} m", float(unit)
     u = str(unit)
     if u == "auto":
@@ -283,7 +318,7 @@ def read_bvh(path: str | os.PathLike, *, unit: str | float = "auto") -> Motion:
     Motion
         ``F`` frames; ``rotations (F, J, 4)``, ``root_position (F, 3)`` in metres;
         ``translations (F, J, 3)`` when a non-root joint has position channels
-        (joints without them hold their offset).  ``attrs``: ``source_file``,
+        (joints without them hold their offset).  ``attrs``: ``source_file`` (the name),
         ``source_format``, ``source_unit``, ``source_scale``, ``frame_time``,
         ``frame_time_text``.
 
@@ -297,13 +332,16 @@ def read_bvh(path: str | os.PathLike, *, unit: str | float = "auto") -> Motion:
     p = os.fspath(path)
     lines, joints, ends, motion_at = _read_hierarchy(p)
     n_frames, frame_time, frame_time_text, k = _motion_header(lines, motion_at, p)
+    _check_budget(p, joints, n_frames, k - 1)
     data = _parse_frames(lines, k, n_frames, sum(len(j.channels) for j in joints), p)
     skeleton = _skeleton(joints, ends, unit, p)
-    root_position, rotations, translations = _channels_to_motion(
-        skeleton, data, skeleton.attrs["source_scale"]
-    )
+    with np.errstate(over="ignore", invalid="ignore"):
+        root_position, rotations, translations = _channels_to_motion(
+            skeleton, data, skeleton.attrs["source_scale"]
+        )
+    _check_positions_finite(p, root_position, translations, k)
     attrs = {
-        "source_file": p,
+        "source_file": os.path.basename(p),  # no path in outputs
         "source_format": "bvh",
         "source_unit": skeleton.attrs["source_unit"],
         "source_scale": skeleton.attrs["source_scale"],
@@ -343,7 +381,9 @@ def _motion_header(lines: list[str], motion_at: int, p: str) -> tuple[int, float
     """``Frames:`` and ``Frame Time:`` after the ``MOTION`` line (blank lines skipped).
 
     Returns the frame count, the frame time (s), its text as written, and the
-    index of the line after the header (where the frames start).
+    index of the line after the header (where the frames start).  The count must
+    be positive and fit in the lines that follow (checked before anything is
+    allocated); ``1 / Frame Time`` must be a finite rate.
     """
     k = motion_at + 1
     header: list[tuple[list[str], int]] = []
@@ -358,19 +398,62 @@ def _motion_header(lines: list[str], motion_at: int, p: str) -> tuple[int, float
         raise BVHError(f"{p}:{fline}: expected 'Frames: <count>', found {' '.join(ftoks)!r}")
     try:
         n_frames = int(ftoks[1])
-        if n_frames < 0:
-            raise ValueError
     except ValueError:
-        raise BVHError(f"{p}:{fline}: bad frame count {ftoks[1]!r}") from None
+        raise BVHError(f"{p}:{fline}: Frames: bad frame count {ftoks[1]!r}") from None
+    if n_frames <= 0:
+        raise BVHError(f"{p}:{fline}: Frames: {n_frames}: a BVH motion needs at least one frame")
+    if n_frames > len(lines) - k:
+        raise BVHError(
+            f"{p}:{len(lines)}: truncated motion: 'Frames: {n_frames}' but only "
+            f"{len(lines) - k} lines after the header"
+        )
     if len(ttoks) != 3 or [t.lower() for t in ttoks[:2]] != ["frame", "time:"]:
         raise BVHError(f"{p}:{tline}: expected 'Frame Time: <seconds>', found {' '.join(ttoks)!r}")
     try:
         frame_time = float(ttoks[2])
-        if not (frame_time > 0 and math.isfinite(frame_time)):
-            raise ValueError
     except ValueError:
-        raise BVHError(f"{p}:{tline}: bad frame time {ttoks[2]!r}") from None
+        frame_time = math.nan
+    if not (frame_time > 0 and math.isfinite(frame_time)):
+        raise BVHError(f"{p}:{tline}: Frame Time: bad frame time {ttoks[2]!r}")
+    if not math.isfinite(1.0 / frame_time):
+        raise BVHError(
+            f"{p}:{tline}: Frame Time: {ttoks[2]} s is too small (its rate is not finite)"
+        )
     return n_frames, frame_time, ttoks[2], k
+
+
+def _check_budget(p: str, joints: list[_Joint], n_frames: int, fline: int) -> None:
+    """Refuse ``Frames:`` × channel-less joints the file's bytes do not back.
+
+    Joints with channels are backed by their values (at least two bytes each per
+    frame, checked by :func:`_parse_frames`); joints without channels cost memory
+    (``(F, J, 4)`` rotations) without any bytes, so ``F`` × their number may not
+    exceed the file size plus 2**20.
+    """
+    idle = sum(1 for j in joints if not j.channels)
+    size = os.path.getsize(p)
+    if n_frames * idle > size + (1 << 20):
+        raise BVHError(
+            f"{p}:{fline}: Frames: {n_frames} frames of {idle} joints without CHANNELS make "
+            f"{n_frames * idle} joint samples, more than a {size}-byte file can describe"
+        )
+
+
+def _check_positions_finite(
+    p: str, root_position: np.ndarray, translations: np.ndarray | None, start: int
+) -> None:
+    """Position channels that are not finite in metres, or put a joint farther than
+    :data:`MAX_DISTANCE_M` from its parent, are an error naming the frame."""
+    far = np.abs(root_position).max(axis=1)
+    if translations is not None:
+        far = np.maximum(far, np.abs(translations).max(axis=(1, 2)))
+    bad = ~(far <= MAX_DISTANCE_M)
+    if bad.any():
+        f = int(np.flatnonzero(bad)[0])
+        raise BVHError(
+            f"{p}: frame {f}: a position channel is {far[f]:.3g} m (beyond {MAX_DISTANCE_M:g} m: "
+            f"a wrong unit?); frames start at line {start + 1}"
+        )
 
 
 def _skeleton(
@@ -381,15 +464,29 @@ def _skeleton(
     names = [j.name for j in joints]
     parents = np.array([j.parent for j in joints], dtype=np.int64)
     offsets = np.stack([j.offset for j in joints])
-    extent = _rest_extent(parents, offsets, ends)
-    unit_name, scale = _resolve_unit(unit, extent, p)
+    with np.errstate(over="ignore", invalid="ignore"):
+        extent = _rest_extent(parents, offsets, ends)
+        unit_name, scale = _resolve_unit(unit, extent if math.isfinite(extent) else 1.0, p)
+        end_offsets = np.array([e[1] for e in ends]).reshape(-1, 3) * scale
+        offsets = offsets * scale
+    far = np.abs(offsets).max(axis=1)
+    if not (
+        math.isfinite(extent)
+        and (far <= MAX_DISTANCE_M).all()
+        and (np.abs(end_offsets) <= MAX_DISTANCE_M).all()
+    ):
+        j = int(np.argmax(~(far <= MAX_DISTANCE_M))) if not (far <= MAX_DISTANCE_M).all() else 0
+        raise BVHError(
+            f"{p}:{joints[j].line}: OFFSET values too large: the rest pose spans {extent:g} "
+            f"file units ({extent * scale:g} m; at most {MAX_DISTANCE_M:g} m per OFFSET)"
+        )
     return Skeleton(
         names=names,
         parents=parents,
-        offsets=offsets * scale,
+        offsets=offsets,
         channels=[j.channels for j in joints],
         end_parents=np.array([e[0] for e in ends], dtype=np.int64),
-        end_offsets=np.array([e[1] for e in ends]).reshape(-1, 3) * scale,
+        end_offsets=end_offsets,
         attrs={"source_unit": unit_name, "source_scale": scale},
     )
 
@@ -664,19 +761,21 @@ def _hierarchy_lines(
     def vec(v: np.ndarray) -> str:
         return " ".join(_fmt(x / scale, precision) for x in v)
 
-    def emit(j: int, depth: int) -> None:
+    stack = [(0, 0, False)]  # (joint, depth, closing): iterative, any depth
+    while stack:
+        j, depth, closing = stack.pop()
         ind = "\t" * depth
+        if closing:
+            for off in ends.get(j, []):
+                out.extend(
+                    [f"{ind}\tEnd Site", f"{ind}\t{{", f"{ind}\t\tOFFSET {vec(off)}", f"{ind}\t}}"]
+                )
+            out.append(f"{ind}}}")
+            continue
         out.append(f"{ind}{'ROOT' if j == 0 else 'JOINT'} {sk.names[j]}")
         out.append(f"{ind}{{")
         out.append(f"{ind}\tOFFSET {vec(sk.offsets[j])}")
         out.append(f"{ind}\tCHANNELS {len(channels[j])} {' '.join(channels[j])}".rstrip())
-        for c in children.get(j, []):
-            emit(c, depth + 1)
-        for off in ends.get(j, []):
-            out.extend(
-                [f"{ind}\tEnd Site", f"{ind}\t{{", f"{ind}\t\tOFFSET {vec(off)}", f"{ind}\t}}"]
-            )
-        out.append(f"{ind}}}")
-
-    emit(0, 0)
+        stack.append((j, depth, True))
+        stack.extend((c, depth + 1, False) for c in reversed(children.get(j, [])))
     return out

@@ -1,11 +1,15 @@
 """C3D marker files: read into :class:`~mocapflow.stages.motion.datatypes.Markers`, write back.
 
-Reading and writing go through ``ezc3d``.  Before ezc3d sees a file, its header
-and parameter section are walked here in pure Python and the data block size is
-checked against the file size: ezc3d silently returns fewer frames for a
-truncated data block, and can hang or crash the process on a corrupt parameter
-section, so a bad file must be rejected before it reaches it.  Every failure is
-one :class:`C3DError` naming the file.
+Reading and writing go through ``ezc3d``.  Before ezc3d sees a file,
+:func:`~mocapflow.stages.motion.formats.c3d_check.check_file` walks its header and
+parameter section in pure Python with ezc3d's own rules and checks the data block
+it will read against the file size: ezc3d silently returns fewer frames for a
+truncated data block, and can hang, allocate without bound or crash the process
+on a corrupt parameter section, so a bad file must be rejected before it reaches
+it.  What ezc3d returns is checked too: labels must be UTF-8 text and, among the
+markers and fragments, unique; coordinates finite and within
+:data:`~mocapflow.stages.motion.formats.MAX_DISTANCE_M` of the origin; residuals
+finite.  Every failure is one :class:`C3DError` naming the file and the field.
 
 What :func:`read_c3d` makes of the points of a file
 ---------------------------------------------------
@@ -30,11 +34,10 @@ What :func:`read_c3d` makes of the points of a file
 
 from __future__ import annotations
 
+import math
 import os
 import re
-import struct
 import tempfile
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +45,8 @@ import ezc3d
 import numpy as np
 
 from mocapflow.stages.motion.datatypes import UNIT_SCALE, Markers
+from mocapflow.stages.motion.formats import MAX_DISTANCE_M
+from mocapflow.stages.motion.formats.c3d_check import C3DError, check_file
 
 __all__ = [
     "MODEL_OUTPUT_TYPES",
@@ -51,10 +56,6 @@ __all__ = [
     "read_c3d",
     "write_c3d",
 ]
-
-
-class C3DError(ValueError):
-    """A C3D file is empty, truncated, corrupt or not supported (the message names it)."""
 
 
 #: ``POINT`` parameters that list model-output points, with the point type they hold.
@@ -90,201 +91,7 @@ _DESCRIPTION_TYPES = {
     "reaction",
     "reactions",
 }
-_BLOCK = 512
 _MAX_LABELS_PER_PARAM = 255
-
-
-# --------------------------------------------------------------------------- validation
-
-
-@dataclass(frozen=True)
-class _Layout:
-    """What the header and parameter section say about the data block."""
-
-    n_points: int
-    n_analog_per_frame: int
-    first_frame: int
-    n_frames: int
-    word: int
-    data_start: int
-    processor: int
-
-
-def _fail(path: Path, msg: str) -> C3DError:
-    return C3DError(f"{path}: {msg}")
-
-
-def _reader(buf: bytes, processor: int):
-    """Return ``(u16, i16, f32)`` unpackers for the file's processor type."""
-    if processor == 86:  # MIPS, big-endian
-        return (
-            lambda o: struct.unpack_from(">H", buf, o)[0],
-            lambda o: struct.unpack_from(">h", buf, o)[0],
-            lambda o: struct.unpack_from(">f", buf, o)[0],
-        )
-
-    def f32(o: int) -> float:
-        if processor == 85:  # DEC (VAX F-float): swap 16-bit words, divide by 4
-            b = buf[o : o + 4]
-            return struct.unpack("<f", b[2:4] + b[0:2])[0] / 4.0
-        return struct.unpack_from("<f", buf, o)[0]
-
-    return (
-        lambda o: struct.unpack_from("<H", buf, o)[0],
-        lambda o: struct.unpack_from("<h", buf, o)[0],
-        f32,
-    )
-
-
-def _walk_parameters(buf: bytes, path: Path, start: int, end: int, processor: int) -> dict:
-    """Walk the parameter section; return ``{(GROUP, NAME): value}`` for small int/float params.
-
-    Raises :class:`C3DError` when an entry runs past the section, an offset points
-    backwards, a type or name is invalid, or a parameter names an undefined group.
-    """
-    try:
-        return _walk(buf[:end], path, start, end, processor)
-    except (IndexError, struct.error):
-        raise _fail(path, "truncated or corrupt parameter section") from None
-
-
-def _walk(buf: bytes, path: Path, start: int, end: int, processor: int) -> dict:
-    u16, i16, f32 = _reader(buf, processor)
-    groups: dict[int, str] = {}
-    raw: list[tuple[int, str, int, tuple[int, ...], int]] = []
-    pos = start + 4
-    for _ in range(100_000):
-        if pos + 2 > end:
-            raise _fail(path, f"parameter section truncated at byte {pos}")
-        nchar = struct.unpack_from("b", buf, pos)[0]
-        if nchar == 0:
-            break
-        gid = struct.unpack_from("b", buf, pos + 1)[0]
-        n = abs(nchar)
-        name_b = buf[pos + 2 : pos + 2 + n]
-        off_at = pos + 2 + n
-        if off_at + 3 > end:
-            raise _fail(path, f"parameter section truncated in entry at byte {pos}")
-        if gid == 0 or any(c < 32 for c in name_b):
-            raise _fail(path, f"corrupt parameter section: invalid entry at byte {pos}")
-        name = name_b.decode("latin-1").upper()
-        offset = u16(off_at)
-        q = off_at + 2
-        if gid < 0:
-            q += 1 + buf[q]  # description
-            if -gid in groups and groups[-gid] != name:
-                raise _fail(path, f"corrupt parameter section: group id {-gid} defined twice")
-            groups[-gid] = name
-        else:
-            ptype = struct.unpack_from("b", buf, q)[0]
-            if ptype not in (-1, 1, 2, 4):
-                raise _fail(path, f"corrupt parameter {name!r}: unknown data type {ptype}")
-            ndim = buf[q + 1]
-            if ndim > 7 or q + 2 + ndim > end:
-                raise _fail(path, f"corrupt parameter {name!r}: {ndim} dimensions")
-            dims = tuple(buf[q + 2 : q + 2 + ndim])
-            q += 2 + ndim
-            data_at = q
-            q += abs(ptype) * int(np.prod(dims, dtype=np.int64))
-            if q + 1 > end:
-                raise _fail(path, f"parameter {name!r} runs past the parameter section")
-            q += 1 + buf[q]  # description
-            raw.append((gid, name, ptype, dims, data_at))
-        if q > end:
-            raise _fail(path, f"entry at byte {pos} runs past the parameter section")
-        if offset == 0:
-            break
-        nxt = off_at + offset
-        if nxt < q or nxt > end:
-            raise _fail(path, f"corrupt parameter section: bad offset at byte {off_at}")
-        pos = nxt
-    else:  # pragma: no cover - bounded by the section size anyway
-        raise _fail(path, "corrupt parameter section: too many entries")
-    if "POINT" not in groups.values():
-        raise _fail(path, "no POINT group in the parameter section")
-    params: dict[tuple[str, str], Any] = {}
-    for gid, name, ptype, dims, at in raw:
-        if gid not in groups:
-            raise _fail(path, f"parameter {name!r} belongs to undefined group id {gid}")
-        count = int(np.prod(dims, dtype=np.int64))
-        if ptype in (1, 2, 4) and 0 < count <= 4:
-            if ptype == 1:
-                vals = [buf[at + i] for i in range(count)]
-            elif ptype == 2:
-                vals = [i16(at + 2 * i) for i in range(count)]
-            else:
-                vals = [f32(at + 4 * i) for i in range(count)]
-            params[(groups[gid], name)] = vals
-    return params
-
-
-def _check_file(path: Path) -> _Layout:
-    """Validate header, parameter section and data size of a C3D file (no ezc3d)."""
-    try:
-        buf = path.read_bytes()
-    except OSError as e:
-        raise _fail(path, f"cannot read C3D file ({e.strerror or e})") from None
-    size = len(buf)
-    if size == 0:
-        raise _fail(path, "empty file, not a C3D file")
-    if size < _BLOCK:
-        raise _fail(path, f"truncated C3D file: {size} bytes, shorter than the 512-byte header")
-    if buf[1] != 0x50:
-        raise _fail(path, "not a C3D file (header key byte is not 0x50)")
-    pblock = buf[0]
-    if pblock < 2:
-        raise _fail(path, f"not a C3D file (parameter block number {pblock})")
-    pstart = (pblock - 1) * _BLOCK
-    if pstart + 4 > size:
-        raise _fail(path, f"truncated C3D file: parameter section at byte {pstart} is missing")
-    processor = buf[pstart + 3]
-    if processor not in (84, 85, 86):
-        raise _fail(path, f"corrupt C3D file: unknown processor type {processor}")
-    u16, _, f32 = _reader(buf, processor)
-    n_points = u16(2)
-    n_analog = u16(4)
-    first, last = u16(6), u16(8)
-    scale = f32(12)
-    data_start = u16(16)
-    # ezc3d's reading of the 1-based frame numbers
-    first0 = first - 1 if first else 0
-    last0 = last - 1 if last else 0
-    n_frames = last0 - first0 + 1 if (n_points or n_analog) else 0
-    if n_frames < 0:
-        raise _fail(path, f"corrupt C3D header: last frame {last} before first frame {first}")
-    if not np.isfinite(scale) or scale == 0:
-        raise _fail(path, f"corrupt C3D header: POINT scale {scale}")
-    word = 4 if scale < 0 else 2
-    pend = min(size, (data_start - 1) * _BLOCK) if data_start > pblock else size
-    params = _walk_parameters(buf, path, pstart, pend, processor)
-    used = params.get(("POINT", "USED"))
-    if used is not None and (used[0] & 0xFFFF) != n_points:
-        raise _fail(
-            path, f"corrupt C3D file: header says {n_points} points, POINT:USED {used[0] & 0xFFFF}"
-        )
-    frames_param = params.get(("POINT", "FRAMES"))
-    if frames_param is not None and (n_points or n_analog):
-        # ezc3d (like the C3D recommendation) counts frames with POINT:FRAMES when present;
-        # an int16 holds up to 65535 frames unsigned, a float any count
-        v = frames_param[0]
-        if isinstance(v, float) and not (np.isfinite(v) and v >= 0):
-            raise _fail(path, f"corrupt POINT:FRAMES {v}")
-        n_frames = int(v) & 0xFFFF if isinstance(v, int) else int(v)
-    if data_start < 2:
-        raise _fail(path, f"corrupt C3D header: data start block {data_start}")
-    ds_param = params.get(("POINT", "DATA_START"))
-    if ds_param is not None and isinstance(ds_param[0], int):
-        data_start = max(data_start, ds_param[0] & 0xFFFF)  # check the later of the two
-    frame_bytes = (4 * n_points + n_analog) * word
-    need = (data_start - 1) * _BLOCK + n_frames * frame_bytes
-    if size < need:
-        have = max(size - (data_start - 1) * _BLOCK, 0) // frame_bytes if frame_bytes else 0
-        raise _fail(
-            path,
-            f"truncated C3D file: {size} bytes, the data block needs {need} "
-            f"({n_frames} frames of {n_points} points; only {have} complete frames present)",
-        )
-    return _Layout(n_points, n_analog, first0, n_frames, word, data_start, processor)
 
 
 # --------------------------------------------------------------------------- reading
@@ -436,15 +243,20 @@ def read_c3d(path: str | os.PathLike) -> Markers:
     unit, unit_assumed = _point_unit(params, path)
     k = UNIT_SCALE[unit]
     labels = _point_labels(params, n_points)
+    _check_text(path, "POINT:LABELS", labels)
     descriptions = _joined(params, "POINT", "DESCRIPTIONS")
-    kinds = classify_points(labels, descriptions, _model_output_lists(params))
-    xyz, r, missing = _metre_samples(pts, res, k)
+    listed = _model_output_lists(params)
+    _check_text(path, "POINT:TYPE_GROUPS", list(listed.values()))
+    kinds = classify_points(labels, descriptions, listed)
+    with np.errstate(over="ignore", invalid="ignore"):
+        xyz, r, missing = _metre_samples(pts, res, k)
 
     idx = {
         kind: [i for i, (kd, _) in enumerate(kinds) if kd == kind]
         for kind in ("marker", "fragment")
     }
     mk, fr = idx["marker"], idx["fragment"]
+    _check_kept(path, labels, mk + fr, xyz, r)
     attrs = {
         "source": path.name,
         "source_unit": unit,
@@ -467,8 +279,8 @@ def read_c3d(path: str | os.PathLike) -> Markers:
 
 
 def _read_points(path: Path) -> tuple[dict, np.ndarray, np.ndarray, int, float]:
-    """:func:`_check_file`, then :func:`_ezc3d_points`, checked against the header's sizes."""
-    layout = _check_file(path)
+    """:func:`check_file`, then :func:`_ezc3d_points`, checked against the header's sizes."""
+    layout = check_file(path)
     try:
         params, pts, res, first_frame, header_rate = _ezc3d_points(str(path))
     except Exception as e:  # ezc3d raises RuntimeError/OSError/IndexError …
@@ -483,15 +295,62 @@ def _read_points(path: Path) -> tuple[dict, np.ndarray, np.ndarray, int, float]:
     return params, pts, res, first_frame, header_rate
 
 
+def _fail(path: Path, msg: str) -> C3DError:
+    return C3DError(f"{path}: {msg}")
+
+
 def _point_rate(params: dict, header_rate: float, path: Path) -> float:
-    """``POINT:RATE`` (kept non-integer), else the header's rate; must be positive."""
+    """``POINT:RATE`` (kept non-integer), else the header's rate; must be finite and positive."""
     rate_v = _param(params, "POINT", "RATE")
     rate = float(np.ravel(rate_v)[0]) if rate_v is not None and np.size(rate_v) else 0.0
     if not rate > 0:
         rate = header_rate
     if not rate > 0:
         raise _fail(path, "no positive POINT:RATE")
+    if not math.isfinite(rate):
+        raise _fail(path, f"POINT:RATE (or the header frame rate) is not finite: {rate}")
     return rate
+
+
+def _check_text(path: Path, field: str, values: list[str]) -> None:
+    """Labels that are not UTF-8 (ezc3d hands their bytes over as surrogates) are an error."""
+    for i, v in enumerate(values):
+        try:
+            v.encode("utf-8")
+        except UnicodeEncodeError:
+            raw = v.encode("utf-8", "surrogateescape")
+            raise _fail(path, f"{field} entry {i + 1} is not UTF-8: {raw!r}") from None
+
+
+def _check_kept(
+    path: Path, labels: list[str], kept: list[int], xyz: np.ndarray, r: np.ndarray
+) -> None:
+    """The markers and fragments read: unique labels, finite coordinates within
+    :data:`MAX_DISTANCE_M`, finite residuals (``xyz (F, P, 3)`` metres, ``r (F, P)``)."""
+    seen: dict[str, int] = {}
+    for i in kept:
+        if labels[i] in seen:
+            raise _fail(
+                path, f"POINT:LABELS: {labels[i]!r} names points {seen[labels[i]] + 1} and {i + 1}"
+            )
+        seen[labels[i]] = i
+    if not kept:
+        return
+    sel = xyz[:, kept] if len(kept) < xyz.shape[1] else xyz
+    far = np.abs(np.nan_to_num(sel, nan=0.0, posinf=np.inf, neginf=np.inf)).max(axis=-1)
+    if (far > MAX_DISTANCE_M).any():
+        f, j = (int(a[0]) for a in np.nonzero(far > MAX_DISTANCE_M))
+        raise _fail(
+            path,
+            f"POINT data: point {labels[kept[j]]!r} is {far[f, j]:.3g} m from the origin in "
+            f"frame {f} (a wrong POINT:SCALE or POINT:UNITS?)",
+        )
+    res = r[:, kept] if len(kept) < r.shape[1] else r
+    if np.isinf(res).any():
+        f, j = (int(a[0]) for a in np.nonzero(np.isinf(res)))
+        raise _fail(
+            path, f"POINT data: residual of point {labels[kept[j]]!r} in frame {f} is not finite"
+        )
 
 
 def _point_unit(params: dict, path: Path) -> tuple[str, bool]:

@@ -103,14 +103,21 @@ def _parse_table(path: Path, lines: list[str], required: Sequence[str]) -> tuple
     return header, rows
 
 
-def _floats(path: Path, lineno: int, fields: list[str], cols: list[int], names) -> list[float]:
+def _floats(
+    path: Path, lineno: int, fields: list[str], cols: list[int], names, *, nan_ok: int = 0
+) -> list[float]:
+    """The finite numbers of ``fields[cols]``; the last ``nan_ok`` columns may also be
+    empty or NaN (a missing time)."""
     out = []
-    for c in cols:
+    for k, c in enumerate(cols):
+        may_be_nan = k >= len(cols) - nan_ok
         try:
-            v = float(fields[c]) if fields[c] != "" else math.nan
+            v = float(fields[c]) if fields[c] != "" or not may_be_nan else math.nan
         except ValueError:
             msg = f"column {names[c]!r}: {fields[c]!r} is not a number"
             raise _fail(path, msg, lineno) from None
+        if not (math.isfinite(v) or (may_be_nan and math.isnan(v))):
+            raise _fail(path, f"column {names[c]!r}: {fields[c]!r} is not finite", lineno)
         out.append(v)
     return out
 
@@ -227,6 +234,8 @@ def read_omniglot(path: str | os.PathLike) -> Strokes:
             x, y, t = (float(p) for p in parts)
         except ValueError:
             raise _fail(path, f"expected 'x,y,t_ms', got {s[:40]!r}", i + 1) from None
+        if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(t)):
+            raise _fail(path, f"stroke sample 'x,y,t_ms' is not finite: {s[:40]!r}", i + 1)
         if not open_stroke:
             starts.append(len(rows))
             open_stroke = True
@@ -306,6 +315,25 @@ def _jdefault(o: Any) -> Any:
     raise TypeError(f"attrs value of type {type(o).__name__} is not JSON")
 
 
+def _meta(meta: Any) -> dict:
+    """A ``# example`` line's JSON: an object with a rate (a number > 0, or NaN), an
+    ``attrs`` object and a ``times`` flag; ``TypeError`` saying what is wrong otherwise."""
+    if not isinstance(meta, dict):
+        raise TypeError(f"expected a JSON object, got {type(meta).__name__}")
+    rate = meta.get("rate")
+    try:
+        rate = float(rate)
+    except (TypeError, ValueError):
+        raise TypeError(f"rate {rate!r} is not a number") from None
+    if not (rate > 0 and math.isfinite(rate)) and not math.isnan(rate):
+        raise TypeError(f"rate {meta.get('rate')!r} is not a finite number > 0")
+    if not isinstance(meta.get("attrs", {}), dict):
+        raise TypeError(f"attrs is a {type(meta['attrs']).__name__}, not an object")
+    if not isinstance(meta.get("times", False), bool):
+        raise TypeError(f"times is {meta['times']!r}, not true or false")
+    return meta
+
+
 def read_strokes_csv(path: str | os.PathLike) -> list[Strokes]:
     """Read a file written by :func:`write_strokes_csv`.
 
@@ -328,9 +356,11 @@ def read_strokes_csv(path: str | os.PathLike) -> list[Strokes]:
         if ln.startswith("# example "):
             try:
                 _, _, idx, blob = ln.split(" ", 3)
-                metas[int(idx)] = json.loads(blob)
-            except (ValueError, json.JSONDecodeError):
+                metas[int(idx)] = _meta(json.loads(blob))
+            except (ValueError, RecursionError):  # JSONDecodeError is a ValueError
                 raise _fail(path, "malformed '# example' line", i + 1) from None
+            except TypeError as e:
+                raise _fail(path, f"'# example' line: {e}", i + 1) from None
     header, rows = _parse_table(path, lines, ("example", "stroke", "x", "y", "t"))
     ci = [header.index(c) for c in ("x", "y", "t")]
     data: dict[int, list] = {k: [] for k in metas}
@@ -341,7 +371,7 @@ def read_strokes_csv(path: str | os.PathLike) -> list[Strokes]:
             raise _fail(path, "example and stroke must be integers", lineno) from None
         if ex not in data:
             raise _fail(path, f"example {ex} has no '# example' line", lineno)
-        data[ex].append((st, *_floats(path, lineno, f, ci, header)))
+        data[ex].append((st, *_floats(path, lineno, f, ci, header, nan_ok=1)))
     out = []
     for ex in sorted(metas):
         if not data[ex]:

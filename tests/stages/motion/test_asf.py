@@ -192,3 +192,54 @@ def test_malformed_asf_names_file_and_line(shared_data, tmp_path):
     for name, (content, pattern) in cases.items():
         with pytest.raises(ASFError, match=pattern):
             read_asf(_write(tmp_path, name, content))
+
+
+def _asf_edit(shared_data, tmp_path, name, old, new, count=1):
+    text = (shared_data / "bvh" / "cmu_01.asf").read_text()
+    assert old in text
+    return _write(tmp_path, name, text.replace(old, new, count).splitlines())
+
+
+@pytest.mark.parametrize(("old", "new", "pattern"), [
+    ("length 0.45", "length 0", r":\d+: units length must be > 0, got '0'"),
+    ("length 0.45", "length 1e-320", r": :units length 1e-320 is too small"),
+    ("direction 0.34202 -0.939693 0", "direction nan -0.939693 0", r":\d+: direction is not fin"),
+    ("direction 0.34202 -0.939693 0", "direction 0.34202", r":\d+: direction needs 3 numbers"),
+    ("length 2.40479", "length -2.40479", r":\d+: length must not be negative"),
+    ("length 2.40479", "length 1e308", r": :bonedata: bone 'lhipjoint' \(length 1e\+308\) ends"),
+    ("name lfemur\n", "name lhipjoint\n", r":\d+: bone name 'lhipjoint' is used twice"),
+    ("id 2 \n", "id inf\n", r":\d+: id is not finite: 'inf'"),
+    ("dof rx ry rz\n", "dof rx rx rz\n", r":\d+: dof repeats an axis: rx rx rz"),
+    ("position 0 0 0", "position 1e308 0 0", r": :root position is \[.*\] m \(beyond 1e\+06 m"),
+])
+def test_hostile_asf_fields_name_file_and_field(shared_data, tmp_path, old, new, pattern):
+    p = _asf_edit(shared_data, tmp_path, "bad.asf", old, new)
+    with pytest.raises(ASFError, match=r"bad\.asf" + pattern):
+        read_asf(p)
+
+
+def test_deep_asf_chain_and_hostile_amc_values(shared_data, tmp_path):
+    bones = "".join(
+        f"  begin\n    id {i}\n    name b{i}\n    direction 0 1 0\n    length 1\n"
+        f"    axis 0 0 0 XYZ\n    dof rx\n  end\n" for i in range(300))
+    chain = "".join(f"  {'root' if i == 0 else f'b{i - 1}'} b{i}\n" for i in range(300))
+    p = tmp_path / "deep.asf"
+    p.write_text(f":units\n  length 0.45\n:root\n  order TX TY TZ RX RY RZ\n  axis XYZ\n"
+                 f":bonedata\n{bones}:hierarchy\n  begin\n{chain}  end\n")
+    with pytest.raises(ASFError, match=r"deep\.asf: :hierarchy: bone 'b256' nests deeper "
+                                       r"than 256 bones"):
+        read_asf(p)
+    sk = read_asf(shared_data / "bvh" / "cmu_11.asf")
+    good = _amc_lines(shared_data)
+    for line, pattern in [
+        ("upperneck nan 2 3", r"nan\.amc:41: bad number 'nan' for bone 'upperneck'"),
+        ("upperneck 1 -inf 3", r"nan\.amc:41: bad number '-inf' for bone 'upperneck'"),
+    ]:
+        bad = list(good)
+        bad[40] = line
+        with pytest.raises(AMCError, match=pattern):
+            read_amc(_write(tmp_path, "nan.amc", bad), sk)
+    bad = list(good)
+    bad[4] = "99999999999"
+    with pytest.raises(AMCError, match=r"big\.amc:5: frame number 99999999999 is too large"):
+        read_amc(_write(tmp_path, "big.amc", bad), sk)

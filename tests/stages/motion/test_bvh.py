@@ -229,7 +229,7 @@ def test_malformed_files_name_file_and_line(tmp_path):
         "truncated_motion.bvh": (
             lines[:-1],
             r"truncated_motion\.bvh:33: truncated motion: "
-            r"'Frames: 2' but only 1 frame lines",
+            r"'Frames: 2' but only 1 lines after the header",
         ),
         "bad_number.bvh": (
             lines[:-1] + ["90 0 0 1 0 0 25 0 zero 0 90"],
@@ -252,11 +252,11 @@ def test_malformed_files_name_file_and_line(tmp_path):
         ),
         "bad_frames.bvh": (
             [ln.replace("Frames: 2", "Frames: two") for ln in lines],
-            r"bad_frames\.bvh:31: bad frame count 'two'",
+            r"bad_frames\.bvh:31: Frames: bad frame count 'two'",
         ),
         "no_brace.bvh": (
             [ln for k, ln in enumerate(lines) if k != 2],
-            r"no_brace\.bvh:3: expected '\{', found 'OFFSET'",
+            r"no_brace\.bvh:3: joint 'Root': expected '\{', found 'OFFSET'",
         ),
     }
     for name, (content, pattern) in cases.items():
@@ -264,3 +264,72 @@ def test_malformed_files_name_file_and_line(tmp_path):
         with pytest.raises(BVHError, match=pattern):
             read_bvh(p)
     assert issubclass(BVHError, ValueError)
+
+
+# --------------------------------------------------------------------------- hostile files
+
+
+def _chain(depth: int, *, frames: int = 1) -> str:
+    out = ["HIERARCHY", "ROOT J0", "{", "OFFSET 0 0 0", "CHANNELS 3 Zrotation Xrotation Yrotation"]
+    for i in range(1, depth):
+        out += [f"JOINT J{i}", "{", "OFFSET 0 1 0", "CHANNELS 3 Zrotation Xrotation Yrotation"]
+    out += ["}"] * depth + ["MOTION", f"Frames: {frames}", "Frame Time: 0.01"]
+    return "\n".join(out + [" ".join(["5"] * 3 * depth)] * frames) + "\n"
+
+
+NINE = (
+    "HIERARCHY\nROOT Hips\n{\n  OFFSET 0 0 0\n  CHANNELS 0\n}\nMOTION\n"
+    "Frames: 2000000000\nFrame Time: 0.0083333\n"
+)
+
+
+def test_declared_frames_are_checked_against_the_file_before_allocating(tmp_path):
+    """The issue's 9-line file asked for 45 GiB; channel-less joints cost memory without bytes."""
+    p = tmp_path / "nine.bvh"
+    p.write_text(NINE)
+    with pytest.raises(BVHError, match=r"nine\.bvh:9: truncated motion: 'Frames: 2000000000' "
+                                       r"but only 0 lines after the header"):
+        read_bvh(p)
+    p.write_text(NINE.replace("2000000000", "3") + "\n\n\n")  # blank lines: 3 frames, 0 values
+    m = read_bvh(p)
+    assert m.n_frames == 3 and np.allclose(m.rotations, [1, 0, 0, 0])
+    idle = "".join(f"JOINT J{i}\n{{\nOFFSET 0 1 0\nCHANNELS 0\n}}\n" for i in range(60))
+    p.write_text(NINE.replace("}\nMOTION", idle + "}\nMOTION").replace("2000000000", "40000")
+                 + "\n" * 40000)
+    with pytest.raises(BVHError, match=r"Frames: 40000 frames of 61 joints without CHANNELS"):
+        read_bvh(p)
+    p.write_text(NINE.replace("2000000000", "0"))
+    with pytest.raises(BVHError, match=r"nine\.bvh:8: Frames: 0: a BVH motion needs at least"):
+        read_bvh(p)
+
+
+def test_deep_hierarchy_is_an_error_not_a_recursion(tmp_path):
+    p = tmp_path / "deep.bvh"
+    p.write_text(_chain(5000))
+    with pytest.raises(BVHError, match=r"deep\.bvh:1026: JOINT inside joint 'J255': the "
+                                       r"hierarchy nests deeper than 256 joints"):
+        read_bvh(p)
+    p.write_text(_chain(256, frames=2))  # the deepest accepted, written back (iteratively)
+    m = read_bvh(p)
+    assert m.n_frames == 2 and list(m.skeleton.parents) == list(range(-1, 255))
+    back = read_bvh(write_bvh(m, tmp_path / "back.bvh"))
+    assert back.skeleton.names == m.skeleton.names
+    np.testing.assert_allclose(back.rotations, m.rotations, atol=1e-9)
+    assert "\n" + "\t" * 255 + "JOINT J255\n" in (tmp_path / "back.bvh").read_text()
+
+
+@pytest.mark.parametrize(("edit", "pattern"), [
+    (("OFFSET 0 10 0", "OFFSET 0 inf 0"), r":8: OFFSET of joint 'Slider' is not finite"),
+    (("OFFSET 0 10 0", "OFFSET nan 10 0"), r":8: OFFSET of joint 'Slider' is not finite"),
+    (("OFFSET 5 0 0", "OFFSET 5 -inf 0"), r":16: OFFSET of End Site of 'Hinge' is not finite"),
+    (("OFFSET 0 10 0", "OFFSET 0 1e300 0"), r":6: OFFSET values too large"),
+    (("JOINT Fixed", "JOINT Hinge"), r":20: JOINT name 'Hinge' is used twice \(lines 10 and 20\)"),
+    (("CHANNELS 1 Zrotation", "CHANNELS 7 Zrotation"), r":13: bad CHANNELS count 7"),
+    (("CHANNELS 1 Zrotation", "CHANNELS inf Zrotation"), r":13: bad CHANNELS count inf"),
+    (("Frame Time: 0.04", "Frame Time: 1e-320"), r":32: Frame Time: 1e-320 s is too small"),
+    (("90 0 0 1e2 0 0", "90 0 0 1e300 0 0"), r": frame 1: a position channel is 1e\+298 m"),
+])
+def test_non_finite_huge_and_duplicate_fields_name_the_line(tmp_path, edit, pattern):
+    p = _write(tmp_path, "bad.bvh", [ln.replace(*edit) for ln in _lines()])
+    with pytest.raises(BVHError, match=r"bad\.bvh" + pattern):
+        read_bvh(p, unit="cm")

@@ -330,3 +330,19 @@ def test_unknown_unit_is_an_error(tmp_path):
     c.write(str(tmp_path / "furlong.c3d"))
     with pytest.raises(C3DError, match="furlong"):
         read_c3d(tmp_path / "furlong.c3d")
+
+
+@pytest.mark.parametrize(("name", "pattern"), [
+    # was a UnicodeEncodeError in store.commit naming no label
+    ("label_not_utf8", r"POINT:LABELS entry 2 is not UTF-8: b'\\xff\\xe4BB'"),
+    ("label_duplicate", r"POINT:LABELS: 'M000' names points 1 and 2"),
+    ("coordinate_1e30", r"POINT data: point 'M000' is 1e\+27 m from the origin in frame 0"),
+    ("coordinate_inf", r"POINT data: point 'M000' is inf m from the origin in frame 0"),
+])
+def test_labels_and_coordinates_are_checked_at_read_time(fuzz, tmp_path, name, pattern):
+    buf = bytearray(_small_file(tmp_path))
+    fuzz.c3d_built()[name](buf, fuzz.c3d_entries(bytes(buf)))
+    p = _bad(tmp_path, f"{name}.c3d", bytes(buf))
+    with pytest.raises(C3DError, match=pattern) as e:
+        read_c3d(p)
+    assert str(e.value).startswith(f"{p}: ")

@@ -18,6 +18,8 @@ from mocapflow.stages.motion.datatypes import Markers, Motion, Strokes, StrokesS
 from mocapflow.stages.motion.formats.c3d import read_c3d
 from mocapflow.stages.motion.formats.strokes import StrokesFileError, read_strokes_csv
 from mocapflow.stages.motion.ingest import (
+    MAX_UPSAMPLE,
+    IngestError,
     amc_skeleton_path,
     ingest_amc,
     ingest_bvh,
@@ -168,6 +170,23 @@ def test_ingest_bvh(ingest_data, tmp_path):
     again = ingest_bvh(str(out), ctx=ctx())["motion"]
     assert again.n_frames == 994 and again.skeleton.names == m.skeleton.names
     np.testing.assert_allclose(again.root_position, m.root_position, atol=1e-5)
+
+
+def test_resample_targets_are_capped_before_allocating(tmp_path):
+    """``Frame Time: 1e6`` then ``rate: 120`` asked for 120 million frames (a MemoryError)."""
+    head = "HIERARCHY\nROOT A\n{\nOFFSET 0 0 0\nCHANNELS 3 Zrotation Xrotation Yrotation\n}\n"
+    p = tmp_path / "slow.bvh"
+    p.write_text(head + "MOTION\nFrames: 2\nFrame Time: 1e6\n0 0 0\n0 0 0\n")
+    with pytest.raises(IngestError, match=rf"{p}: rate: resampling 2 frames at 1e-06 Hz .* to "
+                                          r"120 Hz would make 120000001 frames of 1 joints"):
+        ingest_bvh(str(p), rate=120.0, ctx=ctx())
+    p.write_text(head + "MOTION\nFrames: 3\nFrame Time: 0.01\n0 0 0\n0 0 0\n0 0 0\n")
+    with pytest.raises(IngestError, match=r"rate: resampling 3 frames at 100 Hz"):
+        ingest_bvh(str(p), rate=1e12, ctx=ctx())
+    with pytest.raises(ValueError, match=r"rate.* finite"):  # the params check, or ours
+        ingest_bvh(str(p), rate=float("inf"), ctx=ctx())
+    m = ingest_bvh(str(p), rate=100.0 * MAX_UPSAMPLE, ctx=ctx())["motion"]  # the limit: 16x
+    assert m.n_frames == 2 * MAX_UPSAMPLE + 1 <= MAX_UPSAMPLE * 3
 
 
 def test_ingest_amc(ingest_data, tmp_path):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -134,6 +135,9 @@ def test_dispatch_by_content(strokes_dir):
         ("row.txt", "START\n1,2,3\n1,2\nBREAK\n", "line 3: expected 'x,y,t_ms'"),
         ("nostroke.txt", "START\nBREAK\n", "no stroke samples"),
         ("twostart.txt", "START\n1,2,3\nSTART\n", "line 3: second START"),
+        ("inf.csv", "letter,example,sample,x,y\na,1,0,0,inf\n", "line 2: column 'y': 'inf' is not"),
+        ("empty_x.csv", "letter,example,sample,x,y\na,1,0,,1\n", "line 2: column 'x': '' is not"),
+        ("inf.txt", "START\n1,2,3\n1,nan,4\nBREAK\n", "line 3: stroke sample 'x,y,t_ms' is not"),
         ("junk.dat", "hello\n", "line 1: not a stroke file"),
     ],
 )
@@ -158,6 +162,20 @@ def test_malformed_mocapflow_csv(tmp_path, uci):
         read_strokes_csv(orphan)
     with pytest.raises(StrokesFileError, match="not a mocapflow strokes CSV"):
         read_strokes_csv(_write(tmp_path, "x.csv", "a,b\n"))
+    for meta, msg in [
+        ("[" * 100_000 + "]" * 100_000, "malformed '# example' line"),  # was a RecursionError
+        ("[]", "'# example' line: expected a JSON object, got list"),
+        ('{"rate": -1}', "'# example' line: rate -1 is not a finite number > 0"),
+        ('{"rate": "abc"}', "'# example' line: rate 'abc' is not a number"),
+        ('{"rate": 100, "attrs": 5}', "'# example' line: attrs is a int, not an object"),
+        ('{"rate": 100, "times": "yes"}', "'# example' line: times is 'yes', not true or"),
+    ]:
+        bad_meta.write_text("\n".join([lines[0], f"# example 0 {meta}", *lines[2:]]))
+        with pytest.raises(StrokesFileError, match=rf"meta\.csv, line 2: {re.escape(msg)}"):
+            read_strokes_csv(bad_meta)
+    inf_x = lines[:4] + [lines[4].replace(lines[4].split(",")[2], "inf", 1)] + lines[5:]
+    with pytest.raises(StrokesFileError, match=r"line 5: column 'x': 'inf' is not finite"):
+        read_strokes_csv(_write(tmp_path, "inf.csv", "\n".join(inf_x)))
 
 
 def _write(tmp_path: Path, name: str, text: str) -> Path:
