@@ -7,12 +7,13 @@ Modules, by concern:
 
 Stages
     ``registry``      the ``@stage`` decorator, params validation, family discovery
-    ``context``       what a stage receives: seeded RNG, ``ctx.map``, warnings
+    ``context``       what a stage receives: seeded RNG, ``ctx.map``, warnings, ``ctx.timer``
     ``codecs``        outputs as arrays + JSON attrs (``Encoded``), codecs, exporters
     ``testing``       toy stages, fixtures, a contract test for stage families
 Configs and graphs
     ``config_yaml``   line-aware YAML loading; ``ConfigError`` (``FILE:LINE: key: problem``)
     ``config_interpolation``  ``${params.NAME}`` and ``${env:VAR,default}``
+    ``config_parts``  part entries → part ids (paths, bounded globs)
     ``config``        parsing and validation of a graph config (``load_config``)
     ``graph``         nodes × parts → tasks (``build_graph``, ``load_graph``)
     ``wires``         where each task input comes from (``FileWire``, ``TaskWire``, …)

@@ -10,15 +10,29 @@ dependencies.  Results are small references, never data: anything with a
 stage uses the same executor: :func:`task_mapper` returns a map that submits the
 sub-items to the cluster from inside the task (``distributed.worker_client``),
 or ``None`` (a plain map) outside a worker.
+
+Cluster edges are one-line :class:`ExecutorError` (set-up) or task errors: a
+task whose worker died too often (``KilledWorker``) fails with what to try;
+``--executor slurm`` without ``sbatch`` fails before anything is submitted; no
+worker within ``worker_timeout`` seconds (at start, or all lost during the run)
+fails the run or its remaining tasks instead of waiting for ever; a store that
+lives in this process's memory (``memory://``) runs the local cluster's workers
+as threads of this process and is refused for clusters elsewhere.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
+import shutil
+import sys
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
+
+from mocapflow.pipeline.progress import StageWarningFilter
 
 __all__ = [
     "Call",
@@ -28,7 +42,9 @@ __all__ = [
     "ExecutorError",
     "SlurmOptions",
     "SyncExecutor",
+    "WORKER_TIMEOUT_S",
     "make_executor",
+    "process_local_store",
     "slurm_job_script",
     "task_mapper",
 ]
@@ -36,8 +52,22 @@ __all__ = [
 log = logging.getLogger("mocapflow")
 
 
+#: Seconds to wait for a first worker (and, during a run, without any worker) by
+#: executor kind; ``None`` waits for ever.  Slurm jobs may queue for a while.
+WORKER_TIMEOUT_S = {"local": 60.0, "external": 60.0, "client": 60.0, "slurm": 600.0}
+
+
 class ExecutorError(ValueError):
     """An executor cannot be set up (bad flags, unreachable scheduler, missing package)."""
+
+
+def process_local_store(store: Any) -> bool:
+    """Whether a store (or store root) lives in this process's memory (``memory://``).
+
+    Worker processes cannot see such a store: each would write to its own.
+    """
+    root = getattr(store, "root", store)
+    return isinstance(root, str) and root.startswith("memory://")
 
 
 @dataclass(frozen=True)
@@ -57,6 +87,8 @@ class Call:
         Picklable leading arguments.
     deps : tuple of int
         Indices of the calls whose results are appended to ``args``.
+    node, part : str, optional
+        The task the call runs, for the executor's own outcomes (``CallOutcome``).
     """
 
     index: int
@@ -64,6 +96,8 @@ class Call:
     fn: Callable[..., Any]
     args: tuple
     deps: tuple[int, ...] = ()
+    node: str | None = None
+    part: str | None = None
 
 
 @dataclass(frozen=True)
@@ -77,19 +111,45 @@ class CallOutcome:
     status : {"failed", "skipped"}
     error : str
         ``"TypeName: message"`` of what the call raised, or why it was skipped.
+    node, part : str or None
+        Of the call (so a task below it can name it).
     """
 
     index: int
     status: str
     error: str
+    node: str | None = None
+    part: str | None = None
 
 
 def _failed(call: Call, error: str) -> CallOutcome:
-    return CallOutcome(call.index, "failed", error)
+    return CallOutcome(call.index, "failed", error, call.node, call.part)
 
 
-def _cancelled(call: Call) -> CallOutcome:
-    return CallOutcome(call.index, "skipped", "cancelled (--fail-fast)")
+def _cancelled(call: Call, why: str = "cancelled (--fail-fast)") -> CallOutcome:
+    return CallOutcome(call.index, "skipped", why, call.node, call.part)
+
+
+def killed_worker_message(exc: BaseException) -> str:
+    """One line for a ``KilledWorker``: what happened and what to try.
+
+    The task name is not in it (the run's message names the node and part).
+    """
+    tries = getattr(exc, "allowed_failures", None)
+    times = "" if not isinstance(tries, int) else " once" if tries == 0 else f" {tries + 1} times"
+    last = getattr(getattr(exc, "last_worker", None), "address", None)
+    where = f", last on {last}" if last else ""
+    return (f"KilledWorker: the worker process running this task died{times}{where} "
+            "(out of memory, or a crash in native code?); try fewer --workers (more memory "
+            "each), more --slurm-memory, or --executor sync to see the error")
+
+
+def _error_line(exc: BaseException) -> str:
+    """``"TypeName: first line"`` of what a call raised (``KilledWorker`` explained)."""
+    if type(exc).__name__ == "KilledWorker":
+        return killed_worker_message(exc)
+    text = str(exc).strip().splitlines()
+    return f"{type(exc).__name__}: {text[0]}" if text else type(exc).__name__
 
 
 class Executor:
@@ -153,32 +213,76 @@ class DistributedExecutor(Executor):
     name : str
     workers : int
         Expected number of workers (``Context.workers``).
+    worker_timeout : float or None
+        Seconds to wait for a first worker once the cluster is up, and the
+        longest a run waits while the cluster has no worker at all (its
+        remaining tasks then fail); ``None`` waits for ever.
+    in_process : bool or None
+        Whether the workers are threads of this process (they then see a
+        ``memory://`` store); ``None``: ask the workers when it matters.
     """
 
     def __init__(self, client_factory: Callable[[], tuple[Any, Callable[[], None]]], *,
-                 name: str, workers: int = 1, description: str = "") -> None:
+                 name: str, workers: int = 1, description: str = "",
+                 worker_timeout: float | None = None, in_process: bool | None = False) -> None:
         self._factory = client_factory
         self._client = None
         self._closer: Callable[[], None] | None = None
         self.name = name
         self.workers = workers
+        self.worker_timeout = worker_timeout
+        self._in_process = in_process
         self._description = description or name
 
     @property
     def client(self):
-        """The ``distributed.Client`` (started on first use)."""
+        """The ``distributed.Client`` (started on first use, with a worker to run on).
+
+        Raises
+        ------
+        ExecutorError
+            No worker joined within ``worker_timeout`` seconds.
+        """
         if self._client is None:
-            self._client, self._closer = self._factory()
+            client, closer = self._factory()
             try:
-                n = len(self._client.scheduler_info().get("workers", {}))
-                if n:
-                    self.workers = n
-            except Exception:  # pragma: no cover - info only
-                pass
+                self._wait_first_worker(client)
+                client.register_worker_callbacks(
+                    setup=functools.partial(_quiet_worker_logging, os.getpid()))
+            except BaseException:
+                closer()
+                raise
+            self._client, self._closer = client, closer
+            _quiet_scheduler_log()
+            n = len(client.nthreads())
+            if n:
+                self.workers = n
         return self._client
+
+    def _wait_first_worker(self, client: Any) -> None:
+        try:
+            client.wait_for_workers(1, timeout=self.worker_timeout)
+        except TimeoutError:  # distributed's WorkerStartTimeoutError is one
+            raise ExecutorError(
+                f"{self._description}: no Dask worker joined within {self.worker_timeout:g} s; "
+                f"{_no_worker_hint(self.name)}, or raise --worker-timeout") from None
 
     def describe(self) -> str:
         return self._description
+
+    def _check_store(self, calls: Sequence[Call]) -> None:
+        """Refuse a ``memory://`` store when the workers are other processes."""
+        store = next((a for a in calls[0].args if process_local_store(a)), None)
+        if store is None:
+            return
+        if self._in_process is None:
+            pids = set(self.client.run(os.getpid).values())
+            self._in_process = pids == {os.getpid()}
+        if not self._in_process:
+            raise ExecutorError(
+                f"store {store.root} lives in this process's memory, which the workers of "
+                f"the {self._description} cannot see; use a directory or an fsspec URL they "
+                "share, or --executor sync / local")
 
     def run(self, calls: Sequence[Call], *, on_done: Callable[[Any], None] | None = None,
             fail_fast: bool = False) -> dict[int, Any]:
@@ -189,8 +293,11 @@ class DistributedExecutor(Executor):
         over every worker.  A call whose dependency failed runs here (it only
         records itself as skipped).
         """
+        if not calls:
+            return {}
         from distributed import as_completed  # noqa: PLC0415 (heavy)
 
+        self._check_store(calls)
         client = self.client
         by_index = {c.index: c for c in calls}
         by_key = {c.key: c for c in calls}
@@ -210,7 +317,7 @@ class DistributedExecutor(Executor):
                 try:
                     res = call.fn(*call.args, *dep_results)
                 except Exception as e:
-                    res = _failed(call, f"{type(e).__name__}: {e}")
+                    res = _failed(call, _error_line(e))
                 finish(call, res)
                 return
             fut = client.submit(call.fn, *call.args, *dep_results, key=call.key, pure=False)
@@ -234,24 +341,31 @@ class DistributedExecutor(Executor):
         for c in calls:
             if not c.deps and not stop:
                 launch(c)
-        for fut in ac:
-            running.pop(fut.key, None)
-            call = by_key[fut.key]
-            if fut.status == "finished":
-                res = fut.result()
-            elif fut.status == "cancelled":
-                res = _cancelled(call)
-            else:
-                exc = fut.exception()
-                res = _failed(call, f"{type(exc).__name__}: {exc}")
-            fut.release()
-            finish(call, res)
-            if stop:
-                client.cancel(list(running.values()))
-                break
+        watch = _WorkerWatch(client, self.worker_timeout)
+        while running and not stop:
+            batch = ac.next_batch(block=False)
+            if not batch:
+                lost = watch.lost()
+                if lost:
+                    client.cancel(list(running.values()))
+                    for key in list(running):
+                        finish(by_key[key], _failed(by_key[key], lost))
+                    running.clear()
+                    break
+                _wait_ready(ac)
+                continue
+            watch.alive()
+            for fut in batch:
+                running.pop(fut.key, None)
+                finish(by_key[fut.key], _outcome(by_key[fut.key], fut))
+                if stop:
+                    break
+        if stop and running:
+            client.cancel(list(running.values()))
+        why = "cancelled (--fail-fast)" if stop else "not run: no Dask worker to run it"
         for i, c in by_index.items():
             if i not in results:
-                results[i] = _cancelled(c)
+                results[i] = _cancelled(c, why)
         return results
 
     def close(self) -> None:
@@ -261,6 +375,113 @@ class DistributedExecutor(Executor):
             finally:
                 self._closer = None
                 self._client = None
+
+
+def _outcome(call: Call, fut: Any) -> Any:
+    """What a finished future reports: its result, or the call's failure or cancellation."""
+    try:
+        if fut.status == "finished":
+            return fut.result()
+        if fut.status == "cancelled":
+            return _cancelled(call)
+        return _failed(call, _error_line(fut.exception()))
+    finally:
+        fut.release()
+
+
+def _wait_ready(ac: Any, timeout: float = 0.1) -> None:
+    """Block until a future of ``ac`` is ready, or ``timeout`` seconds."""
+    cond = getattr(ac, "thread_condition", None)
+    if cond is None:  # pragma: no cover - other distributed versions
+        time.sleep(0.01)
+        return
+    with cond:
+        if not ac.has_ready():
+            cond.wait(timeout=timeout)
+
+
+def _no_worker_hint(kind: str) -> str:
+    if kind == "slurm":
+        return "see whether the jobs still queue or failed (squeue, the job logs)"
+    if kind == "external":
+        return "start workers with `dask worker ADDRESS`"
+    return "see the cluster's logs (--debug)"
+
+
+class _WorkerWatch:
+    """Notices a cluster left without any worker for longer than ``timeout`` seconds."""
+
+    CHECK_EVERY_S = 1.0
+
+    def __init__(self, client: Any, timeout: float | None) -> None:
+        self.client = client
+        self.timeout = timeout
+        self._checked = self._seen = time.monotonic()
+
+    def alive(self) -> None:
+        """A result came back: there are workers."""
+        self._seen = time.monotonic()
+
+    def lost(self) -> str | None:
+        """The error of tasks left without a worker, or ``None`` while there are workers."""
+        now = time.monotonic()
+        if self.timeout is None or now - self._checked < self.CHECK_EVERY_S:
+            return None
+        self._checked = now
+        try:
+            if self.client.nthreads():
+                self._seen = now
+                return None
+        except Exception:  # pragma: no cover - scheduler gone: counts as no worker
+            pass
+        if now - self._seen < self.timeout:
+            return None
+        return (f"no Dask worker for {self.timeout:g} s (the workers died or their jobs "
+                "ended); check the cluster, or raise --worker-timeout")
+
+
+class _KilledWorkerLogFilter(logging.Filter):
+    """Drops the scheduler's errors about a worker that died: the task's record says it.
+
+    (``Task … marked as failed because N workers died``, and ``Couldn't gather
+    keys`` for results lost with it, which are computed again.)  Kept when the
+    ``mocapflow`` logger shows INFO (``--debug``).
+    """
+
+    QUIET = ("workers died while trying to run it", "Couldn't gather keys")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if logging.getLogger("mocapflow").isEnabledFor(logging.INFO):
+            return True
+        msg = record.getMessage()
+        return not any(q in msg for q in self.QUIET)
+
+
+def _quiet_scheduler_log() -> None:
+    log = logging.getLogger("distributed.scheduler")
+    if not any(isinstance(f, _KilledWorkerLogFilter) for f in log.filters):
+        log.addFilter(_KilledWorkerLogFilter())
+
+
+def _quiet_worker_logging(driver_pid: int) -> None:
+    """Worker set-up: engine log records on stderr, but not the stages' ``ctx.warn``.
+
+    Stage warnings travel back in the task records and the command prints them
+    once (:func:`~mocapflow.pipeline.progress.warning_lines`); printed on the
+    worker too, every one showed twice.  Workers that are threads of the driver
+    keep its logging as it is.
+    """
+    if os.getpid() == driver_pid:
+        return
+    log = logging.getLogger("mocapflow")
+    if any(getattr(h, "_mocapflow", False) for h in log.handlers):
+        return
+    h = logging.StreamHandler(sys.stderr)
+    h.setFormatter(logging.Formatter("mocapflow worker: %(levelname)s: %(message)s"))
+    h.addFilter(StageWarningFilter())
+    h._mocapflow = True  # type: ignore[attr-defined]
+    log.addHandler(h)
+    log.propagate = False
 
 
 # --------------------------------------------------------------------------- ctx.map
@@ -346,11 +567,11 @@ def slurm_job_script(opts: SlurmOptions) -> str:
         cluster.close()
 
 
-def _local_factory(workers: int):
+def _local_factory(workers: int, *, processes: bool = True):
     def start():
         from distributed import Client, LocalCluster  # noqa: PLC0415 (heavy)
 
-        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
                                dashboard_address=":0", silence_logs=logging.ERROR)
         client = Client(cluster, set_as_default=False)
 
@@ -389,9 +610,17 @@ def _slurm_factory(opts: SlurmOptions):
     def start():
         from distributed import Client  # noqa: PLC0415 (heavy)
 
+        if shutil.which("sbatch") is None:
+            raise ExecutorError(
+                "--executor slurm: sbatch is not on PATH (run on a Slurm login node or load "
+                "its module; --print-job-script shows the job script without Slurm)")
         cluster = _slurm_cluster(opts)
-        cluster.scale(jobs=opts.jobs)
-        client = Client(cluster, set_as_default=False)
+        try:
+            cluster.scale(jobs=opts.jobs)
+            client = Client(cluster, set_as_default=False)
+        except BaseException:
+            cluster.close()
+            raise
 
         def closer() -> None:
             client.close()
@@ -402,9 +631,19 @@ def _slurm_factory(opts: SlurmOptions):
     return start
 
 
+def _timeout(kind: str, worker_timeout: float | None) -> float | None:
+    """``worker_timeout`` (``0``: wait for ever), else the kind's default."""
+    if worker_timeout is None:
+        return WORKER_TIMEOUT_S[kind]
+    if worker_timeout < 0:
+        raise ExecutorError(f"--worker-timeout must be >= 0 seconds, got {worker_timeout:g}")
+    return float(worker_timeout) or None
+
+
 def make_executor(kind: str = "local", *, workers: int | None = None, address: str | None = None,
                   scheduler_file: str | None = None, slurm: SlurmOptions | None = None,
-                  client: Any = None) -> Executor:
+                  client: Any = None, store: Any = None,
+                  worker_timeout: float | None = None) -> Executor:
     """Build an executor from command-line style options.
 
     Parameters
@@ -418,33 +657,69 @@ def make_executor(kind: str = "local", *, workers: int | None = None, address: s
     slurm : SlurmOptions, optional
     client : distributed.Client, optional
         Use this client (tests, notebooks); not closed.
+    store : Store or str, optional
+        The store (or its root) the runs will use: a ``memory://`` store makes
+        ``local`` run its workers as threads of this process (worker processes
+        would each write to a memory of their own) and is refused by an external
+        cluster and Slurm.
+    worker_timeout : float, optional
+        Seconds to wait for a first worker, and the longest a run goes without
+        any worker (default :data:`WORKER_TIMEOUT_S` of the kind; ``0``: wait for ever).
 
     Returns
     -------
     Executor
         Cluster-backed executors start lazily, on the first run that has work.
+
+    Raises
+    ------
+    ExecutorError
+        Bad options, or a ``memory://`` store for workers in other processes.
     """
+    local_store = process_local_store(store)
     if client is not None:
-        n = len(client.scheduler_info().get("workers", {})) or 1
+        n = len(client.nthreads()) or 1
         return DistributedExecutor(lambda: (client, lambda: None), name="client", workers=n,
-                                   description=f"client {client.scheduler.address}")
+                                   description=f"client {client.scheduler.address}",
+                                   worker_timeout=_timeout("client", worker_timeout),
+                                   in_process=None)
     if address or scheduler_file:
         if address and scheduler_file:
             raise ExecutorError("give --address or --scheduler-file, not both")
+        where = address or scheduler_file
+        if local_store:
+            raise ExecutorError(f"--store {store_root(store)} lives in this process's memory; "
+                                f"the workers of the cluster at {where} cannot see it: use a "
+                                "directory or an fsspec URL they share")
         return DistributedExecutor(_external_factory(address, scheduler_file), name="external",
                                    workers=workers or 1,
-                                   description=f"external cluster {address or scheduler_file}")
+                                   description=f"external cluster {where}",
+                                   worker_timeout=_timeout("external", worker_timeout))
     if kind == "sync":
         return SyncExecutor()
     if kind == "local":
         n = workers or os.cpu_count() or 1
         if n < 1:
             raise ExecutorError(f"--workers must be at least 1, got {n}")
-        return DistributedExecutor(_local_factory(n), name="local", workers=n,
-                                   description=f"local cluster, {n} worker processes")
+        what = "worker threads of this process (memory:// store)" if local_store else \
+            "worker processes"
+        return DistributedExecutor(_local_factory(n, processes=not local_store), name="local",
+                                   workers=n, description=f"local cluster, {n} {what}",
+                                   worker_timeout=_timeout("local", worker_timeout),
+                                   in_process=local_store)
     if kind == "slurm":
+        if local_store:
+            raise ExecutorError(f"--store {store_root(store)} lives in this process's memory; "
+                                "Slurm workers cannot see it: use a directory on a shared "
+                                "filesystem or an fsspec URL")
         opts = slurm or SlurmOptions()
         return DistributedExecutor(_slurm_factory(opts), name="slurm",
                                    workers=opts.jobs * opts.cores,
-                                   description=f"slurm, {opts.jobs} job(s) × {opts.cores} cores")
+                                   description=f"slurm, {opts.jobs} job(s) × {opts.cores} cores",
+                                   worker_timeout=_timeout("slurm", worker_timeout))
     raise ExecutorError(f"unknown executor {kind!r} (sync, local or slurm)")
+
+
+def store_root(store: Any) -> str:
+    """The root of a store, or the root given as a string."""
+    return str(getattr(store, "root", store))

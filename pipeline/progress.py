@@ -1,12 +1,83 @@
-"""Run progress on stderr: a bar on a terminal, plain lines otherwise."""
+"""Run progress on stderr: a bar on a terminal, plain lines otherwise; stage warnings once.
+
+Stage warnings (``ctx.warn``) travel in the task records; :func:`warning_lines`
+turns a run's records into one line per distinct message, with a count and the
+tasks when it repeats.  :class:`StageWarningFilter` keeps the same warnings out
+of the ``mocapflow`` logger's handlers of the command and of worker processes
+(printed there as well, every warning showed twice, or once per worker line).
+"""
 
 from __future__ import annotations
 
+import logging
+import os
 import sys
 import time
+from collections.abc import Iterable
 from typing import Any, TextIO
 
-__all__ = ["Progress"]
+from mocapflow.pipeline import context
+
+__all__ = ["Progress", "StageWarningFilter", "warning_lines"]
+
+#: Task names listed after a repeated warning (then "and N more").
+SHOWN_TASKS = 3
+_CONTEXT_FILE = os.path.normcase(os.path.abspath(context.__file__))
+
+
+class StageWarningFilter(logging.Filter):
+    """Drop the log records of ``Context.warn`` (the run reports them from its records)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not (record.funcName == "warn"
+                    and os.path.normcase(os.path.abspath(record.pathname)) == _CONTEXT_FILE)
+
+
+def _field(record: Any, name: str) -> Any:
+    if isinstance(record, dict):
+        return record.get(name)
+    return getattr(record, name, None)
+
+
+def warning_lines(records: Iterable[Any]) -> list[str]:
+    """One line per distinct stage warning of a run, in task order.
+
+    Parameters
+    ----------
+    records : iterable of TaskRecord or dict
+        With ``node``, ``part`` and ``warnings`` (a sequence of str).
+
+    Returns
+    -------
+    list of str
+        ``"warning: NODE/PART: message"``; a message given more than once (by one
+        task or several) gets ``" (×N in K tasks: also A, B and M more)"``.
+    """
+    groups: dict[str, tuple[list[int], dict[str, None]]] = {}
+    for r in records:
+        warnings = _field(r, "warnings")
+        if not warnings:
+            continue
+        part = _field(r, "part")
+        name = str(_field(r, "node")) + (f"/{part}" if part is not None else "")
+        for w in warnings:
+            count, names = groups.setdefault(str(w), ([0], {}))
+            count[0] += 1
+            names[name] = None
+    lines = []
+    for msg, (count, names) in groups.items():
+        tasks = list(names)
+        line = f"warning: {tasks[0]}: {msg}"
+        if count[0] > 1:
+            line += f" (×{count[0]}"
+            if len(tasks) > 1:
+                shown = tasks[1:1 + SHOWN_TASKS]
+                rest = len(tasks) - 1 - len(shown)
+                line += (f" in {len(tasks)} tasks: also {', '.join(shown)}"
+                         + (f" and {rest} more" if rest else ""))
+            line += ")"
+        lines.append(line)
+    return lines
 
 
 def _fmt_seconds(s: float) -> str:
@@ -53,6 +124,7 @@ class Progress:
         self.label = label
         self.counts = {"hit": 0, "computed": 0, "failed": 0, "skipped": 0}
         self.done = 0
+        self.warnings = 0
         self.start = time.perf_counter()
         self._last_draw = 0.0
         self._drawn = False
@@ -84,6 +156,7 @@ class Progress:
         status = record.get("status", "failed")
         self.counts[status] = self.counts.get(status, 0) + 1
         self.done += 1
+        self.warnings += len(record.get("warnings") or ())
         if not self.enabled:
             return
         if self.tty:
@@ -113,7 +186,8 @@ class Progress:
         c = self.counts
         elapsed = time.perf_counter() - self.start
         summary = (f"{self.label + ': ' if self.label else ''}{self.done} tasks: {c['hit']} hit, "
-                   f"{c['computed']} computed, {c['failed']} failed, {c['skipped']} skipped "
+                   f"{c['computed']} computed, {c['failed']} failed, {c['skipped']} skipped"
+                   f"{f', {self.warnings} warning(s)' if self.warnings else ''} "
                    f"in {_fmt_seconds(elapsed)}")
         if self.tty and self._drawn:
             self._write("\r\x1b[2K")

@@ -20,6 +20,8 @@ Toy stages
 ``toy_flaky``      fails its first ``fail_times`` attempts (counted in ``marker_dir``).
 ``toy_map``        squares the values through ``ctx.map`` in ``chunks`` pieces.
 ``toy_sleep``      sleeps ``seconds`` then passes its input through.
+``toy_warn``       passes its input through, warning ``message`` ``times`` times.
+``toy_die``        kills its own process when the part id contains ``pattern`` (a crash).
 """
 
 from __future__ import annotations
@@ -221,6 +223,23 @@ def toy_sleep(values: np.ndarray, *, seconds: float = 0.5) -> dict:
     return {"values": np.asarray(values)}
 
 
+@stage("toy_warn", outputs=("values",))
+def toy_warn(values: np.ndarray, *, message: str = "toy warning", times: int = 1,
+             ctx: Context) -> dict:
+    """Pass ``values`` through; ``ctx.warn(message)`` ``times`` times."""
+    for _ in range(times):
+        ctx.warn(message)
+    return {"values": np.asarray(values)}
+
+
+@stage("toy_die", outputs=("values",))
+def toy_die(values: np.ndarray, *, pattern: str = "die", ctx: Context) -> dict:
+    """Pass through, but end this process at once (``os._exit``) when the part matches."""
+    if pattern and ctx.part is not None and pattern in ctx.part:
+        os._exit(17)
+    return {"values": np.asarray(values)}
+
+
 # --------------------------------------------------------------------------- helpers
 
 #: A toy graph: read files → add → scale → (per part) and a gather sum.
@@ -285,7 +304,9 @@ def assert_stage_contract(name: str, inputs: Sequence[Any] = (),
 
     Checks: the params validate; the stage returns exactly its declared outputs;
     every output encodes and decodes to the same digest; two calls with the same
-    part and seed give identical digests (purity, randomness only from ``ctx``).
+    part and seed give identical digests (purity, randomness only from ``ctx``),
+    the second with a ``ctx.map`` as on 3 workers (outputs must not depend on how
+    the work was cut).
 
     Parameters
     ----------
@@ -306,21 +327,23 @@ def assert_stage_contract(name: str, inputs: Sequence[Any] = (),
     spec = get_stage(name)
     full = validate_params(spec, dict(params or {}))
 
-    def call() -> dict:
+    def call(**ctx_kw: Any) -> dict:
         kw = dict(full)
         if spec.wants_ctx:
-            kw["ctx"] = Context(part=part, seed=int(full.get("seed", 0) or 0))
+            kw["ctx"] = Context(part=part, seed=int(full.get("seed", 0) or 0), **ctx_kw)
         return dict(spec.func(*inputs, **kw))
 
     first = call()
     assert set(first) == set(spec.outputs), (
         f"stage {name!r} returned {sorted(first)}, declared {sorted(spec.outputs)}")
-    second = call()
+    # the second call as on a 3-worker cluster: ``ctx.map`` work cut in other chunks
+    second = call(mapper=lambda fn, items: [fn(x) for x in items], workers=3)
     for out in spec.outputs:
         enc = codecs.encode(first[out])
         d1 = codecs.digest_encoded(enc)
         back = codecs.encode(codecs.decode(enc))
         assert codecs.digest_encoded(back) == d1, f"{name}.{out}: codec round trip differs"
         assert codecs.digest_encoded(codecs.encode(second[out])) == d1, (
-            f"{name}.{out}: two calls with the same part and seed differ (impure stage?)")
+            f"{name}.{out}: two calls with the same part and seed differ (impure stage, or "
+            "one whose result depends on ctx.workers?)")
     return first

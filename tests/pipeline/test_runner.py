@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mocapflow.pipeline.plan import plan
+from mocapflow.pipeline.plan import last_components, plan
 from mocapflow.pipeline.runner import run
 from tests.pipeline.helpers import by_node, total_of
 
@@ -27,11 +27,16 @@ def test_unchanged_rerun_is_all_hits_and_plan_gives_reasons(toy_config, store, g
     assert r2.counts == {"hit": 16, "computed": 0, "failed": 0, "skipped": 0}
     assert r2.digests() == r1.digests()
     assert [(p.status, p.reason) for p in plan(g, store)] == [("hit", "hit")] * 16
-    # every task is in the run record with its key and components
+    # every task is in the run record with its key; a hit's components are its entry's
     rec = store.runs()[-1]
     assert rec["run_id"] == r2.run_id and len(rec["tasks"]) == 16
     assert {t["status"] for t in rec["tasks"]} == {"hit"}
-    assert all(t["key"] and t["components"]["stage"] == t["stage"] for t in rec["tasks"])
+    assert not any("components" in t or "traceback" in t for t in rec["tasks"])
+    assert all(t["key"] and t["outputs"] and last_components(store, t)["stage"] == t["stage"]
+               for t in rec["tasks"])
+    first = store.runs()[-2]["tasks"]  # computed tasks keep theirs
+    assert all(t["status"] == "computed" and t["components"]["stage"] == t["stage"]
+               for t in first)
 
 
 def test_byte_identical_upstream_output_keeps_downstream_hits(toy_config, data_dir, store,
