@@ -16,7 +16,8 @@ config case.  Outcomes:
 * **rejected**: exit non-zero with exactly one stderr line (``warning:`` lines
   aside) from a typed reader error (``C3DError``, ``BVHError``, ``ASFError``,
   ``AMCError``, ``StrokesFileError``, ``IngestError``) that names the file and a
-  field of its format; for configs ``FILE:LINE: …`` or ``FILE: key: …``.
+  field of its format; for configs ``FILE:LINE: …``, ``FILE: key: …``, or
+  ``FILE: config …`` for a problem of the whole file (too large, unreadable).
   Anything else that fails is **unclear** (an untyped error, ``ezc3d could not
   read it``, no field, several lines).
 * **traceback** (``Traceback`` on stderr), **hang** (over the timeout), **crash**
@@ -226,7 +227,8 @@ def _classify(case: Case, cdir: Path, status: int, limit_mib: float, rss: float)
         return "unclear", f"{len(lines)} lines: " + " | ".join(lines)[:300]
     if case.config is not None:
         cfg = re.escape(str(cdir / "config.yaml"))
-        ok = re.match(rf"mocapflow: error: {cfg}(:\d+: |: [\w.\[\]-]+: )", msg)
+        # FILE:LINE: …, FILE: key: …, or a problem of the whole file (FILE: config …)
+        ok = re.match(rf"mocapflow: error: {cfg}(:\d+: |: [\w.\[\]-]+: |: config )", msg)
         return ("rejected" if ok and rc == 2 else "unclear"), msg
     m = re.match(r"mocapflow: error: 1 task\(s\) failed: \S+: (\w+): (.*)", msg)
     if not m or m.group(1) not in TYPED[case.kind]:
