@@ -4,7 +4,9 @@
   :func:`end_site_positions` — the End Sites';
 * :func:`motion_positions` — global joint positions of a motion (the form
   several graphs share);
-* :func:`resample_motion` — a motion at another frame rate (slerped rotations).
+* :func:`resample_motion` — a motion at another frame rate: slerped rotations
+  (``method="slerp"``) or a C²-smooth rotation spline (``method="spline"``, for
+  upsampling back to a source rate without velocity kinks at the samples).
 
 Quaternion and Euler conventions are those of
 :mod:`mocapflow.stages.motion.rotations`; the rigid fit of point sets is
@@ -13,7 +15,11 @@ Quaternion and Euler conventions are those of
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation, RotationSpline
 
 from mocapflow.stages.motion.datatypes import Motion, Skeleton
 from mocapflow.stages.motion.rotations import (
@@ -100,12 +106,18 @@ def end_site_positions(
     return positions[..., ep, :] + quat_rotate(global_rotations[..., ep, :], skeleton.end_offsets)
 
 
-def resample_motion(motion: Motion, rate: float) -> Motion:
+def resample_motion(
+    motion: Motion, rate: float, *, method: Literal["slerp", "spline"] = "slerp"
+) -> Motion:
     """Resample a motion to another frame rate over the same duration.
 
-    Rotations are slerped, root position and translations linearly interpolated.
-    The new motion has ``floor((F - 1) * rate / motion.rate) + 1`` frames, frame
-    ``k`` at time ``k / rate``.
+    ``method="slerp"``: rotations slerped, root position and translations linearly
+    interpolated (C⁰: the velocity kinks at every source sample).  ``method="spline"``:
+    each joint's rotations by a cubic rotation spline (:class:`scipy.spatial.transform.
+    RotationSpline`, cubic in a local rotation-vector tangent space, continuous angular
+    rate and acceleration: C²), root position and translations by cubic splines
+    (not-a-knot); what to use when going up to a source rate.  The new motion has
+    ``floor((F - 1) * rate / motion.rate) + 1`` frames, frame ``k`` at time ``k / rate``.
 
     Parameters
     ----------
@@ -113,25 +125,44 @@ def resample_motion(motion: Motion, rate: float) -> Motion:
         ``F`` frames at ``motion.rate``.
     rate : float
         New frames per second (> 0).
+    method : {"slerp", "spline"}
+        Interpolant (``"spline"`` needs ``F >= 4``; fewer frames fall back to slerp).
 
     Returns
     -------
     Motion
-        Same skeleton and attrs; ``attrs["resampled_from_rate"]`` records the old rate.
+        Same skeleton and attrs; ``attrs["resampled_from_rate"]`` records the first
+        rate it was resampled from (the source's, kept through later resamples).
     """
     rate = float(rate)
     if not rate > 0:
         raise ValueError(f"resample_motion: rate must be > 0, got {rate}")
+    if method not in ("slerp", "spline"):
+        raise ValueError(f"resample_motion: method must be 'slerp' or 'spline', got {method!r}")
     F = motion.n_frames
     if rate == motion.rate or F == 0:
         return motion.replace()
     duration = (F - 1) / motion.rate
     n_new = int(np.floor(duration * rate + 1e-9)) + 1
-    u = np.arange(n_new) * (motion.rate / rate)
+    u = np.minimum(np.arange(n_new) * (motion.rate / rate), F - 1)
+    rot = quat_continuity(motion.rotations, axis=0)
+    if method == "spline" and F >= 4:
+        rotations, root, trans = _spline_samples(motion, rot, u)
+    else:
+        rotations, root, trans = _slerp_samples(motion, rot, u)
+    attrs = dict(motion.attrs)
+    attrs.setdefault("resampled_from_rate", motion.rate)
+    return motion.replace(
+        root_position=root, rotations=rotations, rate=rate, translations=trans, attrs=attrs
+    )
+
+
+def _slerp_samples(motion: Motion, rot: np.ndarray, u: np.ndarray):
+    """Rotations ``(N, J, 4)`` slerped, root ``(N, 3)`` and translations lerped at frames ``u``."""
+    F = motion.n_frames
     i0 = np.clip(np.floor(u).astype(np.int64), 0, F - 1)
     i1 = np.minimum(i0 + 1, F - 1)
     frac = np.clip(u - i0, 0.0, 1.0)
-    rot = quat_continuity(motion.rotations, axis=0)
     rotations = quat_slerp(rot[i0], rot[i1], frac[:, None])
     fr = frac[:, None]
     root = motion.root_position[i0] * (1 - fr) + motion.root_position[i1] * fr
@@ -139,11 +170,27 @@ def resample_motion(motion: Motion, rate: float) -> Motion:
     if motion.translations is not None:
         fr3 = frac[:, None, None]
         trans = motion.translations[i0] * (1 - fr3) + motion.translations[i1] * fr3
-    attrs = dict(motion.attrs)
-    attrs.setdefault("resampled_from_rate", motion.rate)
-    return motion.replace(
-        root_position=root, rotations=rotations, rate=rate, translations=trans, attrs=attrs
-    )
+    return rotations, root, trans
+
+
+def _spline_samples(motion: Motion, rot: np.ndarray, u: np.ndarray):
+    """Rotations ``(N, J, 4)`` by rotation splines, root and translations by cubic splines.
+
+    ``u`` are fractional source frames; ``rot`` the ``(F, J, 4)`` sign-continuous
+    ``(w, x, y, z)`` rotations (SciPy's are ``(x, y, z, w)``).
+    """
+    F, J = rot.shape[:2]
+    t = np.arange(F, dtype=np.float64)
+    out = np.empty((u.size, J, 4))
+    for j in range(J):
+        spline = RotationSpline(t, Rotation.from_quat(rot[:, j][:, [1, 2, 3, 0]]))
+        out[:, j] = spline(u).as_quat()[:, [3, 0, 1, 2]]
+    rotations = quat_continuity(out, axis=0)
+    root = CubicSpline(t, motion.root_position, axis=0)(u)
+    trans = None
+    if motion.translations is not None:
+        trans = CubicSpline(t, motion.translations, axis=0)(u)
+    return rotations, root, trans
 
 
 def motion_positions(motion: Motion) -> np.ndarray:

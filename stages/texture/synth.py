@@ -17,6 +17,15 @@ into the motion: seams smoothed adaptively
 along a path (:mod:`~mocapflow.stages.texture.root`), stance toes then pinned
 by two-bone leg IK (``foot_ik``).  The ``synth`` stage composes the three.
 
+Frame rate: the synthesis works at the rate of its input motion (the ingest
+``rate``); the output motion is resampled back to the source's rate (the rate
+the BVH was read at, ``attrs["resampled_from_rate"]``, so the export gets the
+input's exact ``Frame Time`` text) or to ``output_rate``, by a C² rotation
+spline (:func:`~mocapflow.stages.motion.kinematics.resample_motion`,
+``method="spline"``); the report's ``jerk_p99`` is measured at that rate.
+Constraint frames are given and reported in those numbers: input frames of the
+source file, output frames at the output rate.
+
 Variety: at the coarsest level the natural successor of a run always matches
 perfectly, so drawing only among matches "close to the best" reproduces the
 input almost verbatim.  ``variety`` sets the draw window as a quantile of the
@@ -30,12 +39,15 @@ the input's), any number of meeting points per output (one per gap), loops.
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal
 
 import numpy as np
 
 from mocapflow.pipeline import Context, stage
+from mocapflow.stages.metrics.quality import jerk_p99
 from mocapflow.stages.motion.datatypes import Motion
+from mocapflow.stages.motion.kinematics import motion_positions, resample_motion
 from mocapflow.stages.texture.assemble import assemble_motion
 from mocapflow.stages.texture.graph import (
     UnreachableGapError,
@@ -311,6 +323,45 @@ def synthesize_source(
 
 # --------------------------------------------------------------------------- stage
 
+#: Most output frames per synthesized frame ``output_rate`` may make (e.g. 30 -> 480 fps).
+MAX_OUTPUT_UPSAMPLE = 16
+
+
+def _rates(motion: Motion, output_rate: float | None) -> tuple[float, float]:
+    """``(source_rate, output_rate)``: the rate the file was read at and the output's.
+
+    The source rate is ``motion.attrs["resampled_from_rate"]`` (before the ingest
+    resampled it), else ``motion.rate``; the output rate defaults to it.
+    """
+    source = float(motion.attrs.get("resampled_from_rate", motion.rate))
+    if output_rate is None:
+        return source, source
+    if not isinstance(output_rate, (int, float)):
+        raise SynthesisError(f"output_rate: must be a number or null, got {output_rate!r}")
+    rate = float(output_rate)
+    if not (math.isfinite(rate) and 0 < rate <= MAX_OUTPUT_UPSAMPLE * motion.rate):
+        raise SynthesisError(
+            f"output_rate: must be a number in (0, {MAX_OUTPUT_UPSAMPLE} x the synthesis "
+            f"rate {motion.rate:g}], got {output_rate}"
+        )
+    return source, rate
+
+
+def _synthesis_constraints(constraints, rate: float, source_rate: float, output_rate: float):
+    """Constraints ``[source frame, output frame]`` as frames at the synthesis ``rate``.
+
+    Input frames count at ``source_rate`` (the file's 0-based frame index), output
+    frames at ``output_rate``; both are rounded to the nearest synthesis frame.
+    """
+    if not constraints or (source_rate == rate and output_rate == rate):
+        return constraints
+    out = []
+    for c in constraints:
+        if len(c) != 2:
+            return constraints  # left to _check_constraints' message
+        out.append([round(int(c[0]) * rate / source_rate), round(int(c[1]) * rate / output_rate)])
+    return out
+
 
 def _synth_report(
     length: int,
@@ -372,6 +423,7 @@ def synth(
     jerk_tolerance: float = 1.0,
     max_widening: int = 12,
     foot_ik: bool = True,
+    output_rate: float | None = None,
     ctx: Context,
 ) -> dict[str, Any]:
     """Constrained multi-resolution texture synthesis (Moradoff 2002).
@@ -383,9 +435,13 @@ def synth(
     motion : Motion
         Input motion (``F`` frames), for the skeleton and world placement.
     length : int, optional
-        Output frames (default ``2 F``); any length.
+        Output frames at the synthesis rate (default ``2 F``); any length.
     constraints : list of [input_frame, output_frame], optional
-        Poses required at output frames (exact before smoothing).
+        Poses required at output frames (exact before smoothing).  Input frames
+        are the source file's (0-based, at its rate), output frames count at the
+        output rate; both are rounded to the nearest synthesis frame (the report
+        gives ``constraints_synthesis`` and ``constraint_output_frames``, where
+        the constrained poses land).
     path : list of [x, z] (or [x, y, z]), optional
         Ground path to follow.
     path_mode : {"polyline", "spline"}
@@ -445,14 +501,22 @@ def synth(
     foot_ik : bool
         Pin the stance toes with two-bone leg IK after smoothing (no foot skate
         at the seams; constrained frames untouched).
+    output_rate : float, optional
+        Frames per second of the output motion; default the source's (the rate
+        its file was read at), so the BVH export keeps the input's ``Frame Time``.
+        Resampled from the synthesis rate by a C² rotation spline.
     ctx : Context
 
     Returns
     -------
     dict
-        ``motion`` (Motion on the input skeleton), ``source_index`` ((L,) int
-        ndarray, input frame per output frame before smoothing), ``report`` (JSON:
-        seams, meeting points, smoothing, constraint errors, ``seed``; the times of
+        ``motion`` (Motion on the input skeleton and in its units, at the output
+        rate), ``source_index`` ((L,) int ndarray, input frame per output frame
+        before smoothing, at the synthesis rate), ``report`` (JSON: seams, meeting
+        points, smoothing, constraint errors, ``rate`` (synthesis), ``source_rate``,
+        ``output_rate``, ``output_frames``, ``constraints_synthesis``,
+        ``constraint_output_frames``, ``jerk_p99`` (m/s³ at the output rate),
+        ``seed``; the times of
         the steps ``search`` and ``assemble`` go to ``ctx.timer``, never the report).
 
     Raises
@@ -467,11 +531,14 @@ def synth(
         A path that cannot be followed.
     """
     F = motion.n_frames
+    source_rate, out_rate = _rates(motion, output_rate)
     levels = _levels_used(pyramid, F, levels, filter_size)
     L = 2 * F if length is None else int(length)
     if L < 2:
         raise SynthesisError(f"length must be >= 2 frames, got {L}")
-    cons = _check_constraints(constraints, F, L, levels, loop)
+    given = [list(c) for c in constraints or []]
+    cons = _constraints_at_synthesis_rate(given, motion.rate, source_rate, out_rate, F, L,
+                                          levels, loop)
     curve = PathCurve.from_points(path, mode=path_mode) if path is not None else None
     params = SearchParams(
         slots=slots, level_weights=(ancestor_weight, current_weight, finer_weight),
@@ -492,5 +559,52 @@ def synth(
             jerk_tolerance=jerk_tolerance if jerk_tolerance > 0 else None,
             foot_ik=foot_ik, warn=ctx.warn,
         )
-    report = _synth_report(L, F, levels, method, loop, cons, info, assembly, seed=seed)
+    out, assembly = _at_output_rate(out, assembly, motion.rate, source_rate, out_rate, cons)
+    shown = sorted(([int(c[0]), int(c[1])] for c in given), key=lambda c: c[1])  # as given
+    report = _synth_report(L, F, levels, method, loop, shown, info, assembly, seed=seed)
     return {"motion": out, "source_index": src, "report": report}
+
+
+
+def _constraints_at_synthesis_rate(given: list[list[int]], rate: float, source_rate: float,
+                                   out_rate: float, F: int, L: int, levels: int, loop: bool
+                                   ) -> list[tuple[int, int]]:
+    """``(input frame, output frame)`` constraints in source / output frame numbers, as
+    checked ``(input, output)`` frames at the synthesis ``rate`` (rounded to the nearest).
+
+    Raises
+    ------
+    ConstraintError
+        As :func:`_check_constraints`, saying which rates the frames count at.
+    """
+    try:
+        return _check_constraints(
+            _synthesis_constraints(given, rate, source_rate, out_rate), F, L, levels, loop)
+    except ConstraintError as e:
+        if source_rate == rate and out_rate == rate:
+            raise
+        raise ConstraintError(
+            f"{e} (frames at the synthesis rate {rate:g} fps; the constraints "
+            f"{given} count input frames at the source's {source_rate:g} fps and output "
+            f"frames at {out_rate:g} fps)"
+        ) from None
+
+
+def _at_output_rate(out: Motion, assembly: dict, rate: float, source_rate: float,
+                    out_rate: float, cons: list[tuple[int, int]]) -> tuple[Motion, dict]:
+    """The synthesized motion at ``out_rate`` (C² rotation spline) and the report's rate
+    fields: ``rate`` (synthesis), ``source_rate``, ``output_rate``, ``output_frames``,
+    the constraints at both rates, ``jerk_p99`` (m/s³) at the output rate."""
+    if abs(out_rate - out.rate) > 1e-9 * out.rate:
+        out = resample_motion(out, out_rate, method="spline")
+    jerk = jerk_p99(motion_positions(out), out.rate)
+    return out, {
+        **assembly,
+        "rate": rate,
+        "source_rate": source_rate,
+        "output_rate": out.rate,
+        "output_frames": out.n_frames,
+        "constraints_synthesis": [list(c) for c in cons],
+        "constraint_output_frames": [round(j * out_rate / rate) for _, j in cons],
+        "jerk_p99": jerk if math.isfinite(jerk) else None,
+    }

@@ -18,6 +18,13 @@ DOFs of a motion
     are dropped from the trajectories and restored on the way back.
 DOFs of pen strokes
     ``x`` and ``y`` of the pen (pen-up breaks are joined in drawing order).
+Source rate and units
+    Motion clips keep their first source's file unit, scale, ``Frame Time`` and
+    rate (``attrs["source"]``, :func:`source_attrs`); the motions made back
+    (:func:`clips_to_motions`) carry them, and :func:`export_clips` writes each
+    variant at the source rate (or ``attrs["output_rate"]``, set by the ``ik``
+    stage), resampled from the model's rate by a C² rotation spline, in the
+    source unit: the input's exact ``Frame Time`` text and skeleton size.
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ import numpy as np
 from mocapflow.pipeline.codecs import Encoded, codec, decode, encode, exporter
 from mocapflow.stages.motion.datatypes import Motion, Skeleton, Strokes
 from mocapflow.stages.motion.formats.bvh import write_bvh
+from mocapflow.stages.motion.kinematics import resample_motion
 from mocapflow.stages.variation.dofs import ClipError, dofs_to_motion, motion_to_dofs
 
 __all__ = [
@@ -46,8 +54,12 @@ __all__ = [
     "flatten_clips",
     "make_clips",
     "merge_clips",
+    "source_attrs",
     "source_name",
 ]
+
+#: Motion attrs describing the source file that clips carry to their motions.
+SOURCE_KEYS = ("source_format", "source_unit", "source_scale", "frame_time", "frame_time_text")
 
 
 # --------------------------------------------------------------------------- the Clips type
@@ -392,6 +404,25 @@ def source_name(obj: Any, default: str) -> str:
     return os.path.basename(str(src)) if src else default
 
 
+def source_attrs(motion: Motion) -> dict[str, Any]:
+    """The source file's unit, scale, Frame Time and rate of a motion.
+
+    Parameters
+    ----------
+    motion : Motion
+
+    Returns
+    -------
+    dict
+        The :data:`SOURCE_KEYS` present in ``motion.attrs`` and ``source_rate``
+        (``attrs["resampled_from_rate"]``, the rate the file was read at, else
+        ``motion.rate``).
+    """
+    out = {k: motion.attrs[k] for k in SOURCE_KEYS if k in motion.attrs}
+    out["source_rate"] = float(motion.attrs.get("resampled_from_rate", motion.rate))
+    return out
+
+
 def clips_from_motions(
     motions: list[Motion],
     *,
@@ -418,6 +449,7 @@ def clips_from_motions(
     Returns
     -------
     Clips
+        ``attrs["source"]``: :func:`source_attrs` of the first motion.
     """
     if not motions:
         raise ClipError("no input motion")
@@ -454,7 +486,12 @@ def clips_from_motions(
         origins=np.asarray(origins),
         skeleton=sk,
         names=labels,
-        attrs={"root": root, "up": up, "translations": translations},
+        attrs={
+            "root": root,
+            "up": up,
+            "translations": translations,
+            "source": source_attrs(motions[0]),
+        },
     )
 
 
@@ -486,12 +523,15 @@ def clips_to_motions(clips: Clips) -> list[Motion]:
     Returns
     -------
     list of Motion
-        One per clip, starting at the clip's origin.
+        One per clip, starting at the clip's origin, at ``clips.rate``; ``attrs``
+        ``clip`` (its name) and the source's unit, scale and Frame Time
+        (``attrs["source"]``, see :func:`source_attrs`).
     """
     if clips.kind != "motion":
         raise ClipError(f"clips of kind {clips.kind!r} are not motions")
     a = clips.attrs
     trans = a.get("translations")
+    src = {k: v for k, v in (a.get("source") or {}).items() if k in SOURCE_KEYS}
     return [
         dofs_to_motion(
             clips.full(c),
@@ -502,7 +542,7 @@ def clips_to_motions(clips: Clips) -> list[Motion]:
             root=a.get("root", "heading"),
             up=a.get("up", "y"),
             translations=None if trans is None else np.asarray(trans),
-            attrs={"clip": clips.names[c]},
+            attrs={**src, "clip": clips.names[c]},
         )
         for c in range(clips.n_clips)
     ]
@@ -582,6 +622,11 @@ def clips_to_strokes(clips: Clips) -> list[Strokes]:
 def export_clips(obj: Clips, directory: Path, stem: str) -> list[Path]:
     """Write each clip as a file: BVH for motions, CSV for strokes and DOFs.
 
+    Motions are written at ``attrs["output_rate"]`` when set, else at the source
+    rate (``attrs["source"]["source_rate"]``; the clips' own rate without one),
+    resampled by a C² rotation spline
+    (:func:`~mocapflow.stages.motion.kinematics.resample_motion`), in the source unit.
+
     Parameters
     ----------
     obj : Clips
@@ -597,7 +642,10 @@ def export_clips(obj: Clips, directory: Path, stem: str) -> list[Path]:
     directory.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
     if obj.kind == "motion":
+        rate = obj.attrs.get("output_rate") or (obj.attrs.get("source") or {}).get("source_rate")
         for i, m in enumerate(clips_to_motions(obj)):
+            if rate and abs(float(rate) - m.rate) > 1e-9 * m.rate:
+                m = resample_motion(m, float(rate), method="spline")
             paths.append(write_bvh(m, directory / f"{stem}_{i:02d}.bvh"))
         return paths
     for i in range(obj.n_clips):

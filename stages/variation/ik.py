@@ -36,6 +36,7 @@ Unreachable targets
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -313,6 +314,7 @@ def ik(
     blend: float = 0.15,
     max_iter: int = 100,
     mode: Literal["auto", "off"] = "auto",
+    output_rate: float | None = None,
     ctx: Context,
 ) -> dict:
     """IK clean-up of sampled variants: planted feet (and configured targets), Lau §7.
@@ -353,6 +355,11 @@ def ik(
         SLSQP iterations per frame.
     mode : {"auto", "off"}
         ``off`` passes the variants through.
+    output_rate : float, optional
+        Frames per second the variants are exported at (``attrs["output_rate"]``);
+        default the source file's rate, so the BVH keeps the input's ``Frame Time``.
+        The variants stay at the model's rate; the exporter resamples them by a
+        C² rotation spline.
     ctx : Context
         Warnings.
 
@@ -364,9 +371,15 @@ def ik(
         over the frames whose targets were reached, unreachable frames; the
         limbs and the thresholds used).
     """
-    if mode == "off" or variants.kind != "motion":
-        why = "off" if mode == "off" else f"kind {variants.kind!r} has no skeleton"
+    if variants.kind != "motion":
+        why = f"kind {variants.kind!r} has no skeleton"
         return {"variants": variants, "report": {"skipped": why}}
+    if output_rate is not None:
+        if not (isinstance(output_rate, (int, float)) and 0 < output_rate < math.inf):
+            raise IKError(f"output_rate: must be a number > 0 or null, got {output_rate!r}")
+        variants = variants.replace(attrs={**variants.attrs, "output_rate": float(output_rate)})
+    if mode == "off":
+        return {"variants": variants, "report": {"skipped": "off"}}
     sk = variants.skeleton
     up = "xyz".index(variants.attrs.get("up", "y"))
     groups = _effector_groups(sk, effectors, contacts, targets)

@@ -647,7 +647,9 @@ def write_bvh(
     path : str or path-like
     unit : str or float, optional
         Unit written (a :data:`BVH_UNITS` name or metres per unit); default the
-        source unit in ``motion.attrs["source_scale"]``, else centimetres.
+        source unit in ``motion.attrs["source_scale"]``, else in
+        ``motion.skeleton.attrs["source_scale"]`` (stages that make new motions on
+        the source skeleton keep it there), else centimetres.
     precision : int
         Decimal places of every value.
 
@@ -665,7 +667,9 @@ def write_bvh(
     p = Path(path)
     sk = motion.skeleton
     if unit is None:
-        scale = float(motion.attrs.get("source_scale", BVH_UNITS["cm"]))
+        scale = float(
+            motion.attrs.get("source_scale", sk.attrs.get("source_scale", BVH_UNITS["cm"]))
+        )
     else:
         _, scale = _resolve_unit(unit, 1.0, str(p))
     channels = sk.channels

@@ -1,0 +1,91 @@
+"""Native frame rate and units of the variation output (issue 14).
+
+The model works at the ingest rate (30 fps here, small params); the exported BVHs come
+back at the source file's rate (120 fps) with its exact ``Frame Time`` text and in its
+unit (the PyMO walk is in inches: written in centimetres it was 2.54x too large).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mocapflow.pipeline import Context
+from mocapflow.pipeline.codecs import decode, encode
+from mocapflow.stages.motion.formats.bvh import read_bvh, write_bvh
+from mocapflow.stages.motion.ingest import ingest_bvh
+from mocapflow.stages.motion.kinematics import motion_positions
+from mocapflow.stages.variation.clips import clips_to_motions, export_clips
+from mocapflow.stages.variation.ik import IKError, ik
+from mocapflow.stages.variation.inputs import clips
+from mocapflow.stages.variation.learn import learn
+from mocapflow.stages.variation.sample import sample
+from tests.stages.texture.conftest import (
+    bvh_frame_count,
+    bvh_frame_time_text,
+    bvh_skeleton_size,
+)
+
+TAKE = "pymo_AV_8Walk_Meredith_HVHA_Rep1.bvh"  # 120 fps, inches
+
+
+@pytest.fixture(scope="module")
+def variation_run(shared_data):
+    """``(path, training clips, ik variants)``: the graph's stages with small params."""
+    path = shared_data / "bvh" / TAKE
+    motion = ingest_bvh(str(path), rate=30, ctx=Context())["motion"]
+    train = clips(motion, max_clips=3, ctx=Context())["clips"]
+    model = learn(train, k=15, kernel_width=2.0, max_parents=2, candidates=3, restarts=0,
+                  score="one_step", ctx=Context())["model"]
+    model = decode(encode(model))  # through the store's codecs, as the graph does
+    variants = sample(model, count=2, sigma=0.15, noise_time=0.2,
+                      ctx=Context(rng=np.random.default_rng(0)))["variants"]
+    cleaned = ik(decode(encode(variants)), ctx=Context())["variants"]
+    return path, train, decode(encode(cleaned))
+
+
+def test_clips_carry_the_source_unit_scale_and_rate(variation_run):
+    _, train, variants = variation_run
+    for c in (train, variants):
+        src = c.attrs["source"]
+        assert (src["source_unit"], src["source_scale"]) == ("in", 0.0254)
+        assert (src["frame_time_text"], src["source_rate"]) == ("0.008333", 120.0)
+        assert c.rate == 30.0
+    m = clips_to_motions(variants)[0]
+    assert m.attrs["source_scale"] == 0.0254 and m.attrs["frame_time_text"] == "0.008333"
+
+
+def test_variation_exports_at_the_source_rate_frame_time_and_unit(variation_run, tmp_path):
+    path, _, variants = variation_run
+    paths = export_clips(variants, tmp_path, "variants")
+    assert len(paths) == 2
+    size_in = bvh_skeleton_size(path)
+    for bvh, m30 in zip(paths, clips_to_motions(variants)):
+        assert bvh_frame_time_text(bvh) == bvh_frame_time_text(path) == "0.008333"
+        assert bvh_frame_count(bvh) == 4 * (m30.n_frames - 1) + 1
+        assert abs(bvh_skeleton_size(bvh) / size_in - 1) < 1e-3, (bvh_skeleton_size(bvh), size_in)
+        back = read_bvh(bvh)
+        assert back.attrs["source_unit"] == "in" and back.rate == 120.0
+        # every 4th exported frame is the model's frame (6 decimals of an inch)
+        err = np.abs(motion_positions(back)[::4] - motion_positions(m30)).max()
+        assert err < 1e-4, err
+
+
+def test_ik_output_rate_sets_the_export_rate_and_is_checked(variation_run, tmp_path):
+    _, _, variants = variation_run
+    out = ik(variants, mode="off", output_rate=60, ctx=Context())["variants"]
+    assert out.attrs["output_rate"] == 60.0 and out.rate == 30.0
+    (bvh, _) = export_clips(out, tmp_path, "v60")
+    assert bvh_frame_time_text(bvh) == "0.01666666667"
+    assert bvh_frame_count(bvh) == 2 * (clips_to_motions(out)[0].n_frames - 1) + 1
+    with pytest.raises(IKError, match="output_rate"):
+        ik(variants, mode="off", output_rate=0.0, ctx=Context())
+
+
+def test_write_bvh_falls_back_to_the_skeletons_source_unit(variation_run, tmp_path):
+    path, _, variants = variation_run
+    m = clips_to_motions(variants)[0]
+    bare = m.replace(attrs={})  # a stage that made a new motion on the source skeleton
+    assert bare.skeleton.attrs["source_scale"] == 0.0254
+    out = write_bvh(bare, tmp_path / "bare.bvh")
+    assert abs(bvh_skeleton_size(out) / bvh_skeleton_size(path) - 1) < 1e-3
