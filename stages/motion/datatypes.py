@@ -73,7 +73,17 @@ class Markers:
     fragment_labels : list of str
         ``U`` names of the unlabelled trajectories.
     attrs : dict
-        Source file, ``source_unit``, points excluded as model outputs, etc.
+        Source file, ``source_unit``, points excluded as model outputs, etc.; for
+        C3D sources ``c3d_parameters``, the file's whole parameter section as a JSON
+        tree (see :func:`mocapflow.stages.motion.formats.c3d.parameter_tree`).
+    analogs : (S, C) float ndarray, optional
+        Analog samples of the source (C3D ``ANALOG`` data, ``S = F x`` subframes,
+        ``C`` channels) in the source's units (``ANALOG:SCALE``, ``GEN_SCALE`` and
+        ``OFFSET`` applied); their labels, units and rate are in
+        ``attrs["c3d_parameters"]["ANALOG"]``.
+    status : (F, M) int8 ndarray, optional
+        Per-sample state after cleaning: -1 missing, 0 measured, 1 merged from a
+        fragment, 2 filled (the ``clean`` stage's codes); ``None`` for raw captures.
     """
 
     positions: np.ndarray
@@ -84,6 +94,8 @@ class Markers:
     fragments: np.ndarray | None = None
     fragment_labels: list[str] = field(default_factory=list)
     attrs: dict[str, Any] = field(default_factory=dict)
+    analogs: np.ndarray | None = None
+    status: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.positions = _f64(self.positions, (3,), "positions")
@@ -106,11 +118,30 @@ class Markers:
             raise ValueError("fragment_labels and fragments disagree")
         self.rate = float(self.rate)
         self.first_frame = int(self.first_frame)
+        if self.analogs is not None:
+            self.analogs = _f64(self.analogs)
+            S = self.analogs.shape[0]
+            if self.analogs.ndim != 2 or (self.n_frames and S % self.n_frames):
+                raise ValueError(
+                    f"analogs: expected (S, C) with S a multiple of {self.n_frames} frames, "
+                    f"got {self.analogs.shape}"
+                )
+        if self.status is not None:
+            self.status = np.asarray(self.status, dtype=np.int8)
+            if self.status.shape != self.positions.shape[:2]:
+                raise ValueError(f"status: expected {self.positions.shape[:2]}")
 
     @property
     def n_frames(self) -> int:
         """Number of frames ``F``."""
         return self.positions.shape[0]
+
+    @property
+    def analog_subframes(self) -> int:
+        """Analog samples per frame (0 without analogs)."""
+        if self.analogs is None or not self.n_frames:
+            return 0
+        return self.analogs.shape[0] // self.n_frames
 
     @property
     def n_markers(self) -> int:
@@ -123,7 +154,12 @@ class Markers:
         return np.isfinite(self.positions).all(axis=-1)
 
     def replace(self, **changes: Any) -> Markers:
-        """A copy with some fields replaced."""
+        """A copy with some fields replaced.
+
+        ``status`` is carried over only while the labels and frame count stay (it
+        belongs to those samples) and ``analogs`` only while the frame count stays,
+        unless given.
+        """
         kw = dict(
             positions=self.positions,
             labels=self.labels,
@@ -133,8 +169,17 @@ class Markers:
             fragments=self.fragments,
             fragment_labels=self.fragment_labels,
             attrs=dict(self.attrs),
+            analogs=self.analogs,
+            status=self.status,
         )
         kw.update(changes)
+        new_f = np.shape(kw["positions"])[0]
+        if "status" not in changes and self.status is not None and (
+            new_f != self.n_frames or [str(x) for x in kw["labels"]] != self.labels
+        ):
+            kw["status"] = None
+        if "analogs" not in changes and new_f != self.n_frames:
+            kw["analogs"] = None
         return Markers(**kw)
 
     def take_frames(self, frames: np.ndarray | slice) -> Markers:
@@ -143,11 +188,19 @@ class Markers:
         Parameters
         ----------
         frames : (K,) int ndarray or slice
+            The analog samples of those frames are kept with them.
         """
+        analogs = None
+        if self.analogs is not None:
+            n = self.analog_subframes
+            rows = np.arange(self.n_frames * n).reshape(self.n_frames, n)[frames].ravel()
+            analogs = self.analogs[rows]
         return self.replace(
             positions=self.positions[frames],
             residuals=None if self.residuals is None else self.residuals[frames],
             fragments=self.fragments[frames],
+            analogs=analogs,
+            status=None if self.status is None else self.status[frames],
         )
 
 
@@ -158,6 +211,10 @@ def _encode_markers(m: Markers) -> Encoded:
     }
     if m.residuals is not None:
         arrays["residuals"] = (m.residuals, ("frame", "marker"))
+    if m.analogs is not None:
+        arrays["analogs"] = (m.analogs, ("analog_sample", "channel"))
+    if m.status is not None:
+        arrays["status"] = (m.status, ("frame", "marker"))
     return Encoded(
         "markers",
         arrays,
@@ -182,6 +239,8 @@ def _decode_markers(e: Encoded) -> Markers:
         fragments=e.arrays["fragments"][0],
         fragment_labels=a["fragment_labels"],
         attrs=a.get("attrs", {}),
+        analogs=e.arrays["analogs"][0] if "analogs" in e.arrays else None,
+        status=e.arrays["status"][0] if "status" in e.arrays else None,
     )
 
 

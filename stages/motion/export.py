@@ -1,4 +1,4 @@
-"""Exporters used by ``mocapflow export``: markers → C3D, motion → BVH, strokes → CSV.
+"""Exporters used by ``mocapflow export``: markers → C3D + TRC, motion → BVH, strokes → CSV.
 
 Each is registered for a stored type name with :func:`mocapflow.pipeline.codecs.exporter`
 and has the signature ``fn(obj, directory, stem, **options) -> list[Path]``.  The
@@ -15,16 +15,26 @@ from mocapflow.stages.motion.datatypes import UNIT_SCALE, Markers, Motion, Strok
 from mocapflow.stages.motion.formats.bvh import write_bvh
 from mocapflow.stages.motion.formats.c3d import write_c3d
 from mocapflow.stages.motion.formats.strokes import write_strokes_csv
+from mocapflow.stages.motion.formats.trc import write_trc
 
 __all__ = [
     "export_markers_c3d",
+    "export_markers_trc",
     "export_motion_bvh",
     "export_strokes_csv",
 ]
 
 
+def _unit(markers: Markers, unit: str | None) -> str:
+    """``unit``, else the source unit (``attrs["source_unit"]``) when known, else ``"mm"``."""
+    if unit is None:
+        unit = markers.attrs.get("source_unit", "mm")
+        unit = unit if unit in UNIT_SCALE else "mm"
+    return unit
+
+
 def export_markers_c3d(markers: Markers, path: str | Path, *, unit: str | None = None) -> Path:
-    """Write markers to a C3D file.
+    """Write markers to a C3D file with the source's analogs and parameter groups.
 
     Parameters
     ----------
@@ -33,11 +43,27 @@ def export_markers_c3d(markers: Markers, path: str | Path, *, unit: str | None =
     unit : str, optional
         POINT:UNITS of the file; default the source unit (``attrs["source_unit"]``)
         when it is a known unit, else ``"mm"``.
+
+    Returns
+    -------
+    Path
+        See :func:`~mocapflow.stages.motion.formats.c3d.write_c3d` for what is kept
+        and how the residuals encode measured / merged / filled samples.
     """
-    if unit is None:
-        unit = markers.attrs.get("source_unit", "mm")
-        unit = unit if unit in UNIT_SCALE else "mm"
-    return write_c3d(markers, path, unit=unit)
+    return write_c3d(markers, path, unit=_unit(markers, unit))
+
+
+def export_markers_trc(markers: Markers, path: str | Path, *, unit: str | None = None) -> Path:
+    """Write the labelled markers to an OpenSim TRC file (units and rate in its header).
+
+    Parameters
+    ----------
+    markers : Markers
+    path : str or Path
+    unit : str, optional
+        ``Units`` of the file; default as :func:`export_markers_c3d`.
+    """
+    return write_trc(markers, path, unit=_unit(markers, unit))
 
 
 def export_motion_bvh(motion: Motion, path: str | Path) -> Path:
@@ -56,7 +82,11 @@ def export_strokes_csv(strokes: Strokes | list[Strokes], path: str | Path) -> Pa
 
 @exporter("markers")
 def _export_markers(obj: Markers, directory: Path, stem: str, **options: Any) -> list[Path]:
-    return [export_markers_c3d(obj, Path(directory) / f"{stem}.c3d", unit=options.get("unit"))]
+    unit = options.get("unit")
+    return [
+        export_markers_c3d(obj, Path(directory) / f"{stem}.c3d", unit=unit),
+        export_markers_trc(obj, Path(directory) / f"{stem}.trc", unit=unit),
+    ]
 
 
 @exporter("motion")

@@ -74,7 +74,7 @@ def gap_statistics(visible: np.ndarray) -> dict[str, Any]:
 
 
 def markers_report(markers: Markers) -> dict[str, Any]:
-    """Summary of a C3D read: counts, missing fractions, gaps, exclusions.
+    """Summary of a C3D read: counts, missing fractions, gaps, exclusions, analogs.
 
     Missing fractions are shares of samples (frame × point): ``missing_fraction``
     over the labelled markers, ``missing_fraction_with_fragments`` over markers and
@@ -119,6 +119,9 @@ def markers_report(markers: Markers) -> dict[str, Any]:
         "fragment_lengths": (
             [int(x) for x in np.isfinite(markers.fragments).all(axis=-1).sum(axis=0)] if U else []
         ),
+        "analog_channels": 0 if markers.analogs is None else int(markers.analogs.shape[1]),
+        "analog_rate": markers.rate * markers.analog_subframes or None,
+        "parameter_groups": list(markers.attrs.get("c3d_parameters", {})),
     }
 
 
@@ -134,7 +137,9 @@ def ingest_c3d(path: FilePath, *, ctx: Context) -> dict:
     Returns
     -------
     dict
-        ``markers``: :class:`Markers` (``positions (F, M, 3)``, fragments, residuals);
+        ``markers``: :class:`Markers` (``positions (F, M, 3)``, fragments, residuals,
+        ``analogs (S, C)`` in the source's units, and the whole parameter section
+        in ``attrs["c3d_parameters"]``: what ``export`` writes back);
         ``report``: JSON summary (see :func:`markers_report`).
     """
     markers = read_c3d(path)

@@ -461,7 +461,8 @@ def _status(observed: np.ndarray, merged: np.ndarray, filled: np.ndarray) -> np.
 def _cleaned_markers(markers: Markers, positions: np.ndarray, status: np.ndarray,
                      filled: np.ndarray, assigned: np.ndarray, ref_frame: int) -> Markers:
     """The cleaned :class:`Markers`: residuals 0 where merged or filled (``filled``:
-    ``(F, M)`` samples available after filling), unmerged fragments kept, a summary
+    ``(F, M)`` samples available after filling), ``status`` (:data:`STATUS` codes),
+    unmerged fragments kept, analogs and the source's attrs passed through, a summary
     in ``attrs["clean"]``."""
     keep_frag = assigned < 0
     out = markers.replace(
@@ -470,6 +471,7 @@ def _cleaned_markers(markers: Markers, positions: np.ndarray, status: np.ndarray
             status == STATUS["observed"], markers.residuals, np.where(filled, 0.0, np.nan)),
         fragments=markers.fragments[:, keep_frag],
         fragment_labels=[lb for lb, k in zip(markers.fragment_labels, keep_frag) if k],
+        status=status,
     )
     out.attrs["clean"] = {
         "reference_frame": ref_frame, "merged_fragments": int((~keep_frag).sum()),

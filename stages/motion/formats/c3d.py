@@ -52,7 +52,10 @@ __all__ = [
     "MODEL_OUTPUT_TYPES",
     "PIG_SEGMENTS",
     "C3DError",
+    "RESIDUAL_ENCODING",
     "classify_points",
+    "parameter_tree",
+    "publish",
     "read_c3d",
     "write_c3d",
 ]
@@ -184,25 +187,29 @@ def _model_output_lists(params: dict) -> dict[str, str]:
     return listed
 
 
-def _ezc3d_points(path: str) -> tuple[dict, np.ndarray, np.ndarray, int, float]:
-    """Parameters, points ``(4, P, F)``, residuals ``(1, P, F)``, first frame, header rate.
+def _ezc3d_points(path: str) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, int, float]:
+    """Parameters, points ``(4, P, F)``, residuals ``(1, P, F)``, analogs ``(1, C, S)``,
+    first frame, header rate.
 
-    Uses ezc3d's SWIG object directly, which skips the camera masks, analogs and
-    rotations that ``ezc3d.c3d(path)`` also converts; falls back to that wrapper if
-    the SWIG layer is laid out differently.
+    Uses ezc3d's SWIG object directly, which skips the camera masks and rotations
+    that ``ezc3d.c3d(path)`` also converts; falls back to that wrapper if the SWIG
+    layer is laid out differently.
     """
     try:
         sw = ezc3d.ezc3d.c3d(path)
         params = ezc3d.c3d.Parameters(sw.parameters())
         pts, res = sw.get_points(), sw.get_point_residuals()
+        analogs = sw.get_analogs()
         first, rate = sw.header().firstFrame(), sw.header().frameRate()
     except AttributeError:  # pragma: no cover - other ezc3d versions
         c = ezc3d.c3d(path)
         params, pts = c["parameters"], c["data"]["points"]
         res = c["data"]["meta_points"]["residuals"]
+        analogs = c["data"]["analogs"]
         first, rate = c["header"]["points"]["first_frame"], c["header"]["points"]["frame_rate"]
     pts = np.asarray(pts, dtype=np.float64)
-    return params, pts, np.asarray(res, dtype=np.float64), int(first), float(rate)
+    res = np.asarray(res, dtype=np.float64)
+    return params, pts, res, np.asarray(analogs, dtype=np.float64), int(first), float(rate)
 
 
 def _columns(a: np.ndarray, idx: list[int]) -> np.ndarray:
@@ -229,7 +236,10 @@ def read_c3d(path: str | os.PathLike) -> Markers:
         ``fragments (F, U, 3)`` / ``fragment_labels`` for ``*N`` points, and
         ``attrs``: ``source``, ``source_unit``, ``n_points`` (points in the file),
         ``excluded_points`` (list of ``{"label", "index", "kind", "reason",
-        "missing"}``, ``missing`` = missing frames), ``fragment_missing``.
+        "missing"}``, ``missing`` = missing frames), ``fragment_missing``,
+        ``c3d_parameters`` (every group, see :func:`parameter_tree`); ``analogs
+        (S, C)`` as ezc3d gives them (``(raw - ANALOG:OFFSET) x SCALE x GEN_SCALE``),
+        ``None`` without analog channels.
 
     Raises
     ------
@@ -237,7 +247,7 @@ def read_c3d(path: str | os.PathLike) -> Markers:
         Empty, truncated, corrupt or unsupported file; unknown POINT:UNITS.
     """
     path = Path(path)
-    params, pts, res, first_frame, header_rate = _read_points(path)
+    params, pts, res, analogs, first_frame, header_rate = _read_points(path)
     n_points = pts.shape[1]
     rate = _point_rate(params, header_rate, path)
     unit, unit_assumed = _point_unit(params, path)
@@ -266,6 +276,7 @@ def read_c3d(path: str | os.PathLike) -> Markers:
     }
     if unit_assumed:
         attrs["unit_assumed"] = True
+    attrs["c3d_parameters"] = parameter_tree(params)
     return Markers(
         positions=_columns(xyz, mk),
         labels=[labels[i] for i in mk],
@@ -275,14 +286,15 @@ def read_c3d(path: str | os.PathLike) -> Markers:
         fragments=_columns(xyz, fr),
         fragment_labels=[labels[i] for i in fr],
         attrs=attrs,
+        analogs=_analog_samples(path, analogs, pts.shape[2]),
     )
 
 
-def _read_points(path: Path) -> tuple[dict, np.ndarray, np.ndarray, int, float]:
+def _read_points(path: Path) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, int, float]:
     """:func:`check_file`, then :func:`_ezc3d_points`, checked against the header's sizes."""
     layout = check_file(path)
     try:
-        params, pts, res, first_frame, header_rate = _ezc3d_points(str(path))
+        params, pts, res, analogs, first_frame, header_rate = _ezc3d_points(str(path))
     except Exception as e:  # ezc3d raises RuntimeError/OSError/IndexError …
         raise _fail(path, f"corrupt C3D file: ezc3d could not read it ({e})") from None
     if pts.ndim != 3 or pts.shape[1] != layout.n_points or pts.shape[2] != layout.n_frames:
@@ -292,7 +304,20 @@ def _read_points(path: Path) -> tuple[dict, np.ndarray, np.ndarray, int, float]:
             f" of {pts.shape[1] if pts.ndim == 3 else 0} points, the header says "
             f"{layout.n_frames} frames of {layout.n_points} points",
         )
-    return params, pts, res, first_frame, header_rate
+    return params, pts, res, analogs, first_frame, header_rate
+
+
+def _analog_samples(path: Path, analogs: np.ndarray, n_frames: int) -> np.ndarray | None:
+    """``(S, C)`` analog samples (``None`` without channels); a whole number per frame."""
+    if analogs.ndim != 3 or analogs.shape[1] == 0:
+        return None
+    if n_frames and analogs.shape[2] % n_frames:
+        raise _fail(
+            path,
+            f"ANALOG data: {analogs.shape[2]} samples are not a whole number per frame "
+            f"({n_frames} frames)",
+        )
+    return np.ascontiguousarray(analogs[0].T)
 
 
 def _fail(path: Path, msg: str) -> C3DError:
@@ -410,18 +435,244 @@ def _excluded_points(
     ]
 
 
+# --------------------------------------------------------------------------- parameters
+
+#: C3D parameter type codes (the file's byte: -1 text, 1 byte, 2 int16, 4 float).
+_TYPE_NAMES = {-1: "char", 1: "byte", 2: "int", 4: "float"}
+_TYPE_CODES = {v: k for k, v in _TYPE_NAMES.items()}
+
+
+def _text(v: Any) -> str:
+    """A parameter string as JSON-able text (bytes that are not UTF-8 read as Latin-1)."""
+    v = str(v)
+    try:
+        v.encode("utf-8")
+    except UnicodeEncodeError:
+        return v.encode("utf-8", "surrogateescape").decode("latin-1")
+    return v
+
+
+def parameter_tree(params: Any) -> dict[str, Any]:
+    """The parameter section of a C3D file as a plain JSON tree.
+
+    Parameters
+    ----------
+    params : mapping
+        ezc3d's ``c["parameters"]``.
+
+    Returns
+    -------
+    dict
+        ``{group: {"description", "is_locked", "parameters": {name: {"type",
+        "description", "is_locked", "dimension", "value"}}}}``, file order.
+        ``type`` is ``"char"``, ``"byte"``, ``"int"`` or ``"float"``; numbers are
+        flattened in C3D (column-major) order with their ``dimension`` (list of
+        ints, e.g. ``[3, 4, 2]`` for FORCE_PLATFORM:CORNERS); text is a list of
+        strings (``dimension`` ``[n]``).  :func:`write_c3d` writes it back.
+    """
+    tree: dict[str, Any] = {}
+    for g in params:
+        group = params[g]
+        meta = group.get("__METADATA__", {})
+        out: dict[str, Any] = {}
+        for name, prm in group.items():
+            if name == "__METADATA__":
+                continue
+            kind = _TYPE_NAMES.get(prm["type"], "float")
+            if kind == "char":
+                value: list = [_text(x) for x in prm["value"]]
+                dimension = [len(value)]
+            else:
+                arr = np.asarray(prm["value"])
+                dimension = [int(d) for d in arr.shape]
+                value = arr.ravel(order="F").tolist()
+            out[_text(name)] = {
+                "type": kind,
+                "description": _text(prm.get("description", "")),
+                "is_locked": bool(prm.get("is_locked", False)),
+                "dimension": dimension,
+                "value": value,
+            }
+        tree[_text(g)] = {
+            "description": _text(meta.get("DESCRIPTION", "")),
+            "is_locked": bool(meta.get("IS_LOCKED", False)),
+            "parameters": out,
+        }
+    return tree
+
+
+def _ezc3d_param(prm: dict[str, Any]) -> dict[str, Any]:
+    """One :func:`parameter_tree` entry as ezc3d's parameter dict."""
+    kind = prm["type"]
+    if kind == "char":
+        value: Any = [str(x) for x in prm["value"]]
+    else:
+        dtype = np.float64 if kind == "float" else np.int64
+        value = np.asarray(prm["value"], dtype=dtype).reshape(prm["dimension"], order="F")
+    return {
+        "type": _TYPE_CODES[kind],
+        "description": prm.get("description", ""),
+        "is_locked": bool(prm.get("is_locked", False)),
+        "value": value,
+    }
+
+
+def _numeric(kind: str, value: Any) -> dict[str, Any]:
+    arr = np.atleast_1d(np.asarray(value, dtype=np.float64 if kind == "float" else np.int64))
+    return {"type": _TYPE_CODES[kind], "description": "", "is_locked": False, "value": arr}
+
+
+def _chars(values: list[str]) -> dict[str, Any]:
+    return {"type": _TYPE_CODES["char"], "description": "", "is_locked": False,
+            "value": list(values)}
+
+
+#: Parameters of the source the writer sets itself (the points and analogs written
+#: may differ from the source's: other labels, counts, units, scale).
+_REWRITTEN = {
+    "POINT": {"LABELS", "DESCRIPTIONS", "UNITS", "SCALE", "RATE", "USED", "FRAMES",
+              "DATA_START"},
+    "ANALOG": {"LABELS", "USED"},
+}
+_NUMBERED_RE = re.compile(r"^(LABELS|DESCRIPTIONS)\d+$")
+
+
 # --------------------------------------------------------------------------- writing
 
 
+#: Samples of each state, as :func:`write_c3d` writes them in the residuals.
+RESIDUAL_ENCODING = {
+    "measured": "the source residual; once cleaned, at least |POINT:SCALE| (> 0)",
+    "merged": "0",
+    "filled": "0, and the sample lies in a MOCAPFLOW:FILLED run",
+    "missing": "-1 (coordinates NaN)",
+}
+
+
+def _residual_codes(markers: Markers, xyz_missing: np.ndarray, k: float) -> tuple[
+    np.ndarray, float
+]:
+    """Residuals ``(F, P)`` in file units (before ezc3d's quantisation) and POINT:SCALE."""
+    F, P = xyz_missing.shape
+    M = markers.n_markers
+    resid = np.zeros((F, P))
+    if markers.residuals is not None:
+        resid[:, :M] = np.nan_to_num(markers.residuals / k, nan=0.0)
+    resid = np.clip(resid, 0.0, None)
+    top = float(resid.max()) if resid.size else 0.0
+    if top > 0:
+        step = top / 255.0 * (1 + 1e-6)
+    else:  # no residuals: -1 as before; cleaned, a small step for the measured code
+        step = 1.0 if markers.status is None else 1.0 / 255.0
+    scale = -step
+    if markers.status is not None:  # cleaned: 0 is kept for merged and filled samples
+        measured = np.ones((F, P), bool)
+        measured[:, :M] = markers.status == 0
+        resid = np.where(measured, np.maximum(resid, step), 0.0)
+    resid += 0.5 * step  # ezc3d truncates residual / |scale|
+    resid[xyz_missing] = -1.0
+    return resid, scale
+
+
+def _filled_runs(markers: Markers) -> np.ndarray:
+    """``(3, N)`` float: point number (1-based), first and last frame of each filled run.
+
+    Frames are absolute, numbered like ``first_frame`` (the first sample is
+    ``first_frame``), inclusive.
+    """
+    if markers.status is None:
+        return np.zeros((3, 0))
+    filled = (markers.status == 2).astype(np.int8)
+    pad = np.zeros((1, filled.shape[1]), np.int8)
+    d = np.diff(np.vstack([pad, filled, pad]), axis=0)
+    s_m, s_f = np.nonzero(d.T == 1)
+    _, e_f = np.nonzero(d.T == -1)
+    f0 = markers.first_frame
+    return np.vstack([s_m + 1, s_f + f0, e_f - 1 + f0]).astype(np.float64)
+
+
+def _parameters(
+    markers: Markers, labels: list[str], unit: str, scale: float, n_analogs: int
+) -> dict[str, dict[str, Any]]:
+    """ezc3d's parameter dicts: the source's groups, then what the writer sets."""
+    tree = markers.attrs.get("c3d_parameters") or {}
+    groups: dict[str, dict[str, Any]] = {}
+    for g, group in tree.items():
+        if g == "ANALOG" and not n_analogs:
+            continue
+        out: dict[str, Any] = {
+            "__METADATA__": {"DESCRIPTION": group.get("description", ""),
+                             "IS_LOCKED": bool(group.get("is_locked", False))}
+        }
+        for name, prm in group.get("parameters", {}).items():
+            if name in _REWRITTEN.get(g, ()) or (g in _REWRITTEN and _NUMBERED_RE.match(name)):
+                continue
+            out[name] = _ezc3d_param(prm)
+        groups[g] = out
+    point = groups.setdefault("POINT", {"__METADATA__": {"DESCRIPTION": "", "IS_LOCKED": False}})
+    src_desc = dict(zip(_joined_tree(tree, "LABELS"), _joined_tree(tree, "DESCRIPTIONS")))
+    point["LABELS"] = _chars(labels)
+    if len(labels) <= _MAX_LABELS_PER_PARAM:  # beyond, ezc3d writes empty ones itself
+        point["DESCRIPTIONS"] = _chars([src_desc.get(lb, "") for lb in labels])
+    point["UNITS"] = _chars([unit])
+    point["SCALE"] = _numeric("float", [scale])
+    point["RATE"] = _numeric("float", [float(markers.rate)])
+    if n_analogs:
+        analog = groups.setdefault("ANALOG", {"__METADATA__": {"DESCRIPTION": "",
+                                                               "IS_LOCKED": False}})
+        src = _joined_tree(tree, "LABELS", group="ANALOG")
+        analog["LABELS"] = _chars(
+            src[:n_analogs] + [f"Channel_{i + 1}" for i in range(len(src), n_analogs)]
+        )
+        if "RATE" not in analog:
+            analog["RATE"] = _numeric("float", [markers.rate * markers.analog_subframes])
+    if "MANUFACTURER" not in groups:
+        groups["MANUFACTURER"] = {"__METADATA__": {"DESCRIPTION": "", "IS_LOCKED": False},
+                                  "SOFTWARE": _chars(["mocapflow"])}
+    groups["MOCAPFLOW"] = _status_group(markers)
+    return groups
+
+
+def _status_group(markers: Markers) -> dict[str, Any]:
+    """The ``MOCAPFLOW`` group: how the residuals encode measured / merged / filled."""
+    runs = _filled_runs(markers)
+    group: dict[str, Any] = {
+        "__METADATA__": {"DESCRIPTION": "mocapflow sample status", "IS_LOCKED": False},
+        "SOFTWARE": _chars(["mocapflow"]),
+        "CLEANED": _numeric("int", [int(markers.status is not None)]),
+        "RESIDUALS": _chars([f"{k}: {v}" for k, v in RESIDUAL_ENCODING.items()]),
+    }
+    for i in range(0, max(runs.shape[1], 1), _MAX_LABELS_PER_PARAM):
+        name = "FILLED" if i == 0 else f"FILLED{i // _MAX_LABELS_PER_PARAM + 1}"
+        prm = _numeric("float", runs[:, i : i + _MAX_LABELS_PER_PARAM])
+        prm["value"] = prm["value"].reshape(3, -1)
+        prm["description"] = "point, first frame, last frame of each filled run"
+        group[name] = prm
+    return group
+
+
+def _joined_tree(tree: dict, name: str, *, group: str = "POINT") -> list[str]:
+    """``GROUP:NAME``, ``NAME2`` … of a :func:`parameter_tree`, joined."""
+    prms = tree.get(group, {}).get("parameters", {})
+    out: list[str] = []
+    k = 1
+    while (prm := prms.get(name if k == 1 else f"{name}{k}")) is not None:
+        out.extend(str(x).strip() for x in prm["value"])
+        k += 1
+    return out
+
+
 def write_c3d(markers: Markers, path: str | os.PathLike, *, unit: str = "mm") -> Path:
-    """Write markers (and their unlabelled fragments) to a float C3D file with ezc3d.
+    """Write markers, their fragments, analogs and the source's parameters to a float C3D file.
 
     Parameters
     ----------
     markers : Markers
         ``positions (F, M, 3)`` metres, NaN where missing; ``fragments (F, U, 3)``
         are written after the markers as extra points labelled with
-        ``fragment_labels``.
+        ``fragment_labels``; ``analogs (S, C)`` as the ANALOG data; every group of
+        ``attrs["c3d_parameters"]`` (FORCE_PLATFORM, EVENT, SUBJECTS, TRIAL,
+        MANUFACTURER …) as it was read.
     path : str or path-like
         Output file (``.c3d`` is appended by ezc3d when missing, so pass it).
     unit : str
@@ -430,11 +681,31 @@ def write_c3d(markers: Markers, path: str | os.PathLike, *, unit: str = "mm") ->
     Returns
     -------
     Path
-        The file written.  Labels beyond 255 go to ``POINT:LABELS2``, ``LABELS3`` …
-        (ezc3d splits them); ``POINT:USED`` is ``M + U``; missing samples get
-        residual -1; ``first_frame`` and the (possibly non-integer) rate are kept.
-        Residuals are stored with ``POINT:SCALE = -max_residual / 255`` (C3D keeps
-        them in one byte), so they read back to within ``max_residual / 510``.
+        The file written, mode ``0666 & ~umask`` (0644 usually).
+
+    Notes
+    -----
+    What is rewritten: POINT:LABELS (beyond 255 in ``LABELS2`` …, split by ezc3d),
+    DESCRIPTIONS (the source's for labels it had, else empty), UNITS, SCALE, RATE,
+    USED, FRAMES; ANALOG:LABELS and USED; ``first_frame`` and the (possibly
+    non-integer) rate are kept.  ANALOG:SCALE and GEN_SCALE are kept and the
+    samples read back equal in the source units; ANALOG:OFFSET becomes 0 (ezc3d
+    stores float samples with the offset applied).  Model-output points (ANGLES,
+    FORCES …) are not written, but their POINT parameters are kept.  Byte
+    parameters come back as int16 ones with the same values (ezc3d writes them so).
+
+    Residuals say what each sample is (:data:`RESIDUAL_ENCODING`).  Markers that
+    carry the clean stage's ``status`` (``MOCAPFLOW:CLEANED`` = 1): a measured
+    sample (and every sample of an unmerged fragment) has the source residual, at
+    least ``|POINT:SCALE|``; merged (a fragment joined to the marker by cleaning)
+    and filled samples have residual 0, and the filled ones are listed in
+    ``MOCAPFLOW:FILLED`` (float ``(3, N)``: point number 1-based, first and last
+    frame, absolute like ``first_frame`` and inclusive; ``FILLED2`` … beyond 255
+    runs).  Without ``status`` (``CLEANED`` = 0) every valid sample is measured and
+    keeps its residual (0 where the source had none).  Missing samples have
+    residual -1 and NaN coordinates.  Residuals are stored with
+    ``POINT:SCALE = -max_residual / 255`` (C3D keeps them in one byte), so they read
+    back to within ``max_residual / 510``.
     """
     if unit not in UNIT_SCALE:
         raise ValueError(f"write_c3d: unknown unit {unit!r} (known: {sorted(UNIT_SCALE)})")
@@ -443,35 +714,55 @@ def write_c3d(markers: Markers, path: str | os.PathLike, *, unit: str = "mm") ->
     labels = list(markers.labels) + list(markers.fragment_labels)
     F = markers.n_frames
     xyz = np.concatenate([markers.positions, markers.fragments], axis=1) / k  # (F, P, 3)
-    P = xyz.shape[1]
     missing = ~np.isfinite(xyz).all(axis=-1)
-    resid = np.zeros((F, P))
-    if markers.residuals is not None:
-        resid[:, : markers.n_markers] = np.nan_to_num(markers.residuals / k, nan=0.0)
-    resid = np.clip(resid, 0.0, None)
-    top = float(resid.max()) if resid.size else 0.0
-    scale = -(top / 255.0) * (1 + 1e-6) if top > 0 else -1.0
-    resid += 0.5 * abs(scale) if top > 0 else 0.0  # ezc3d truncates residual / |scale|
-    resid[missing] = -1.0
-    pts = np.ones((4, P, F))
+    resid, scale = _residual_codes(markers, missing, k)
+    pts = np.ones((4, xyz.shape[1], F))
     pts[:3] = np.where(missing[..., None], np.nan, xyz).transpose(2, 1, 0)
-
-    c = ezc3d.c3d()
-    c["parameters"]["POINT"]["RATE"]["value"] = np.array([float(markers.rate)])
-    c["parameters"]["POINT"]["LABELS"]["value"] = labels
-    c["parameters"]["POINT"]["UNITS"]["value"] = [unit]
-    c["parameters"]["POINT"]["SCALE"]["value"] = np.array([scale])
-    c["header"]["points"]["first_frame"] = int(markers.first_frame)
-    c["data"]["points"] = pts
-    c["data"]["meta_points"] = {"residuals": resid.T[None].copy()}
-    c.add_parameter("MANUFACTURER", "SOFTWARE", "mocapflow")
+    analogs = markers.analogs if markers.analogs is not None else np.zeros((0, 0))
+    groups = _parameters(markers, labels, unit, scale, analogs.shape[1])
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(suffix=".c3d", prefix=f".{path.stem}-", dir=path.parent)
     os.close(fd)
     try:
-        c.write(tmp)
-        os.replace(tmp, path)
+        for pad in ("", "-" * 8):
+            if pad:  # the section ended at a block's last byte: one entry more moves it
+                groups["MOCAPFLOW"]["PADDING"] = _chars([pad])
+            c = ezc3d.c3d()
+            for g, group in groups.items():
+                c["parameters"][g] = dict(group)
+            c["header"]["points"]["first_frame"] = int(markers.first_frame)
+            c["data"]["points"] = pts
+            c["data"]["meta_points"] = {"residuals": resid.T[None].copy()}
+            c["data"]["analogs"] = np.ascontiguousarray(analogs.T[None])
+            c.write(tmp)
+            try:
+                check_file(Path(tmp))  # what is written must pass the reader's own checks
+                break
+            except C3DError as e:
+                why = str(e).removeprefix(f"{tmp}: ")
+                if pad or "parameter section truncated" not in why:
+                    raise _fail(path, f"ezc3d wrote a file the reader rejects: {why}") from None
+        publish(tmp, path)
     except Exception:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+def _umask() -> int:
+    """The process umask, read without changing it where Linux says it."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except OSError:  # pragma: no cover - not Linux
+        pass
+    mask = os.umask(0o022)  # pragma: no cover
+    os.umask(mask)  # pragma: no cover
+    return mask  # pragma: no cover
+
+
+def publish(tmp: str | os.PathLike, path: str | os.PathLike) -> None:
+    """Give a finished temporary file the usual mode (``0666 & ~umask``) and move it to ``path``."""
+    os.chmod(tmp, 0o666 & ~_umask())
+    os.replace(tmp, path)

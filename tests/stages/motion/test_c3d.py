@@ -346,3 +346,40 @@ def test_labels_and_coordinates_are_checked_at_read_time(fuzz, tmp_path, name, p
     with pytest.raises(C3DError, match=pattern) as e:
         read_c3d(p)
     assert str(e.value).startswith(f"{p}: ")
+
+
+
+def test_written_files_pass_the_reader_checks_at_every_section_size(tmp_path):
+    # a kept text parameter one byte longer each time walks the parameter section's end
+    # over every byte of a block; where it ends at the block's last byte (no room for
+    # the reader's terminator) write_c3d adds MOCAPFLOW:PADDING
+    m = _synthetic(3, 2, n_fragments=0)
+    for n in range(700):
+        notes = {f"NOTE{k}": {"type": "char", "description": "", "is_locked": False,
+                              "dimension": [1], "value": ["x" * (100 if k < n // 100 else
+                                                                 n % 100 + 1)]}
+                 for k in range(n // 100 + 1)}  # C3D text entries: at most 255 bytes
+        tree = {"TRIAL": {"description": "", "is_locked": False, "parameters": notes}}
+        p = write_c3d(m.replace(attrs={"c3d_parameters": tree}), tmp_path / "n.c3d")
+        back = read_c3d(p)  # raises if the file fails the reader's checks
+        np.testing.assert_allclose(back.positions, m.positions, atol=1e-6, rtol=0)
+        params = ezc3d.c3d(str(p))["parameters"]
+        assert [params["TRIAL"][k]["value"] for k in notes] == [v["value"] for v in
+                                                                 notes.values()]
+        if "PADDING" in params["MOCAPFLOW"]:
+            return
+    pytest.fail("no section size needed padding: the test no longer covers it")
+
+
+def test_a_file_the_reader_would_reject_is_not_written(tmp_path):
+    # a 300-byte text entry does not fit C3D's byte-sized dimensions: ezc3d writes a
+    # broken parameter section; write_c3d says so for the target and leaves nothing
+    note = {"type": "char", "description": "", "is_locked": False, "dimension": [1],
+            "value": ["x" * 300]}
+    tree = {"TRIAL": {"description": "", "is_locked": False, "parameters": {"NOTE": note}}}
+    m = _synthetic(3, 2, n_fragments=0).replace(attrs={"c3d_parameters": tree})
+    out = tmp_path / "long.c3d"
+    with pytest.raises(C3DError, match=r"long\.c3d: ezc3d wrote a file the reader rejects: "
+                       r"corrupt parameter section: parameter TRIAL:NOTE"):
+        write_c3d(m, out)
+    assert list(tmp_path.iterdir()) == []

@@ -101,7 +101,7 @@ def test_markers_exporter(ingest_data, tmp_path):
         "markers"
     ]
     paths = find_exporter("markers")(m, tmp_path, "racing")
-    assert paths == [tmp_path / "racing.c3d"]
+    assert paths == [tmp_path / "racing.c3d", tmp_path / "racing.trc"]
     back = read_c3d(paths[0])
     assert back.attrs["source_unit"] == "m"  # the source unit is kept
     assert back.labels == m.labels and back.n_frames == 700
