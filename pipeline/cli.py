@@ -196,6 +196,9 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Run the graph if needed, then export. " + EXPORT_LAYOUT)
     _config_args(p)
     p.add_argument("--to", required=True, metavar="DIR", help="output directory")
+    p.add_argument("--format", action="append", default=[], metavar="TYPE=F1,F2",
+                   help="file formats of one output type (repeatable), e.g. "
+                        "mesh=vtp,pc2,ply (an animated mesh also as one PLY per frame)")
     _exec_args(p)
     _common(p)
 
@@ -523,6 +526,19 @@ def cmd_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _export_formats(items: Sequence[str]) -> dict[str, tuple[str, ...]]:
+    """``--format TYPE=F1,F2`` options as ``{type: (f1, f2)}``."""
+    out: dict[str, tuple[str, ...]] = {}
+    for item in items:
+        kind, eq, fmts = item.partition("=")
+        names = tuple(f.strip() for f in fmts.split(",") if f.strip())
+        if not eq or not kind.strip() or not names:
+            raise UserError(f"--format {item!r}: expected TYPE=FORMAT[,FORMAT...], "
+                            "e.g. mesh=vtp,pc2,ply")
+        out[kind.strip()] = names
+    return out
+
+
 def cmd_export(args: argparse.Namespace) -> int:
     graph = _load(args)
     store = _store(args)
@@ -530,7 +546,8 @@ def cmd_export(args: argparse.Namespace) -> int:
         result = _run_graph(args, graph, store, ex)
     _print_warnings(result)
     _raise_failures(result, args, store)
-    files = export_results(graph, store, result.records, args.to)
+    files = export_results(graph, store, result.records, args.to,
+                           formats=_export_formats(args.format))
     for f in files:
         print(f)
     print(f"exported {len(files)} file(s) to {args.to}", file=sys.stderr)

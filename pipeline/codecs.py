@@ -28,6 +28,7 @@ import numpy as np
 
 __all__ = [
     "Encoded",
+    "ExportFormatError",
     "codec",
     "decode",
     "digest_encoded",
@@ -92,8 +93,16 @@ def codec(name: str, *, encode: Callable[[Any], Encoded], decode: Callable[[Enco
     return register
 
 
+class ExportFormatError(ValueError):
+    """An exporter's ``formats`` option names a format it does not write (says which it does)."""
+
+
 def exporter(type_name: str):
-    """Register ``fn(obj, directory, stem, **options) -> list[Path]`` for a type name."""
+    """Register ``fn(obj, directory, stem, **options) -> list[Path]`` for a type name.
+
+    An exporter that writes several formats takes a ``formats`` option and raises
+    :class:`ExportFormatError` for one it does not know.
+    """
 
     def register(fn: Callable[..., list[Path]]) -> Callable[..., list[Path]]:
         _EXPORTERS[type_name] = fn

@@ -18,13 +18,13 @@ from __future__ import annotations
 import json
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from mocapflow.pipeline.codecs import Encoded, decode, find_exporter
+from mocapflow.pipeline.codecs import Encoded, ExportFormatError, decode, find_exporter
 from mocapflow.pipeline.execute import TaskRecord
 from mocapflow.pipeline.graph import Graph, part_label
 from mocapflow.pipeline.keys import digest
@@ -85,7 +85,8 @@ def _check_target(target: Path, root: Path) -> None:
                                   f"directory {root}; not writing through it")
 
 
-def export_value(enc: Encoded, value: Any, directory: Path, stem: str) -> list[Path]:
+def export_value(enc: Encoded, value: Any, directory: Path, stem: str, *,
+                 formats: Sequence[str] | None = None) -> list[Path]:
     """Write one output as ``directory/stem.<ext>`` file(s).
 
     Parameters
@@ -98,6 +99,8 @@ def export_value(enc: Encoded, value: Any, directory: Path, stem: str) -> list[P
         Created if needed.
     stem : str
         The output name.
+    formats : sequence of str, optional
+        Passed to the type's exporter as its ``formats`` option (its default if ``None``).
 
     Returns
     -------
@@ -107,7 +110,8 @@ def export_value(enc: Encoded, value: Any, directory: Path, stem: str) -> list[P
     directory.mkdir(parents=True, exist_ok=True)
     fn = find_exporter(enc.type)
     if fn is not None:
-        return [Path(p) for p in fn(value, directory, stem)]
+        opts = {} if formats is None else {"formats": tuple(formats)}
+        return [Path(p) for p in fn(value, directory, stem, **opts)]
     written = []
     if enc.type == "ndarray":
         p = directory / f"{stem}.npy"
@@ -134,7 +138,8 @@ def export_value(enc: Encoded, value: Any, directory: Path, stem: str) -> list[P
 
 
 def export_results(graph: Graph, store: Store, records: Sequence[TaskRecord],
-                   directory: str | Path) -> list[Path]:
+                   directory: str | Path, *,
+                   formats: Mapping[str, Sequence[str]] | None = None) -> list[Path]:
     """Write the outputs of the graph's target nodes as files (see :data:`EXPORT_LAYOUT`).
 
     Parameters
@@ -146,6 +151,9 @@ def export_results(graph: Graph, store: Store, records: Sequence[TaskRecord],
         Of a run of ``graph`` (:attr:`RunResult.records
         <mocapflow.pipeline.runner.RunResult.records>`).
     directory : str or Path
+    formats : dict, optional
+        ``output type -> file formats`` for exporters that write several (e.g.
+        ``{"mesh": ("vtp", "pc2", "ply")}``); others get their defaults.
 
     Returns
     -------
@@ -180,10 +188,13 @@ def export_results(graph: Graph, store: Store, records: Sequence[TaskRecord],
             for out, enc in store.load_outputs(r.stage, r.key).items():
                 value = decode(enc)
                 try:
-                    files = export_value(enc, value, target, out)
+                    files = export_value(enc, value, target, out,
+                                         formats=(formats or {}).get(enc.type))
                 except OSError as e:
                     raise ExportError(f"export: cannot write {target / out}.*: "
                                       f"{e.strerror or e}") from e
+                except ExportFormatError as e:
+                    raise ExportError(f"export: --format {enc.type}: {e}") from None
                 for f in files:
                     if not _inside(Path(f), root):
                         raise ExportError(f"export: the {enc.type} exporter wrote {f}, outside "

@@ -36,8 +36,9 @@ from typing import Any, Literal
 import numpy as np
 
 from mocapflow.pipeline import Context, ParamError, stage
-from mocapflow.pipeline.codecs import Encoded, codec, exporter
+from mocapflow.pipeline.codecs import Encoded, ExportFormatError, codec, exporter
 from mocapflow.stages.motion.datatypes import Markers, Mesh
+from mocapflow.stages.motion.formats.meshcache import write_obj, write_pc2
 from mocapflow.stages.skin.binding import closest_points_on_triangles
 from mocapflow.stages.skin.deform import align_markers, deform
 from mocapflow.stages.skin.parts import MODES
@@ -197,12 +198,15 @@ def _write_vtp(vertices: np.ndarray, faces: np.ndarray, path: Path, scalars=None
 
 @exporter("mesh")
 def export_mesh(mesh: Mesh, directory: Path, stem: str, **options: Any) -> list[Path]:
-    """Write a mesh (or mesh sequence) for ParaView and Blender.
+    """Write a mesh (or mesh sequence) for ParaView, Blender, Maya and Houdini.
 
     A static mesh becomes ``<stem>.vtp`` and ``<stem>.ply``.  An animated mesh
-    becomes ``<stem>.pvd`` (a ParaView time series) over ``<stem>/<stem>_NNNNN.vtp``
-    and ``<stem>/<stem>_NNNNN.ply`` (one per frame; Blender imports PLY, and
-    imports a numbered sequence with its stop-motion add-ons).
+    becomes one animation: ``<stem>.obj`` (the rest pose, frame 0) with the point
+    cache ``<stem>.pc2`` (every frame; Blender's built-in Mesh Cache modifier,
+    Maya and Houdini read it, see :mod:`~mocapflow.stages.motion.formats.meshcache`),
+    and ``<stem>.pvd``, a ParaView time series over ``<stem>/<stem>_NNNNN.vtp``
+    (which keeps vertex data such as part labels as point data).  One PLY per
+    frame (``<stem>/<stem>_NNNNN.ply``) is opt-in.
 
     Parameters
     ----------
@@ -210,26 +214,47 @@ def export_mesh(mesh: Mesh, directory: Path, stem: str, **options: Any) -> list[
     directory : Path
     stem : str
     options
-        ``formats``: subset of ``("vtp", "ply")`` (default both).
+        ``formats``: subset of ``("vtp", "ply", "pc2")``; default ``("vtp", "ply")``
+        for a static mesh (``pc2`` adds its OBJ), ``("vtp", "pc2")`` for an animated one.
 
     Returns
     -------
     list of Path
         Every file written.
     """
-    formats = tuple(options.get("formats", ("vtp", "ply")))
+    default = ("vtp", "pc2") if mesh.animated else ("vtp", "ply")
+    formats = tuple(options.get("formats", default))
+    unknown = sorted(set(formats) - {"vtp", "ply", "pc2"})
+    if unknown:
+        raise ExportFormatError(f"unknown mesh format(s) {unknown}; it writes vtp, ply, pc2")
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
+    rest = mesh.vertices[0] if mesh.animated else mesh.vertices
+    if "pc2" in formats:
+        rate = f", {mesh.rate:g} frames per second in {stem}.pc2" if mesh.animated else ""
+        written.append(write_obj(rest, mesh.faces, directory / f"{stem}.obj",
+                                 comment=f"rest pose (frame 0), metres{rate}"))
+        if mesh.animated:
+            written.append(write_pc2(mesh.vertices, directory / f"{stem}.pc2"))
     if not mesh.animated:
         if "vtp" in formats:
             written.append(_write_vtp(mesh.vertices, mesh.faces, directory / f"{stem}.vtp"))
         if "ply" in formats:
             written.append(write_ply(mesh.vertices, mesh.faces, directory / f"{stem}.ply"))
         return written
+    if "vtp" in formats or "ply" in formats:
+        (directory / stem).mkdir(exist_ok=True)
+    written += _write_frames(mesh, directory, stem, formats)
+    return written
+
+
+def _write_frames(mesh: Mesh, directory: Path, stem: str, formats: tuple[str, ...]
+                  ) -> list[Path]:
+    """The per-frame files of an animated mesh: the VTP series with its ``.pvd``, PLYs."""
     sub = directory / stem
-    sub.mkdir(exist_ok=True)
     rate = mesh.rate or 1.0
+    written: list[Path] = []
     entries = []
     for i, verts in enumerate(mesh.vertices):
         name = f"{stem}_{i:05d}"

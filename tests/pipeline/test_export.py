@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mocapflow.pipeline import codecs
+from mocapflow.pipeline.codecs import ExportFormatError
 from mocapflow.pipeline.config import load_config
 from mocapflow.pipeline.export import export_results, safe_label
 from mocapflow.pipeline.graph import build_graph
@@ -103,3 +105,30 @@ def test_export_through_a_symlink_out_of_to_is_refused(cli, toy_config, tmp_path
                          "--target", "total", "-q")
     assert code == 1 and "is a symlink pointing outside the export directory" in err
     assert list(outside.iterdir()) == []
+
+
+def test_format_option_reaches_the_exporter_and_bad_ones_are_one_line(cli, toy_config, tmp_path,
+                                                                     monkeypatch):
+    """``export --format TYPE=F1,F2`` is the exporter's ``formats``; an unknown one is one line."""
+    seen = []
+
+    def fake(value, directory, stem, **options):
+        seen.append(options.get("formats"))
+        if "bad" in (options.get("formats") or ()):
+            raise ExportFormatError("unknown format(s) ['bad']; it writes a, b")
+        p = directory / f"{stem}.fake"
+        p.write_text("x")
+        return [p]
+
+    monkeypatch.setitem(codecs._EXPORTERS, "ndarray", fake)
+    base = (toy_config, "--store", tmp_path / "s", *SYNC, "-q")
+    code, _, err = cli("export", *base, "--to", tmp_path / "o1", "--format", "ndarray=a,b")
+    assert code == 0, err
+    assert set(seen) == {("a", "b")}
+    seen.clear()
+    assert cli("export", *base, "--to", tmp_path / "o2")[0] == 0 and set(seen) == {None}
+    code, _, err = cli("export", *base, "--to", tmp_path / "o3", "--format", "ndarray=bad")
+    assert code == 1 and err == ("mocapflow: error: export: --format ndarray: unknown "
+                                 "format(s) ['bad']; it writes a, b\n")
+    code, _, err = cli("export", *base, "--to", tmp_path / "o4", "--format", "mesh")
+    assert code == 2 and err.startswith("mocapflow: error: --format 'mesh': expected TYPE=")

@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 from mocapflow.pipeline import Context
-from mocapflow.pipeline.codecs import decode, encode, find_exporter
+from mocapflow.pipeline.codecs import ExportFormatError, decode, encode, find_exporter
 from mocapflow.stages.motion.datatypes import Mesh
+from mocapflow.stages.motion.formats.meshcache import MeshCacheError, read_pc2, write_pc2
 from mocapflow.stages.skin.deform import deform
 from mocapflow.stages.skin.render import (
     RenderError,
@@ -72,7 +73,20 @@ def test_mesh_exporter_writes_series(tmp_path, limb):
     m = limb["deformed"]
     files = export_mesh(m, tmp_path, "skin")
     n = m.vertices.shape[0]
-    assert files[0].name == "skin.pvd" and len(files) == 1 + 2 * n
+    # one animation (rest OBJ + PC2 cache) and the VTP series; per-frame PLY is opt-in
+    assert [f.name for f in files[:3]] == ["skin.obj", "skin.pc2", "skin.pvd"]
+    assert len(files) == 3 + n and not list(tmp_path.glob("skin/*.ply"))
+    cache, start = read_pc2(tmp_path / "skin.pc2")
+    assert start == 0.0 and cache.shape == m.vertices.shape
+    assert np.abs(cache - m.vertices).max() < 1e-6 * max(1.0, np.abs(m.vertices).max())
+    rest = pv.read(str(tmp_path / "skin.obj"))  # an OBJ reader we did not write
+    assert rest.n_points == m.vertices.shape[1]
+    assert np.allclose(rest.points, m.vertices[0], atol=1e-6)
+    assert np.array_equal(rest.faces.reshape(-1, 4)[:, 1:], m.faces)
+    with_ply = export_mesh(m, tmp_path / "p", "skin", formats=("ply",))
+    assert len(with_ply) == n and all(f.suffix == ".ply" for f in with_ply)
+    with pytest.raises(ExportFormatError, match="unknown mesh format\\(s\\) \\['abc'\\]"):
+        export_mesh(m, tmp_path / "q", "skin", formats=("abc",))
     series = pv.get_reader(str(tmp_path / "skin.pvd"))
     assert len(series.time_values) == n
     assert series.time_values[1] == pytest.approx(1 / m.rate)
@@ -139,3 +153,17 @@ def test_render_modes_and_error_map(limb):
     img = err["video"].frames[1].reshape(-1, 3).astype(int)
     body = img[(img < 240).any(1)]
     assert len(np.unique(body // 16, axis=0)) > 5
+
+
+def test_pc2_reader_refuses_what_is_not_a_full_cache(tmp_path):
+    v = np.arange(2 * 4 * 3, dtype=float).reshape(2, 4, 3)
+    p = write_pc2(v, tmp_path / "a.pc2", start_frame=3.0)
+    back, start = read_pc2(p)
+    assert start == 3.0 and np.array_equal(back, v)
+    assert p.stat().st_size == 32 + 2 * 4 * 12  # header + float32 xyz per point per sample
+    (tmp_path / "short.pc2").write_bytes(p.read_bytes()[:-1])
+    with pytest.raises(MeshCacheError, match=r"short\.pc2: header declares 2 samples of 4"):
+        read_pc2(tmp_path / "short.pc2")
+    (tmp_path / "x.pc2").write_bytes(b"POINTCACHE1\0" + bytes(20))
+    with pytest.raises(MeshCacheError, match="not a PC2 file"):
+        read_pc2(tmp_path / "x.pc2")
