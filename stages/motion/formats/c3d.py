@@ -724,24 +724,19 @@ def write_c3d(markers: Markers, path: str | os.PathLike, *, unit: str = "mm") ->
     fd, tmp = tempfile.mkstemp(suffix=".c3d", prefix=f".{path.stem}-", dir=path.parent)
     os.close(fd)
     try:
-        for pad in ("", "-" * 8):
-            if pad:  # the section ended at a block's last byte: one entry more moves it
-                groups["MOCAPFLOW"]["PADDING"] = _chars([pad])
-            c = ezc3d.c3d()
-            for g, group in groups.items():
-                c["parameters"][g] = dict(group)
-            c["header"]["points"]["first_frame"] = int(markers.first_frame)
-            c["data"]["points"] = pts
-            c["data"]["meta_points"] = {"residuals": resid.T[None].copy()}
-            c["data"]["analogs"] = np.ascontiguousarray(analogs.T[None])
-            c.write(tmp)
-            try:
-                check_file(Path(tmp))  # what is written must pass the reader's own checks
-                break
-            except C3DError as e:
-                why = str(e).removeprefix(f"{tmp}: ")
-                if pad or "parameter section truncated" not in why:
-                    raise _fail(path, f"ezc3d wrote a file the reader rejects: {why}") from None
+        c = ezc3d.c3d()
+        for g, group in groups.items():
+            c["parameters"][g] = dict(group)
+        c["header"]["points"]["first_frame"] = int(markers.first_frame)
+        c["data"]["points"] = pts
+        c["data"]["meta_points"] = {"residuals": resid.T[None].copy()}
+        c["data"]["analogs"] = np.ascontiguousarray(analogs.T[None])
+        c.write(tmp)
+        try:
+            check_file(Path(tmp))  # what is written must pass the reader's own checks
+        except C3DError as e:
+            why = str(e).removeprefix(f"{tmp}: ")
+            raise _fail(path, f"ezc3d wrote a file the reader rejects: {why}") from None
         publish(tmp, path)
     except Exception:
         Path(tmp).unlink(missing_ok=True)

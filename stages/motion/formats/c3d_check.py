@@ -139,11 +139,13 @@ def _walk(
     raw: list[tuple[int, str, _Param]] = []
     pos = start + 4
     for _ in range(100_000):
-        if pos + 2 > end:
+        if pos + 1 > end:
             raise _fail(path, f"parameter section truncated at byte {pos}")
         nchar = struct.unpack_from("b", buf, pos)[0]
-        if nchar == 0:
+        if nchar == 0:  # the terminator: one byte (it may be the section's last)
             break
+        if pos + 2 > end:
+            raise _fail(path, f"parameter section truncated at byte {pos}")
         gid = struct.unpack_from("b", buf, pos + 1)[0]
         n = abs(nchar)
         name_b = buf[pos + 2 : pos + 2 + n]
