@@ -14,7 +14,9 @@ frame), not a rate in Hz; the capture rate goes into the OBJ's comment line.
 The OBJ holds the rest pose (frame 0) with ``v``/``f`` records only (1-based
 indices, no normals or groups), so importers keep its vertex order.  Both are
 written in the mesh's own axes and metres: import them without axis
-conversion (Blender: forward ``Y``, up ``Z``).
+conversion (Blender: forward ``Y``, up ``Z``), or the cache and the rest mesh
+disagree; a Y-up mesh (the demo's body) then stands up once the object is
+rotated 90° about X (an object transform applies after the Mesh Cache modifier).
 """
 
 from __future__ import annotations
