@@ -33,10 +33,14 @@ def blender() -> str:
                     "apt-get): `apt-get install blender` to run this test")
     env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
     install = ["apt-get", "install", "-y", "-q", "--no-install-recommends", "blender"]
-    p = subprocess.run(install, capture_output=True, text=True, env=env, timeout=900)
-    if p.returncode != 0:  # package lists missing on a fresh machine: update once
-        subprocess.run(["apt-get", "update", "-q"], capture_output=True, env=env, timeout=900)
-        p = subprocess.run(install, capture_output=True, text=True, env=env, timeout=900)
+    try:  # about 30 s where the mirror is near; bounded so CI stays in its budget
+        p = subprocess.run(install, capture_output=True, text=True, env=env, timeout=240)
+        if p.returncode != 0:  # package lists missing on a fresh machine: update once
+            subprocess.run(["apt-get", "update", "-q"], capture_output=True, env=env,
+                           timeout=120)
+            p = subprocess.run(install, capture_output=True, text=True, env=env, timeout=240)
+    except subprocess.TimeoutExpired as e:
+        pytest.skip(f"installing Debian's blender took over {e.timeout:.0f} s; skipped")
     if p.returncode != 0 or not shutil.which("blender"):
         pytest.skip(f"could not install Debian's blender: {p.stderr.strip()[-300:]}")
     return shutil.which("blender")
