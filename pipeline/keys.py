@@ -24,7 +24,7 @@ import os
 import stat
 import threading
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from importlib import metadata
 from typing import Any
 
@@ -35,11 +35,13 @@ __all__ = [
     "RESULT_PACKAGES",
     "canonical",
     "clear_caches",
+    "content_digest",
     "diff_components",
     "digest",
     "digest_of",
     "file_digest",
     "package_versions",
+    "real_path",
     "task_key",
 ]
 
@@ -261,7 +263,7 @@ def file_digest(path: str | os.PathLike, memo: dict | None = None, *,
     except FileNotFoundError:
         raise FileNotFoundError(f"input file not found: {os.fspath(path)}") from None
     if stat.S_ISDIR(st.st_mode):
-        return _dir_digest(real, memo)
+        return _dir_digest(real, lambda f: file_digest(f, memo))
     sig = (real, st.st_size, st.st_mtime_ns, st.st_ino, st.st_ctime_ns)
     with _LOCK:
         hit = _FILE_MEMO.get(sig)
@@ -282,15 +284,30 @@ def file_digest(path: str | os.PathLike, memo: dict | None = None, *,
     return d
 
 
-def _dir_digest(real: str, memo: dict | None) -> str:
+def _dir_digest(real: str, digest_file: Callable[[str], str]) -> str:
+    """Digest of a directory: its sorted relative file names and ``digest_file`` of each."""
     items = []
     for dirpath, dirnames, filenames in os.walk(real):
         dirnames.sort()
         for name in sorted(filenames):
             full = os.path.join(dirpath, name)
             rel = os.path.relpath(full, real).replace(os.sep, "/")
-            items.append([rel, file_digest(full, memo)])
+            items.append([rel, digest_file(full)])
     return digest_of(["directory", items])
+
+
+def content_digest(path: str | os.PathLike) -> str:
+    """What ``path`` holds now, read in full: :func:`file_digest`'s value without its memos.
+
+    Raises
+    ------
+    OSError
+        The file (or a file under the directory) cannot be read.
+    """
+    real = os.path.realpath(os.fspath(path))
+    if os.path.isdir(real):
+        return _dir_digest(real, content_digest)
+    return _hash_file(real)
 
 
 # --------------------------------------------------------------------------- versions

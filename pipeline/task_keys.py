@@ -17,7 +17,6 @@ its old content.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import stat
 from collections.abc import Callable, Mapping, Sequence
@@ -27,6 +26,7 @@ from typing import Any
 from mocapflow.pipeline import fingerprint, keys, registry
 from mocapflow.pipeline.config import filepath_params, resolve_stage
 from mocapflow.pipeline.graph import Graph
+from mocapflow.pipeline.keys import content_digest
 from mocapflow.pipeline.store import Store
 from mocapflow.pipeline.wires import FilesWire, FileWire, TaskWire, Wire
 
@@ -177,29 +177,6 @@ def hash_files(graph: Graph, store: Store) -> dict[str, str | None]:
 
 class InputChangedError(RuntimeError):
     """An input file no longer has the content the task's key was computed from."""
-
-
-def content_digest(path: str) -> str:
-    """Digest of what ``path`` holds now, read in full (no memo; same value as
-    :func:`~mocapflow.pipeline.keys.file_digest`).
-
-    Raises
-    ------
-    OSError
-        The file (or a file under the directory) cannot be read.
-    """
-    real = os.path.realpath(path)
-    if os.path.isdir(real):
-        items = []
-        for dirpath, dirnames, filenames in os.walk(real):
-            dirnames.sort()
-            for name in sorted(filenames):
-                full = os.path.join(dirpath, name)
-                rel = os.path.relpath(full, real).replace(os.sep, "/")
-                items.append([rel, content_digest(full)])
-        return keys.digest_of(["directory", items])
-    with open(real, "rb") as f:
-        return hashlib.file_digest(f, lambda: hashlib.blake2b(digest_size=32)).hexdigest()
 
 
 def _signature(path: str) -> tuple[int, ...] | None:

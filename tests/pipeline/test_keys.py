@@ -14,6 +14,7 @@ from mocapflow.pipeline.keys import (
     KEY_LENGTH,
     canonical,
     clear_caches,
+    content_digest,
     diff_components,
     digest,
     digest_of,
@@ -339,3 +340,16 @@ def test_real_path_with_folder_cache_equals_realpath(tmp_path, monkeypatch):
         assert real_path(p, dirs) == os.path.realpath(p), p
     assert dirs[str(tmp_path / "link")] == str(tmp_path / "data")
     assert file_digest("link/c.c3d", dirs=dirs) == file_digest(tmp_path / "other" / "c.c3d")
+
+
+def test_content_digest_is_file_digest_without_memos(tmp_path):
+    """What workers check (content_digest) is what the driver keyed (file_digest)."""
+    d = tmp_path / "take"
+    (d / "sub").mkdir(parents=True)
+    (d / "a.c3d").write_bytes(b"abc")
+    (d / "sub" / "b.c3d").write_bytes(b"def")
+    for p in (d / "a.c3d", d):
+        assert content_digest(p) == file_digest(p, {})
+    before = content_digest(d)
+    (d / "sub" / "b.c3d").write_bytes(b"deg")
+    assert content_digest(d) != before
