@@ -13,7 +13,8 @@ simulators.  Every paper package builds on it; it imports only the engine.
 * **geometry** — :mod:`.geometry`: mesh vertex normals.
 * **contacts** — :mod:`.contacts`: runs of ``True``, toe and foot joints, foot contacts.
 * **ingest / export** — :mod:`.ingest` (the ``ingest_*`` stages: one file in, one
-  stored type out), :mod:`.export` (the exporters of ``mocapflow export``).
+  stored type out), :mod:`.export` (the exporters of ``mocapflow export``),
+  :mod:`.mesh_export` (the ``mesh`` exporter: OBJ + PC2, VTP series, PLY).
 * **simulate** — :mod:`.simulate`: synthetic data with ground truth (procedural
   skeleton, walk/run and range-of-motion stages, skinned bodies, the dense-marker
   capture stage).
@@ -27,6 +28,7 @@ STAGE_MODULES = {
     "datatypes": (),
     "ingest": ("ingest_amc", "ingest_bvh", "ingest_c3d", "ingest_strokes", "ingest_strokes_set"),
     "export": (),
+    "mesh_export": (),
     "simulate.motion": ("simulate_range_of_motion", "simulate_walk"),
     "simulate.capture": ("simulate_capture",),
 }

@@ -12,17 +12,16 @@ from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import ExportFormatError, decode, encode, find_exporter
 from mocapflow.stages.motion.datatypes import Mesh
 from mocapflow.stages.motion.formats.meshcache import MeshCacheError, read_pc2, write_pc2
+from mocapflow.stages.motion.mesh_export import export_mesh, write_ply
 from mocapflow.stages.skin.deform import deform
 from mocapflow.stages.skin.render import (
     RenderError,
     Video,
-    export_mesh,
     export_video,
     offscreen_available,
     render,
     render_error,
     render_modes,
-    write_ply,
 )
 from mocapflow.stages.skin.segment import segment
 from tests.stages.skin.conftest import limb_capture
