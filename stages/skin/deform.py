@@ -433,7 +433,8 @@ def deform(
     Returns
     -------
     dict
-        ``mesh``: animated :class:`Mesh` ``(F, V, 3)`` at the capture's rate;
+        ``mesh``: animated :class:`Mesh` ``(F, V, 3)`` at the capture's rate
+        (``attrs``: ``vertex_part``, ``V`` ints indexing ``part_names``);
         ``report``: per-part markers, mode used, fallback frames, and the RMS
         distance (mm) between the observed markers and the model's prediction.
     """
@@ -461,6 +462,10 @@ def deform(
         faces=mesh.faces,
         rate=markers.rate,
         attrs={"mode": mode, "source": "deform", **{k: v for k, v in mesh.attrs.items()
-                                                    if isinstance(v, (str, int, float))}},
+                                                    if isinstance(v, (str, int, float))},
+               # dominant part of each vertex (largest β), a V-int list the exporters
+               # write as vertex data; the (V, P) float β itself stays out of JSON attrs
+               "vertex_part": np.argmax(binding.beta, axis=1).tolist(),
+               "part_names": list(segmentation.part_names)},
     )
     return {"mesh": out, "report": report}

@@ -72,9 +72,9 @@ def test_mesh_exporter_writes_series(tmp_path, limb):
     m = limb["deformed"]
     files = export_mesh(m, tmp_path, "skin")
     n = m.vertices.shape[0]
-    # one animation (rest OBJ + PC2 cache) and the VTP series; per-frame PLY is opt-in
-    assert [f.name for f in files[:3]] == ["skin.obj", "skin.pc2", "skin.pvd"]
-    assert len(files) == 3 + n and not list(tmp_path.glob("skin/*.ply"))
+    # one animation (rest OBJ + PC2 cache, USD) and the VTP series; per-frame PLY is opt-in
+    assert [f.name for f in files[:4]] == ["skin.obj", "skin.pc2", "skin.usdc", "skin.pvd"]
+    assert len(files) == 4 + n and not list(tmp_path.glob("skin/*.ply"))
     cache, start = read_pc2(tmp_path / "skin.pc2")
     assert start == 0.0 and cache.shape == m.vertices.shape
     assert np.abs(cache - m.vertices).max() < 1e-6 * max(1.0, np.abs(m.vertices).max())
@@ -91,9 +91,20 @@ def test_mesh_exporter_writes_series(tmp_path, limb):
     assert series.time_values[1] == pytest.approx(1 / m.rate)
     series.set_active_time_point(5)
     assert np.allclose(series.read()[0].points, m.vertices[5])
+    assert np.array_equal(series.read()[0].point_data["vertex_part"], m.attrs["vertex_part"])
     static = export_mesh(limb["mesh"], tmp_path, "rest")
     assert sorted(p.suffix for p in static) == [".ply", ".vtp"]
     assert np.allclose(pv.read(str(tmp_path / "rest.vtp")).points, limb["mesh"].vertices)
+
+
+def test_deformed_mesh_carries_its_part_labels(limb):
+    m, seg = limb["deformed"], limb["seg"]
+    part = np.asarray(m.attrs["vertex_part"])
+    assert m.attrs["part_names"] == seg.part_names and part.shape == (m.vertices.shape[1],)
+    # the limb bends at y = 0.3: each side away from the joint is one part, not the same
+    y = limb["mesh"].vertices[:, 1]
+    upper, lower = np.unique(part[y < 0.22]), np.unique(part[y > 0.38])
+    assert len(upper) == 1 and len(lower) == 1 and upper[0] != lower[0]
 
 
 @needs_gl
