@@ -27,6 +27,18 @@ Limbs and targets
     config are always held.  The config can replace the detection
     (``contacts``: frame ranges per joint) or give explicit targets
     (``targets``: ``[frame, x, y, z]`` rows per joint, e.g. for hands).
+Frame numbers
+    The variants are at the model's rate (the ingest ``rate``) and are exported
+    at the output rate: ``attrs["output_rate"]`` (the ``output_rate`` param),
+    else the source file's rate (:func:`export_rate`, what
+    :func:`~mocapflow.stages.variation.clips.export_clips` writes).  Frames of
+    ``contacts`` and ``targets`` count at the output rate, 0-based, as in the
+    exported BVH; they are rounded to the nearest model frame
+    (``round(frame * rate / output_rate)``; a range keeps at least one frame).
+    The report gives frames at the output rate too (a model frame ``t`` is
+    exported frame ``round(t * output_rate / rate)``; a range of model frames,
+    the exported frames in its time span), with the model frames under
+    ``model_frame`` keys.
 Unreachable targets
     When SLSQP cannot meet a target within ``tolerance`` the limb takes the
     pose that minimises the target distance (best effort) and a warning names
@@ -55,6 +67,7 @@ from mocapflow.stages.variation.dofs import padded_order
 __all__ = [
     "IKError",
     "Limb",
+    "export_rate",
     "ik",
     "limb_of",
 ]
@@ -282,6 +295,60 @@ def _solve_frame(
     return q2, err2, err2 <= tolerance
 
 
+def export_rate(clips: Clips) -> float:
+    """Frames per second the variants are exported at.
+
+    ``attrs["output_rate"]`` when set, else the source file's rate
+    (``attrs["source"]["source_rate"]``), else ``clips.rate`` (the rule of
+    :func:`~mocapflow.stages.variation.clips.export_clips`).
+    """
+    rate = clips.attrs.get("output_rate") or (clips.attrs.get("source") or {}).get("source_rate")
+    return float(rate) if rate else float(clips.rate)
+
+
+@dataclass(frozen=True)
+class _Frames:
+    """Frame numbers at the model's ``rate`` and at the export's ``output_rate``."""
+
+    rate: float
+    output_rate: float
+
+    @property
+    def same(self) -> bool:
+        """The export is at the model's rate (not resampled)."""
+        return abs(self.output_rate - self.rate) <= 1e-9 * self.rate
+
+    def n_exported(self, n_model: int) -> int:
+        """Exported frames of a clip of ``n_model`` model frames (as the resampler makes)."""
+        if self.same or n_model == 0:
+            return n_model
+        return int(np.floor((n_model - 1) * self.output_rate / self.rate + 1e-9)) + 1
+
+    def to_model(self, frame: float) -> int:
+        """Nearest model frame of exported frame ``frame``."""
+        return int(frame) if self.same else int(round(frame * self.rate / self.output_rate))
+
+    def to_exported(self, t: int) -> int:
+        """Nearest exported frame of model frame ``t``."""
+        return int(t) if self.same else int(round(t * self.output_rate / self.rate))
+
+    def span(self, t0: int, t1: int) -> tuple[int, int]:
+        """``[start, stop)`` of the exported frames in the time of model frames ``t0..t1``
+        (the nearest exported frame when none falls in it)."""
+        if self.same:
+            return int(t0), int(t1) + 1
+        k = self.output_rate / self.rate
+        a, b = math.ceil(t0 * k - 1e-9), math.floor(t1 * k + 1e-9) + 1
+        if b <= a:
+            a = self.to_exported(t0)
+            b = a + 1
+        return a, b
+
+    def note(self) -> str:
+        """``" (frames at 120 fps)"`` when the export is resampled, else ``""``."""
+        return "" if self.same else f" (frames at {self.output_rate:g} fps)"
+
+
 def _auto_effectors(sk: Skeleton) -> list[list[int]]:
     """Per foot: [ankle, toe] joints that exist (one limb each)."""
     limbs = []
@@ -327,13 +394,20 @@ def ik(
         Closeness and smoothness weights of Lau Eq. 7 (paper: w₁ = 1, w₂ = 5).
     effectors : list of str, optional
         Effector joint names for automatic contact detection (default the
-        ankle and toe joints of both feet).
+        ankle and toe joints of both feet; joints named only in ``contacts`` or
+        ``targets`` are not detected).
     contacts : dict, optional
-        ``joint -> [[start, stop], ...]`` contact frame ranges replacing the
-        detection for that joint (all clips).
+        ``joint -> [[start, stop], ...]`` contact frame ranges (``stop``
+        excluded) replacing the detection for that joint (all clips, clipped to
+        each clip).  Frames count at the output rate (the exported BVH's 0-based
+        frame numbers) and are rounded to the nearest model frame, a range
+        keeping at least one.
     targets : dict, optional
         ``joint -> [[frame, x, y, z], ...]`` explicit targets (metres), added
-        to the detected ones (all clips).
+        to the detected ones (all clips).  ``frame`` is an exported frame number
+        (0-based, at the output rate; outside the exported clip: IKError), held
+        at the nearest model frame, so exactly met at the exported frames that
+        are model frames (every 4th at 30 -> 120 fps).
     height_threshold : float
         Metres above the effector's floor (5th percentile of its height).
     speed_threshold : float, optional
@@ -366,10 +440,17 @@ def ik(
     Returns
     -------
     dict
-        ``variants`` (Clips, ``attrs["ik"]`` set) and ``report`` (JSON: per clip
-        the constrained frames per effector, max / mean error (m), max error
-        over the frames whose targets were reached, unreachable frames; the
-        limbs and the thresholds used).
+        ``variants`` (Clips, ``attrs["ik"]`` set) and ``report`` (JSON; frame
+        numbers at the output rate, model frames under ``model_frame``): per
+        clip ``output_frames``, ``constrained`` (per effector ``[start, stop]``
+        ranges of exported frames in the time of the constrained model frames),
+        ``constrained_frames`` (their count), max / mean error (m), max error
+        over the frames whose targets were reached, ``targets`` (each given
+        target: ``effector``, ``frame`` as given, ``model_frame``,
+        ``exported_frame`` where it is held, ``error`` m (null: its limb has
+        no varying DOF), ``reached``) and
+        ``unreachable`` (``frame``, ``model_frame``, ``effectors``, ``error``);
+        the limbs, ``rate`` (model), ``output_rate`` and the thresholds used.
     """
     if variants.kind != "motion":
         why = f"kind {variants.kind!r} has no skeleton"
@@ -387,23 +468,27 @@ def ik(
     solver = _Solver(w1=w1, w2=w2, tolerance=tolerance, release=release, max_change=max_change,
                      max_iter=max_iter, n_blend=max(1, int(round(blend * variants.rate))))
     eff_all = sorted({e for g in groups for e in g})
+    frames = _Frames(rate=float(variants.rate), output_rate=export_rate(variants))
     out_trajs = []
     report: dict[str, Any] = {"clips": [], "limbs": [[sk.names[e] for e in g] for g in groups]}
     for c, motion in enumerate(clips_to_motions(variants)):
         pos, grot = forward_kinematics(
             sk, motion.rotations, motion.root_position, translations=motion.translations
         )
-        runs_of, fixed = _clip_constraints(
+        runs_of, fixed, given = _clip_constraints(
             sk, pos, eff_all, rate=variants.rate, up=up, effectors=effectors, contacts=contacts,
             targets=targets, height_threshold=height_threshold, speed_threshold=speed_threshold,
+            frames=frames, clip=variants.names[c],
         )
         traj, clip_report = _clean_clip(variants, c, pos, grot, limbs, eff_all, runs_of, fixed,
-                                        contacts=contacts, solver=solver, ctx=ctx)
+                                        given, contacts=contacts, solver=solver, frames=frames,
+                                        ctx=ctx)
         out_trajs.append(traj)
         report["clips"].append(clip_report)
     report.update(
         {"w1": w1, "w2": w2, "height_threshold": height_threshold,
-         "speed_threshold": speed_threshold, "tolerance": tolerance}
+         "speed_threshold": speed_threshold, "tolerance": tolerance,
+         "rate": frames.rate, "output_rate": frames.output_rate}
     )
     cleaned = variants.replace(trajectories=out_trajs, attrs={**variants.attrs, "ik": True})
     return {"variants": cleaned, "report": report}
@@ -458,8 +543,10 @@ def _clip_constraints(
     targets: dict[str, list[list[float]]] | None,
     height_threshold: float,
     speed_threshold: float | None,
-) -> tuple[dict[int, list[tuple[int, int]]], dict[int, np.ndarray]]:
-    """Contact runs and explicit targets of each effector in one clip.
+    frames: _Frames | None = None,
+    clip: str = "clip",
+) -> tuple[dict[int, list[tuple[int, int]]], dict[int, np.ndarray], list[tuple[int, int, int]]]:
+    """Contact runs and explicit targets of each effector in one clip, at model frames.
 
     Parameters
     ----------
@@ -472,16 +559,32 @@ def _clip_constraints(
     up : int
         Up axis index.
     effectors, contacts, targets, height_threshold, speed_threshold
-        As in the ``ik`` stage.
+        As in the ``ik`` stage (``contacts`` and ``targets`` frames at the output rate).
+    frames : _Frames, optional
+        The model and output rates (default: both ``rate``).
+    clip : str
+        Clip name, for errors.
 
     Returns
     -------
     runs_of : dict
-        ``effector -> [(start, stop), ...]`` contact frame ranges (given or detected).
+        ``effector -> [(start, stop), ...]`` contact model-frame ranges (given or detected).
     fixed : dict
-        ``effector -> (F, 3)`` explicit targets (NaN where none).
+        ``effector -> (F, 3)`` explicit targets at model frames (NaN where none).
+    given : list of (int, int, int)
+        ``(effector, exported frame as given, model frame)`` of each explicit target.
+
+    Raises
+    ------
+    IKError
+        Malformed rows, a target frame outside the exported clip, two targets of one
+        effector on one model frame.
     """
+    frames = frames or _Frames(rate=float(rate), output_rate=float(rate))
     F = pos.shape[0]
+    n_out = frames.n_exported(F)
+    given: list[tuple[int, int, int]] = []
+    auto = {j for g in _auto_effectors(sk) for j in g}  # detected by default: feet only
     hz = [a for a in range(3) if a != up]
     runs_of: dict[int, list[tuple[int, int]]] = {}
     fixed = {e: np.full((F, 3), np.nan) for e in eff_all}
@@ -489,8 +592,8 @@ def _clip_constraints(
         name = sk.names[e]
         p = pos[:, e]
         if contacts and name in contacts:
-            runs = [(max(0, int(a)), min(F, int(b))) for a, b in contacts[name]]
-        elif effectors is None or name in effectors:
+            runs = [_contact_run(row, name, frames, F) for row in contacts[name]]
+        elif name in effectors if effectors is not None else e in auto:
             floor = float(np.percentile(p[:, up], 5))
             v = (np.linalg.norm(np.gradient(p[:, hz], axis=0), axis=1) * rate
                  if F > 1 else np.zeros(F))
@@ -506,10 +609,37 @@ def _clip_constraints(
                 if len(row) != 4:
                     raise IKError(f"ik.targets.{name}: rows must be [frame, x, y, z]")
                 fr = int(row[0])
-                if not 0 <= fr < F:
-                    raise IKError(f"ik.targets.{name}: frame {fr} outside 0..{F - 1}")
-                fixed[e][fr] = row[1:4]
-    return runs_of, fixed
+                if fr != row[0]:
+                    raise IKError(f"ik.targets.{name}: frame {row[0]} is not a frame number")
+                if not 0 <= fr < n_out:
+                    raise IKError(
+                        f"ik.targets.{name}: frame {fr} outside {clip}'s exported frames "
+                        f"0..{n_out - 1}{frames.note()}"
+                    )
+                t = frames.to_model(fr)
+                if np.isfinite(fixed[e][t]).all():
+                    other = next(g for j, g, u in given if j == e and u == t)
+                    raise IKError(
+                        f"ik.targets.{name}: frames {other} and {fr} fall on one model frame "
+                        f"{t} (model {frames.rate:g} fps, export {frames.output_rate:g} fps)"
+                    )
+                fixed[e][t] = row[1:4]
+                given.append((e, fr, t))
+    return runs_of, fixed, given
+
+
+def _contact_run(row: Any, name: str, frames: _Frames, F: int) -> tuple[int, int]:
+    """A given ``[start, stop]`` of exported frames as a model-frame range clipped to ``F``.
+
+    Both ends go to the nearest model frame; a non-empty range keeps at least one.
+    """
+    if not (isinstance(row, (list, tuple)) and len(row) == 2):
+        raise IKError(f"ik.contacts.{name}: ranges must be [start, stop], got {row!r}")
+    a, b = int(row[0]), int(row[1])
+    ma, mb = frames.to_model(a), frames.to_model(b)
+    if b > a:
+        mb = max(mb, ma + 1)
+    return max(0, ma), min(F, mb)
 
 
 def _clean_clip(
@@ -521,16 +651,21 @@ def _clean_clip(
     eff_all: list[int],
     runs_of: dict[int, list[tuple[int, int]]],
     fixed: dict[int, np.ndarray],
+    given: list[tuple[int, int, int]],
     *,
     contacts: dict[str, list[list[int]]] | None,
     solver: _Solver,
+    frames: _Frames,
     ctx: Context,
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """Clip ``c`` with every limb cleaned; its varying DOFs ``(F, D)`` and its report entry."""
+    """Clip ``c`` with every limb cleaned; its varying DOFs ``(F, D)`` and its report entry
+    (frame numbers at the output rate, see the ``ik`` stage)."""
     sk = clips.skeleton
     full = clips.full(c)
     errs: dict[str, list[float]] = {sk.names[e]: [] for e in eff_all}
     reached: dict[str, list[float]] = {sk.names[e]: [] for e in eff_all}
+    held: dict[str, list[int]] = {sk.names[e]: [] for e in eff_all}
+    target_errors: dict[tuple[int, int], tuple[float | None, bool]] = {}
     unreachable: list[dict[str, Any]] = []
     new = full.copy()
     for limb in limbs:
@@ -540,18 +675,54 @@ def _clean_clip(
         manual = [bool(contacts) and sk.names[e] in contacts for e in limb.effectors]
         angles = _chain_angles(sk, limb, clips.dof_names, full)
         _clean_limb(sk, limb, full, new, angles, pos, grot, runs_of, fixed, manual, solver,
-                    errs=errs, reached=reached, unreachable=unreachable)
+                    errs=errs, reached=reached, unreachable=unreachable, held=held,
+                    target_errors=target_errors)
+    unreachable = sorted(
+        ({"frame": frames.to_exported(u["model_frame"]), **u} for u in unreachable),
+        key=lambda u: (u["model_frame"], u["effectors"]),
+    )
     if unreachable:
-        ctx.warn(_unreachable_summary(clips.names[c], unreachable))
+        ctx.warn(_unreachable_summary(clips.names[c], unreachable, frames))
+    ranges = {k: _exported_ranges(v, frames) for k, v in held.items()}
     report = {
         "name": clips.names[c],
-        "constrained_frames": {k: len(v) for k, v in errs.items()},
+        "output_frames": frames.n_exported(full.shape[0]),
+        "constrained": ranges,
+        "constrained_frames": {k: sum(b - a for a, b in v) for k, v in ranges.items()},
         "max_error": {k: (max(v) if v else 0.0) for k, v in errs.items()},
         "max_error_reached": {k: (max(v) if v else 0.0) for k, v in reached.items()},
         "mean_error": {k: (float(np.mean(v)) if v else 0.0) for k, v in errs.items()},
+        "targets": [
+            {"effector": sk.names[e], "frame": fr, "model_frame": t,
+             "exported_frame": frames.to_exported(t),
+             "error": target_errors.get((e, t), (None, False))[0],
+             "reached": target_errors.get((e, t), (None, False))[1]}
+            for e, fr, t in given
+        ],
         "unreachable": unreachable,
     }
     return new[:, clips.varying], report
+
+
+def _exported_ranges(model_frames: list[int], frames: _Frames) -> list[list[int]]:
+    """Runs of model frames as ``[start, stop]`` exported-frame ranges (``stop`` excluded).
+
+    A run ``t0..t1`` covers the exported frames in its time span (:meth:`_Frames.span`;
+    at a higher output rate those between model frames are interpolated from
+    constrained ones); ranges that touch or overlap at the output rate are joined.
+    """
+    ts = np.unique(np.asarray(model_frames, dtype=np.int64))
+    if ts.size == 0:
+        return []
+    cut = np.flatnonzero(np.diff(ts) > 1) + 1
+    out: list[list[int]] = []
+    for r in np.split(ts, cut):
+        a, b = frames.span(int(r[0]), int(r[-1]))
+        if out and a <= out[-1][1]:
+            out[-1][1] = max(out[-1][1], b)
+        else:
+            out.append([a, b])
+    return out
 
 
 def _limb_run_ids(limb: Limb, runs_of: dict[int, list[tuple[int, int]]], F: int) -> np.ndarray:
@@ -619,6 +790,8 @@ def _clean_limb(
     errs: dict[str, list[float]],
     reached: dict[str, list[float]],
     unreachable: list[dict[str, Any]],
+    held: dict[str, list[int]] | None = None,
+    target_errors: dict[tuple[int, int], tuple[float, bool]] | None = None,
 ) -> None:
     """Solve one limb frame by frame into ``new`` (Lau Eq. 7), easing back after contacts.
 
@@ -640,9 +813,15 @@ def _clean_limb(
         Per effector: its contacts were given (never lifted off).
     solver : _Solver
     errs, reached, unreachable
-        Per-effector errors, errors on reached frames and unreachable frames,
-        appended to.
+        Per-effector errors, errors on reached frames and unreachable frames
+        (``model_frame``, ``effectors``, ``error``), appended to.
+    held : dict, optional
+        Per effector name: its constrained model frames, appended to.
+    target_errors : dict, optional
+        ``(effector, model frame) -> (error, reached)`` of the explicit targets, set.
     """
+    held = {} if held is None else held
+    target_errors = {} if target_errors is None else target_errors
     cols = limb.dof_columns
     F = full.shape[0]
     depth = [len(limb_of(sk, e)) for e in limb.effectors]
@@ -670,7 +849,7 @@ def _clean_limb(
             q, err, ok = _solve_frame(fk, qbar, qprev, T, act, solver)
             if not ok:
                 names = [sk.names[e] for k, e in enumerate(limb.effectors) if act[k]]
-                unreachable.append({"frame": t, "effectors": names, "error": err})
+                unreachable.append({"model_frame": t, "effectors": names, "error": err})
                 if err > solver.release:  # lift off: end these detected contacts here
                     _lift_off(run_id, t, act, manual)
         else:
@@ -684,12 +863,16 @@ def _clean_limb(
             planted[key] = P[key[0]].copy()
             errs[sk.names[limb.effectors[key[0]]]].append(0.0)
             reached[sk.names[limb.effectors[key[0]]]].append(0.0)
+            held.setdefault(sk.names[limb.effectors[key[0]]], []).append(t)
         for k, e in enumerate(limb.effectors):
             if act[k]:
                 err_k = float(np.linalg.norm(P[k] - T[k]))
                 errs[sk.names[e]].append(err_k)
+                held.setdefault(sk.names[e], []).append(t)
                 if ok:
                     reached[sk.names[e]].append(err_k)
+                if np.isfinite(fixed[e][t]).all():
+                    target_errors[(e, t)] = (err_k, err_k <= solver.tolerance)
 
 
 def _chain_angles(sk: Skeleton, limb: Limb, names: list[str], full: np.ndarray) -> np.ndarray:
@@ -705,26 +888,27 @@ def _chain_angles(sk: Skeleton, limb: Limb, names: list[str], full: np.ndarray) 
     return out
 
 
-def _frame_ranges(frames: list[int]) -> str:
-    """``[3, 4, 5, 9]`` → ``"frames 3-5, frame 9"``."""
-    frames = sorted(set(frames))
-    runs: list[list[int]] = []
-    for f in frames:
-        if runs and f == runs[-1][-1] + 1:
-            runs[-1].append(f)
-        else:
-            runs.append([f])
-    return ", ".join(f"frame {r[0]}" if len(r) == 1 else f"frames {r[0]}-{r[-1]}" for r in runs)
+def _frame_ranges(model_frames: list[int], frames: _Frames | None = None) -> str:
+    """``[3, 4, 5, 9]`` → ``"frames 3-5, frame 9"`` (runs of model frames, named by their
+    first and last exported frame numbers when ``frames`` is given)."""
+    out = frames.to_exported if frames is not None else int
+    ranges = _exported_ranges(model_frames, _Frames(1.0, 1.0))
+    return ", ".join(
+        f"frame {out(a)}" if b == a + 1 else f"frames {out(a)}-{out(b - 1)}" for a, b in ranges
+    )
 
 
-def _unreachable_summary(name: str, unreachable: list[dict[str, Any]]) -> str:
-    """One warning per clip: the unreachable frames per effector set and the worst miss."""
+def _unreachable_summary(name: str, unreachable: list[dict[str, Any]],
+                         frames: _Frames | None = None) -> str:
+    """One warning per clip: the unreachable frames per effector set (exported frame
+    numbers) and the worst miss."""
     by_effectors: dict[str, list[dict[str, Any]]] = {}
     for u in unreachable:
         by_effectors.setdefault(", ".join(u["effectors"]), []).append(u)
     parts = [
-        f"{eff} at {_frame_ranges([u['frame'] for u in us])} "
+        f"{eff} at {_frame_ranges([u['model_frame'] for u in us], frames)} "
         f"(up to {max(u['error'] for u in us) * 1000:.1f} mm off)"
         for eff, us in by_effectors.items()
     ]
-    return f"{name}: target unreachable, best effort: {'; '.join(parts)}"
+    note = frames.note() if frames is not None else ""
+    return f"{name}: target unreachable, best effort: {'; '.join(parts)}{note}"

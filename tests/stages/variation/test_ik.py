@@ -65,6 +65,25 @@ def test_manual_contacts_hold_the_foot(skating):
     assert rep["clips"][0]["constrained_frames"]["LeftFoot"] == 12
 
 
+def test_contacts_count_at_the_output_rate(skating):
+    """At ``output_rate`` 30 the 60 fps model's contact [a, a + 12) is given as [h, h + 6)."""
+    _, bad = skating
+    walk = procedural_walk(90, rate=60.0, seed=2, variation=0.0)
+    flat = [f for f in walk.attrs["gait_events"]["left"]["foot_flat"] if 0.1 < f < 1.1][0]
+    h = int(round(flat * 30))
+    r = ik(bad, effectors=["LeftFoot"], contacts={"LeftFoot": [[h, h + 6]]}, output_rate=30)
+    out, rep = r["variants"], r["report"]
+    clip = rep["clips"][0]
+    assert (rep["rate"], rep["output_rate"], clip["output_frames"]) == (60.0, 30.0, 45)
+    assert clip["constrained"]["LeftFoot"] == [[h, h + 6]]  # model frames 2h .. 2h + 11
+    assert clip["constrained_frames"]["LeftFoot"] == 6
+    p = motion_positions(clips_to_motions(out)[0])[:, bad.skeleton.index("LeftFoot")]
+    assert np.abs(p[2 * h : 2 * h + 12] - p[2 * h]).max() <= 1e-3
+    assert np.abs(p[2 * h + 13 : 2 * h + 20] - p[2 * h]).max() > 1e-3  # released after
+    with pytest.raises(IKError, match=r"frame 45 outside motion0's exported frames 0\.\.44 \("):
+        ik(bad, targets={"LeftFoot": [[45, 0, 0, 0]]}, output_rate=30)
+
+
 def test_unreachable_target_is_best_effort_with_a_warning(skating):
     _, bad = skating
     ctx = Context()

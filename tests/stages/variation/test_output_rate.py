@@ -3,9 +3,12 @@
 The model works at the ingest rate (30 fps here, small params); the exported BVHs come
 back at the source file's rate (120 fps) with its exact ``Frame Time`` text and in its
 unit (the PyMO walk is in inches: written in centimetres it was 2.54x too large).
+The ``ik`` stage's ``contacts`` / ``targets`` frames and its report count exported frames.
 """
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
@@ -89,3 +92,79 @@ def test_write_bvh_falls_back_to_the_skeletons_source_unit(variation_run, tmp_pa
     assert bare.skeleton.attrs["source_scale"] == 0.0254
     out = write_bvh(bare, tmp_path / "bare.bvh")
     assert abs(bvh_skeleton_size(out) / bvh_skeleton_size(path) - 1) < 1e-3
+
+
+# --------------------------------------------------------------------------- constraint frames
+
+
+def test_ik_targets_count_and_report_in_exported_frames(variation_run, tmp_path):
+    """A target at exported frame N (120 fps) is met at frame N of the exported BVH.
+
+    The model runs at 30 fps: N = 20 is model frame 5.  Read as a model frame, 20
+    would land at exported frame 80, so the check at N fails on a missing conversion.
+    """
+    _, _, variants = variation_run
+    one = variants.subset([0])
+    sk = one.skeleton
+    m30 = clips_to_motions(one)[0]
+    n_out = 4 * (m30.n_frames - 1) + 1  # 113 exported frames
+    left, right = sk.index("LeftHand"), sk.index("RightHand")
+    N = 20
+    p30 = motion_positions(m30)
+    target = p30[N // 4, left] + [0.0, 0.03, 0.02]  # 3.6 cm from the sampled hand
+    far = p30[N // 4, right] + [0.0, 5.0, 0.0]  # out of reach
+    ctx = Context()
+    r = ik(one, targets={"LeftHand": [[N, *target]], "RightHand": [[N + 1, *far]]},
+           contacts={"RightToeBase": [[33, 47]]}, ctx=ctx)
+    rep = r["report"]
+    json.dumps(rep, allow_nan=False)  # a JSON output of the stage
+    assert (rep["rate"], rep["output_rate"]) == (30.0, 120.0)
+    clip = rep["clips"][0]
+    assert clip["output_frames"] == n_out
+    hand, miss = clip["targets"]
+    assert (hand["effector"], hand["frame"], hand["model_frame"], hand["exported_frame"]) == (
+        "LeftHand", N, 5, N)
+    assert hand["reached"] and hand["error"] <= rep["tolerance"]
+    # N + 1 = 21 rounds to model frame 5, exported frame 20; it is reported there
+    assert (miss["frame"], miss["model_frame"], miss["exported_frame"]) == (N + 1, 5, N)
+    assert not miss["reached"] and miss["error"] > 4.0
+    assert [(u["frame"], u["model_frame"]) for u in clip["unreachable"]
+            if u["effectors"] == ["RightHand"]] == [(N, 5)]
+    assert any(f"RightHand at frame {N} " in w and "frames at 120 fps" in w
+               for w in ctx.warnings), ctx.warnings
+    # contacts [33, 47) -> model frames 8..11 (rounded) -> exported frames 32..44
+    assert clip["constrained"]["RightToeBase"] == [[32, 45]]
+    assert clip["constrained"]["LeftHand"] == [[N, N + 1]]  # a target, not a detected contact
+    # in the exported BVH (inches, read back in metres), by forward kinematics
+    (bvh,) = export_clips(decode(encode(r["variants"])), tmp_path, "ik")
+    back = read_bvh(bvh)
+    assert back.rate == 120.0 and back.n_frames == n_out
+    p120 = motion_positions(back)
+    err = np.linalg.norm(p120[N, left] - target)
+    assert err <= rep["tolerance"], err  # measured 1.2e-8 m
+    (bvh0,) = export_clips(one, tmp_path, "before")
+    assert np.linalg.norm(motion_positions(read_bvh(bvh0))[N, left] - target) > 0.03
+    toe = sk.index("RightToeBase")
+    held = np.linalg.norm(p120[32:45:4, toe] - p120[32, toe], axis=-1).max()
+    assert held <= rep["tolerance"], held  # measured 2.9e-8 m on the model frames
+
+
+def test_ik_target_frames_outside_the_export_are_refused(variation_run):
+    _, _, variants = variation_run
+    one = variants.subset([0])
+    n_out = 4 * (int(one.lengths[0]) - 1) + 1
+    for frame in (n_out, -1):
+        with pytest.raises(IKError, match=rf"frame {frame} outside variant0's exported frames "
+                                          rf"0\.\.{n_out - 1} \(frames at 120 fps\)") as e:
+            ik(one, targets={"LeftHand": [[frame, 0.0, 1.0, 0.0]]}, ctx=Context())
+        assert "\n" not in str(e.value)
+    with pytest.raises(IKError, match="frame 20.5 is not a frame number"):
+        ik(one, targets={"LeftHand": [[20.5, 0.0, 1.0, 0.0]]}, ctx=Context())
+    with pytest.raises(IKError, match="frames 20 and 21 fall on one model frame 5"):
+        ik(one, targets={"LeftHand": [[20, 0.0, 1.0, 0.0], [21, 0.0, 1.0, 0.0]]}, ctx=Context())
+    # at output_rate 60 the exported clip has 2 (F - 1) + 1 frames
+    sixty = ik(one, mode="off", output_rate=60, ctx=Context())["variants"]
+    n60 = 2 * (int(one.lengths[0]) - 1) + 1
+    with pytest.raises(IKError, match=rf"0\.\.{n60 - 1} \(frames at 60 fps\)"):
+        ik(sixty, targets={"LeftHand": [[n60, 0.0, 1.0, 0.0]]}, ctx=Context())
+    ik(sixty, targets={"LeftHand": [[n60 - 1, 0.0, 1.0, 0.0]]}, ctx=Context())  # the last one
