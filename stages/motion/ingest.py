@@ -19,6 +19,13 @@ from typing import Any
 import numpy as np
 
 from mocapflow.pipeline import Context, FilePath, stage
+from mocapflow.stages.motion.axes import (
+    AxisError,
+    detect_forward,
+    detect_up,
+    frame_basis,
+    parse_axis,
+)
 from mocapflow.stages.motion.datatypes import Markers, Motion, StrokesSet
 from mocapflow.stages.motion.formats.asf import read_amc, read_asf
 from mocapflow.stages.motion.formats.bvh import read_bvh
@@ -37,6 +44,7 @@ __all__ = [
     "ingest_c3d",
     "ingest_strokes",
     "ingest_strokes_set",
+    "markers_axes",
     "markers_report",
 ]
 
@@ -125,14 +133,56 @@ def markers_report(markers: Markers) -> dict[str, Any]:
     }
 
 
+def markers_axes(markers: Markers, *, up: str = "auto", forward: str = "auto"
+                 ) -> tuple[Markers, dict[str, Any]]:
+    """Markers with their up axis and facing direction in ``attrs`` (``up``, ``forward``,
+    ``axes_source``), detected (:mod:`~mocapflow.stages.motion.axes`) unless given.
+
+    Parameters
+    ----------
+    markers : Markers
+    up, forward : str
+        ``"auto"`` or a signed axis (``z``, ``+z``, ``-y`` ...).
+
+    Returns
+    -------
+    markers : Markers
+    evidence : dict
+        What decided: ``up`` and ``forward`` evidence (see :func:`detect_up`).
+    """
+    tree = markers.attrs.get("c3d_parameters") or {}
+    screen = tree.get("POINT", {}).get("parameters", {}).get("Y_SCREEN", {}).get("value")
+    both = markers.positions
+    if markers.fragments.shape[1]:
+        both = np.concatenate([markers.positions, markers.fragments], axis=1)
+    up_axis, up_ev = detect_up(both, y_screen=str(screen[0]) if screen else None, up=up)
+    fwd, fwd_ev = detect_forward(markers.positions, markers.labels, up=up_axis, forward=forward)
+    source = {"up": up_ev["source"], "up_confidence": up_ev["confidence"],
+              "forward": fwd_ev["source"]}
+    if up_ev.get("note"):
+        source["note"] = up_ev["note"]
+    attrs = {**markers.attrs, "up": up_axis, "forward": fwd, "axes_source": source}
+    return markers.replace(attrs=attrs), {"up": up_ev, "forward": fwd_ev}
+
+
 @stage("ingest_c3d", outputs=("markers", "report"))
-def ingest_c3d(path: FilePath, *, ctx: Context) -> dict:
+def ingest_c3d(path: FilePath, *, up: str = "auto", forward: str = "auto", ctx: Context) -> dict:
     """Read a C3D file into markers (metres) and a report of what was read.
 
     Parameters
     ----------
     path : FilePath
         The ``.c3d`` part.
+    up : str
+        The vertical axis of the capture: ``"auto"`` (``POINT:Y_SCREEN`` where the
+        file says, its sign checked against the floor; else the body's long axis
+        over the trial, signed by the floor), or ``x``, ``y``, ``z`` with an
+        optional sign (``+z``, ``-y``).  Stored in ``markers.attrs["up"]``; every
+        stage reads it from there (the data are never rotated).
+    forward : str
+        The horizontal axis the subject faces: ``"auto"`` (front/back landmark
+        pairs such as ``ASI``/``PSI``, else the direction of travel, else the
+        body's thin horizontal axis) or a signed axis.  ``markers.attrs["forward"]``.
 
     Returns
     -------
@@ -140,12 +190,24 @@ def ingest_c3d(path: FilePath, *, ctx: Context) -> dict:
         ``markers``: :class:`Markers` (``positions (F, M, 3)``, fragments, residuals,
         ``analogs (S, C)`` in the source's units, and the whole parameter section
         in ``attrs["c3d_parameters"]``: what ``export`` writes back);
-        ``report``: JSON summary (see :func:`markers_report`).
+        ``report``: JSON summary (see :func:`markers_report`) with ``up``,
+        ``forward`` and ``axes`` (what decided them).
     """
-    markers = read_c3d(path)
+    try:
+        markers, evidence = markers_axes(read_c3d(path), up=up, forward=forward)
+    except AxisError as e:
+        raise IngestError(f"{path}: {e}") from None
     report = markers_report(markers)
+    report.update(up=markers.attrs["up"], forward=markers.attrs["forward"],
+                  axes=markers.attrs["axes_source"])
     if report["never_seen"]:
         ctx.warn(f"{Path(path).name}: markers never seen: {', '.join(report['never_seen'])}")
+    src = markers.attrs["axes_source"]
+    if src.get("note"):
+        ctx.warn(f"{Path(path).name}: up axis: {src['note']}")
+    if src["up_confidence"] == "low":
+        ctx.warn(f"{Path(path).name}: up axis {markers.attrs['up']} guessed from the data "
+                 "with little evidence; set ingest.up (x, y, z, +z, -y ...) if it is wrong")
     return {"markers": markers, "report": report}
 
 
@@ -186,7 +248,8 @@ def _resampled(motion: Motion, rate: float | None, path: str) -> Motion:
 
 @stage("ingest_bvh", outputs=("motion",))
 def ingest_bvh(
-    path: FilePath, *, rate: float | None = None, unit: str = "auto", ctx: Context
+    path: FilePath, *, rate: float | None = None, unit: str = "auto", up: str = "+y",
+    forward: str = "+z", ctx: Context
 ) -> dict:
     """Read a BVH file into a motion (metres), optionally resampled to ``rate``.
 
@@ -198,13 +261,24 @@ def ingest_bvh(
         Target frames per second (``None`` keeps the file's Frame Time).
     unit : str
         Length unit of the file (``"auto"`` guesses it from the skeleton size).
+    up, forward : str
+        The file's vertical axis and the direction its character faces, stored in
+        ``motion.attrs["up"]`` / ``["forward"]``: BVH's convention is Y up, facing
+        +Z; give e.g. ``up: +z, forward: -y`` for a file exported Z-up.
 
     Returns
     -------
     dict
         ``motion``: :class:`Motion` with ``root_position (F, 3)``, ``rotations (F, J, 4)``.
     """
-    return {"motion": _resampled(read_bvh(path, unit=unit), rate, path)}
+    try:
+        axes = {"up": parse_axis(up, name="ingest_bvh.up"),
+                "forward": parse_axis(forward, name="ingest_bvh.forward")}
+        frame_basis(axes["up"], axes["forward"])
+    except AxisError as e:
+        raise IngestError(f"{path}: {e}") from None
+    motion = _resampled(read_bvh(path, unit=unit), rate, path)
+    return {"motion": motion.replace(attrs={**motion.attrs, **axes})}
 
 
 def amc_skeleton_path(amc: str | Path) -> Path:

@@ -20,6 +20,7 @@ from scipy.sparse.linalg import splu
 
 from mocapflow.pipeline import Context, FilePath, stage
 from mocapflow.stages.motion.absolute_orientation import absolute_orientation
+from mocapflow.stages.motion.axes import frame_basis
 from mocapflow.stages.motion.datatypes import Mesh
 from mocapflow.stages.motion.geometry import vertex_normals
 from mocapflow.stages.motion.simulate.capsules import procedural_body
@@ -375,6 +376,11 @@ def fit_mesh(
             f"{template.vertices.shape[0]} frames"
         )
     V = template.vertices if not template.animated else template.vertices[template_frame]
+    # the template into the capture's axes (both default to Y up, facing +Z)
+    axes = {k: segmentation.attrs.get(k, d) for k, d in (("up", "+y"), ("forward", "+z"))}
+    R = frame_basis(axes["up"], axes["forward"]) @ frame_basis(
+        template.attrs.get("up", "+y"), template.attrs.get("forward", "+z")).T
+    V = V @ R.T
     index = {m: i for i, m in enumerate(segmentation.labels)}
     unknown = [k for k in (landmarks or {}) if k not in index]
     if unknown:
@@ -399,7 +405,7 @@ def fit_mesh(
         ctx.warn(f"template scaled by {info['scale']:.3g} to fit the markers")
     report = {**info, "vertices": int(len(V)), "marker_spacing_mm": spacing * 1000,
               "template_frame": template_frame}  # fmt: skip
-    mesh = Mesh(vertices=fitted, faces=template.faces, attrs=dict(template.attrs))
+    mesh = Mesh(vertices=fitted, faces=template.faces, attrs={**template.attrs, **axes})
     return {"mesh": mesh, "report": report}
 
 
@@ -430,4 +436,5 @@ def template_mesh(
         body = load_makehuman_body(body_mesh)
     else:
         body = procedural_body(procedural_skeleton(), n_vertices=n_vertices)
-    return {"mesh": Mesh(body.vertices, body.faces, attrs={"source": body.attrs.get("source")})}
+    return {"mesh": Mesh(body.vertices, body.faces, attrs={"source": body.attrs.get("source"),
+                                                           "up": "+y", "forward": "+z"})}

@@ -36,6 +36,7 @@ import numpy as np
 
 from mocapflow.pipeline import Context, ParamError, stage
 from mocapflow.pipeline.codecs import Encoded, codec, exporter
+from mocapflow.stages.motion.axes import AxisError, frame_basis
 from mocapflow.stages.motion.datatypes import Markers, Mesh
 from mocapflow.stages.skin.binding import closest_points_on_triangles
 from mocapflow.stages.skin.deform import align_markers, deform
@@ -260,7 +261,8 @@ def render_frames(
     width: int = 640,
     height: int = 480,
     view: str = "front",
-    up: str = "y",
+    up: str = "+y",
+    forward: str = "+z",
     follow: bool = True,
     background: str = "white",
     marker_size: float | None = None,
@@ -277,8 +279,11 @@ def render_frames(
     width, height : int
         Size of one panel in pixels.
     view : {"front", "back", "side", "iso"}
-        Camera direction (body facing +z with y up, CMU convention).
-    up : {"y", "z"}
+        Camera direction relative to the body: ``front`` looks at its face.
+    up, forward : str
+        The data's vertical axis and the direction the body faces (signed axes,
+        e.g. ``+z`` and ``-y`` for a Vicon lab; ``attrs["up"]`` / ``["forward"]`` of
+        the markers): the image's vertical is ``up``.
     follow : bool
         Camera follows the body (smoothed bounding-box centre).
     background : str
@@ -298,8 +303,8 @@ def render_frames(
     F = panels[0]["vertices"].shape[0]
     if any(p["vertices"].shape[0] != F for p in panels):
         raise RenderError("render: panels have different frame counts")
-    focal, dist, d, upv = _camera(panels, view=view, up=up, follow=follow, width=width,
-                                  height=height)
+    focal, dist, d, upv = _camera(panels, view=view, up=up, forward=forward, follow=follow,
+                                  width=width, height=height)
     try:
         pl = pv.Plotter(
             off_screen=True, shape=(1, len(panels)), window_size=(width * len(panels), height),
@@ -327,16 +332,18 @@ def render_frames(
     return out
 
 
-def _camera(panels: list[dict[str, Any]], *, view: str, up: str, follow: bool, width: int,
-            height: int) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+def _camera(panels: list[dict[str, Any]], *, view: str, up: str, forward: str, follow: bool,
+            width: int, height: int) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
     """Camera of every frame: focal points ``(F, 3)``, distance, direction from the focal
     point ``(3,)`` and up vector ``(3,)`` (room left for titles and colour bars)."""
     seqs = [p["vertices"] for p in panels]
     focal = _camera_track(seqs, follow=follow)
-    d = np.asarray(_VIEW_DIRS[view], dtype=float)
-    upv = np.array([0.0, 1.0, 0.0]) if up == "y" else np.array([0.0, 0.0, 1.0])
-    if up == "z":
-        d = np.array([d[0], -d[2], d[1]])
+    try:
+        basis = frame_basis(up, forward)  # the Y-up, +Z-facing view directions -> data axes
+    except AxisError as e:
+        raise RenderError(f"render: {e}") from None
+    d = basis @ np.asarray(_VIEW_DIRS[view], dtype=float)
+    upv = basis[:, 1]
     d /= np.linalg.norm(d)
     overlays = any(p.get("title") or p.get("scalars") is not None for p in panels)
     dist = _camera_distance(seqs, focal, -d, upv, width, height,
@@ -389,6 +396,12 @@ def _update_panel(pv, panel: dict[str, Any], f: int, mesh, marker_poly,
         m = panel["markers"][f]
         m = m[np.isfinite(m).all(1)]
         marker_poly.copy_from(pv.PolyData(m if len(m) else focal[None]))
+
+
+def _axes(data: Any) -> dict[str, str]:
+    """``up`` / ``forward`` of the data (``attrs``, set at ingest; default Y up, facing +Z)."""
+    attrs = getattr(data, "attrs", {}) or {}
+    return {"up": str(attrs.get("up", "+y")), "forward": str(attrs.get("forward", "+z"))}
 
 
 def _frame_indices(n: int, stride: int, max_frames: int) -> np.ndarray:
@@ -449,7 +462,8 @@ def render(
              "title": f"{mesh.attrs.get('mode', '')}".replace("_", " + ")}  # fmt: skip
     if show_markers:
         panel["markers"] = markers.positions[idx]
-    frames = render_frames([panel], width=width, height=height, view=view, follow=follow)
+    frames = render_frames([panel], width=width, height=height, view=view, follow=follow,
+                           **_axes(markers))
     rate = (mesh.rate or markers.rate) / max(1, stride)
     return {"video": Video(frames, rate, {"source_frames": idx.tolist(), "kind": "mesh"})}
 
@@ -524,7 +538,8 @@ def render_modes(
         })  # fmt: skip
     for msg in sorted(set(messages)):
         ctx.warn(msg)
-    frames = render_frames(panels, width=width, height=height, view=view, follow=follow)
+    frames = render_frames(panels, width=width, height=height, view=view, follow=follow,
+                           **_axes(markers))
     video = Video(frames, markers.rate / max(1, stride),
                   {"source_frames": idx.tolist(), "kind": "modes", "modes": modes})  # fmt: skip
     return {"video": video, "report": {"modes": modes, "frames": len(idx),
@@ -596,7 +611,8 @@ def render_error(
     panel = {"vertices": mesh.vertices[idx], "faces": mesh.faces, "scalars": err_r,
              "clim": (0.0, clim_mm), "cmap": "inferno", "scalar_title": "error (mm)",
              "title": "distance to ground truth"}  # fmt: skip
-    frames = render_frames([panel], width=width, height=height, view=view, follow=follow)
+    frames = render_frames([panel], width=width, height=height, view=view, follow=follow,
+                           **_axes(mesh))
     report = {
         "mean_mm": float(np.mean(err_all)),
         "p95_mm": float(np.percentile(err_all, 95)),

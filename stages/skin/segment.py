@@ -781,6 +781,8 @@ def segment(
             "sigma": sigma,
             "n_parts": n_parts,
             "min_part_markers": min_part_markers,
+            # the capture's axes (ingest), read by fit_mesh and the renderer
+            **{k: markers.attrs[k] for k in ("up", "forward") if k in markers.attrs},
         },
     )
     return {"segmentation": seg, "report": report}

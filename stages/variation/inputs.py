@@ -31,6 +31,15 @@ from mocapflow.stages.variation.similar import select_similar
 __all__ = ["clips"]
 
 
+def _motion_up(motions: list[Motion]) -> str:
+    """The shared up axis (``"y"`` / ``"z"``) of the motions' ``attrs["up"]`` (default y)."""
+    ups = {str(m.attrs.get("up", "+y")).lstrip("+") for m in motions}
+    if len(ups) > 1 or not ups <= {"y", "z"}:
+        raise ClipError(f"clips: the motions' up axes {sorted(ups)} are not one of y, z; "
+                        "set ingest.up / clips.up")
+    return ups.pop()
+
+
 @stage("clips", outputs=("clips", "report"))
 def clips(
     sources: Any,
@@ -38,7 +47,7 @@ def clips(
     cut: Literal["auto", "feet", "period", "none"] = "auto",
     cyclic: bool | None = None,
     root: Literal["heading", "absolute"] = "heading",
-    up: Literal["y", "z"] = "y",
+    up: Literal["auto", "y", "z"] = "auto",
     outlier: float = 2.5,
     min_cycles: int = 2,
     letter: str | None = None,
@@ -63,8 +72,9 @@ def clips(
         Mark the clips as cycles (default: true exactly when a take was cut).
     root : {"heading", "absolute"}
         Root DOFs (see :mod:`~mocapflow.stages.variation.dofs`).
-    up : {"y", "z"}
-        World up axis.
+    up : {"auto", "y", "z"}
+        World up axis; ``auto``: the motions' ``attrs["up"]`` (set by ``ingest_bvh``,
+        whose default is BVH's Y up), else y.
     outlier : float
         Shape-outlier factor for dropping cycles.
     min_cycles : int
@@ -96,6 +106,7 @@ def clips(
     elif all(isinstance(x, Strokes) for x in items):
         out = _stroke_clips(items, letter=letter, cyclic=cyclic, ctx=ctx)
     elif all(isinstance(x, Motion) for x in items):
+        up = _motion_up(items) if up == "auto" else up
         if len(items) == 1 and cut != "none":
             out, report["cut"] = _take_cycles(
                 items[0], cut=cut, cyclic=cyclic, root=root, up=up, outlier=outlier,

@@ -617,6 +617,10 @@ def _parameters(
     point["UNITS"] = _chars([unit])
     point["SCALE"] = _numeric("float", [scale])
     point["RATE"] = _numeric("float", [float(markers.rate)])
+    if "Y_SCREEN" not in point and markers.attrs.get("up"):  # the up axis, for other tools
+        up = str(markers.attrs["up"]).upper()
+        point["Y_SCREEN"] = _chars([up])
+        point.setdefault("X_SCREEN", _chars(["+Y" if up[-1] == "X" else "+X"]))
     if n_analogs:
         analog = groups.setdefault("ANALOG", {"__METADATA__": {"DESCRIPTION": "",
                                                                "IS_LOCKED": False}})

@@ -251,6 +251,17 @@ def _vertex_normals_at(vertices: np.ndarray, faces: np.ndarray, at: np.ndarray) 
     return n[:, np.searchsorted(used, at)]
 
 
+#: Axis names of the ``truth`` record's arrays (its ``_dims``: codecs.RECORD_DIMS).
+_TRUTH_DIMS = {
+    "positions": ["frame", "marker", "xyz"], "visible": ["frame", "marker"],
+    "n_cameras_seeing": ["frame", "marker"], "part": ["marker"],
+    "marker_weights": ["marker", "joint"], "region": ["marker"], "marker_face": ["marker"],
+    "marker_barycentric": ["marker", "corner"], "bind_pose": ["marker", "xyz"],
+    "reference_pose": ["marker", "xyz"], "fragment_marker": ["fragment"],
+    "cameras": ["camera", "xyz"],
+}
+
+
 def _capture_truth(body: Body, sites: SurfacePoints, true: np.ndarray, *, visible, seen,
                    frag_marker, label_frame, labels, cams, noise, marker_radius, rate,
                    motion_name) -> dict[str, Any]:
@@ -278,6 +289,7 @@ def _capture_truth(body: Body, sites: SurfacePoints, true: np.ndarray, *, visibl
         "marker_radius": marker_radius,
         "rate": rate,
         "motion": motion_name,
+        "_dims": {k: list(v) for k, v in _TRUTH_DIMS.items()},
     }
 
 
@@ -405,7 +417,9 @@ def _captured_markers(labelled: np.ndarray, frags: np.ndarray, labels: list[str]
         positions=labelled, labels=labels, rate=rate, first_frame=0,
         fragments=frags, fragment_labels=[f"*{u + 1}" for u in range(frags.shape[1])],
         attrs={"source": "simulate_capture", "source_unit": "m", "motion": motion,
-               "label_frame": label_frame})
+               "label_frame": label_frame, "up": "+y", "forward": "+z",
+               "axes_source": {"up": "simulator", "up_confidence": "high",
+                               "forward": "simulator"}})
 
 
 def _true_mesh(mesh_seq: np.ndarray, body: Body, sites: SurfacePoints, *, rate: float) -> Mesh:
