@@ -21,15 +21,23 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.spatial.transform import Rotation, RotationSpline
 
+from mocapflow.stages.motion.axes import frame_basis, parse_axis
 from mocapflow.stages.motion.datatypes import Motion, Skeleton
 from mocapflow.stages.motion.rotations import (
     quat_continuity,
+    quat_from_matrix,
     quat_multiply,
     quat_rotate,
     quat_slerp,
 )
 
-__all__ = ["end_site_positions", "forward_kinematics", "motion_positions", "resample_motion"]
+__all__ = [
+    "end_site_positions",
+    "forward_kinematics",
+    "motion_positions",
+    "reorient_motion",
+    "resample_motion",
+]
 
 
 def forward_kinematics(
@@ -209,3 +217,37 @@ def motion_positions(motion: Motion) -> np.ndarray:
         motion.skeleton, motion.rotations, motion.root_position, translations=motion.translations
     )
     return pos
+
+
+def reorient_motion(motion: Motion, *, up: str = "+y", forward: str = "+z") -> Motion:
+    """The same motion in other world axes: rotated so that its up axis and facing
+    (``attrs["up"]`` / ``["forward"]``, default Y up facing +Z) become ``up`` / ``forward``.
+
+    Stages written in the Y-up, +Z-facing convention (the texture synthesis) bring a
+    motion in with the defaults and take their output back with the source's axes.
+    Only the root moves (its translation and rotation); offsets and local rotations
+    are untouched, so the skeleton and its size are the same.
+
+    Parameters
+    ----------
+    motion : Motion
+    up, forward : str
+        Target axes (signed axis names, :func:`~mocapflow.stages.motion.axes.parse_axis`).
+
+    Returns
+    -------
+    Motion
+        ``motion`` itself when the axes already agree; else a rotated copy with
+        ``attrs["up"]`` / ``["forward"]`` set to the targets.
+    """
+    src_up = parse_axis(motion.attrs.get("up", "+y"))
+    src_fwd = parse_axis(motion.attrs.get("forward", "+z"))
+    up, forward = parse_axis(up, name="up"), parse_axis(forward, name="forward")
+    if (src_up, src_fwd) == (up, forward):
+        return motion
+    R = frame_basis(up, forward) @ frame_basis(src_up, src_fwd).T
+    q = quat_from_matrix(R)
+    rot = motion.rotations.copy()
+    rot[:, 0] = quat_multiply(np.broadcast_to(q, rot[:, 0].shape), rot[:, 0])
+    return motion.replace(root_position=motion.root_position @ R.T, rotations=rot,
+                          attrs={**motion.attrs, "up": up, "forward": forward})

@@ -30,7 +30,7 @@ import numpy as np
 from mocapflow.pipeline import Context, stage
 from mocapflow.pipeline.codecs import Encoded, codec
 from mocapflow.stages.motion.datatypes import Motion, Skeleton
-from mocapflow.stages.motion.kinematics import forward_kinematics
+from mocapflow.stages.motion.kinematics import forward_kinematics, reorient_motion
 from mocapflow.stages.motion.rotations import (
     heading_split,
     quat_continuity,
@@ -359,7 +359,10 @@ def pyramid(
     Parameters
     ----------
     motion : Motion
-        Input textural motion (``F`` frames, ``y`` up).
+        Input textural motion (``F`` frames); one in other axes (``attrs["up"]``,
+        ``["forward"]``) is first turned to Y up, facing +Z
+        (:func:`~mocapflow.stages.motion.kinematics.reorient_motion`), the axes
+        the synthesis works in.
     levels : int
         Levels including the input (the thesis used 3–5; default 4).
     filter_size : int
@@ -371,4 +374,5 @@ def pyramid(
     dict
         ``pyramid``: :class:`Pyramid`.
     """
-    return {"pyramid": build_pyramid(motion, levels=levels, filter_size=filter_size)}
+    return {"pyramid": build_pyramid(reorient_motion(motion), levels=levels,
+                                     filter_size=filter_size)}

@@ -47,7 +47,11 @@ import numpy as np
 from mocapflow.pipeline import Context, stage
 from mocapflow.stages.metrics.quality import jerk_p99
 from mocapflow.stages.motion.datatypes import Motion
-from mocapflow.stages.motion.kinematics import motion_positions, resample_motion
+from mocapflow.stages.motion.kinematics import (
+    motion_positions,
+    reorient_motion,
+    resample_motion,
+)
 from mocapflow.stages.texture.assemble import assemble_motion
 from mocapflow.stages.texture.graph import (
     UnreachableGapError,
@@ -433,7 +437,10 @@ def synth(
     pyramid : Pyramid
         Gaussian tree of ``motion`` (stage ``pyramid``).
     motion : Motion
-        Input motion (``F`` frames), for the skeleton and world placement.
+        Input motion (``F`` frames), for the skeleton and world placement.  The
+        synthesis works Y up, facing +Z; a motion in other axes (``attrs["up"]``,
+        ``["forward"]`` from ``ingest_bvh``) is turned to them and the output back
+        (``path`` points are ground-plane ``(x, z)`` of that Y-up frame).
     length : int, optional
         Output frames at the synthesis rate (default ``2 F``); any length.
     constraints : list of [input_frame, output_frame], optional
@@ -530,6 +537,8 @@ def synth(
     PathError
         A path that cannot be followed.
     """
+    axes = {"up": motion.attrs.get("up", "+y"), "forward": motion.attrs.get("forward", "+z")}
+    motion = reorient_motion(motion)  # the synthesis works Y up, facing +Z (as pyramid)
     F = motion.n_frames
     source_rate, out_rate = _rates(motion, output_rate)
     levels = _levels_used(pyramid, F, levels, filter_size)
@@ -560,6 +569,7 @@ def synth(
             foot_ik=foot_ik, warn=ctx.warn,
         )
     out, assembly = _at_output_rate(out, assembly, motion.rate, source_rate, out_rate, cons)
+    out = reorient_motion(out, **axes)  # back in the source's axes
     shown = sorted(([int(c[0]), int(c[1])] for c in given), key=lambda c: c[1])  # as given
     report = _synth_report(L, F, levels, method, loop, shown, info, assembly, seed=seed)
     return {"motion": out, "source_index": src, "report": report}
