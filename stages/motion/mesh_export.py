@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from mocapflow.pipeline.codecs import ExportFormatError, exporter
+from mocapflow.stages.motion.axes import AxisError, parse_axis
 from mocapflow.stages.motion.datatypes import Mesh
 from mocapflow.stages.motion.formats.meshcache import write_obj, write_pc2
 from mocapflow.stages.motion.formats.usd import UsdUnavailableError, require_usd, write_usd
@@ -129,15 +130,16 @@ def vertex_data(mesh: Mesh) -> tuple[dict[str, np.ndarray], dict[str, list[str]]
 
 
 def _up_axis(mesh: Mesh) -> str:
-    """``attrs["up"]`` (``"y"``/``"z"``, any case, ``+`` allowed, or axis index 1/2) as
-    ``"y"`` or ``"z"``; default ``"y"``; ExportFormatError for any other value."""
-    up = mesh.attrs.get("up", "y")
-    up = {1: "y", 2: "z"}.get(up, "") if isinstance(up, int) else str(up).strip().lower()
-    up = up.removeprefix("+")
-    if up not in ("y", "z"):
-        raise ExportFormatError(f"mesh attrs up={mesh.attrs.get('up')!r}: USD writes a "
-                                "'y' or 'z' up axis")
-    return up
+    """``attrs["up"]`` as a signed axis (``"+y"`` default; ``"y"``, ``"Z"``, ``"-x"`` ...,
+    or an axis index 0/1/2 accepted); ExportFormatError for any other value."""
+    up = mesh.attrs.get("up", "+y")
+    if isinstance(up, int) and not isinstance(up, bool) and up in (0, 1, 2):
+        up = "xyz"[up]
+    try:
+        return parse_axis(up, name="up")
+    except AxisError:
+        raise ExportFormatError(f"mesh attrs up={mesh.attrs.get('up')!r}: expected x, y or "
+                                "z with an optional sign") from None
 
 
 @exporter("mesh")

@@ -23,6 +23,7 @@ usd-core; using it without usd-core raises :class:`UsdUnavailableError`.
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -104,6 +105,18 @@ class UsdMeshFile:
     path: str = ""
 
 
+def _rotation_to_z(axis: str) -> np.ndarray:
+    """A proper rotation ``(3, 3)`` taking the signed axis (``"-Y"``, ``"+X"`` ...) to +Z."""
+    u = np.zeros(3)
+    u["XYZ".index(axis[1])] = 1.0 if axis[0] == "+" else -1.0
+    z = np.array([0.0, 0.0, 1.0])
+    if u @ z < -0.5:  # -Z: half a turn about X
+        return np.diag([1.0, -1.0, -1.0])
+    k = np.cross(u, z)  # a quarter turn (or none) about u x z
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + K + K @ K / (1.0 + u @ z)
+
+
 def _check(vertices, faces, rate, up, primvars, names):
     """Validated ``(vertices, faces, rate, up, primvars)``; :class:`UsdError` on bad input."""
     v = np.asarray(vertices, dtype=np.float64)
@@ -120,9 +133,10 @@ def _check(vertices, faces, rate, up, primvars, names):
         raise UsdError(f"write_usd: faces index vertices outside [0, {V})")
     if v.ndim == 3 and not (rate is not None and np.isfinite(rate) and rate > 0):
         raise UsdError(f"write_usd: an animated mesh needs a positive rate, got {rate}")
-    axis = str(up).upper()
-    if axis not in ("Y", "Z"):
-        raise UsdError(f"write_usd: up must be 'y' or 'z', got {up!r}")
+    m = re.fullmatch(r"\s*([+-]?)\s*([xyzXYZ])\s*", str(up))
+    if m is None:
+        raise UsdError(f"write_usd: up must be x, y or z with an optional sign, got {up!r}")
+    axis = f"{m.group(1) or '+'}{m.group(2).upper()}"
     pv = {}
     for name, a in (primvars or {}).items():
         a = np.asarray(a)
@@ -160,8 +174,11 @@ def write_usd(
     rate : float, optional
         Frames per second; required for an animated mesh (``timeCodesPerSecond``
         and ``framesPerSecond``).
-    up : {"y", "z"}
-        The stage's up axis.
+    up : str
+        The data's up axis, ``x``, ``y`` or ``z`` with an optional sign: ``+y`` /
+        ``+z`` become the stage's ``upAxis``; any other (USD has only Y and Z) is
+        stood up on ``upAxis`` Z by a rotation on the root ``Xform`` (the points
+        stay in the data's axes).
     primvars : dict, optional
         ``name -> (V,) or (V, k)`` numeric array, written as vertex primvars
         (integers as ``int[]``, others as ``float[]``).
@@ -190,8 +207,13 @@ def write_usd(
     path.unlink(missing_ok=True)  # CreateNew refuses an existing layer
     stage = Usd.Stage.CreateNew(str(path))
     UsdGeom.SetStageMetersPerUnit(stage, UsdGeom.LinearUnits.meters)
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if axis == "Y" else UsdGeom.Tokens.z)
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if axis == "+Y" else UsdGeom.Tokens.z)
     root = UsdGeom.Xform.Define(stage, Sdf.Path("/" + Tf.MakeValidIdentifier(prim_name)))
+    if axis not in ("+Y", "+Z"):  # USD says only Y or Z: the root stands the data up on +Z
+        R = _rotation_to_z(axis)
+        M = np.eye(4)
+        M[:3, :3] = R.T  # USD matrices act on row vectors
+        root.AddTransformOp().Set(Gf.Matrix4d(M.tolist()))
     stage.SetDefaultPrim(root.GetPrim())
     mesh = UsdGeom.Mesh.Define(stage, root.GetPath().AppendChild("mesh"))
     mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)

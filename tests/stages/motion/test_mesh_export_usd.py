@@ -101,10 +101,29 @@ def test_up_axis_comes_from_attrs(tmp_path, walk_mesh):
         m2 = Mesh(m.vertices[0], m.faces, attrs={"up": up})
         (p,) = export_mesh(m2, tmp_path / "u", "rest", formats=("usd",))
         assert read_usd(p).up_axis == axis
-    bad = Mesh(m.vertices, m.faces, rate=m.rate, attrs={"up": "-x"})
-    with pytest.raises(ExportFormatError, match=r"up='-x'"):
+    bad = Mesh(m.vertices, m.faces, rate=m.rate, attrs={"up": "sideways"})
+    with pytest.raises(ExportFormatError, match=r"up='sideways'"):
         export_mesh(bad, tmp_path / "x", "skin", formats=("usd",))
     assert not (tmp_path / "x").exists()  # checked before anything is written
+
+
+@pytest.mark.parametrize("up", ["-x", "+x", "-y", "-z"])
+def test_other_up_axes_are_stood_up_by_the_root_transform(tmp_path, walk_mesh, up):
+    """USD has only Y and Z up: a capture whose up is another axis keeps its points and
+    gets a root rotation that puts its up on the stage's +Z."""
+    from pxr import Usd, UsdGeom  # noqa: PLC0415
+
+    from mocapflow.stages.motion.axes import axis_vector  # noqa: PLC0415
+
+    m = Mesh(walk_mesh.vertices[0], walk_mesh.faces, attrs={"up": up})
+    (p,) = export_mesh(m, tmp_path, "rest", formats=("usd",))
+    back = read_usd(p)
+    assert back.up_axis == "Z" and rel_err(back.vertices, m.vertices) < 1e-6
+    stage = Usd.Stage.Open(str(p))
+    root = stage.GetDefaultPrim()
+    M = np.array(UsdGeom.Xformable(root).ComputeLocalToWorldTransform(Usd.TimeCode.Default()))
+    R = M[:3, :3].T  # row-vector matrices
+    assert np.allclose(R @ axis_vector(up), [0, 0, 1]) and np.isclose(np.linalg.det(R), 1)
 
 
 def test_static_mesh_usd_is_time_independent(tmp_path, walk_mesh):
@@ -191,7 +210,7 @@ def test_write_usd_refuses_bad_input(tmp_path, walk_mesh):
     with pytest.raises(UsdError, match="suffix"):
         write_usd(V, F, tmp_path / "a.abc", rate=30.0)
     with pytest.raises(UsdError, match="up must be"):
-        write_usd(V[0], F, tmp_path / "a.usda", up="x")
+        write_usd(V[0], F, tmp_path / "a.usda", up="w")
     assert not list(tmp_path.iterdir())
     (tmp_path / "junk.usdc").write_bytes(b"not usd at all")
     with pytest.raises(UsdError, match=r"junk\.usdc: not a USD file"):
