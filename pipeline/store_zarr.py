@@ -2,9 +2,18 @@
 
 An entry is one Zarr group holding one group per output; each output group's
 ``mocapflow`` attrs hold the :class:`~mocapflow.pipeline.codecs.Encoded` type,
-attrs and array names, and each array carries ``dimension_names`` (so
-``xarray.open_zarr`` opens it), chunked along ``frame`` with every other axis
-whole (:func:`_chunk_layout`).
+attrs, array names and coord names, and each array carries ``dimension_names``,
+chunked along ``frame`` with every other axis whole (:func:`_chunk_layout`).
+
+Entries are self-describing for xarray: the ``Encoded.coords`` (marker labels,
+``frame`` numbers, ``time`` in seconds, ``xyz`` component names, …) are extra
+arrays of the output group (a 1-D coord named like its dimension is an index
+coordinate; the others are listed in the ``coordinates`` attribute of every
+data array holding all their dims), and every output group and the entry root
+carry consolidated metadata, so ``xarray.open_zarr(entry, group=output)`` opens
+with labelled coordinates, reads one metadata document and warns about nothing
+(no listing of the entry directory, which holds ``_COMMIT.json``).
+:func:`mocapflow.open_entry` opens a whole entry as an ``xarray.DataTree``.
 
 * :func:`normalise` / :func:`output_digests`: the storable form of an output
   (native byte order, ``str`` object arrays as fixed-width unicode, attrs as they
@@ -102,26 +111,49 @@ def _plain_json(x: Any) -> Any:
     raise TypeError(f"attrs value of type {type(x).__name__} is not JSON: {x!r:.60}")
 
 
-def normalise(enc: Encoded, output: str) -> Encoded:
-    """The storable form of one output (raises ``TypeError`` / ``ValueError`` naming it)."""
-    if not isinstance(enc, Encoded):
-        raise TypeError(f"output {output!r}: expected an Encoded, got {type(enc).__name__}")
-    arrays = {}
-    for name, item in enc.arrays.items():
-        check_name(name, f"array (output {output!r})")
+def _normalise_arrays(items: Mapping, output: str, what: str) -> dict:
+    out = {}
+    for name, item in items.items():
+        check_name(name, f"{what} (output {output!r})")
         arr, dims = item
-        a = _normalise_array(arr, f"output {output!r} array {name!r}")
+        a = _normalise_array(arr, f"output {output!r} {what} {name!r}")
         dims = tuple(dims)
         if len(dims) != a.ndim or not all(isinstance(d, str) and d for d in dims):
             raise ValueError(
-                f"output {output!r} array {name!r}: dims {dims} do not name its {a.ndim} axes"
+                f"output {output!r} {what} {name!r}: dims {dims} do not name its {a.ndim} axes"
             )
-        arrays[name] = (a, dims)
+        out[name] = (a, dims)
+    return out
+
+
+def normalise(enc: Encoded, output: str) -> Encoded:
+    """The storable form of one output (raises ``TypeError`` / ``ValueError`` naming it).
+
+    Coords are normalised like arrays; a coord named like an array, or whose
+    length along a dimension differs from the arrays', is a ``ValueError``.
+    """
+    if not isinstance(enc, Encoded):
+        raise TypeError(f"output {output!r}: expected an Encoded, got {type(enc).__name__}")
+    arrays = _normalise_arrays(enc.arrays, output, "array")
+    coords = _normalise_arrays(getattr(enc, "coords", None) or {}, output, "coord")
+    clash = sorted(set(arrays) & set(coords))
+    if clash:
+        raise ValueError(f"output {output!r}: coord {clash[0]!r} has the name of an array")
+    sizes: dict[str, int] = {}
+    for a, dims in arrays.values():
+        for d, n in zip(dims, a.shape):
+            sizes.setdefault(d, n)
+    for name, (a, dims) in coords.items():
+        for d, n in zip(dims, a.shape):
+            if sizes.setdefault(d, n) != n:
+                raise ValueError(
+                    f"output {output!r}: coord {name!r} has {n} along {d!r}, the arrays {sizes[d]}"
+                )
     try:
         attrs = _plain_json(dict(enc.attrs))
     except TypeError as e:
         raise TypeError(f"output {output!r}: {e}") from None
-    return Encoded(str(enc.type), arrays, attrs)
+    return Encoded(str(enc.type), arrays, attrs, coords)
 
 
 def output_digests(outputs: Mapping[str, Encoded]) -> dict[str, str]:
@@ -179,15 +211,22 @@ async def _awrite_entry(
     from zarr.storage import MemoryStore  # noqa: PLC0415 (heavy)
 
     buffer: dict = {}
-    root = await za.open_group(
-        store=MemoryStore(buffer), mode="w", zarr_format=3, attributes=root_attrs
-    )
+    mstore = MemoryStore(buffer)
+    root = await za.open_group(store=mstore, mode="w", zarr_format=3, attributes=root_attrs)
     for out_name, enc in outputs.items():
+        coords = getattr(enc, "coords", None) or {}
         meta = {"type": enc.type, "attrs": enc.attrs, "arrays": sorted(enc.arrays)}
+        if coords:
+            meta["coords"] = sorted(coords)
         group = await root.create_group(out_name, attributes={"mocapflow": meta})
-        for arr_name in sorted(enc.arrays):
-            arr, dims = enc.arrays[arr_name]
+        # non-index coords (``time`` along ``frame``): named on the data arrays (CF)
+        aux = {c: set(d) for c, (_, d) in coords.items() if tuple(d) != (c,)}
+        items = {**{n: (*enc.arrays[n], False) for n in sorted(enc.arrays)},
+                 **{n: (*coords[n], True) for n in sorted(coords)}}
+        for arr_name, (arr, dims, is_coord) in items.items():
             chunks, axis = _chunk_layout(arr.shape, dims, arr.dtype.itemsize, chunk_frames)
+            named = [] if is_coord else sorted(c for c, d in aux.items() if d <= set(dims))
+            attributes = {"coordinates": " ".join(named)} if named else None
             with warnings.catch_warnings():
                 # fixed-width str dtypes: "no Zarr V3 specification yet" (they round-trip)
                 warnings.filterwarnings("ignore", category=UnstableSpecificationWarning)
@@ -197,6 +236,7 @@ async def _awrite_entry(
                     dtype=arr.dtype,
                     chunks=chunks,
                     dimension_names=dims if dims else None,
+                    attributes=attributes,
                     compressors=ZstdCodec(level=0, checksum=True),
                     config={"write_empty_chunks": True},
                 )
@@ -215,6 +255,13 @@ async def _awrite_entry(
                     if start + step < arr.shape[axis]:
                         _flush(sink, buffer)
             _flush(sink, buffer)
+    with warnings.catch_warnings():
+        # "Consolidated metadata is currently not part of the Zarr format 3 specification"
+        warnings.filterwarnings("ignore", message="Consolidated metadata", category=UserWarning)
+        warnings.filterwarnings("ignore", category=UnstableSpecificationWarning)  # str dtypes
+        for out_name in outputs:  # each output opens on its own (xarray group=output)
+            await za.consolidate_metadata(mstore, path=out_name, zarr_format=3)
+        await za.consolidate_metadata(mstore, zarr_format=3)
     _flush(sink, buffer, final=True)
 
 
@@ -241,8 +288,10 @@ def write_entry(
 # --------------------------------------------------------------------------- read
 
 
-async def _aopen_output(zstore: Any, output: str) -> tuple[dict, dict[str, Any]]:
-    """(mocapflow attrs, ``array name -> AsyncArray``) of one output group."""
+async def _aopen_output(
+    zstore: Any, output: str
+) -> tuple[dict, dict[str, Any], dict[str, Any]]:
+    """(mocapflow attrs, ``array name -> AsyncArray``, ``coord name -> AsyncArray``)."""
     import zarr.api.asynchronous as za  # noqa: PLC0415 (heavy)
 
     group = await za.open_group(store=zstore, path=output, mode="r")
@@ -250,25 +299,27 @@ async def _aopen_output(zstore: Any, output: str) -> tuple[dict, dict[str, Any]]
     if not isinstance(meta, dict) or "type" not in meta:
         raise StoreError(f"output {output!r}: group attrs lack the mocapflow type")
     names = list(meta.get("arrays", []))
-    arrays = await asyncio.gather(
-        *(za.open_array(store=zstore, path=f"{output}/{n}", mode="r") for n in names)
+    cnames = list(meta.get("coords", []))
+    opened = await asyncio.gather(
+        *(za.open_array(store=zstore, path=f"{output}/{n}", mode="r") for n in names + cnames)
     )
-    return meta, dict(zip(names, arrays))
+    return meta, dict(zip(names, opened)), dict(zip(cnames, opened[len(names):]))
 
 
 async def _aread_output(zstore: Any, output: str) -> Encoded:
-    """Read one output group back into an :class:`Encoded`."""
-    meta, arrays = await _aopen_output(zstore, output)
+    """Read one output group back into an :class:`Encoded` (coords included)."""
+    meta, arrays, coords = await _aopen_output(zstore, output)
 
     async def one(a: Any) -> np.ndarray:
         return np.asarray(await a.getitem(...)).reshape(a.shape)
 
-    data = await asyncio.gather(*(one(a) for a in arrays.values()))
-    enc_arrays = {
-        name: (d, tuple(a.metadata.dimension_names or ()))
-        for (name, a), d in zip(arrays.items(), data)
-    }
-    return Encoded(meta["type"], enc_arrays, meta.get("attrs", {}))
+    both = {**arrays, **coords}
+    data = dict(zip(both, await asyncio.gather(*(one(a) for a in both.values()))))
+
+    def pairs(items: dict) -> dict:
+        return {n: (data[n], tuple(a.metadata.dimension_names or ())) for n, a in items.items()}
+
+    return Encoded(meta["type"], pairs(arrays), meta.get("attrs", {}), pairs(coords))
 
 
 def read_output(zstore: Any, output: str) -> Encoded:
@@ -286,7 +337,7 @@ def read_outputs(zstore: Any, outputs: Iterable[str]) -> list[Encoded]:
 
 
 def describe_outputs(location: str, outputs: Iterable[str]) -> dict[str, dict[str, Any]]:
-    """Arrays (shape, dtype, dims, chunks) and attrs of outputs, without reading any chunk.
+    """Arrays and coords (shape, dtype, dims, chunks) and attrs of outputs, reading no chunk.
 
     Parameters
     ----------
@@ -298,7 +349,7 @@ def describe_outputs(location: str, outputs: Iterable[str]) -> dict[str, dict[st
     -------
     dict
         ``output -> {"arrays": {name: {"shape", "dtype", "dims", "chunks"}},
-        "attrs": {...}}``.
+        "attrs": {...}}`` (the coord arrays listed after the data arrays).
     """
     import zarr  # noqa: PLC0415 (heavy)
 
@@ -308,7 +359,7 @@ def describe_outputs(location: str, outputs: Iterable[str]) -> dict[str, dict[st
         g = group[name]
         meta = dict(g.attrs).get("mocapflow", {})
         arrays = {}
-        for a_name in meta.get("arrays", []):
+        for a_name in (*meta.get("arrays", []), *meta.get("coords", [])):
             a = g[a_name]
             arrays[a_name] = {"shape": list(a.shape), "dtype": str(a.dtype),
                               "dims": list(a.metadata.dimension_names or ()),
@@ -335,18 +386,18 @@ def expected_keys(zstore: Any, output: str) -> set[str]:
 
     Raises whatever Zarr raises when the output's metadata cannot be read.
     """
-    arrays = _sync(_aopen_output(zstore, output))[1]
+    _, arrays, coords = _sync(_aopen_output(zstore, output))
     keys = {f"{output}/zarr.json"}
-    for name, a in arrays.items():
+    for name, a in {**arrays, **coords}.items():
         keys.add(f"{output}/{name}/zarr.json")
         keys |= set(_chunk_keys(output, name, a))
     return keys
 
 
 async def _abad_chunks(zstore: Any, output: str) -> list[str]:
-    _, arrays = await _aopen_output(zstore, output)
+    _, arrays, coords = await _aopen_output(zstore, output)
     bad = []
-    for name, a in arrays.items():
+    for name, a in {**arrays, **coords}.items():
         for key, sel in _chunk_keys(output, name, a).items():
             try:
                 await a.getitem(sel)

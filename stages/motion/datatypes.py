@@ -25,7 +25,13 @@ from typing import Any
 
 import numpy as np
 
-from mocapflow.pipeline.codecs import Encoded, codec
+from mocapflow.pipeline.codecs import (
+    Encoded,
+    codec,
+    component_coords,
+    frame_coords,
+    label_coord,
+)
 
 __all__ = ["Markers", "Mesh", "Motion", "Skeleton", "Strokes", "StrokesSet", "UNIT_SCALE"]
 
@@ -204,6 +210,36 @@ class Markers:
         )
 
 
+def _analog_labels(m: Markers) -> list[str] | None:
+    """``ANALOG:LABELS`` of a C3D source when there is one per analog channel."""
+    try:
+        labels = m.attrs["c3d_parameters"]["ANALOG"]["parameters"]["LABELS"]["value"]
+    except (KeyError, TypeError):
+        return None
+    if m.analogs is None or not isinstance(labels, list) or len(labels) != m.analogs.shape[1]:
+        return None
+    return [str(x).strip() for x in labels]
+
+
+def _markers_coords(m: Markers) -> dict[str, tuple[np.ndarray, tuple[str, ...]]]:
+    """``frame`` (source numbers from ``first_frame``), ``time`` (s), labels, ``xyz``."""
+    coords = {
+        **frame_coords(m.n_frames, m.rate, m.first_frame),
+        "marker": label_coord(m.labels, "marker"),
+        "fragment": label_coord(m.fragment_labels, "fragment"),
+        **component_coords("xyz"),
+    }
+    if m.analogs is not None:
+        n = m.analog_subframes
+        sample = m.first_frame * n + np.arange(m.analogs.shape[0], dtype=np.int64)
+        if n and m.rate > 0:
+            coords["analog_time"] = (sample / (m.rate * n), ("analog_sample",))
+        labels = _analog_labels(m)
+        if labels is not None:
+            coords["channel"] = label_coord(labels, "channel")
+    return coords
+
+
 def _encode_markers(m: Markers) -> Encoded:
     arrays = {
         "positions": (m.positions, ("frame", "marker", "xyz")),
@@ -225,6 +261,7 @@ def _encode_markers(m: Markers) -> Encoded:
             "fragment_labels": m.fragment_labels,
             "attrs": m.attrs,
         },
+        _markers_coords(m),
     )
 
 
@@ -410,8 +447,19 @@ def _skeleton_from(arrays: dict, a: dict) -> Skeleton:
     )
 
 
+def _skeleton_coords(s: Skeleton) -> dict[str, tuple[np.ndarray, tuple[str, ...]]]:
+    """Joint names along ``joint``, ``<parent>_end<i>`` along ``end_site``, ``xyz``."""
+    ends = [f"{s.names[p]}_end{i}" for i, p in enumerate(s.end_parents.tolist())]
+    return {
+        "joint": label_coord(s.names, "joint"),
+        "end_site": label_coord(ends, "end_site"),
+        "end_parent": label_coord([s.names[p] for p in s.end_parents.tolist()], "end_site"),
+        **component_coords("xyz"),
+    }
+
+
 def _encode_skeleton(s: Skeleton) -> Encoded:
-    return Encoded("skeleton", _skeleton_arrays(s), _skeleton_attrs(s))
+    return Encoded("skeleton", _skeleton_arrays(s), _skeleton_attrs(s), _skeleton_coords(s))
 
 
 def _decode_skeleton(e: Encoded) -> Skeleton:
@@ -428,7 +476,9 @@ def _encode_motion(m: Motion) -> Encoded:
     if m.translations is not None:
         arrays["translations"] = (m.translations, ("frame", "joint", "xyz"))
     attrs = {"skeleton": _skeleton_attrs(m.skeleton), "rate": m.rate, "attrs": m.attrs}
-    return Encoded("motion", arrays, attrs)
+    coords = {**_skeleton_coords(m.skeleton), **component_coords("wxyz"),
+              **frame_coords(m.n_frames, m.rate)}  # BVH / AMC frames: 0-based
+    return Encoded("motion", arrays, attrs, coords)
 
 
 def _decode_motion(e: Encoded) -> Motion:
@@ -484,10 +534,17 @@ class Mesh:
 
 def _encode_mesh(m: Mesh) -> Encoded:
     dims = ("frame", "vertex", "xyz") if m.animated else ("vertex", "xyz")
+    coords = component_coords("xyz")
+    if m.animated:
+        coords.update(frame_coords(m.vertices.shape[0], m.rate))
+    labels = m.attrs.get("vertex_labels")
+    if isinstance(labels, list) and len(labels) == m.vertices.shape[-2]:
+        coords["vertex"] = label_coord(labels, "vertex")
     return Encoded(
         "mesh",
         {"vertices": (m.vertices, dims), "faces": (m.faces, ("face", "corner"))},
         {"rate": m.rate, "attrs": m.attrs},
+        coords,
     )
 
 
@@ -557,7 +614,7 @@ def _encode_strokes(s: Strokes) -> Encoded:
     }
     if s.times is not None:
         arrays["times"] = (s.times, ("sample",))
-    return Encoded("strokes", arrays, {"rate": s.rate, "attrs": s.attrs})
+    return Encoded("strokes", arrays, {"rate": s.rate, "attrs": s.attrs}, component_coords("xy"))
 
 
 def _decode_strokes(e: Encoded) -> Strokes:
@@ -612,6 +669,7 @@ def _encode_set(ss: StrokesSet) -> Encoded:
             "n_strokes": (k, ("example",)),
         },
         {"rates": [s.rate for s in ss], "has_times": has_t, "attrs": [s.attrs for s in ss]},
+        component_coords("xy"),
     )
 
 

@@ -542,6 +542,7 @@ def _report(
         "unfillable_markers": [labels[i] for i in unfillable],
         "params": params,
         "status": status,
+        "_dims": {"status": ["frame", "marker"]},  # (mocapflow.pipeline.codecs.RECORD_DIMS)
     }
     if never.size and not len(unrecoverable):
         report["never_visible"] = [labels[i] for i in never]

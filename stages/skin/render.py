@@ -35,7 +35,7 @@ from typing import Any, Literal
 import numpy as np
 
 from mocapflow.pipeline import Context, ParamError, stage
-from mocapflow.pipeline.codecs import Encoded, codec, exporter
+from mocapflow.pipeline.codecs import Encoded, codec, component_coords, exporter, frame_coords
 from mocapflow.stages.motion.axes import AxisError, frame_basis
 from mocapflow.stages.motion.datatypes import Markers, Mesh
 from mocapflow.stages.skin.binding import closest_points_on_triangles
@@ -104,7 +104,8 @@ class Video:
 
 def _encode_video(v: Video) -> Encoded:
     arrays = {"frames": (v.frames, ("frame", "y", "x", "rgb"))}
-    return Encoded("video", arrays, {"rate": v.rate, "attrs": v.attrs})
+    coords = {**frame_coords(v.frames.shape[0], v.rate), **component_coords("rgb")}
+    return Encoded("video", arrays, {"rate": v.rate, "attrs": v.attrs}, coords)
 
 
 def _decode_video(e: Encoded) -> Video:

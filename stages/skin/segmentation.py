@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import scipy.sparse as sp
 
-from mocapflow.pipeline.codecs import Encoded, codec
+from mocapflow.pipeline.codecs import Encoded, codec, component_coords, label_coord
 
 __all__ = ["Segmentation", "SegmentationError", "adjusted_rand_index"]
 
@@ -106,6 +106,8 @@ def _encode_segmentation(s: Segmentation) -> Encoded:
             "triangle_clusters": (s.triangle_clusters, ("face",)),
         },
         {"labels": s.labels, "part_names": s.part_names, "attrs": s.attrs},
+        {"marker": label_coord(s.labels, "marker"), "part": label_coord(s.part_names, "part"),
+         **component_coords("xyz")},
     )
 
 

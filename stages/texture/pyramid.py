@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from mocapflow.pipeline import Context, stage
-from mocapflow.pipeline.codecs import Encoded, codec
+from mocapflow.pipeline.codecs import Encoded, codec, component_coords
 from mocapflow.stages.motion.datatypes import Motion, Skeleton
 from mocapflow.stages.motion.kinematics import forward_kinematics, reorient_motion
 from mocapflow.stages.motion.rotations import (
@@ -149,6 +149,7 @@ def _encode_pyramid(p: Pyramid) -> Encoded:
         "pyramid",
         arrays,
         {"n_levels": p.n_levels, "filter_size": p.filter_size, "rate": p.rate, "attrs": p.attrs},
+        component_coords("xyz", "wxyz", "xz"),
     )
 
 

@@ -16,7 +16,7 @@ from typing import Any, Literal
 import numpy as np
 
 from mocapflow.pipeline import Context, stage
-from mocapflow.pipeline.codecs import Encoded, codec, exporter
+from mocapflow.pipeline.codecs import Encoded, codec, component_coords, exporter, frame_coords
 from mocapflow.stages.motion.datatypes import Motion
 from mocapflow.stages.motion.kinematics import motion_positions
 
@@ -48,10 +48,13 @@ class StickStrip:
 
 
 def _encode(s: StickStrip) -> Encoded:
-    arrays = {"image": (s.image, ("y", "x", "rgb"))}
+    arrays = {"image": (s.image, ("image_y", "image_x", "rgb"))}  # (strip and video sizes differ)
+    coords = component_coords("rgb")
     if s.video is not None:
         arrays["video"] = (s.video, ("frame", "y", "x", "rgb"))
-    return Encoded("stickstrip", arrays, {"rate": s.rate, "frames": s.frames, "attrs": s.attrs})
+        coords.update(frame_coords(s.video.shape[0], s.rate))
+    attrs = {"rate": s.rate, "frames": s.frames, "attrs": s.attrs}
+    return Encoded("stickstrip", arrays, attrs, coords)
 
 
 def _decode(e: Encoded) -> StickStrip:

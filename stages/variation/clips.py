@@ -221,11 +221,20 @@ def _encode_clips(c: Clips) -> Encoded:
         "origins": (c.origins, ("clip", "origin")),
     }
     sk_attrs = None
+    coords: dict[str, tuple[np.ndarray, tuple[str, ...]]] = {}
     if c.skeleton is not None:
         e = encode(c.skeleton)
         for name, (arr, dims) in e.arrays.items():
             arrays[f"skeleton_{name}"] = (arr, dims)
         sk_attrs = e.attrs
+        coords.update(e.coords)  # joint / end_site / xyz labels
+    names = [str(n) for n in c.dof_names]
+    varying = [n for n, v in zip(names, np.asarray(c.varying, bool)) if v]
+    coords["dof_all"] = (np.array(names, dtype=str), ("dof_all",))
+    if len(varying) == data.shape[1]:
+        coords["dof"] = (np.array(varying, dtype=str), ("dof",))
+    if len(c.names) == len(c.lengths) and len(c.names):
+        coords["clip"] = (np.array([str(n) for n in c.names], dtype=str), ("clip",))
     return Encoded(
         "clips",
         arrays,
@@ -238,6 +247,7 @@ def _encode_clips(c: Clips) -> Encoded:
             "skeleton": sk_attrs,
             "attrs": c.attrs,
         },
+        coords,
     )
 
 

@@ -130,6 +130,7 @@ def _encode_model(m: VariationModel) -> Encoded:
             "params": m.params,
             "attrs": m.attrs,
         },
+        dict(e.coords),  # the clips' labels (joint, dof, clip, ...)
     )
 
 

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from mocapflow.pipeline import Context, stage
-from mocapflow.pipeline.codecs import Encoded, codec, exporter
+from mocapflow.pipeline.codecs import Encoded, codec, component_coords, exporter
 from mocapflow.stages.variation.clips import Clips, flatten_clips
 
 __all__ = [
@@ -49,8 +49,11 @@ class Figures:
 
 
 def _encode_figures(f: Figures) -> Encoded:
-    arrays = {k: (np.asarray(v, dtype=np.uint8), ("y", "x", "rgba")) for k, v in f.images.items()}
-    return Encoded("figures", arrays, {"names": list(f.images), "attrs": f.attrs})
+    # per-figure y / x dims: the figures differ in size
+    arrays = {k: (np.asarray(v, dtype=np.uint8), (f"{k}_y", f"{k}_x", "rgba"))
+              for k, v in f.images.items()}
+    attrs = {"names": list(f.images), "attrs": f.attrs}
+    return Encoded("figures", arrays, attrs, component_coords("rgba"))
 
 
 def _decode_figures(e: Encoded) -> Figures:
