@@ -512,12 +512,18 @@ class Mesh:
         Frames per second of an animated mesh.
     attrs : dict
         E.g. ``vertex_labels``, source.
+    point_data : dict, optional
+        Numeric per-vertex data the exporters write as VTK point data and USD
+        primvars: ``name -> (V,) or (V, k)`` array (e.g. ``part_weights (V, P)``),
+        or, for an animated mesh, ``(F, V)`` / ``(F, V, k)`` with one value per
+        frame (e.g. ``error_mm``).
     """
 
     vertices: np.ndarray
     faces: np.ndarray
     rate: float | None = None
     attrs: dict[str, Any] = field(default_factory=dict)
+    point_data: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.vertices = _f64(self.vertices, (3,), "vertices")
@@ -525,11 +531,29 @@ class Mesh:
         V = self.vertices.shape[-2]
         if self.faces.size and (self.faces.min() < 0 or self.faces.max() >= V):
             raise ValueError("faces index vertices out of range")
+        pd = {}
+        for name, a in dict(self.point_data or {}).items():
+            a = np.asarray(a)
+            if not (isinstance(name, str) and name.isidentifier()) or a.dtype.kind not in "biuf":
+                raise ValueError(f"point_data {name!r}: a numeric array under an identifier name")
+            if not (a.ndim in (1, 2) and a.shape[0] == V) and not self.frame_varying(a):
+                raise ValueError(
+                    f"point_data {name!r}: expected (V,) or (V, k) with V = {V}"
+                    + (f", or (F, V) / (F, V, k) with F = {self.vertices.shape[0]}"
+                       if self.animated else "") + f"; got {a.shape}")
+            pd[name] = a
+        self.point_data = pd
 
     @property
     def animated(self) -> bool:
         """Whether ``vertices`` holds one pose per frame."""
         return self.vertices.ndim == 3
+
+    def frame_varying(self, a: np.ndarray) -> bool:
+        """Whether a point-data array holds one value per frame: ``(F, V)`` / ``(F, V, k)``
+        of an animated mesh."""
+        return (self.animated and a.ndim in (2, 3)
+                and a.shape[:2] == self.vertices.shape[:2])
 
 
 def _encode_mesh(m: Mesh) -> Encoded:
@@ -540,12 +564,14 @@ def _encode_mesh(m: Mesh) -> Encoded:
     labels = m.attrs.get("vertex_labels")
     if isinstance(labels, list) and len(labels) == m.vertices.shape[-2]:
         coords["vertex"] = label_coord(labels, "vertex")
-    return Encoded(
-        "mesh",
-        {"vertices": (m.vertices, dims), "faces": (m.faces, ("face", "corner"))},
-        {"rate": m.rate, "attrs": m.attrs},
-        coords,
-    )
+    arrays = {"vertices": (m.vertices, dims), "faces": (m.faces, ("face", "corner"))}
+    for name, a in m.point_data.items():
+        lead = ("frame", "vertex") if m.frame_varying(a) else ("vertex",)
+        arrays[f"point_data.{name}"] = (a, lead + (f"{name}_component",) * (a.ndim - len(lead)))
+    attrs = {"rate": m.rate, "attrs": m.attrs}
+    if m.point_data:  # only then, so meshes without it keep their digests
+        attrs["point_data"] = sorted(m.point_data)
+    return Encoded("mesh", arrays, attrs, coords)
 
 
 def _decode_mesh(e: Encoded) -> Mesh:
@@ -554,6 +580,7 @@ def _decode_mesh(e: Encoded) -> Mesh:
         faces=e.arrays["faces"][0],
         rate=e.attrs.get("rate"),
         attrs=e.attrs.get("attrs", {}),
+        point_data={n: e.arrays[f"point_data.{n}"][0] for n in e.attrs.get("point_data", [])},
     )
 
 

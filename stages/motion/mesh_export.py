@@ -126,7 +126,22 @@ def vertex_data(mesh: Mesh) -> tuple[dict[str, np.ndarray], dict[str, list[str]]
                                mesh.attrs.get(_NAME_FALLBACK.get(key, "")))
         if integer and isinstance(label, list) and all(isinstance(n, str) for n in label):
             names[key] = label
+    for key, a in mesh.point_data.items():  # numeric point data (Mesh.point_data)
+        if not mesh.frame_varying(a):
+            data[key] = a.astype(np.int32 if a.dtype.kind in "biu" else np.float32)
     return data, names
+
+
+def frame_data(mesh: Mesh) -> dict[str, np.ndarray]:
+    """The point data of an animated mesh that changes per frame (e.g. ``error_mm``).
+
+    Returns
+    -------
+    dict
+        ``name -> (F, V) or (F, V, k) float32 ndarray`` (:meth:`Mesh.frame_varying`).
+    """
+    return {k: a.astype(np.float32) for k, a in mesh.point_data.items()
+            if mesh.frame_varying(a)}
 
 
 def _up_axis(mesh: Mesh) -> str:
@@ -156,9 +171,11 @@ def export_mesh(mesh: Mesh, directory: Path, stem: str, **options: Any) -> list[
     time series over ``<stem>/<stem>_NNNNN.vtp``.  One PLY per frame
     (``<stem>/<stem>_NNNNN.ply``) is opt-in; so is USD for a static mesh (one
     time-independent mesh).  The VTP files (every frame's) carry the mesh's
-    per-vertex data (:func:`vertex_data`, e.g. ``vertex_part``) as point data, the
-    USD file as vertex primvars (their value names in the primvar's
-    ``customData["names"]``); OBJ, PC2 and PLY carry positions only.
+    per-vertex data (:func:`vertex_data`, e.g. ``vertex_part``, ``part_weights``;
+    each frame's own values of :func:`frame_data`, e.g. ``error_mm``) as point data,
+    the USD file as vertex primvars (time-sampled where they change per frame;
+    value names in the primvar's ``customData["names"]``); OBJ, PC2 and PLY carry
+    positions only.
 
     Parameters
     ----------
@@ -197,6 +214,7 @@ def export_mesh(mesh: Mesh, directory: Path, stem: str, **options: Any) -> list[
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     data, names = vertex_data(mesh)
+    per_frame = frame_data(mesh)
     written: list[Path] = []
     rest = mesh.vertices[0] if mesh.animated else mesh.vertices
     if "pc2" in formats:
@@ -208,7 +226,8 @@ def export_mesh(mesh: Mesh, directory: Path, stem: str, **options: Any) -> list[
     if "usd" in formats:
         written.append(write_usd(mesh.vertices, mesh.faces, directory / f"{stem}.usdc",
                                  rate=(mesh.rate or 1.0) if mesh.animated else None, up=up,
-                                 primvars=data, names=names, prim_name=stem))
+                                 primvars=data, names=names, prim_name=stem,
+                                 frame_primvars=per_frame))
     if not mesh.animated:
         if "vtp" in formats:
             written.append(write_vtp(mesh.vertices, mesh.faces, directory / f"{stem}.vtp",
@@ -218,12 +237,13 @@ def export_mesh(mesh: Mesh, directory: Path, stem: str, **options: Any) -> list[
         return written
     if "vtp" in formats or "ply" in formats:
         (directory / stem).mkdir(exist_ok=True)
-    written += _write_frames(mesh, directory, stem, formats, data)
+    written += _write_frames(mesh, directory, stem, formats, data, per_frame)
     return written
 
 
 def _write_frames(mesh: Mesh, directory: Path, stem: str, formats: tuple[str, ...],
-                  data: dict[str, np.ndarray]) -> list[Path]:
+                  data: dict[str, np.ndarray], per_frame: dict[str, np.ndarray]
+                  ) -> list[Path]:
     """The per-frame files of an animated mesh: the VTP series with its ``.pvd``, PLYs."""
     sub = directory / stem
     rate = mesh.rate or 1.0
@@ -232,7 +252,8 @@ def _write_frames(mesh: Mesh, directory: Path, stem: str, formats: tuple[str, ..
     for i, verts in enumerate(mesh.vertices):
         name = f"{stem}_{i:05d}"
         if "vtp" in formats:
-            written.append(write_vtp(verts, mesh.faces, sub / f"{name}.vtp", scalars=data))
+            scalars = {**data, **{k: a[i] for k, a in per_frame.items()}}
+            written.append(write_vtp(verts, mesh.faces, sub / f"{name}.vtp", scalars=scalars))
             entries.append(
                 f'    <DataSet timestep="{i / rate!r}" group="" part="0" '
                 f'file="{stem}/{name}.vtp"/>'

@@ -464,8 +464,10 @@ def deform(
         attrs={"mode": mode, "source": "deform", **{k: v for k, v in mesh.attrs.items()
                                                     if isinstance(v, (str, int, float))},
                # dominant part of each vertex (largest β), a V-int list the exporters
-               # write as vertex data; the (V, P) float β itself stays out of JSON attrs
+               # write as vertex data; the (V, P) float β goes as point data below
                "vertex_part": np.argmax(binding.beta, axis=1).tolist(),
                "part_names": list(segmentation.part_names)},
+        # the vertex weights β (V, P) of §5.3, columns in part_names order
+        point_data={"part_weights": binding.beta.astype(np.float32)},
     )
     return {"mesh": out, "report": report}

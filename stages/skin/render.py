@@ -561,7 +561,7 @@ def vertex_errors(mesh: np.ndarray, truth: np.ndarray, truth_faces: np.ndarray) 
     return out
 
 
-@stage("render_error", outputs=("video", "report"))
+@stage("render_error", outputs=("video", "report", "mesh"))
 def render_error(
     mesh: Mesh,
     truth: Mesh,
@@ -592,8 +592,11 @@ def render_error(
     Returns
     -------
     dict
-        ``video`` (:class:`Video`) and ``report`` with the per-vertex error
-        mean / p95 / max in mm over all frames (not only the rendered ones).
+        ``video`` (:class:`Video`), ``report`` with the per-vertex error
+        mean / p95 / max in mm over all frames (not only the rendered ones), and
+        ``mesh``: the evaluated frames of ``mesh`` with the error as per-frame point
+        data ``error_mm (F, V)`` (the ``mesh`` exporter writes it into the VTP
+        series and the USD primvars).
     """
     if not (mesh.animated and truth.animated):
         raise RenderError("render_error: both meshes must be animated (F, V, 3)")
@@ -623,4 +626,9 @@ def render_error(
     }
     video = Video(frames, (mesh.rate or 30.0) / max(1, stride),
                   {"source_frames": idx.tolist(), "kind": "error", "clim_mm": clim_mm})  # fmt: skip
-    return {"video": video, "report": report}
+    shown = mesh.vertices if same else mesh.vertices[idx]
+    rate = mesh.rate if same or not mesh.rate else mesh.rate / max(1, stride)
+    static = {k: a for k, a in mesh.point_data.items() if not mesh.frame_varying(a)}
+    err_mesh = Mesh(shown, mesh.faces, rate=rate, attrs=mesh.attrs,
+                    point_data={**static, "error_mm": err_all.astype(np.float32)})
+    return {"video": video, "report": report, "mesh": err_mesh}

@@ -84,7 +84,8 @@ class UsdMeshFile:
     up_axis : str
         ``"Y"`` or ``"Z"``.
     primvars : dict
-        ``name -> (V,) or (V, k) ndarray`` (vertex-interpolated primvars).
+        ``name -> (V,) or (V, k) ndarray`` (vertex-interpolated primvars; ``(F, V)`` or
+        ``(F, V, k)`` for time-sampled ones).
     names : dict
         ``primvar name -> list of str`` from the primvars' ``customData["names"]``.
     path : str
@@ -160,6 +161,7 @@ def write_usd(
     primvars: dict[str, np.ndarray] | None = None,
     names: dict[str, list[str]] | None = None,
     prim_name: str = "mesh",
+    frame_primvars: dict[str, np.ndarray] | None = None,
 ) -> Path:
     """Write a (possibly animated) triangle mesh as one USD layer.
 
@@ -187,6 +189,9 @@ def write_usd(
     prim_name : str
         Name of the root ``Xform`` (made a valid identifier); the mesh is its
         child ``mesh``.
+    frame_primvars : dict, optional
+        ``name -> (F, V) or (F, V, k)`` float array of an animated mesh: vertex
+        primvars time-sampled per frame, like the points.
 
     Returns
     -------
@@ -235,6 +240,16 @@ def write_usd(
             points.Set(Vt.Vec3fArray.FromNumpy(v32[i]), t)
             extent.Set(Vt.Vec3fArray.FromNumpy(ext[i]), t)
     api = UsdGeom.PrimvarsAPI(mesh)
+    for name, a in (frame_primvars or {}).items():
+        a = np.asarray(a, dtype=np.float32)
+        if v32.ndim != 3 or a.shape[:2] != v32.shape[:2] or a.ndim not in (2, 3):
+            raise UsdError(f"write_usd: frame primvar {name!r} must be (F, V) or (F, V, k) "
+                           f"with (F, V) = {v32.shape[:2]}, got {a.shape}")
+        var = api.CreatePrimvar(name, Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex,
+                                1 if a.ndim == 2 else a.shape[2])
+        for i in range(a.shape[0]):
+            var.Set(Vt.FloatArray.FromNumpy(np.ascontiguousarray(a[i].ravel())),
+                    Usd.TimeCode(float(i)))
     for name, a in pv.items():
         integer = a.dtype.kind in "biu"
         type_ = Sdf.ValueTypeNames.IntArray if integer else Sdf.ValueTypeNames.FloatArray
@@ -296,8 +311,13 @@ def read_usd(path: str | os.PathLike) -> UsdMeshFile:
         if var.GetInterpolation() != UsdGeom.Tokens.vertex or not var.HasValue():
             continue
         name = var.GetPrimvarName()
-        a = np.asarray(var.Get())
         k = var.GetElementSize()
+        samples = var.GetAttr().GetTimeSamples()
+        if samples:  # per frame: (F, V) or (F, V, k)
+            a = np.stack([np.asarray(var.Get(Usd.TimeCode(t))) for t in samples])
+            primvars[name] = a.reshape(len(samples), -1, k) if k > 1 else a
+            continue
+        a = np.asarray(var.Get())
         primvars[name] = a.reshape(-1, k) if k > 1 else a
         custom: Any = var.GetAttr().GetCustomDataByKey("names")
         if custom is not None:

@@ -263,3 +263,33 @@ def test_usd_passes_usd_cores_validators(tmp_path, walk_mesh):
     bare = tmp_path / "bare.usda"
     bare.write_text('#usda 1.0\n(\n    defaultPrim = "m"\n)\ndef Mesh "m"\n{\n}\n')
     assert UsdValidation.ValidationContext(validators).Validate(Usd.Stage.Open(str(bare)))
+
+
+def test_point_data_travels_per_frame_into_vtp_usd_and_the_store(tmp_path, walk_mesh):
+    """``Mesh.point_data``: static ``(V, k)`` weights and per-frame ``(F, V)`` errors go
+    into every VTP file (that frame's values) and into USD primvars (time-sampled)."""
+    import pyvista as pv  # noqa: PLC0415
+
+    from mocapflow.pipeline.codecs import decode, encode  # noqa: PLC0415
+
+    F, V = walk_mesh.vertices.shape[:2]
+    rng = np.random.default_rng(0)
+    weights = rng.random((V, 3)).astype(np.float32)
+    error = rng.random((F, V)).astype(np.float32) * 10
+    m = Mesh(walk_mesh.vertices, walk_mesh.faces, rate=walk_mesh.rate, attrs=walk_mesh.attrs,
+             point_data={"part_weights": weights, "error_mm": error})
+    back = decode(encode(m))
+    assert sorted(back.point_data) == ["error_mm", "part_weights"]
+    assert np.array_equal(back.point_data["error_mm"], error)
+    files = export_mesh(m, tmp_path, "skin", formats=("vtp", "usd"))
+    for i in (0, F - 1):
+        poly = pv.read(tmp_path / "skin" / f"skin_{i:05d}.vtp")
+        np.testing.assert_array_equal(poly.point_data["error_mm"], error[i])
+        np.testing.assert_array_equal(poly.point_data["part_weights"], weights)
+    u = read_usd(next(f for f in files if f.suffix == ".usdc"))
+    np.testing.assert_array_equal(u.primvars["error_mm"], error)
+    np.testing.assert_array_equal(u.primvars["part_weights"], weights)
+    with pytest.raises(ValueError, match=r"point_data 'bad': expected \(V,\)"):
+        Mesh(walk_mesh.vertices, walk_mesh.faces, point_data={"bad": np.zeros(V + 1)})
+    with pytest.raises(ValueError, match="identifier"):
+        Mesh(walk_mesh.vertices, walk_mesh.faces, point_data={"a b": np.zeros(V)})

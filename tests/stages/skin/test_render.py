@@ -159,6 +159,12 @@ def test_render_modes_and_error_map(limb):
     assert err["report"]["mean_mm"] == pytest.approx(direct.mean())
     assert err["report"]["p95_mm"] == pytest.approx(np.percentile(direct, 95))
     assert err["video"].frames.shape == (2, 96, 96, 3)
+    # the error travels with the mesh as per-frame point data (all frames, vertex-to-vertex)
+    em = err["mesh"]
+    assert em.vertices.shape == limb["deformed"].vertices.shape and em.rate == 24.0
+    np.testing.assert_allclose(em.point_data["error_mm"], direct, rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(em.point_data["part_weights"],
+                                  limb["deformed"].point_data["part_weights"])
     # colour varies across the body: the heat map is not a flat colour
     img = err["video"].frames[1].reshape(-1, 3).astype(int)
     body = img[(img < 240).any(1)]
