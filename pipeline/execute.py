@@ -430,11 +430,18 @@ def _encode_outputs(sspec: registry.StageSpec, result: Any) -> dict[str, codecs.
         raise ValueError(f"stage {sspec.name!r} returned outputs {sorted(result)}, declared "
                          f"{list(sspec.outputs)}")
     encoded = {}
+    dims = sspec.extra.get("output_dims", {})
     for o in sspec.outputs:
         try:
             encoded[o] = codecs.encode(result[o])
         except TypeError as e:
             raise TypeError(f"output {o!r}: {e}") from None
+        if o in dims and encoded[o].type == "ndarray":  # declared names for dim_0 …
+            arr, old = encoded[o].arrays["data"]
+            if len(dims[o]) != len(old):
+                raise ValueError(f"stage {sspec.name!r} output {o!r}: output_dims names "
+                                 f"{len(dims[o])} axes, the array has {len(old)}")
+            encoded[o].arrays["data"] = (arr, dims[o])
     return encoded
 
 

@@ -22,7 +22,7 @@ import math
 import reprlib
 import types
 import typing
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import metadata
 from typing import Any, Literal, NewType, get_args, get_origin
@@ -121,6 +121,7 @@ def stage(
     retries: int = 0,
     sidecars: Mapping[str, Callable[[str], str]] | None = None,
     file_overrides: Mapping[str, str] | None = None,
+    output_dims: Mapping[str, Sequence[str]] | None = None,
 ) -> Callable[[Callable[..., Mapping[str, Any]]], Callable[..., Mapping[str, Any]]]:
     """Register a function as a stage.
 
@@ -146,6 +147,9 @@ def stage(
         its ``input`` wired to ``part`` reads that file instead of each part's
         file, so the node runs once and is broadcast to every part (a
         range-of-motion trial shared by all trials).
+    output_dims : mapping, optional
+        ``output -> dimension names`` of an output returned as a bare ndarray
+        (stored with these ``dimension_names`` instead of ``dim_0 …``).
 
     Returns
     -------
@@ -172,6 +176,12 @@ def stage(
                 raise TypeError(f"stage {spec.name!r}: file_overrides name unknown inputs or "
                                 f"params {sorted(bad)}")
             spec.extra["file_overrides"] = dict(file_overrides)
+        if output_dims:
+            unknown = set(output_dims) - set(spec.outputs)
+            if unknown:
+                raise TypeError(f"stage {spec.name!r}: output_dims for unknown outputs "
+                                f"{sorted(unknown)}")
+            spec.extra["output_dims"] = {o: tuple(d) for o, d in output_dims.items()}
         previous = _REGISTRY.get(spec.name)
         if previous is not None and (
             previous.module != spec.module or previous.func.__qualname__ != func.__qualname__

@@ -394,7 +394,8 @@ def _synth_report(
     return report
 
 
-@stage("synth", outputs=("motion", "source_index", "report"))
+@stage("synth", outputs=("motion", "source_index", "report"),
+       output_dims={"source_index": ("synthesis_frame",)})
 def synth(
     pyramid: Pyramid,
     motion: Motion,

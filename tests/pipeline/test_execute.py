@@ -74,3 +74,24 @@ def test_stage_contract_violations(tmp_path, store, graph_of):
     assert_stage_contract("toy_source", params={"n": 5, "noise": 1.0}, part="p")
     with pytest.raises(AssertionError, match="impure"):
         assert_stage_contract("toy_impure_test")
+
+
+def test_output_dims_name_a_bare_ndarray_output():
+    """``@stage(output_dims=...)``: a bare ndarray output is stored with those dimension
+    names, not ``dim_0 …``; a wrong axis count or an unknown output is refused."""
+    from mocapflow.pipeline.execute import _encode_outputs  # noqa: PLC0415
+    from mocapflow.pipeline.registry import find_stage  # noqa: PLC0415
+
+    @stage("dims_probe_stage", outputs=("track", "other"), output_dims={"track": ("frame",)})
+    def dims_probe_stage(*, n: int = 3) -> dict:
+        return {"track": np.arange(n), "other": np.zeros((2, 2))}
+
+    spec = find_stage("dims_probe_stage")
+    enc = _encode_outputs(spec, dims_probe_stage(n=4))
+    assert enc["track"].arrays["data"][1] == ("frame",)
+    assert enc["other"].arrays["data"][1] == ("dim_0", "dim_1")
+    assert np.array_equal(codecs.decode(enc["track"]), np.arange(4))
+    with pytest.raises(ValueError, match="output_dims names 1 axes, the array has 2"):
+        _encode_outputs(spec, {"track": np.zeros((2, 2)), "other": np.zeros(1)})
+    with pytest.raises(TypeError, match="output_dims for unknown outputs"):
+        stage("dims_probe_bad", outputs=("a",), output_dims={"b": ("x",)})(lambda: {})
