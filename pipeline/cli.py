@@ -198,7 +198,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--to", required=True, metavar="DIR", help="output directory")
     p.add_argument("--format", action="append", default=[], metavar="TYPE=F1,F2",
                    help="file formats of one output type (repeatable), e.g. "
-                        "mesh=vtp,pc2,ply (an animated mesh also as one PLY per frame)")
+                        "mesh=vtp,pc2,usd,ply (ply: an animated mesh also as one PLY per "
+                        "frame)")
     _exec_args(p)
     _common(p)
 
@@ -534,7 +535,7 @@ def _export_formats(items: Sequence[str]) -> dict[str, tuple[str, ...]]:
         names = tuple(f.strip() for f in fmts.split(",") if f.strip())
         if not eq or not kind.strip() or not names:
             raise UserError(f"--format {item!r}: expected TYPE=FORMAT[,FORMAT...], "
-                            "e.g. mesh=vtp,pc2,ply")
+                            "e.g. mesh=vtp,pc2,usd")
         out[kind.strip()] = names
     return out
 

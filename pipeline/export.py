@@ -194,7 +194,10 @@ def export_results(graph: Graph, store: Store, records: Sequence[TaskRecord],
                     raise ExportError(f"export: cannot write {target / out}.*: "
                                       f"{e.strerror or e}") from e
                 except ExportFormatError as e:
-                    raise ExportError(f"export: --format {enc.type}: {e}") from None
+                    given = formats and enc.type in formats
+                    raise ExportError(f"export: --format {enc.type}: {e}" if given else
+                                      f"export: {enc.type} ({node}/{label}/{out}): {e}"
+                                      ) from None
                 for f in files:
                     if not _inside(Path(f), root):
                         raise ExportError(f"export: the {enc.type} exporter wrote {f}, outside "

@@ -132,3 +132,13 @@ def test_format_option_reaches_the_exporter_and_bad_ones_are_one_line(cli, toy_c
                                  "format(s) ['bad']; it writes a, b\n")
     code, _, err = cli("export", *base, "--to", tmp_path / "o4", "--format", "mesh")
     assert code == 2 and err.startswith("mocapflow: error: --format 'mesh': expected TYPE=")
+    # the exporter's own defaults refused (e.g. usd-core missing): the error names no --format
+
+    def refuse(value, directory, stem, **options):
+        raise ExportFormatError("needs usd-core")
+
+    monkeypatch.setitem(codecs._EXPORTERS, "ndarray", refuse)
+    code, _, err = cli("export", *base, "--to", tmp_path / "o5")
+    assert code == 1 and "--format" not in err and err.startswith("mocapflow: error: export: "
+                                                                  "ndarray (")
+    assert err.rstrip().endswith("needs usd-core")
