@@ -196,7 +196,7 @@ def export_mesh(mesh: Mesh, directory: Path, stem: str, **options: Any) -> list[
     ------
     ExportFormatError
         An unknown format; ``usd`` without usd-core installed (checked before any
-        file is written); an ``attrs["up"]`` other than y or z with ``usd``.
+        file is written); with ``usd``, an ``attrs["up"]`` that is not a signed axis.
     """
     default = ("vtp", "pc2", "usd") if mesh.animated else ("vtp", "ply")
     formats = tuple(options.get("formats", default))
