@@ -51,6 +51,7 @@ __all__ = [
     "clips_to_motions",
     "clips_to_strokes",
     "export_clips",
+    "export_rate",
     "flatten_clips",
     "make_clips",
     "merge_clips",
@@ -628,6 +629,17 @@ def clips_to_strokes(clips: Clips) -> list[Strokes]:
 # --------------------------------------------------------------------------- export
 
 
+def export_rate(clips: Clips) -> float:
+    """Frames per second the variants are exported at.
+
+    ``attrs["output_rate"]`` when set, else the source file's rate
+    (``attrs["source"]["source_rate"]``), else ``clips.rate``: the rate
+    :func:`export_clips` writes and ``ik`` numbers constraint frames in.
+    """
+    rate = clips.attrs.get("output_rate") or (clips.attrs.get("source") or {}).get("source_rate")
+    return float(rate) if rate else float(clips.rate)
+
+
 @exporter("clips")
 def export_clips(obj: Clips, directory: Path, stem: str) -> list[Path]:
     """Write each clip as a file: BVH for motions, CSV for strokes and DOFs.
@@ -652,10 +664,10 @@ def export_clips(obj: Clips, directory: Path, stem: str) -> list[Path]:
     directory.mkdir(parents=True, exist_ok=True)
     paths: list[Path] = []
     if obj.kind == "motion":
-        rate = obj.attrs.get("output_rate") or (obj.attrs.get("source") or {}).get("source_rate")
+        rate = export_rate(obj)
         for i, m in enumerate(clips_to_motions(obj)):
-            if rate and abs(float(rate) - m.rate) > 1e-9 * m.rate:
-                m = resample_motion(m, float(rate), method="spline")
+            if abs(rate - m.rate) > 1e-9 * m.rate:
+                m = resample_motion(m, rate, method="spline")
             paths.append(write_bvh(m, directory / f"{stem}_{i:02d}.bvh"))
         return paths
     for i in range(obj.n_clips):

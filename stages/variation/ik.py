@@ -61,13 +61,12 @@ from mocapflow.stages.motion.contacts import foot_joint, true_runs
 from mocapflow.stages.motion.datatypes import Skeleton
 from mocapflow.stages.motion.kinematics import forward_kinematics
 from mocapflow.stages.motion.rotations import quat_to_matrix
-from mocapflow.stages.variation.clips import Clips, clips_to_motions
+from mocapflow.stages.variation.clips import Clips, clips_to_motions, export_rate
 from mocapflow.stages.variation.dofs import padded_order
 
 __all__ = [
     "IKError",
     "Limb",
-    "export_rate",
     "ik",
     "limb_of",
 ]
@@ -293,17 +292,6 @@ def _solve_frame(
     q2 = res2.x if dist(res2.x) < dist(best) else best
     err2 = float(np.linalg.norm(cons(q2).reshape(-1, 3), axis=1).max())
     return q2, err2, err2 <= tolerance
-
-
-def export_rate(clips: Clips) -> float:
-    """Frames per second the variants are exported at.
-
-    ``attrs["output_rate"]`` when set, else the source file's rate
-    (``attrs["source"]["source_rate"]``), else ``clips.rate`` (the rule of
-    :func:`~mocapflow.stages.variation.clips.export_clips`).
-    """
-    rate = clips.attrs.get("output_rate") or (clips.attrs.get("source") or {}).get("source_rate")
-    return float(rate) if rate else float(clips.rate)
 
 
 @dataclass(frozen=True)

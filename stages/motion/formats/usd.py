@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from mocapflow.stages.motion.axes import axis_vector
+
 __all__ = ["UsdError", "UsdMeshFile", "UsdUnavailableError", "read_usd", "require_usd",
            "usd_available", "write_usd"]
 
@@ -108,8 +110,7 @@ class UsdMeshFile:
 
 def _rotation_to_z(axis: str) -> np.ndarray:
     """A proper rotation ``(3, 3)`` taking the signed axis (``"-Y"``, ``"+X"`` ...) to +Z."""
-    u = np.zeros(3)
-    u["XYZ".index(axis[1])] = 1.0 if axis[0] == "+" else -1.0
+    u = axis_vector(axis)
     z = np.array([0.0, 0.0, 1.0])
     if u @ z < -0.5:  # -Z: half a turn about X
         return np.diag([1.0, -1.0, -1.0])
