@@ -1,235 +1,606 @@
-"""Variation graph benchmark (Lau, Bar-Joseph & Kuffner 2009), one run.
+"""Variation graph benchmark (Lau, Bar-Joseph & Kuffner 2009), one run: issue 17's "Must show".
 
-Prints:
+Prints, with the shipped configs (``configs/variation.yaml``: ingest, clips,
+learn, sample and ik params; the walk model is learned once from the files):
 
-1. structure-learning time for 4 gait cycles cut from ``cmu_131_02.bvh``
-   (72 varying DOFs at 60 fps) with 1 and 2 worker processes (per-node
-   scoring through ``ctx.map``); paper: 0.5-2 h, target <= 2 min;
-2. synthesis time per second of motion before IK (paper 0.1 s, target
-   <= 0.01 s), wall and CPU, one variant per call and 15 per call;
-3. quality of 15 variants of the figure-8 walk (``pymo_AV_8Walk...bvh``; k,
-   kernel width, sigma and noise correlation time from configs/variation.yaml),
-   their sigma = 0 mean motion and white-noise variants, against
-   the inputs and the two noise baselines (strawman: time-warped inputs plus
-   smoothed noise; Perlin noise) at matched spatial variation (noise amplitude
-   bisected so the mean DTW-aligned distance to the inputs equals ours):
-   jerk p99 (m/s^3) and foot skate (m/s, thresholds from the inputs), before
-   and after IK, and the novelty criteria;
-4. novelty of 15 variants of the UCI letter 'a' (5 single-writer examples).
+1. streams: 20 seeds x 10 s (600 frames) of the walk model at sigma 0, the
+   config's sigma and 1 (the config's ``noise_time``; and sigma 1 white, the
+   paper): cadence of each hip flexion DOF over the inputs' (target within
+   +-15 %), cycles made, frozen half-second windows (a hip flexion range below
+   half the inputs' smallest; target 0) -- :mod:`mocapflow.stages.metrics.gait`;
+2. exported variants of ``cmu_131_02.bvh`` and of the figure-8 walk after IK
+   (at the model's rate, as the inputs): jerk p99 and toe skate over the
+   input's (targets <= 1.5, <= 1.2), the largest excess of a BVH rotation
+   channel beyond the inputs' range (target <= 0.05 rad) and the novelty
+   criteria;
+3. chaining: 5 consecutive cycles of one variant stream (the ``sample``
+   stage's ``loop``, else a long stream cut where the hip passes the inputs'
+   start phase): jerk p99 at the joins over the inputs' p99 (target <= 1.5);
+4. speed, BLAS pinned to one thread per process (env vars set before NumPy is
+   imported, threadpoolctl when installed): learning the shipped walk on 1 and
+   2 workers (targets <= 30 s on 2, >= 1.6x), sampling the walk model with
+   1,000 agents batched and 15 per call (target <= 30 us per agent-frame), each
+   measured in a fresh subprocess, for this checkout and -- with
+   ``--baseline DIR`` -- for the code importable from DIR (``PYTHONPATH=DIR``,
+   run outside the repository), as ratios;
+5. strokes: 15 variants of two UCI characters (``'a'`` and
+   :data:`SECOND_LETTER`, ``configs/variation_strokes.yaml``), novelty per letter;
+6. quality of the walk variants against the noise baselines at matched
+   amplitude (jerk, skate, DTW distance; before and after IK).
 
-Run: ``/work/venv/bin/python benchmarks/variation.py [--quick]`` from the
-repository root (needs ``../shared/data``).
+Run: ``.venv/bin/python benchmarks/variation.py [--quick] [--baseline DIR]``
+from the repository root (needs ``../shared/data`` or ``MOCAPFLOW_DATA``).
+``--quick``: 5 streams, 5 variants, 4 cmu clips of 20 DOFs, the speed run on
+4 clips of 20 DOFs; it checks the run end to end, not the targets.
 """
 
 from __future__ import annotations
 
-import argparse
 import os
-import time
-from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
 
-import numpy as np
+for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
+           "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    os.environ[_v] = "1"  # before NumPy is imported, inherited by every subprocess
 
-from mocapflow.pipeline import Context
-from mocapflow.pipeline.config import load_config
-from mocapflow.stages.metrics.novelty import novelty_report
-from mocapflow.stages.metrics.quality import foot_skate, jerk_p99
-from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices
-from mocapflow.stages.motion.formats.bvh import read_bvh
-from mocapflow.stages.motion.formats.strokes import read_uci_chartraj
-from mocapflow.stages.motion.kinematics import motion_positions, resample_motion
-from mocapflow.stages.variation.clips import clips_to_motions
-from mocapflow.stages.variation.ik import ik
-from mocapflow.stages.variation.inputs import clips as clips_stage
-from mocapflow.stages.variation.learn import learn
-from mocapflow.stages.variation.sample import Sampler, matched_amplitude, sample, sample_noise
+import argparse  # noqa: E402
+import inspect  # noqa: E402
+import itertools  # noqa: E402
+import json  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
 
-DATA = Path(os.environ.get("MOCAPFLOW_DATA", Path(__file__).resolve().parents[1] / ".."
-                           / "shared" / "data"))
+import numpy as np  # noqa: E402
 
+try:  # noqa: SIM105
+    from threadpoolctl import threadpool_limits  # noqa: E402
 
-def _take_clips(name: str, rate: float, n: int | None):
-    m = resample_motion(read_bvh(DATA / "bvh" / name), rate)
-    return clips_stage(m, max_clips=n, ctx=Context())["clips"]
+    threadpool_limits(1)
+except ImportError:  # pragma: no cover
+    pass
 
-
-def _subset(c, n_clips: int, n_dofs: int | None = None):
-    keep = np.arange(c.n_dofs) if n_dofs is None else np.argsort(
-        -np.concatenate(c.trajectories).std(axis=0))[:n_dofs]
-    keep = np.sort(keep)
-    return c.replace(trajectories=[t[:, keep] for t in c.trajectories[:n_clips]],
-                     varying=_mask(c, keep), constant_values=c.constant_values,
-                     origins=c.origins[:n_clips], names=c.names[:n_clips])
+REPO = Path(__file__).resolve().parents[1]
+DATA = Path(os.environ.get("MOCAPFLOW_DATA", REPO / ".." / "shared" / "data")).resolve()
+os.environ["MOCAPFLOW_DATA"] = str(DATA)  # configs' parts, also from another checkout's configs
+WALK_CONFIG = REPO / "configs" / "variation.yaml"
+STROKES_CONFIG = REPO / "configs" / "variation_strokes.yaml"
+#: the second character of section 5 (the strokes config with its ``letter`` replaced)
+SECOND_LETTER = "b"
+#: stream length, frames (10 s at 60 fps)
+STREAM_FRAMES = 600
 
 
-def _mask(c, keep):
-    idx = np.flatnonzero(c.varying)[keep]
-    m = np.zeros_like(c.varying)
-    m[idx] = True
-    return m
+# ----------------------------------------------------------------------------- config
 
 
-def _learn_time(c, workers: int) -> tuple[float, object, dict]:
-    """Wall seconds, the model and the stage's step timings (``ctx.timings``)."""
+def _nodes(config: Path) -> dict[str, dict]:
+    """Resolved params of every node of a graph config."""
+    from mocapflow.pipeline.config import load_config
+
+    c = load_config(config)
+    out = {n: dict(c.nodes[n].params) for n in c.nodes}
+    out["_parts"] = [str(p) for p in c.parts]
+    return out
+
+
+def _part(nodes: dict, name: str | None = None, sub: str = "bvh") -> Path:
+    """A shared data file: ``name``, else the config's first part (its file name under DATA)."""
+    return DATA / sub / (name or Path(nodes["_parts"][0]).name)
+
+
+def _accepted(fn, params: dict) -> dict:
+    """The params ``fn`` takes (another checkout may lack some)."""
+    sig = inspect.signature(fn).parameters
+    return {k: v for k, v in params.items() if k in sig}
+
+
+def _walk_clips(nodes: dict, part: Path | None = None):
+    """ingest_bvh + clips of the config on one BVH part."""
+    from mocapflow.pipeline import Context
+    from mocapflow.stages.motion.ingest import ingest_bvh
+    from mocapflow.stages.variation.inputs import clips as clips_stage
+
+    motion = ingest_bvh(str(part or _part(nodes)), **_accepted(ingest_bvh, nodes["ingest"]),
+                        ctx=Context())["motion"]
+    return motion, clips_stage(motion, **_accepted(clips_stage, nodes["clips"]),
+                               ctx=Context())["clips"]
+
+
+def _learn(clips, nodes: dict, workers: int = 1):
+    """The config's ``learn`` on ``workers`` processes: (model, wall seconds)."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from mocapflow.pipeline import Context
+    from mocapflow.stages.variation.learn import learn
+
+    lp = _accepted(learn, nodes["learn"])
     t0 = time.perf_counter()
     if workers == 1:
-        ctx = Context()
-        m = learn(c, ctx=ctx)["model"]
+        model = learn(clips, **lp, ctx=Context())["model"]
     else:
         with ProcessPoolExecutor(workers) as pool:
             ctx = Context(mapper=lambda fn, items: list(pool.map(fn, items)), workers=workers)
-            m = learn(c, ctx=ctx)["model"]
-    return time.perf_counter() - t0, m, ctx.timings
+            model = learn(clips, **lp, ctx=ctx)["model"]
+    return model, time.perf_counter() - t0
 
 
-def _variants(model, seed: int, **params):
-    """The ``sample`` stage's variants drawn from ``numpy.random.default_rng(seed)``."""
-    return sample(model, **params, ctx=Context(rng=np.random.default_rng(seed)))["variants"]
+def _subset(c, n_clips: int, n_dofs: int | None = None):
+    """The first ``n_clips`` clips and the ``n_dofs`` DOFs of largest std (quick runs)."""
+    keep = np.arange(c.n_dofs) if n_dofs is None else np.argsort(
+        -np.concatenate(c.trajectories).std(axis=0))[:n_dofs]
+    keep = np.sort(keep)
+    idx = np.flatnonzero(c.varying)[keep]
+    mask = np.zeros_like(c.varying)
+    mask[idx] = True
+    return c.replace(trajectories=[t[:, keep] for t in c.trajectories[:n_clips]],
+                     varying=mask, constant_values=c.constant_values,
+                     origins=c.origins[:n_clips], names=c.names[:n_clips])
 
 
-def _synthesis_time(model, seconds: float, count: int) -> tuple[float, float]:
+# ----------------------------------------------------------------------------- adapters
+
+
+def streams(model, rng, *, count: int, length: int, sigma: float,
+            noise_time: float | None) -> np.ndarray:
+    """``(count, length, D)`` streams: ``Sampler.stream`` (frame by frame) when it exists,
+    else ``Sampler.run``.  Columns are ``model.clips.labels``."""
+    from mocapflow.stages.variation.sample import Sampler
+
     s = Sampler(model)
-    n = int(round(seconds * model.clips.rate))
-    rng = np.random.default_rng(0)
-    s.run(rng, count=count, length=20)  # warm-up
-    w0, c0 = time.perf_counter(), time.process_time()
-    s.run(rng, count=count, length=n)
-    w, c = time.perf_counter() - w0, time.process_time() - c0
-    return w / (count * seconds), c / (count * seconds)
+    if hasattr(s, "stream"):
+        gen = s.stream(rng, count=count, sigma=sigma, noise_time=noise_time)
+        return np.stack(list(itertools.islice(gen, length)), axis=1)
+    return s.run(rng, count=count, length=length, sigma=sigma, noise_time=noise_time)
 
 
-def _motion_metrics(clips, toes, thr):
-    jerk, skate = [], []
-    for m in clips_to_motions(clips):
-        p = motion_positions(m)
-        jerk.append(jerk_p99(p, m.rate))
-        skate.append(foot_skate(p, toes, m.rate, height_threshold=thr[0],
-                                speed_threshold=thr[1]))
-    return float(np.mean(jerk)), float(np.nanmean(skate))
+def _strip(clips):
+    try:
+        from mocapflow.stages.variation.sample import _strip_internal
+    except ImportError:  # a checkout without phase DOFs
+        return clips
+    return _strip_internal(clips)
+
+
+def chained_cycles(model, rng, *, count: int, sigma: float, noise_time: float | None):
+    """``count`` consecutive cycles of one variant stream, as motions.
+
+    The ``sample`` stage's ``loop`` when it has it and accepts the model (each
+    cycle a variant with chained origins); else one long stream cut where the right hip flexion DOF
+    passes the inputs' mean start value in their start direction (the start
+    phase), the cycles played from one motion.
+
+    Returns
+    -------
+    motions : list of Motion
+        One per cycle, in playing order (fewer when the stream stalls; none
+        when it makes fewer than two).
+    how : str
+    out : dict or None
+        The ``sample`` stage's output (``variants``, ``predicted``) with ``loop``.
+    """
+    from mocapflow.pipeline import Context
+    from mocapflow.stages.metrics.gait import hip_flexion_columns
+    from mocapflow.stages.variation.clips import clips_to_motions
+    from mocapflow.stages.variation.sample import sample
+
+    why = "the sample stage has no loop option"
+    if "loop" in inspect.signature(sample).parameters:
+        try:
+            out = sample(model, count=count, loop=True, sigma=sigma, noise_time=noise_time,
+                         ctx=Context(rng=rng))
+            return clips_to_motions(out["variants"]), "sample(loop=True)", out
+        except ValueError as e:  # SampleError: e.g. a model without the cycle phase
+            why = f"sample(loop=True) refused: {e}"
+    c = model.clips
+    col = hip_flexion_columns(c.labels, c.trajectories)["right"]
+    start = np.mean([t[0, col] for t in c.trajectories])
+    up = np.mean([t[1, col] - t[0, col] for t in c.trajectories]) >= 0
+    n = int(c.lengths.max()) * (3 * count + 5)
+    x = streams(model, rng, count=1, length=n, sigma=sigma, noise_time=noise_time)[0]
+    h = x[:, col] - start
+    cross = np.flatnonzero((h[:-1] < 0) & (h[1:] >= 0) if up else (h[:-1] > 0) & (h[1:] <= 0)) + 1
+    cuts, gap = [], 0.5 * int(c.lengths.min())
+    for f in cross:
+        if not cuts or f - cuts[-1] >= gap:
+            cuts.append(int(f))
+    if len(cuts) < count + 1:
+        why += f"; the stream passed the start phase only {len(cuts)} times in {n} frames"
+        if len(cuts) < 3:
+            return [], why, None
+        count = len(cuts) - 1
+    seg = x[cuts[0]:cuts[count]]
+    one = _strip(c.replace(trajectories=[seg], origins=c.origins[:1], names=["chain"]))
+    m = clips_to_motions(one)[0]
+    lengths = np.diff(cuts[: count + 1])
+    bounds = np.concatenate([[0], np.cumsum(lengths)])
+    tr = m.translations
+
+    def part(a, b):
+        kw = {} if tr is None or np.ndim(tr) < 3 else {"translations": tr[a:b]}
+        return m.replace(root_position=m.root_position[a:b], rotations=m.rotations[a:b], **kw)
+
+    return ([part(a, b) for a, b in itertools.pairwise(bounds)],
+            f"one Sampler stream cut where the right hip passes the inputs' start; {why}", None)
+
+
+# ----------------------------------------------------------------------------- metrics
+
+
+def _positions(motions):
+    from mocapflow.stages.motion.kinematics import motion_positions
+
+    return [motion_positions(m) for m in motions]
+
+
+def _pooled_jerk_p99(positions, rate: float, trim: int = 2) -> float:
+    """p99 of the per-frame jerk pooled over clips (``trim`` frames dropped at each end)."""
+    from mocapflow.stages.metrics.quality import jerk_per_frame
+
+    j = np.concatenate([jerk_per_frame(p, rate)[trim:len(p) - trim] for p in positions])
+    return float(np.percentile(j[np.isfinite(j)], 99))
 
 
 def _novelty_row(rep) -> str:
     d = np.array(rep["aligned_distance"])
     inside = np.mean((d > 0) & (d < rep["input_distance_p95"]))
     wr = np.mean(rep["warp_slope_std"]) / rep["input_warp_slope_std"]
+    ok = (rep["equal_poses"] == 0 and max(rep["copied_run"]) < 5 and inside == 1.0
+          and 0.5 <= wr <= 2.0)
     return (f"equal poses {rep['equal_poses']:3d} | longest copied run {max(rep['copied_run']):2d}"
             f" (inputs among themselves {rep['input_copied_run']:2d}) | DTW dist median "
             f"{np.median(d):.3f}, max {d.max():.3f} vs input p95 {rep['input_distance_p95']:.3f}"
-            f" ({100 * inside:.0f}% inside) | warp-slope std ratio {wr:.2f}")
+            f" ({100 * inside:.0f}% inside) | warp-slope std ratio {wr:.2f} | "
+            f"{'met' if ok else 'NOT met'}")
 
 
-def _config() -> dict:
-    """``k``, ``kernel_width``, ``sigma`` and ``noise_time`` of configs/variation.yaml."""
-    c = load_config(Path(__file__).resolve().parents[1] / "configs" / "variation.yaml")
-    lp, sp = c.nodes["learn"].params, c.nodes["sample"].params
-    return {"k": int(lp["k"]), "kernel_width": lp["kernel_width"],
-            "sigma": float(sp["sigma"]), "noise_time": sp["noise_time"]}
+def _ik(variants, predicted, nodes: dict, rate: float):
+    """The config's ``ik`` at the model's rate (``predicted`` passed when the stage takes it)."""
+    from mocapflow.pipeline import Context
+    from mocapflow.stages.variation.ik import ik
+
+    p = _accepted(ik, {**nodes["ik"], "output_rate": rate})
+    if "predicted" in inspect.signature(ik).parameters and predicted is not None:
+        p["predicted"] = predicted
+    return ik(variants, **p, ctx=Context())
 
 
-def main(quick: bool = False) -> None:
-    n_var = 5 if quick else 15
-    print(f"# variation benchmark ({'quick' if quick else 'full'}); data {DATA}")
-    print(f"# machine: {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}")
+# ----------------------------------------------------------------------------- sections
 
-    # 1. structure learning time ------------------------------------------------------
-    cmu = _take_clips("cmu_131_02.bvh", 60.0, None)
-    c4 = _subset(cmu, 4, 20 if quick else None)
-    print(f"\n## 1. structure learning: {c4.n_clips} clips, {c4.n_dofs} DOFs, "
-          f"{int(c4.lengths.sum())} frames (cmu_131_02 cycles, 60 fps)")
-    t1, m1, s1 = _learn_time(c4, 1)
-    t2, m2, s2 = _learn_time(c4, 2)
-    same = m1.transition_parents == m2.transition_parents and m1.prior_parents == m2.prior_parents
-    print("| workers | seconds | transition s | prior s | evaluations | target |")
-    print("|---|---|---|---|---|---|")
-    for w, t, m, s in ((1, t1, m1, s1), (2, t2, m2, s2)):
-        ev = m.attrs["evaluations"]
-        print(f"| {w} | {t:.1f} | {s['transition']:.1f} | {s['prior']:.1f} | "
-              f"{ev['transition']} + {ev['prior']} | <= 120 |")
-    print(f"speed-up 2 vs 1 worker: {t1 / t2:.2f}x; same structure: {same}; "
-          "mean parents per transition node "
-          f"{np.mean([len(p) + 2 for p in m1.transition_parents]):.1f}"
-          f" (incl. 2 self), max prior parents {max(len(p) for p in m1.prior_parents)}")
 
-    # 2. synthesis time --------------------------------------------------------------
-    print(f"\n## 2. synthesis time per second of motion (before IK), {m1.n_dofs} DOFs, 60 fps")
-    print("| variants per call | wall ms / s | CPU ms / s | paper | target |")
-    print("|---|---|---|---|---|")
-    for count in (1, 15):
-        w, c = _synthesis_time(m1, 2.0 if quick else 10.0, count)
-        print(f"| {count} | {1000 * w:.1f} | {1000 * c:.1f} | 100 | <= 10 |")
+def section_streams(model, nodes: dict, n_seeds: int) -> None:
+    from mocapflow.stages.metrics.gait import (
+        cadence,
+        clip_cadence,
+        frozen_threshold,
+        frozen_windows,
+        hip_flexion_columns,
+        swing_hysteresis,
+    )
+    from mocapflow.stages.variation.dofs import motion_to_dofs
 
-    # 3. quality against the noise baselines ---------------------------------------------
-    walk = _take_clips("pymo_AV_8Walk_Meredith_HVHA_Rep1.bvh", 60.0, 6)
-    if quick:
-        walk = _subset(walk, 4, None)
+    c = model.clips
+    rate = c.rate
+    hips = hip_flexion_columns(c.labels, c.trajectories)
+    sides = sorted(hips)
+    cols = [hips[s] for s in sides]
+    ins = [t[:, cols] for t in c.trajectories]
+    width = int(round(0.5 * rate))
+    thr = frozen_threshold(ins, width)
+    hyst = swing_hysteresis(ins)
+    ref = clip_cadence(c.lengths, rate)
+    # the metric on the input take itself (a check of the crossing count)
+    motion, _ = _walk_clips(nodes)
+    dofs, names, _, _ = motion_to_dofs(motion, root="heading")
+    take = [cadence(dofs[:, names.index(c.labels[k])], motion.rate, hysteresis=h)[0]
+            for k, h in zip(cols, hyst)]
+    sp = nodes["sample"]
+    sigma, nt = float(sp["sigma"]), sp["noise_time"]
+    print(f"\n## 1. streams: {n_seeds} seeds x {STREAM_FRAMES / rate:.0f} s of the walk model "
+          f"({c.n_clips} cycles, {c.n_dofs} DOFs); hip flexion "
+          f"{', '.join(f'{s} {c.labels[k]}' for s, k in zip(sides, cols))}")
+    print(f"inputs: cadence {ref:.3f} Hz (rate / mean cycle length); the crossing count on the "
+          f"whole take: {', '.join(f'{s} {v:.3f}' for s, v in zip(sides, take))} Hz; frozen "
+          f"below {', '.join(f'{v:.3f}' for v in thr)} rad per {width} frames; hysteresis "
+          f"{', '.join(f'{v:.3f}' for v in hyst)} rad")
+    print("| sigma | noise_time s | "
+          + " | ".join(f"cadence {s} / inputs' (median, min-max)" for s in sides)
+          + " | streams within +-15 % (both hips) | "
+          "cycles per stream (median, min; both hips) | frozen windows (total, worst stream) "
+          "| target | seconds |")
+    print("|---|---|---|" + "---|" * (len(sides) - 1) + "---|---|---|---|---|")
+    for s_, nt_ in ((0.0, nt), (sigma, nt), (1.0, nt), (1.0, None)):
+        ratios, cycles, frozen = [], [], []
+        t0 = time.perf_counter()
+        for seed in range(n_seeds):
+            x = streams(model, np.random.default_rng(seed), count=1, length=STREAM_FRAMES,
+                        sigma=s_, noise_time=nt_)[0]
+            cad = [cadence(x[:, k], rate, hysteresis=h) for k, h in zip(cols, hyst)]
+            ratios.append([v / ref for v, _ in cad])
+            cycles.append([n for _, n in cad])
+            frozen.append(int(frozen_windows(x[:, cols], thr, width).sum()))
+        r, cy, fr = np.array(ratios), np.array(cycles), np.array(frozen)
+        within = int(np.all(np.abs(r - 1) <= 0.15, axis=1).sum())
+        cells = " | ".join(f"{np.median(r[:, i]):.2f} ({r[:, i].min():.2f}-{r[:, i].max():.2f})"
+                           for i in range(len(sides)))
+        n_win = STREAM_FRAMES // width
+        print(f"| {s_:g} | {nt_} | {cells} | {within} / {n_seeds} | "
+              f"{np.median(cy):.0f}, {cy.min()} | {fr.sum()} of {n_seeds * n_win}, {fr.max()} "
+              f"| +-15 %, 0 frozen | {time.perf_counter() - t0:.1f} |")
+
+
+def section_variants(label: str, model, clips, nodes: dict, n_var: int) -> None:
+    from mocapflow.pipeline import Context
+    from mocapflow.stages.metrics.gait import channel_range, range_excess, rotation_channels
+    from mocapflow.stages.metrics.novelty import novelty_report
+    from mocapflow.stages.metrics.quality import foot_skate
+    from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices
+    from mocapflow.stages.variation.clips import clips_to_motions
+    from mocapflow.stages.variation.sample import sample
+
+    sp = nodes["sample"]
+    out = sample(model, count=n_var, sigma=float(sp["sigma"]), noise_time=sp["noise_time"],
+                 ctx=Context(rng=np.random.default_rng(1)))
     t0 = time.perf_counter()
-    cfg = _config()
-    model = learn(walk, k=cfg["k"], kernel_width=cfg["kernel_width"])["model"]
-    t_learn = time.perf_counter() - t0
-    sigma, nt = cfg["sigma"], cfg["noise_time"]
-    mean_motion = _variants(model, 1, count=1, sigma=0.0)
-    white = _variants(model, 1, count=n_var, sigma=sigma)
-    ours = _variants(model, 1, count=n_var, sigma=sigma, noise_time=nt)
+    cleaned = _ik(out["variants"], out.get("predicted"), nodes, clips.rate)
+    t_ik = time.perf_counter() - t0
+    ins = clips_to_motions(clips)
+    pin = _positions(ins)
+    toes = toe_indices(clips.skeleton)
+    thr = contact_thresholds(np.concatenate(pin), toes, clips.rate)
+    up = "z" if str(ins[0].attrs.get("up", "+y")).lstrip("+-").lower() == "z" else "y"
+    ch_in = [rotation_channels(m, up=up)[0] for m in ins]
+    lo, hi, mu = channel_range(ch_in)
+    names = rotation_channels(ins[0], up=up)[1]
+
+    def skate(ps):
+        return float(np.nanmean([foot_skate(p, toes, clips.rate, height_threshold=thr[0],
+                                            speed_threshold=thr[1]) for p in ps]))
+
+    j_in, s_in = _pooled_jerk_p99(pin, clips.rate), skate(pin)
+    print(f"\n### {label}: {clips.n_clips} input cycles, {clips.n_dofs} DOFs; {n_var} variants "
+          f"(sigma {sp['sigma']}, noise_time {sp['noise_time']} s), IK {t_ik:.1f} s, "
+          f"at {clips.rate:g} fps")
+    print(f"inputs: jerk p99 {j_in:.0f} m/s^3, toe skate {s_in:.3f} m/s")
+    print("| variants | jerk p99 / input's | toe skate / input's | max range excess rad "
+          "(channel; variants over 0.05) | target |")
+    print("|---|---|---|---|---|")
+    for name, v in (("sampled", out["variants"]), ("after IK (exported)", cleaned["variants"])):
+        ms = clips_to_motions(v)
+        ps = _positions(ms)
+        ex = np.stack([range_excess(rotation_channels(m, up=up)[0], lo, hi, mu) for m in ms])
+        worst = np.unravel_index(np.argmax(ex), ex.shape)
+        print(f"| {name} | {_pooled_jerk_p99(ps, clips.rate) / j_in:.2f} | "
+              f"{skate(ps) / s_in:.2f} | {ex.max():.3f} ({names[worst[1]]}; "
+              f"{int((ex.max(axis=1) > 0.05).sum())} of {len(ms)}) | <= 1.5, <= 1.2, <= 0.05 |")
+    rep = novelty_report(cleaned["variants"].trajectories, clips.trajectories,
+                         cyclic=bool(clips.cyclic))
+    print("novelty after IK:", _novelty_row(rep))
+
+
+def section_chaining(model, clips, nodes: dict, count: int = 5) -> None:
+    from mocapflow.stages.metrics.gait import join_jerk_p99
+    from mocapflow.stages.variation.clips import clips_to_motions
+
+    sp = nodes["sample"]
+    rate = clips.rate
+    j_in = _pooled_jerk_p99(_positions(clips_to_motions(clips)), rate)
+    motions, how, out = chained_cycles(model, np.random.default_rng(3), count=count,
+                                       sigma=float(sp["sigma"]), noise_time=sp["noise_time"])
+    if len(motions) < 2:
+        print(f"\n## 3. chaining: NOT measured, fewer than 2 cycles ({how})")
+        return
+    ps = _positions(motions)
+    lengths = [len(p) for p in ps]
+    chain = np.concatenate(ps)
+    jj = join_jerk_p99(chain, lengths, rate)
+    print(f"\n## 3. chaining: {len(ps)} consecutive cycles of one variant stream ({how}; "
+          f"lengths {lengths}), joins +-3 frames")
+    print("| motion | jerk p99 at the joins / inputs' p99 | jerk p99 overall / inputs' | "
+          "target |")
+    print("|---|---|---|---|")
+    print(f"| chained cycles | {jj / j_in:.2f} | {_pooled_jerk_p99([chain], rate) / j_in:.2f} | "
+          f"<= 1.5 |")
+    if out is not None:  # the loop variants through the config's IK, each on its own
+        ps = _positions(clips_to_motions(
+            _ik(out["variants"], out.get("predicted"), nodes, rate)["variants"]))
+        chain = np.concatenate(ps)
+        print(f"| chained cycles after IK | "
+              f"{join_jerk_p99(chain, [len(p) for p in ps], rate) / j_in:.2f} | "
+              f"{_pooled_jerk_p99([chain], rate) / j_in:.2f} | <= 1.5 |")
+    else:
+        print("| chained cycles after IK | not measured (no loop variants) | - | <= 1.5 |")
+    print(f"inputs' jerk p99 {j_in:.0f} m/s^3")
+
+
+def _speed_worker(config: str, quick: bool, window: int | None) -> dict:
+    """Timings of the code importable in this process (run as a subprocess)."""
+    import mocapflow
+    from mocapflow.stages.variation.sample import Sampler
+
+    nodes = _nodes(Path(config))
+    _, clips = _walk_clips(nodes)
+    if quick:
+        clips = _subset(clips, 4, 20)
+    _, t1 = _learn(clips, nodes, 1)
+    model, t2 = _learn(clips, nodes, 2)
+    sp = nodes["sample"]
+    kw = {} if window is None else {"window": window}
+    s = Sampler(model, **kw)
+    res = {"code": str(Path(mocapflow.__file__).resolve().parent), "learn_1": t1,
+           "learn_2": t2, "dofs": int(model.n_dofs), "clips": int(clips.n_clips)}
+    for count, n in ((1000, 5 if quick else 30), (15, 60 if quick else 600)):
+        rng = np.random.default_rng(0)
+        s.run(rng, count=count, length=4, sigma=float(sp["sigma"]), noise_time=sp["noise_time"])
+        w0, c0 = time.perf_counter(), time.process_time()
+        s.run(rng, count=count, length=n, sigma=float(sp["sigma"]), noise_time=sp["noise_time"])
+        w, c = time.perf_counter() - w0, time.process_time() - c0
+        res[f"us_{count}"] = 1e6 * w / (count * n)
+        res[f"cpu_us_{count}"] = 1e6 * c / (count * n)
+    return res
+
+
+def _run_worker(layout: Path | None, config: Path, quick: bool, window: int | None) -> dict:
+    env = dict(os.environ)
+    env.pop("PYTHONPATH", None)
+    cwd = REPO
+    if layout is not None:
+        env["PYTHONPATH"] = str(layout)
+        cwd = Path("/tmp")
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--speed-worker", "--config",
+           str(config)] + (["--quick"] if quick else []) + (
+        ["--window", str(window)] if window else [])
+    r = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True)
+    if r.returncode:
+        raise RuntimeError(f"speed worker ({layout or 'this checkout'}) failed:\n{r.stderr}")
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def section_speed(quick: bool, baseline: Path | None, window: int | None) -> None:
+    ours = _run_worker(None, WALK_CONFIG, quick, window)
+    base = None
+    if baseline is not None:
+        cfg = baseline / "mocapflow" / "configs" / "variation.yaml"
+        base = _run_worker(baseline, cfg if cfg.exists() else WALK_CONFIG, quick, None)
+    print(f"\n## 4. speed, BLAS 1 thread per process: the shipped walk config, "
+          f"{ours['clips']} clips, {ours['dofs']} DOFs ({ours['code']}"
+          + (f"; baseline {base['code']}, {base['dofs']} DOFs" if base else
+             "; no --baseline: ratio columns skipped") + ")")
+    rows = [("learn, 1 worker (s)", "learn_1", "-"), ("learn, 2 workers (s)", "learn_2", "<= 30"),
+            ("sample 1,000 agents batched (us / agent-frame, wall)", "us_1000", "<= 30"),
+            ("sample 1,000 agents (CPU us / agent-frame)", "cpu_us_1000", "-"),
+            ("sample 15 per call (us / agent-frame, wall)", "us_15", "-")]
+    print("| measure | ours |" + (" baseline | ours / baseline |" if base else "") + " target |")
+    print("|---|---|" + ("---|---|" if base else "") + "---|")
+    for name, key, target in rows:
+        cell = f"| {name} | {ours[key]:.2f} |"
+        if base:
+            cell += f" {base[key]:.2f} | {ours[key] / base[key]:.2f} |"
+        print(cell + f" {target} |")
+    su = ours["learn_1"] / ours["learn_2"]
+    line = f"speed-up 2 vs 1 worker: ours {su:.2f}x (target >= 1.6x)"
+    if base:
+        line += f", baseline {base['learn_1'] / base['learn_2']:.2f}x"
+    print(line + (f"; Sampler window {window}" if window else ""))
+
+
+def section_strokes(n_var: int) -> None:
+    from mocapflow.pipeline import Context
+    from mocapflow.stages.metrics.novelty import novelty_report
+    from mocapflow.stages.motion.ingest import ingest_strokes_set
+    from mocapflow.stages.variation.inputs import clips as clips_stage
+    from mocapflow.stages.variation.sample import sample
+
+    nodes = _nodes(STROKES_CONFIG)
+    path = _part(nodes, sub="strokes")
+    print(f"\n## 5. strokes: {n_var} variants per character ({STROKES_CONFIG.name}, "
+          f"letter replaced)")
+    for letter in ("a", SECOND_LETTER):
+        ex = ingest_strokes_set(str(path), letter=letter, ctx=Context())["examples"]
+        sc = clips_stage(ex, **_accepted(clips_stage, nodes["clips"]), ctx=Context())["clips"]
+        sm, tl = _learn(sc, nodes, 1)
+        sp = nodes["sample"]
+        sv = sample(sm, count=n_var, **_accepted(sample, {"sigma": sp["sigma"],
+                                                          "noise_time": sp.get("noise_time")}),
+                    ctx=Context(rng=np.random.default_rng(0)))["variants"]
+        print(f"'{letter}': {sc.n_clips} examples, learn {tl:.1f} s; novelty:",
+              _novelty_row(novelty_report(sv.trajectories, sc.trajectories)))
+
+
+def section_quality(model, walk, nodes: dict, n_var: int, quick: bool) -> None:
+    from mocapflow.pipeline import Context
+    from mocapflow.stages.metrics.novelty import novelty_report
+    from mocapflow.stages.metrics.quality import foot_skate, jerk_p99
+    from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices
+    from mocapflow.stages.variation.clips import clips_to_motions
+    from mocapflow.stages.variation.sample import matched_amplitude, sample, sample_noise
+
+    sp = nodes["sample"]
+    sigma, nt = float(sp["sigma"]), sp["noise_time"]
+
+    def draw(**p):
+        return sample(model, **p, ctx=Context(rng=np.random.default_rng(1)))
+
+    ours_out = draw(count=n_var, sigma=sigma, noise_time=nt)
+    ours = ours_out["variants"]
+    rows = [("inputs", walk), ("ours mean motion (sigma 0)", draw(count=1, sigma=0.0)["variants"]),
+            ("ours, white noise, sigma 1 (the paper)", draw(count=n_var, sigma=1.0)["variants"]),
+            (f"ours (sigma {sigma}, noise_time {nt} s)", ours),
+            ("ours + IK", _ik(ours, ours_out.get("predicted"), nodes, walk.rate)["variants"])]
     L = int(np.median(walk.lengths))
     toes = toe_indices(walk.skeleton)
-    pin = np.concatenate([motion_positions(m) for m in clips_to_motions(walk)])
+    pin = np.concatenate(_positions(clips_to_motions(walk)))
     thr = contact_thresholds(pin, toes, walk.rate)
 
     def dist(v):
         return float(np.mean(novelty_report(v.trajectories, walk.trajectories,
                                             cyclic=True)["aligned_distance"]))
 
-    rep_ours = novelty_report(ours.trajectories, walk.trajectories, cyclic=True)
-    d_ours = np.array(rep_ours["aligned_distance"])
-    rows = [("inputs", walk, None), ("ours mean motion (sigma 0)", mean_motion, None),
-            (f"ours, white noise as the paper (sigma {sigma})", white, None),
-            (f"ours (sigma {sigma}, noise_time {nt} s)", ours, None)]
-    t0 = time.perf_counter()
-    cleaned = ik(ours, ctx=Context())
-    ours_ik, ik_rep = cleaned["variants"], cleaned["report"]
-    t_ik = time.perf_counter() - t0
-    rows.append(("ours + IK", ours_ik, None))
+    d_ours = dist(ours)
     for method in ("strawman", "perlin"):
         def make(a, method=method):
             return sample_noise(walk, method=method, count=n_var, length=L, amplitude=a,
                                 ctx=Context(rng=np.random.default_rng(2)))["variants"]
 
-        a = matched_amplitude(make, dist, float(d_ours.mean()), iterations=7 if quick else 10)
-        rows.append((f"{method} (amplitude {a:.3f} std)", make(a), a))
-    print(f"\n## 3. walk quality: {walk.n_clips} cycles of the figure-8 walk, {walk.n_dofs} DOFs;"
-          f" configs/variation.yaml: k {cfg['k']}, kernel_width {cfg['kernel_width']};"
-          f" {n_var} variants of {L} frames; learn {t_learn:.0f} s, IK {t_ik:.1f} s")
+        a = matched_amplitude(make, dist, d_ours, iterations=6 if quick else 10)
+        rows.append((f"{method} (amplitude {a:.3f} std)", make(a)))
+    print(f"\n## 6. walk quality against the noise baselines at matched DTW distance: "
+          f"{walk.n_clips} cycles, {n_var} variants of {L} frames")
     print("| motion | jerk p99 (m/s^3) | foot skate (m/s) | DTW dist to inputs (mean +- std) |")
     print("|---|---|---|---|")
-    for name, c, _ in rows:
-        j, s = _motion_metrics(c, toes, thr)
+    for name, c in rows:
+        ps = _positions(clips_to_motions(c))
+        j = np.mean([jerk_p99(p, c.rate) for p in ps])
+        s = np.nanmean([foot_skate(p, toes, c.rate, height_threshold=thr[0],
+                                   speed_threshold=thr[1]) for p in ps])
         if name == "inputs":
             dd = np.array(novelty_report(c.trajectories, c.trajectories)["input_distances"])
         else:
             dd = np.array(novelty_report(c.trajectories, walk.trajectories,
                                          cyclic=True)["aligned_distance"])
         print(f"| {name} | {j:.0f} | {s:.3f} | {dd.mean():.2f} +- {dd.std():.2f} |")
-    unreached = sum(len(r["unreachable"]) for r in ik_rep["clips"])
-    frames = sum(sum(r["constrained_frames"].values()) for r in ik_rep["clips"])
-    reached = max(e for r in ik_rep["clips"] for e in r["max_error_reached"].values())
-    print(f"IK: {frames} constrained effector-frames, {unreached} unreachable (best effort, "
-          f"warned); max end-effector error on reached frames {1000 * reached:.3f} mm")
-    print("novelty (ours, walk):", _novelty_row(rep_ours))
 
-    # 4. strokes ------------------------------------------------------------------------
-    if not quick:
-        ss = read_uci_chartraj(DATA / "strokes" / "uci_chartraj_mv_subset.csv", letter="a")
-        sc = clips_stage(ss, ctx=Context())["clips"]
-        t0 = time.perf_counter()
-        sm = learn(sc)["model"]
-        tl = time.perf_counter() - t0
-        sv = _variants(sm, 0, count=15)
-        print(f"\n## 4. strokes: UCI 'a', {sc.n_clips} examples -> 15 variants (learn {tl:.1f} s)")
-        print("novelty:", _novelty_row(novelty_report(sv.trajectories, sc.trajectories)))
+
+def main(quick: bool = False, baseline: Path | None = None, window: int | None = None) -> None:
+    n_var = 5 if quick else 15
+    t_all = time.perf_counter()
+    print(f"# variation benchmark ({'quick' if quick else 'full'}); data {DATA}")
+    print(f"# machine: {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; BLAS threads "
+          f"pinned to 1 per process")
+    nodes = _nodes(WALK_CONFIG)
+    _, walk = _walk_clips(nodes)
+    model, t_learn = _learn(walk, nodes, 1)
+    print(f"# walk model ({WALK_CONFIG.name}): {walk.n_clips} cycles, {model.n_dofs} DOFs, "
+          f"learned in {t_learn:.1f} s")
+    section_streams(model, nodes, 5 if quick else 20)
+
+    print("\n## 2. exported variants after IK")
+    _, cmu = _walk_clips(nodes, DATA / "bvh" / "cmu_131_02.bvh")
+    if quick:
+        cmu = _subset(cmu, 4, 20)
+    cmu_model, t_cmu = _learn(cmu, nodes, 1)
+    print(f"(cmu_131_02 learned in {t_cmu:.1f} s)")
+    section_variants("cmu_131_02.bvh", cmu_model, cmu, nodes, n_var)
+    section_variants("figure-8 walk (pymo_AV_8Walk)", model, walk, nodes, n_var)
+    section_chaining(model, walk, nodes)
+    section_speed(quick, baseline, window)
+    section_strokes(n_var)
+    section_quality(model, walk, nodes, n_var, quick)
+    print(f"\n# total {time.perf_counter() - t_all:.0f} s")
 
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--quick", action="store_true", help="small run (20 DOFs, 5 variants)")
-    main(ap.parse_args().quick)
+    ap.add_argument("--quick", action="store_true",
+                    help="small run (5 streams, 5 variants, 20-DOF cmu and speed models)")
+    ap.add_argument("--baseline", type=Path, default=None,
+                    help="layout dir of today's code (PYTHONPATH for the speed subprocess)")
+    ap.add_argument("--window", type=int, default=None,
+                    help="Sampler window (crowd mode) for the speed run of this checkout")
+    ap.add_argument("--speed-worker", action="store_true", help=argparse.SUPPRESS)
+    ap.add_argument("--config", default=str(WALK_CONFIG), help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.speed_worker:
+        print(json.dumps(_speed_worker(a.config, a.quick, a.window)))
+    else:
+        main(a.quick, a.baseline, a.window)

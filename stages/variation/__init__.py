@@ -27,8 +27,13 @@ Lau Eq. 5–6 conditional densities
     learning composed → ``learn.learn`` (the ``learn`` stage); the model →
     ``model.VariationModel``
 §6 sampling (spatial variation)
-    prior network, frames 0 and 1 → ``sample.Sampler.sample_prior``; transition
-    network unrolled → ``sample.Sampler.run``; the stage → ``sample.sample``
+    prior network, frames 0 and 1 → ``sample.Sampler.sample_prior``; one step of
+    the transition network (Eq. 5–6 for every DOF, batched over agents) →
+    ``sample.Sampler.transition``; the network unrolled, frame by frame for any
+    number of agents → ``sample.Sampler.stream``; cut into variants →
+    ``sample.Sampler.run``; into consecutive loopable cycles →
+    ``sample.Sampler.cycles``; the stage (``variants`` and the ``predicted``
+    means) → ``sample.sample``
 temporal variation
     → ``sample.Sampler.run``: the second-order transition network regresses the
     delta on position and velocity (``training.transition_data``), so timing
@@ -52,11 +57,16 @@ Departures the module docstrings state (each can be switched off):
 * per-node bandwidth chosen by held-out likelihood when ``kernel_width=None``
   (``kernel.bandwidth2``, ``kernel.KERNEL_GRID``);
 * offset retention ``λ`` of the transition mean, ``half_life`` (``training.retention_of``);
-* the normalised-time DOF ``_phase`` for non-cyclic clips, which also ends
-  variants (``training.with_phase``);
+* the phase DOFs (``training.with_phase``): normalised time ``_phase`` for
+  non-cyclic clips, which also ends variants; the cycle phase
+  ``(cos φ, sin φ)`` for cyclic clips, a parent of every transition node
+  (``learn._phase_parents``; without it the walk's mean dynamics come to rest),
+  where cyclic variants start and loops are cut;
 * sparse candidate parents, ``candidates`` (Friedman et al. 1999; ``search``);
-* AR(1)-correlated sampling noise, ``noise_time`` (``sample.Sampler.run``;
-  ``None`` is the paper's white noise).
+* AR(1)-correlated sampling noise, ``noise_time``, with the long-run variance
+  of white noise (``sample.Sampler.stream``; ``None`` is the paper's white noise);
+* single-precision neighbour search, and the optional phase-window search of
+  crowds (``sample.Sampler``, ``window``).
 """
 
 #: The modules of this family that register stages, codecs or exporters, each with

@@ -1,10 +1,12 @@
 """The ``clips`` stage: ingested parts → the similar training clips (Lau et al. 2009, §4, §9).
 
-One long take of a cyclic motion is cut into cycles
-(:mod:`~mocapflow.stages.variation.cycles`); several parts are one example each;
+Each take of a cyclic motion is cut into cycles
+(:mod:`~mocapflow.stages.variation.cycles`), the cycles of several takes are
+separate examples named by take (``cut: none``: each part one example);
 each pen-stroke example is one clip (:mod:`~mocapflow.stages.variation.clips`).
 Optionally only the ``max_clips`` most typical clips are kept (smallest RMS
-distance to the elementwise median clip, all resampled to 32 frames) and clips
+distance to the elementwise median clip, all resampled to 32 frames; taken in
+turn from each take so that every take contributes) and clips
 unlikely under the others are removed (Lau §9,
 :mod:`~mocapflow.stages.variation.similar`).
 """
@@ -53,21 +55,25 @@ def clips(
     letter: str | None = None,
     max_clips: int | None = None,
     similar_threshold: float | None = None,
+    similar_structure: Literal["learned", "self"] = "learned",
     ctx: Context,
 ) -> dict:
     """Make the DOF clips the ``learn`` stage trains on, from ingested parts.
 
-    With one motion part (a long take) and ``cut`` not ``"none"``, the take is
-    cut into cycles (:func:`~mocapflow.stages.variation.cycles.cut_cycles`).
-    With several parts each part is one example.  Each pen-stroke example is
-    one clip.
+    With ``cut`` not ``"none"`` every motion part (a take) is cut into cycles
+    (:func:`~mocapflow.stages.variation.cycles.cut_cycles`); the cycles of all
+    takes are the examples, named ``<take file>[a:b]``.  A single take with
+    fewer than ``min_cycles`` cycles is used whole; one of several takes is
+    then skipped (warned).  With ``cut: none`` each part is one example.  Each
+    pen-stroke example is one clip.
 
     Parameters
     ----------
     sources : Motion, Strokes, Clips or list of them
         The ingested parts (a gather input is a list ordered by part).
     cut : {"auto", "feet", "period", "none"}
-        Cycle cutting of a single take (``auto``: heel strikes, else period).
+        Cycle cutting of every take (``auto``: heel strikes, else period;
+        ``none``: each part whole).
     cyclic : bool, optional
         Mark the clips as cycles (default: true exactly when a take was cut).
     root : {"heading", "absolute"}
@@ -83,12 +89,17 @@ def clips(
         Keep only strokes whose ``attrs["letter"]`` equals it.
     max_clips : int, optional
         Keep at most this many clips, the most typical ones (smallest
-        distance to the median clip, all resampled to 32 frames), in order.
+        distance to the median clip, all resampled to 32 frames), in order;
+        with several takes chosen in turn per take (balanced: counts per take
+        differ by at most one).
     similar_threshold : float, optional
         Run :func:`~mocapflow.stages.variation.similar.select_similar` (Lau §9)
         with this per-frame log-likelihood threshold (from
         :func:`~mocapflow.stages.variation.similar.likelihood_threshold` on a
-        trusted set).
+        trusted set).  Default ``None``: no selection.
+    similar_structure : {"learned", "self"}
+        Transition structure of the selection's networks: searched on each
+        training set (default, the paper) or self parents only (faster).
     ctx : Context
 
     Returns
@@ -103,24 +114,27 @@ def clips(
     report: dict[str, Any] = {}
     if all(isinstance(x, Clips) for x in items):
         out = merge_clips(items)
+        groups = np.arange(out.n_clips)
     elif all(isinstance(x, Strokes) for x in items):
         out = _stroke_clips(items, letter=letter, cyclic=cyclic, ctx=ctx)
+        groups = np.arange(out.n_clips)
     elif all(isinstance(x, Motion) for x in items):
         up = _motion_up(items) if up == "auto" else up
-        if len(items) == 1 and cut != "none":
-            out, report["cut"] = _take_cycles(
-                items[0], cut=cut, cyclic=cyclic, root=root, up=up, outlier=outlier,
+        if cut != "none":
+            out, groups, report["cut"] = _takes_cycles(
+                items, cut=cut, cyclic=cyclic, root=root, up=up, outlier=outlier,
                 min_cycles=min_cycles, ctx=ctx,
             )
         else:
             out = clips_from_motions(items, root=root, up=up, cyclic=bool(cyclic))
+            groups = np.arange(out.n_clips)
     else:
         kinds = {type(x).__name__ for x in items}
         raise ClipError(f"clips: mixed or unsupported inputs {sorted(kinds)}")
     if max_clips is not None and out.n_clips > max_clips:
-        out, report["dropped_atypical"] = _most_typical(out, max_clips)
+        out, report["dropped_atypical"] = _most_typical(out, max_clips, groups)
     if similar_threshold is not None:
-        out, report["removed"] = _similar_only(out, similar_threshold, ctx)
+        out, report["removed"] = _similar_only(out, similar_threshold, similar_structure, ctx)
     return {"clips": out, "report": _summary(out, report, ctx)}
 
 
@@ -162,8 +176,12 @@ def _take_cycles(
     outlier: float,
     min_cycles: int,
     ctx: Context,
-) -> tuple[Clips, dict[str, Any]]:
+    allow_whole: bool = True,
+) -> tuple[Clips | None, dict[str, Any]]:
     """The kept cycles of one take as clips, or the whole take when too few are found.
+
+    With ``allow_whole`` false (several takes) a take with too few cycles is
+    skipped (``None``) instead, so that every clip is one cycle.
 
     Returns
     -------
@@ -173,6 +191,10 @@ def _take_cycles(
     """
     cycles, rep = cut_cycles(take, method=cut, up=up, outlier=outlier)
     if len(cycles) < min_cycles:
+        if not allow_whole:
+            ctx.warn(f"{source_name(take, 'take')}: found {len(cycles)} cycle(s) "
+                     f"(< {min_cycles}); take skipped")
+            return None, rep
         ctx.warn(
             f"{source_name(take, 'take')}: found {len(cycles)} cycle(s) (< {min_cycles}); "
             "using the whole take as one clip"
@@ -188,6 +210,38 @@ def _take_cycles(
     )
     keep = [i for i, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])) if (a, b) in set(cycles)]
     return out.subset(keep), rep
+
+
+def _takes_cycles(
+    takes: list[Motion], *, cyclic: bool | None, ctx: Context, **kw: Any
+) -> tuple[Clips, np.ndarray, dict[str, Any]]:
+    """The cycles of every take (:func:`_take_cycles`), merged, with each clip's take index.
+
+    Returns
+    -------
+    clips : Clips
+        Named ``<take file>[a:b]`` (frames of that take).
+    groups : (C,) int ndarray
+        Index of the take each clip was cut from.
+    cut_report : dict
+        One take: :func:`~mocapflow.stages.variation.cycles.cut_cycles`'s
+        report; several: ``{"takes": [{"take", "n_cycles", **report}, ...]}``.
+    """
+    if len(takes) == 1:
+        out, rep = _take_cycles(takes[0], cyclic=cyclic, ctx=ctx, **kw)
+        return out, np.zeros(out.n_clips, dtype=int), rep
+    parts, groups, reps = [], [], []
+    for g, take in enumerate(takes):
+        out, rep = _take_cycles(take, cyclic=cyclic, ctx=ctx, allow_whole=False, **kw)
+        n = 0 if out is None else out.n_clips
+        reps.append({"take": source_name(take, f"take{g}"), "n_cycles": n, **rep})
+        if out is not None:
+            parts.append(out)
+            groups += [g] * n
+    if not parts:
+        raise ClipError(f"clips: no take has {kw['min_cycles']} cycles; use cut: none "
+                        "to keep each part whole")
+    return merge_clips(parts), np.asarray(groups), {"takes": reps}
 
 
 def _typicality(trajs: list[np.ndarray], samples: int = 32) -> np.ndarray:
@@ -206,20 +260,35 @@ def _typicality(trajs: list[np.ndarray], samples: int = 32) -> np.ndarray:
     return np.sqrt(((shapes - med) ** 2).mean(axis=(1, 2)))
 
 
-def _most_typical(clips: Clips, max_clips: int) -> tuple[Clips, list[str]]:
-    """The ``max_clips`` clips of smallest :func:`_typicality`, in order, and the dropped names."""
+def _most_typical(
+    clips: Clips, max_clips: int, groups: np.ndarray | None = None
+) -> tuple[Clips, list[str]]:
+    """The ``max_clips`` most typical clips, balanced over takes, in order, and the dropped names.
+
+    Typicality is :func:`_typicality` against the median of all clips.  The
+    takes (``groups``, one index per clip; default: every clip its own)
+    contribute in turn, each its most typical remaining clip, the take with
+    the most typical clip first, so the kept counts of two takes differ by at
+    most one (unless a take runs out of clips).
+    """
     if max_clips < 1:
         raise ClipError(f"clips.max_clips must be at least 1, got {max_clips}")
-    keep = np.sort(np.argsort(_typicality(clips.trajectories), kind="stable")[:max_clips])
+    dist = _typicality(clips.trajectories)
+    groups = np.arange(clips.n_clips) if groups is None else np.asarray(groups)
+    queues = [list(np.flatnonzero(groups == g)[np.argsort(dist[groups == g], kind="stable")])
+              for g in np.unique(groups)]
+    # round r takes the r-th most typical clip of every take, most typical first
+    ranked = sorted(((r, dist[i], i) for q in queues for r, i in enumerate(q)))
+    keep = np.sort([i for _, _, i in ranked[:max_clips]])
     dropped = [clips.names[i] for i in range(clips.n_clips) if i not in keep]
     return clips.subset(keep), dropped
 
 
 def _similar_only(
-    clips: Clips, threshold: float, ctx: Context
+    clips: Clips, threshold: float, structure: Literal["learned", "self"], ctx: Context
 ) -> tuple[Clips, list[dict[str, Any]]]:
     """Lau §9 selection (:func:`~mocapflow.stages.variation.similar.select_similar`), warned."""
-    out, removed = select_similar(clips, threshold)
+    out, removed = select_similar(clips, float(threshold), structure=structure)
     for r in removed:
         ctx.warn(f"clip {r['name']} removed: log-likelihood {r['log_likelihood']:.3g} "
                  f"< threshold {threshold:.3g}")

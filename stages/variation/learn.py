@@ -43,6 +43,10 @@ Additions to the paper (each can be switched off)
     DOF (:func:`~mocapflow.stages.variation.training.with_phase`) that
     disambiguates look-alike states and ends variants.
     ``kernel_width=None``: per-node bandwidth by held-out likelihood.
+    ``horizon`` (default ``None``, the paper's unbounded propagation): the
+    propagated transition score re-anchors to the held-out clip's true
+    frames every ``horizon`` seconds, so a few runaway re-synthesised frames
+    cannot dominate the score (:mod:`~mocapflow.stages.variation.scores`).
     ``candidates``: sparse candidate parents (Friedman et al. 1999).
 
 Similar-input selection (Lau §9) scores clips with the transition network:
@@ -60,6 +64,7 @@ from mocapflow.stages.variation.clips import ClipError, Clips, flatten_clips
 from mocapflow.stages.variation.model import VariationModel
 from mocapflow.stages.variation.search import search_prior, search_transition
 from mocapflow.stages.variation.training import (
+    CYCLE_PHASE,
     LearnError,
     PriorData,
     TransitionData,
@@ -88,6 +93,7 @@ def learn(
     prior_window: int | None = None,
     score: Literal["propagated", "one_step"] = "propagated",
     half_life: float | None = 0.5,
+    horizon: float | None = None,
     phase: bool | None = None,
     cyclic: bool | None = None,
     seed: int = 0,
@@ -123,10 +129,20 @@ def learn(
         Seconds; offset retention of the transition mean
         (:func:`~mocapflow.stages.variation.training.retention_of`; ``None``: pure
         delta regression, which can run away from the data under noise).
+    horizon : float or None
+        Seconds; ``score="propagated"`` only: the re-synthesised state is
+        re-anchored to the held-out clip's true frames every ``horizon``
+        seconds (rounded to whole frames, at least one; one frame is the
+        one-step score), which bounds how much a run that drifts away from
+        the data can weigh in a node's score.  Default ``None``: never
+        re-anchored, the paper's form.
     phase : bool, optional
-        Add a normalised-time DOF ``_phase`` (default: for non-cyclic clips), a
-        parent candidate like any DOF
-        (:func:`~mocapflow.stages.variation.training.with_phase`).
+        Add the phase DOFs (default: yes;
+        :func:`~mocapflow.stages.variation.training.with_phase`): normalised
+        time ``_phase`` for non-cyclic clips, a parent candidate like any DOF;
+        the cycle phase ``(cos φ, sin φ)`` for cyclic clips, a parent of every
+        transition node (without it the mean dynamics of a walk can come to
+        rest: streams stall).
     cyclic : bool, optional
         Override ``clips.cyclic``.
     seed : int
@@ -146,9 +162,10 @@ def learn(
     except ClipError as e:
         raise LearnError(str(e)) from None
     _check_params(data, k=k, kernel_width=kernel_width, ctx=ctx)
+    horizon_frames = _horizon_frames(horizon, data.rate)
     cyclic = data.cyclic if cyclic is None else bool(cyclic)
-    phase = (not cyclic) if phase is None else phase
-    train = _training_clips(data, phase=phase, ctx=ctx)
+    phase = True if phase is None else bool(phase)
+    train = _training_clips(data.replace(cyclic=cyclic), phase=phase, ctx=ctx)
     with ctx.timer("training_data"):
         tdata, pdata = _training_data(
             train, cyclic=cyclic, k=k, kernel_width=kernel_width, min_std=min_std,
@@ -157,7 +174,9 @@ def learn(
         )
     with ctx.timer("transition"):
         transition = search_transition(
-            tdata, candidates=candidates, max_parents=max_parents, score=score, ctx=ctx
+            tdata, candidates=candidates, max_parents=max_parents, score=score, ctx=ctx,
+            required=_phase_parents(train, cyclic=cyclic),
+            horizon=horizon_frames,
         )
     with ctx.timer("prior"):
         prior = search_prior(
@@ -179,6 +198,7 @@ def learn(
             "score": score,
             "cyclic": cyclic,
             "half_life": half_life,
+            "horizon": None if horizon is None else float(horizon),
             "retention": retention_of(half_life, train.rate),
             "phase": bool(phase),
         },
@@ -191,6 +211,24 @@ def learn(
         },
     )
     return {"model": model, "report": _report(data, model)}
+
+
+def _horizon_frames(horizon: float | None, rate: float) -> int | None:
+    """``horizon`` seconds as whole frames (at least one), ``None`` kept."""
+    if horizon is None:
+        return None
+    if (isinstance(horizon, bool) or not isinstance(horizon, (int, float))
+            or not np.isfinite(horizon) or horizon <= 0):
+        raise LearnError(f"horizon must be a positive number of seconds or None, got {horizon!r}")
+    return max(1, int(round(float(horizon) * rate)))
+
+
+def _phase_parents(train: Clips, *, cyclic: bool) -> tuple[int, ...]:
+    """Parents of every transition node: the cycle phase at ``t+1`` of cyclic clips."""
+    names = train.labels
+    if not cyclic or not all(n in names for n in CYCLE_PHASE):
+        return ()
+    return tuple(train.n_dofs + names.index(n) for n in CYCLE_PHASE)
 
 
 def _check_params(clips: Clips, *, k: int, kernel_width: float | None, ctx: Context) -> None:

@@ -16,9 +16,19 @@ Sampling (the ``sample`` stage, :class:`Sampler`)
     nearest-instance search is a batched matrix product + ``argpartition``).
     ``noise_time`` (an addition; ``None`` is the paper): the standard-normal
     draws of successive frames form an AR(1) process with that correlation
-    time, so every frame keeps its conditional Gaussian as marginal but the
-    velocity noise is no longer white (white noise on the delta is what makes
-    variants of captured takes ~10x jerkier than the inputs).
+    time, scaled so that the variance accumulated over many frames equals
+    white noise's: the velocity noise is no longer white (white noise on the
+    delta is what makes variants of captured takes ~10x jerkier than the
+    inputs) and ``sigma`` keeps its meaning.
+    Cycle phase (cyclic models, :func:`~.training.with_phase`): cyclic
+    variants start where the cycle phase passes 0, as every input cycle
+    does; ``loop`` cuts one stream into consecutive cycles
+    (:meth:`Sampler.cycles`).  The ``predicted`` output is the network's
+    mean of every frame given the sampled ones before it.
+    Crowds: :meth:`Sampler.stream` yields frame by frame for any number of
+    agents; ``Sampler(model, window=W)`` restricts each agent's neighbour
+    search to the ``W`` instances nearest in cycle phase (an approximation,
+    several times faster; ``None`` is the exact search).
 Noise baselines (Lau §8, the ``sample_noise`` stage)
     ``strawman``: an input clip, time-warped by a random smooth monotone warp,
     plus Gaussian-smoothed white noise.  ``perlin``: an input clip plus 1-D
@@ -30,23 +40,33 @@ Noise baselines (Lau §8, the ``sample_noise`` stage)
 
 from __future__ import annotations
 
+import itertools
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any, Literal
 
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
 from mocapflow.pipeline import Context, stage
-from mocapflow.stages.variation.clips import Clips, flatten_clips
+from mocapflow.stages.variation.clips import Clips, clips_to_motions, flatten_clips
 from mocapflow.stages.variation.kernel import kernel_regression
 from mocapflow.stages.variation.model import VariationModel
 from mocapflow.stages.variation.search import DAG
-from mocapflow.stages.variation.training import PHASE, prior_data, standardization, transition_data
+from mocapflow.stages.variation.training import (
+    CYCLE_PHASE,
+    INTERNAL_DOFS,
+    PHASE,
+    phase_columns,
+    prior_data,
+    standardization,
+    transition_data,
+)
 
 __all__ = [
     "SampleError",
     "Sampler",
+    "input_range",
     "matched_amplitude",
     "perlin_noise",
     "sample",
@@ -60,14 +80,25 @@ class SampleError(ValueError):
 
 
 class Sampler:
-    """Precomputed tables for sampling a :class:`VariationModel`.
+    """Precomputed tables for sampling a :class:`VariationModel`, and its samplers.
+
+    The neighbour search of the transition network runs in single precision
+    (the distance expansion ``|q|² − 2 q·u + |u|²`` as a batched matrix product
+    over DOFs, the ``k`` nearest by a partition, the kernel sums as a second
+    product); the sampled state is kept in double precision.
 
     Parameters
     ----------
     model : VariationModel
+    window : int, optional
+        Cyclic models (with the cycle phase DOFs): each agent searches its
+        ``k`` nearest instances among the ``window`` training instances nearest
+        to it in cycle phase (rounded out to a bin of agents sharing one slice
+        of the phase-sorted bank), instead of among all of them — the crowd
+        mode, several times faster; ``None`` (default): all instances (exact).
     """
 
-    def __init__(self, model: VariationModel):
+    def __init__(self, model: VariationModel, *, window: int | None = None):
         self.model = model
         clips = model.clips
         p = model.params
@@ -103,18 +134,22 @@ class Sampler:
         cols = [[D + i, 2 * D + i, *model.transition_parents[i]] for i in range(D)]
         pmax = max(len(c) for c in cols)
         self.cols = np.zeros((D, pmax), dtype=np.int64)
-        self.wmask = np.zeros((D, pmax))
+        self.wmask = np.zeros((D, pmax), dtype=np.float32)
         for i, c in enumerate(cols):
             self.cols[i, : len(c)] = c
             self.wmask[i, : len(c)] = 1.0
-        U = bank[:, self.cols] * self.wmask  # (N, D, pmax)
-        self.U_t = np.ascontiguousarray(U.transpose(1, 2, 0))  # (D, pmax, N)
-        self.A = (U * U).sum(axis=-1).T.copy()  # (D, N)
-        self.Y = np.ascontiguousarray(td.Y.T)  # (D, N)
-        self.h2t = (model.transition_bandwidth**2)[:, None]  # (D, 1)
-        self.Zc = np.ascontiguousarray(td.F[:, D:].T)  # (D, N) standardised x[t+1]
+        U = (bank[:, self.cols] * self.wmask).astype(np.float32)  # (N, D, pmax)
+        # the kernel exponent e = −d² / 2h² = c (|q|² − 2 q·u + |u|²) with c = −1 / 2h²,
+        # per DOF: tables pre-scaled so that e is one product and two sums
+        self.c = (-0.5 / np.maximum(model.transition_bandwidth**2, 1e-30)).astype(np.float32)
+        self.Ue = np.ascontiguousarray(U.transpose(1, 2, 0) * (-2.0 * self.c)[:, None, None])
+        self.Ae = np.ascontiguousarray((U * U).sum(axis=-1).T * self.c[:, None])  # (D, N)
+        Y = td.Y.T  # (D, N)
+        Zc = td.F[:, D:].T  # (D, N) standardised x[t+1]
         self.retention = float(p.get("retention", 1.0))
-        self.YYZ = np.ascontiguousarray(np.stack([self.Y, self.Y**2, self.Zc], axis=-1))  # (D,N,3)
+        # Σw·Δ, Σw·Δ², Σw·z[t+1], Σw in one product
+        self.YYZ = np.ascontiguousarray(
+            np.stack([Y, Y**2, Zc, np.ones_like(Y)], axis=-1).astype(np.float32))  # (D, N, 4)
         # prior
         self.Zp = pd.Z
         self.kp = min(int(p["k"]), pd.Z.shape[0])
@@ -125,12 +160,50 @@ class Sampler:
         self.order = dag.order()
         if len(self.order) != 2 * D:
             raise SampleError("prior network of the model has a cycle")
+        names = clips.labels
+        self.phase_cols = phase_columns(names)
+        #: the model has the cycle phase (cos, sin) of cyclic clips
+        self.cycle_phase = all(n in names for n in CYCLE_PHASE)
+        self.ends_at_phase = PHASE in names
+        self.window = None
+        if self.cycle_phase:  # cycle phase of every instance's frame t+1
+            self.inst_phase = self.cycle_phase_of(td.F[:, D:] * self.stats["std"]
+                                                  + self.stats["mean"])
+        if window is not None:
+            if not window >= 1:
+                raise SampleError(f"window must be a number of instances >= 1, got {window}")
+            if self.cycle_phase and int(window) < N:
+                self._phase_bank(td.F[:, D:], int(window))
 
-    def sample_prior(self, rng: np.random.Generator, count: int, sigma: float) -> np.ndarray:
-        """Frames 0 and 1, standardised: ``(count, 2D)``."""
+    def _phase_bank(self, zc: np.ndarray, window: int) -> None:
+        """Tables of the crowd mode: the bank sorted by cycle phase, wrapped by a window."""
+        N = zc.shape[0]
+        x = zc * self.stats["std"] + self.stats["mean"]
+        order = np.argsort(self.cycle_phase_of(x), kind="stable")
+        self.window = window
+        self.win_phase = self.cycle_phase_of(x)[order]
+        self.stride = max(1, window // 4)
+        self.L = L = min(window + self.stride, N)
+        ext = order[np.arange(N + L) % N]
+        self.Uw = np.ascontiguousarray(self.Ue[:, :, ext])
+        self.Aw = np.ascontiguousarray(self.Ae[:, ext])
+        self.YYZw = np.ascontiguousarray(self.YYZ[:, ext])
+
+    # ------------------------------------------------------------------ the networks
+    def sample_prior(
+        self, rng: np.random.Generator, count: int, sigma: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Frames 0 and 1 from the prior network, standardised.
+
+        Returns
+        -------
+        z, mean : (count, 2D) float ndarray
+            The draws, and each node's conditional mean given its sampled parents.
+        """
         Z = self.Zp
         N = Z.shape[0]
         z = np.zeros((count, 2 * self.D))
+        mean = np.zeros((count, 2 * self.D))
         for v in self.order:
             ps = self.model.prior_parents[v]
             y = Z[:, v]
@@ -150,8 +223,144 @@ class Sampler:
                     h2=self.model.prior_bandwidth[v] ** 2,
                     min_std=self.ms,
                 )
+            mean[:, v] = mu
             z[:, v] = mu + sigma * np.sqrt(var) * rng.standard_normal(count)
-        return z
+        return z, mean
+
+    def transition(self, zp: np.ndarray, zc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The transition network's conditional Gaussian of the next frame (Lau Eq. 5–6).
+
+        Parameters
+        ----------
+        zp, zc : (B, D) float ndarray
+            Frames ``t`` and ``t+1``, standardised.
+
+        Returns
+        -------
+        mean : (B, D) float ndarray
+            Mean of frame ``t+2`` (standardised): ``x[t+1]`` plus the kernel mean
+            of the delta, with the offset retention ``λ``.
+        std : (B, D) float ndarray
+            Standard deviation of frame ``t+2`` (standardised units).
+        """
+        vscale = self.vw / self.ratio
+        g = np.concatenate([zp, zc, (zc - zp) * vscale], axis=1).astype(np.float32)  # (B, 3D)
+        qd = (g[:, self.cols] * self.wmask).transpose(1, 0, 2)  # (D, B, pmax)
+        qq = np.einsum("dbp,dbp->db", qd, qd)[..., None] * self.c[:, None, None]
+        if self.window is None:
+            e = qd @ self.Ue  # (D, B, N)
+            e += self.Ae[:, None, :]
+        else:  # crowd mode: agents binned by the start of their phase window
+            N = self.win_phase.shape[0]
+            ph = self.cycle_phase_of(zc * self.stats["std"] + self.stats["mean"])
+            first = (np.searchsorted(self.win_phase, ph) - self.window // 2) % N
+            bins = first // self.stride
+            agents = np.argsort(bins, kind="stable")
+            bins = bins[agents]
+            cut = np.flatnonzero(np.diff(bins)) + 1
+            blocks = [(int(bins[lo]) * self.stride, lo, hi) for lo, hi in
+                      zip(np.r_[0, cut], np.r_[cut, len(bins)])]
+            qd, qq = qd[:, agents], qq[:, agents]
+            e = np.empty((self.D, len(agents), self.L), dtype=np.float32)
+            for a0, lo, hi in blocks:
+                blk = np.matmul(qd[:, lo:hi], self.Uw[:, :, a0 : a0 + self.L], out=e[:, lo:hi])
+                blk += self.Aw[:, None, a0 : a0 + self.L]
+        e += qq
+        k = self.k
+        N = e.shape[-1]
+        # the k nearest instances = the k largest exponents (ties included), from a partition
+        part = np.partition(e, N - k, axis=-1)
+        thr = part[..., N - k : N - k + 1]
+        mask = e >= thr
+        far = thr < -60.0  # weights that could underflow: shift those rows (the shift cancels)
+        if far.any():
+            e -= np.where(far, part[..., N - k :].max(axis=-1, keepdims=True), 0.0)
+        w = np.exp(e, out=e)
+        w *= mask
+        if self.window is None:
+            s = (w @ self.YYZ).astype(np.float64)  # (D, B, 4): Σw·Δ, Σw·Δ², Σw·z[t+1], Σw
+        else:
+            s = np.empty((self.D, len(agents), 4))
+            for a0, lo, hi in blocks:
+                s[:, agents[lo:hi]] = w[:, lo:hi] @ self.YYZw[:, a0 : a0 + self.L]
+        sw = s[..., 3]
+        mu = s[..., 0] / sw
+        var = np.maximum(s[..., 1] / sw - mu * mu, 0.0) + self.ms * self.ms
+        mean = zc + mu.T * self.ratio
+        lam = self.retention
+        if lam < 1.0:
+            mean += (lam - 1.0) * (zc - (s[..., 2] / sw).T)
+        return mean, np.sqrt(var).T * self.ratio
+
+    # ------------------------------------------------------------------ samplers
+    def stream(
+        self,
+        rng: np.random.Generator,
+        *,
+        count: int = 1,
+        sigma: float = 1.0,
+        noise_time: float | None = None,
+        predicted: bool = False,
+    ) -> Iterator[np.ndarray] | Iterator[tuple[np.ndarray, np.ndarray]]:
+        """Endless frame-by-frame streams of ``count`` agents (the unrolled network, Lau §6).
+
+        Frames 0 and 1 come from the prior network, every later frame from the
+        transition network given the two before it, for as long as the
+        caller asks (``next()``, ``itertools.islice``).  All agents advance
+        together (vectorised over agents and DOFs); each agent's frames depend
+        only on the generator's draws, not on how many frames are taken.
+
+        Parameters
+        ----------
+        rng : numpy.random.Generator
+        count : int
+            Agents sampled together.
+        sigma : float
+            Scale of every standard deviation (0: the mean motion).
+        noise_time : float, optional
+            Correlation time (seconds) of the standard-normal draws of the
+            transition network: AR(1) with ``ρ = exp(−1 / (noise_time · rate))``,
+            scaled by ``√((1 − ρ) / (1 + ρ))`` so that a sum of many successive
+            draws has the variance of as many independent ones: the noise
+            spectrum moves to low frequencies (smooth velocities) while the
+            variation it accumulates over a cycle stays what ``sigma`` says (at
+            full marginal variance, ``sigma = 1`` with 0.2 s made streams drift
+            off the cycle: cadence 0.65 × the inputs').  ``None``: independent
+            draws per frame (the paper).
+        predicted : bool
+            Also yield the network's conditional mean of each frame given the
+            sampled frames before it (the prior network's for frames 0–1).
+
+        Yields
+        ------
+        (count, D) float ndarray
+            One frame of every agent (varying DOFs incl. phase DOFs, original
+            units); with ``predicted`` a pair ``(frame, mean)``.
+        """
+        m, sd = self.stats["mean"], self.stats["std"]
+        z01, mu01 = self.sample_prior(rng, count, sigma)
+        D = self.D
+        zp, zc = z01[:, :D], z01[:, D:]
+        for z, mu in ((zp, mu01[:, :D]), (zc, mu01[:, D:])):
+            yield (z * sd + m, mu * sd + m) if predicted else z * sd + m
+        rho = 0.0 if not noise_time else math.exp(-1.0 / (noise_time * self.model.clips.rate))
+        eps = rng.standard_normal((count, D)) if rho > 0.0 else None
+        # correlated draws scaled so that their sum over many frames has the variance
+        # of white draws: the noise spectrum changes, the long-run variation does not
+        kappa = math.sqrt((1.0 - rho) / (1.0 + rho))
+        while True:
+            mean, std = self.transition(zp, zc)
+            if rho > 0.0:
+                eps = rho * eps + math.sqrt(1.0 - rho * rho) * rng.standard_normal((count, D))
+            else:
+                eps = rng.standard_normal((count, D))
+            zp, zc = zc, mean + (sigma * kappa) * std * eps
+            yield (zc * sd + m, mean * sd + m) if predicted else zc * sd + m
+
+    def cycle_phase_of(self, x: np.ndarray) -> np.ndarray:
+        """Cycle phase ``φ ∈ (−π, π]`` of frames ``x (..., D)`` (models with the cycle phase)."""
+        c, s = self.phase_cols
+        return np.arctan2(x[..., s], x[..., c])
 
     def run(
         self,
@@ -162,8 +371,10 @@ class Sampler:
         sigma: float = 1.0,
         stop_at_end: bool = False,
         noise_time: float | None = None,
-    ) -> np.ndarray | list[np.ndarray]:
-        """Sample ``count`` variants of ``length`` frames.
+        predicted: bool = False,
+        start_at_phase: bool = False,
+    ) -> Any:
+        """Sample ``count`` variants of ``length`` frames (:meth:`stream`, cut).
 
         Parameters
         ----------
@@ -171,83 +382,119 @@ class Sampler:
         count : int
         length : int
             Frames (≥ 2).
-        sigma : float
-            Scale of every standard deviation (0: mean motion).
+        sigma, noise_time, predicted
+            As in :meth:`stream`.
         stop_at_end : bool
             End each variant at the first frame where its ``_phase`` DOF
             reaches ``1 − 0.5 / median length``; ``length`` is then the maximum.
-        noise_time : float, optional
-            Correlation time (seconds) of the standard-normal draws of the
-            transition network: AR(1) with ``ρ = exp(−1 / (noise_time · rate))``,
-            so each frame's delta keeps its conditional Gaussian (Lau Eq. 5–6) as
-            marginal but successive draws are correlated.  ``None``: independent
-            draws per frame (the paper; white velocity noise, jerky positions).
+        start_at_phase : bool
+            Cyclic models: each variant starts at the first frame where its cycle
+            phase passes 0, the phase every input cycle starts at (the stream's
+            frames before it are dropped).
 
         Returns
         -------
         (count, length, D) float ndarray, or list of (T_b, D) with ``stop_at_end``
-            DOF values (varying DOFs, original units).
+            DOF values (varying DOFs incl. phase DOFs, original units); with
+            ``predicted`` a pair ``(variants, means)`` of the same form.
         """
-        end = np.full(count, length)
-        names = self.model.clips.labels
-        if stop_at_end and PHASE not in names:
+        if stop_at_end and not self.ends_at_phase:
             raise SampleError("stop_at_end needs a model with the _phase DOF")
-        ip = names.index(PHASE) if stop_at_end else 0
+        if start_at_phase and not self.cycle_phase:
+            raise SampleError("start_at_phase needs a model with the cycle phase DOFs")
+        gen = self.stream(rng, count=count, sigma=sigma, noise_time=noise_time, predicted=True)
+        xs, ms = [], []
+        start = np.zeros(count, dtype=np.int64)
+        end = np.full(count, length)
+        if start_at_phase:
+            start[:] = -1
+            limit = 3 * int(self.model.clips.lengths.max()) + 2
+            prev = None
+            for t in range(limit):
+                x, mu = next(gen)
+                xs.append(x)
+                ms.append(mu)
+                ph = self.cycle_phase_of(x)
+                if prev is not None:
+                    hit = (start < 0) & (prev < 0) & (ph >= 0) & (ph - prev < np.pi)
+                    start[hit] = t
+                prev = ph
+                if np.all(start >= 0):
+                    break
+            if np.any(start < 0):
+                raise SampleError(
+                    f"the cycle phase of {int((start < 0).sum())} stream(s) did not pass 0 "
+                    f"within {limit} frames: the model does not cycle")
+            end = start + length
+        ip = self.model.clips.labels.index(PHASE) if stop_at_end else 0
         done_at = 1.0 - 0.5 / max(float(np.median(self.model.clips.lengths)), 2.0)
-        D, B = self.D, count
-        z = np.zeros((B, length, D))
-        z01 = self.sample_prior(rng, B, sigma)
-        z[:, 0], z[:, 1] = z01[:, :D], z01[:, D:]
-        k = self.k
-        N = self.Y.shape[1]
-        vscale = self.vw / self.ratio
-        half_inv_h2 = (0.5 / np.maximum(self.h2t, 1e-300))[:, :, None]  # (D, 1, 1)
-        lam = self.retention
-        rho = 0.0 if not noise_time else math.exp(-1.0 / (noise_time * self.model.clips.rate))
-        eps = rng.standard_normal((D, B)) if rho > 0.0 else None
-        for t in range(2, length):
-            zp, zc = z[:, t - 2], z[:, t - 1]
-            g = np.concatenate([zp, zc, (zc - zp) * vscale], axis=1)  # (B, 3D)
-            qd = (g[:, self.cols] * self.wmask).transpose(1, 0, 2)  # (D, B, pmax)
-            d2 = qd @ self.U_t  # (D, B, N)
-            d2 *= -2.0
-            d2 += self.A[:, None, :]
-            d2 += (qd * qd).sum(axis=-1)[..., None]
-            # the k nearest instances (ties included): threshold from a partition
-            if k < N:
-                part = np.partition(d2, k - 1, axis=-1)
-                thr = part[..., k - 1 : k]
-                dmin = part[..., :k].min(axis=-1, keepdims=True)
-            else:
-                thr = d2.max(axis=-1, keepdims=True)
-                dmin = d2.min(axis=-1, keepdims=True)
-            w = np.exp(-(d2 - dmin) * half_inv_h2)
-            w *= d2 <= thr
-            s = w @ self.YYZ  # (D, B, 3): Σw·Δ, Σw·Δ², Σw·z[t+1]
-            sw = w.sum(axis=-1)
-            mu = s[..., 0] / sw
-            var = np.maximum(s[..., 1] / sw - mu * mu, 0.0) + self.ms * self.ms
-            if rho > 0.0:
-                eps = rho * eps + math.sqrt(1.0 - rho * rho) * rng.standard_normal((D, B))
-            else:
-                eps = rng.standard_normal((D, B))
-            delta = mu + sigma * np.sqrt(var) * eps
-            znext = zc + delta.T * self.ratio
-            if lam < 1.0:
-                znext += (lam - 1.0) * (zc - (s[..., 2] / sw).T)
-            z[:, t] = znext
-            if stop_at_end:
-                ph = znext[:, ip] * self.stats["std"][ip] + self.stats["mean"][ip]
-                end = np.where((end == length) & (ph >= done_at), t + 1, end)
+        while len(xs) < int(end.max()):
+            x, mu = next(gen)
+            t = len(xs)
+            xs.append(x)
+            ms.append(mu)
+            if stop_at_end and t >= 2:
+                end = np.where((end == length) & (x[:, ip] >= done_at), t + 1, end)
                 if np.all(end < length):
                     break
-        x = z * self.stats["std"] + self.stats["mean"]
+        X, M = np.stack(xs, axis=1), np.stack(ms, axis=1)  # (count, T, D)
         if stop_at_end:
-            return [x[b, : end[b]] for b in range(count)]
-        return x
+            out = [X[b, : end[b]] for b in range(count)], [M[b, : end[b]] for b in range(count)]
+        elif start_at_phase:
+            out = (np.stack([X[b, start[b] : end[b]] for b in range(count)]),
+                   np.stack([M[b, start[b] : end[b]] for b in range(count)]))
+        else:
+            out = X[:, :length], M[:, :length]
+        return out if predicted else out[0]
+
+    def cycles(
+        self,
+        rng: np.random.Generator,
+        *,
+        count: int,
+        sigma: float = 1.0,
+        noise_time: float | None = None,
+    ) -> tuple[list[np.ndarray], list[np.ndarray], int]:
+        """``count`` consecutive cycles of one stream (loopable variants).
+
+        The stream is cut where its cycle phase passes 0, the phase every
+        input cycle starts at; the frames before the first such frame are
+        dropped.  Played in order the cycles are the stream itself: the last
+        two frames of a cycle condition the first frame of the next, as the
+        unrolled network does.
+
+        Returns
+        -------
+        cycles : list of (T_c, D) float ndarray
+        means : list of (T_c, D) float ndarray
+            The network's predicted means of the same frames.
+        skipped : int
+            Stream frames before the first cycle.
+        """
+        if not self.cycle_phase:
+            raise SampleError("loop needs a cyclic model with the cycle phase DOFs "
+                              "(learn cyclic clips with phase: true)")
+        gen = self.stream(rng, count=1, sigma=sigma, noise_time=noise_time, predicted=True)
+        limit = 3 * int(self.model.clips.lengths.max()) + 2
+        xs, ms, cuts = [], [], []
+        prev = None
+        while len(cuts) < count + 1:
+            x, mu = next(gen)
+            ph = float(self.cycle_phase_of(x[0]))
+            if prev is not None and prev < 0 <= ph and ph - prev < np.pi:
+                cuts.append(len(xs))
+            prev = ph
+            xs.append(x[0])
+            ms.append(mu[0])
+            if len(xs) - (cuts[-1] if cuts else 0) > limit:
+                raise SampleError(f"the stream's cycle phase did not pass 0 within {limit} "
+                                  "frames: the model does not cycle")
+        X, M = np.stack(xs), np.stack(ms)
+        return ([X[a:b] for a, b in itertools.pairwise(cuts)],
+                [M[a:b] for a, b in itertools.pairwise(cuts)], cuts[0])
 
 
-@stage("sample", outputs=("variants",))
+@stage("sample", outputs=("variants", "predicted"))
 def sample(
     model: VariationModel,
     *,
@@ -255,6 +502,7 @@ def sample(
     length: int | None = None,
     sigma: float = 1.0,
     noise_time: float | None = None,
+    loop: bool = False,
     seed: int = 0,
     ctx: Context,
 ) -> dict:
@@ -264,17 +512,24 @@ def sample(
     ----------
     model : VariationModel
     count : int
-        Variants per task (fan out with ``seeds:`` for more tasks).
+        Variants per task (fan out with ``seeds:`` for more tasks); with
+        ``loop``, consecutive cycles of one stream.
     length : int, optional
         Frames per variant.  Default: cyclic inputs the median input clip
         length; other inputs (with the ``_phase`` DOF) each variant ends where
         its phase reaches 1 (at most 1.5 × the longest input).  Any length for
-        cyclic inputs.
+        cyclic inputs.  Not with ``loop`` (each cycle ends where it ends).
     sigma : float
-        Standard-deviation scale; 0 gives the mean motion.
+        Standard-deviation scale; 0 gives the mean motion (paper: 1).
     noise_time : float, optional
-        Correlation time of the sampling noise, seconds (:meth:`Sampler.run`;
+        Correlation time of the sampling noise, seconds (:meth:`Sampler.stream`;
         null: independent per frame, as the paper).
+    loop : bool
+        Loopable variants of a cyclic model: the ``count`` variants are
+        consecutive cycles of one stream, each from the frame where the cycle
+        phase passes 0 (where every input cycle starts) to the frame before
+        the next; played in order they are seamless (they are the stream), and
+        each variant's origin is where the previous one ends.
     seed : int
         Seeds ``ctx.rng`` (with the part id).
     ctx : Context
@@ -284,7 +539,14 @@ def sample(
     -------
     dict
         ``variants``: :class:`~mocapflow.stages.variation.clips.Clips` of ``count``
-        trajectories of the model's layout; origins copied from the first input clip.
+        trajectories of the model's layout (phase DOFs dropped; origins copied
+        from the first input clip, or chained with ``loop``); ``attrs``
+        ``input_range`` holds the inputs' per-DOF ``low`` / ``high`` of the
+        ``dofs`` (varying DOF names).  Cyclic models start every variant at the
+        inputs' phase.
+        ``predicted``: the same layout holding the network's conditional mean
+        of every frame given the sampled frames before it (the ``q̄`` of Lau
+        Eq. 7 for the ``ik`` stage).
     """
     clips = model.clips
     if length is not None and not clips.cyclic and length > 1.5 * clips.lengths.max():
@@ -292,11 +554,23 @@ def sample(
             f"length {length} exceeds the longest (non-cyclic) input clip "
             f"({clips.lengths.max()} frames): the end continues past the data"
         )
+    if loop and length is not None:
+        raise SampleError("loop: each variant is one cycle, length cannot be given")
     length, stop = _variant_length(clips, count=count, length=length, sigma=sigma,
                                    noise_time=noise_time)
-    x = Sampler(model).run(ctx.rng, count=count, length=length, sigma=sigma, stop_at_end=stop,
-                           noise_time=noise_time)
-    return {"variants": _variant_clips(clips, x, sigma=sigma, noise_time=noise_time)}
+    sampler = Sampler(model)
+    origins = None
+    if loop:
+        x, mu, _ = sampler.cycles(ctx.rng, count=count, sigma=sigma, noise_time=noise_time)
+        origins = _chain_origins(clips, x)
+    else:
+        x, mu = sampler.run(ctx.rng, count=count, length=length, sigma=sigma, stop_at_end=stop,
+                            noise_time=noise_time, predicted=True,
+                            start_at_phase=sampler.cycle_phase)
+    attrs = {"sigma": sigma, "noise_time": noise_time, "loop": bool(loop)}
+    return {"variants": _variant_clips(clips, x, attrs=attrs, origins=origins),
+            "predicted": _variant_clips(clips, mu, attrs={**attrs, "predicted_mean": True},
+                                        origins=origins)}
 
 
 def _variant_length(
@@ -318,37 +592,88 @@ def _variant_length(
     return length, stop
 
 
+def _chain_origins(clips: Clips, cycles: list[np.ndarray]) -> np.ndarray | None:
+    """Origins ``(C, 4)`` that chain consecutive cycles: each starts where the last ends.
+
+    With the root as heading rate and heading-frame velocity (``root="heading"``)
+    the heading ψ and the horizontal root position are integrated over the
+    cycles as :func:`~mocapflow.stages.variation.dofs.dofs_to_motion` does;
+    otherwise (absolute root, strokes) ``None`` (the origins are unused).
+    """
+    if clips.attrs.get("root") != "heading" or clips.kind != "motion" or clips.skeleton is None:
+        return None
+    chained = clips.replace(trajectories=[np.concatenate(cycles, axis=0)],
+                            origins=clips.origins[:1], names=["chain"])
+    motion = clips_to_motions(_strip_internal(chained))[0]
+    rname = clips.skeleton.names[0]
+    names = chained.labels
+    dpsi = np.concatenate(cycles, axis=0)[:, names.index(f"{rname}:heading_rate")] \
+        if f"{rname}:heading_rate" in names else np.zeros(sum(len(c) for c in cycles))
+    psi = clips.origins[0, 0] + np.concatenate([[0.0], np.cumsum(dpsi[1:])])
+    starts = np.cumsum([0] + [len(c) for c in cycles[:-1]])
+    return np.concatenate([psi[starts, None], motion.root_position[starts]], axis=1)
+
+
+def _strip_internal(clips: Clips) -> Clips:
+    """Clips without the phase DOFs (:data:`~.training.INTERNAL_DOFS`, the last columns)."""
+    names = clips.labels
+    keep = [i for i, n in enumerate(names) if n not in INTERNAL_DOFS]
+    if len(keep) == len(names):
+        return clips
+    drop = [i for i, n in enumerate(clips.dof_names) if n in INTERNAL_DOFS]
+    mask = np.ones(len(clips.dof_names), dtype=bool)
+    mask[drop] = False
+    return clips.replace(
+        trajectories=[t[:, keep] for t in clips.trajectories],
+        dof_names=[n for n, k in zip(clips.dof_names, mask) if k],
+        varying=clips.varying[mask],
+        constant_values=clips.constant_values[mask],
+    )
+
+
+def input_range(clips: Clips) -> dict[str, list]:
+    """The inputs' per-DOF range: ``{"dofs": names, "low": [...], "high": [...]}``.
+
+    Over every frame of every training clip, for the varying DOFs other than
+    the phase DOFs (trajectory column order; radians for Euler channels).
+    """
+    plain = _strip_internal(clips)
+    X = np.concatenate(plain.trajectories, axis=0)
+    return {"dofs": plain.labels, "low": X.min(axis=0).tolist(), "high": X.max(axis=0).tolist()}
+
+
 def _variant_clips(
-    clips: Clips, x: np.ndarray | list[np.ndarray], *, sigma: float, noise_time: float | None
+    clips: Clips,
+    x: np.ndarray | list[np.ndarray],
+    *,
+    attrs: dict[str, Any],
+    origins: np.ndarray | None = None,
 ) -> Clips:
-    """Sampled DOF values as :class:`Clips` of the training clips' layout (``_phase`` dropped).
+    """Sampled DOF values as :class:`Clips` of the training clips' layout (phase DOFs dropped).
 
     Parameters
     ----------
     clips : Clips
         The model's training clips.
     x : (B, T, D) float ndarray or list of (T_b, D) float ndarray
-        From :meth:`Sampler.run`.
-    sigma, noise_time : float
-        Recorded in ``attrs``.
+        From :meth:`Sampler.run` or :meth:`Sampler.cycles`.
+    attrs : dict
+        Added to ``attrs`` (with ``input_range``).
+    origins : (B, 4) float ndarray, optional
+        Default: the first input clip's, for every variant.
 
     Returns
     -------
     Clips
     """
     count = len(x)
-    layout: dict[str, Any] = {}
-    if PHASE in clips.dof_names:  # internal DOF (the last one): not part of the output
-        x = [t[:, :-1] for t in x]
-        layout = dict(dof_names=clips.dof_names[:-1], varying=clips.varying[:-1],
-                      constant_values=clips.constant_values[:-1])
-    return clips.replace(
-        **layout,
+    out = _strip_internal(clips.replace(
         trajectories=list(x),
-        origins=np.repeat(clips.origins[:1], count, axis=0),
+        origins=np.repeat(clips.origins[:1], count, axis=0) if origins is None else origins,
         names=[f"variant{i}" for i in range(count)],
-        attrs={**clips.attrs, "sigma": sigma, "noise_time": noise_time},
-    )
+        attrs={**clips.attrs, **attrs, "input_range": input_range(clips)},
+    ))
+    return out
 
 
 # --------------------------------------------------------------------------- noise baselines

@@ -11,7 +11,20 @@ Transition network (:func:`transition_node_fits`)
     its first two frames and the log-likelihood of each true frame given the
     re-synthesised state is summed; to keep the score decomposable (one node's
     parent change re-scores one node) the node's *own* value is propagated and
-    the other parents are read from the held-out clip.  ``score="one_step"``
+    the other parents are read from the held-out clip.  ``horizon=H`` (an
+    addition) re-anchors the propagated state to the held-out clip's true
+    frames every ``H`` frames, and adds to each frame's predictive variance
+    the variances accumulated along the run since the last anchor (the
+    re-synthesised state's own uncertainty, in the node's delta units, so the
+    floor scales with how far the state can have drifted) and a floor of
+    ``min_std`` *position* standard deviations (``min_std / ratio`` delta
+    standard deviations: scale-aware where the delta std is tiny against the
+    position's, as for a phase DOF whose deltas are nearly constant), so a run that
+    drifts away from the data costs at most ``H`` frames of error, each
+    judged against the run's spread, instead of the rest of the clip (with the
+    paper's unbounded propagation, ``horizon=None``, a few runaway frames can
+    outweigh every other frame and decide the structure); ``horizon=1`` is the
+    one-step score.  ``score="one_step"``
     uses the true previous frames (faster).  The transition mean includes the
     retention term of :func:`~mocapflow.stages.variation.training.retention_of`.
 """
@@ -104,6 +117,7 @@ def transition_node_fit(
     *,
     score: Literal["propagated", "one_step"] = "propagated",
     other_d2: np.ndarray | None = None,
+    horizon: int | None = None,
 ) -> tuple[float, float]:
     """Cross-validated log-likelihood and squared bandwidth of transition node ``i``.
 
@@ -119,6 +133,9 @@ def transition_node_fit(
         See the module docstring.
     other_d2 : (N, N) float ndarray, optional
         Precomputed squared distances over ``parents`` (speeds up the search).
+    horizon : int or None
+        Propagated score only: frames between re-anchorings to the true
+        state (see the module docstring; ``None``: never, the paper's form).
 
     Returns
     -------
@@ -128,7 +145,7 @@ def transition_node_fit(
     """
     if other_d2 is None:
         other_d2 = _pair_d2(data.F, list(parents))
-    sc, h2 = transition_node_fits(data, i, other_d2[None], score=score)
+    sc, h2 = transition_node_fits(data, i, other_d2[None], score=score, horizon=horizon)
     return float(sc[0]), float(h2[0])
 
 
@@ -138,6 +155,8 @@ def transition_node_fits(
     other_d2: np.ndarray,
     *,
     score: Literal["propagated", "one_step"] = "propagated",
+    horizon: int | None = None,
+    per_frame: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`transition_node_fit` of ``M`` parent sets of node ``i`` at once.
 
@@ -148,12 +167,24 @@ def transition_node_fits(
     other_d2 : (M, N, N) float ndarray
         Squared distances over each parent set (self parents excluded).
     score : {"propagated", "one_step"}
+    horizon : int or None
+        Frames between re-anchorings of the propagated state (``None``: never).
+    per_frame : bool
+        Return each instance's held-out log density, ``(M, N)``, instead of
+        the sums (for diagnostics: which frames decide a score).
 
     Returns
     -------
     scores : (M,) float ndarray
     h2 : (M,) float ndarray
     """
+    if score not in ("propagated", "one_step"):
+        raise ValueError(f"score must be 'propagated' or 'one_step', got {score!r}")
+    if horizon is not None and (
+        isinstance(horizon, bool) or not isinstance(horizon, (int, np.integer, float))
+        or not np.isfinite(horizon) or int(horizon) != horizon or horizon < 1
+    ):
+        raise ValueError(f"horizon must be a whole number of frames >= 1 or None, got {horizon!r}")
     D = data.n_dofs
     M, N, _ = other_d2.shape
     k, kw = data.k, data.kernel_width
@@ -168,7 +199,8 @@ def transition_node_fits(
         ])
         zc = np.broadcast_to(data.F[:, D + i], (M, N))
         mu, var = _transition_kr(data, i, d2, zc, h2[:, None])
-        return gauss_log_density(data.Y[:, i], mu, var).sum(axis=-1), h2
+        lp = gauss_log_density(data.Y[:, i], mu, var)
+        return (lp if per_frame else lp.sum(axis=-1)), h2
     sub = bandwidth_rows(N)
     base = _self_d2(data, i, sub) + penalty[sub]
     y = data.Y[:, i]
@@ -187,11 +219,17 @@ def transition_node_fits(
     first = np.array([r[0] for r in rows])
     zprev = np.tile(data.F[first, i], (M, 1))  # (M, C)
     zcur = np.tile(data.F[first, D + i], (M, 1))
-    total = np.zeros(M)
+    lp = np.zeros((M, N))
     hh = h2[:, None]
+    vacc = np.zeros_like(zprev)  # variance accumulated since the last anchor
+    floor = (data.min_std / r_i) ** 2  # min_std of the position, in delta units
     for t in range(int(L.max())):
         act = np.flatnonzero(L > t)
         R = np.array([rows[c][t] for c in act])
+        if horizon is not None and t > 0 and t % horizon == 0:
+            zprev[:, act] = data.F[R, i]
+            zcur[:, act] = data.F[R, D + i]
+            vacc[:, act] = 0.0
         zp, zc = zprev[:, act], zcur[:, act]  # (M, A)
         bq = (zc - zp) * (vw / r_i)
         d2 = other_d2[:, R] + penalty[R]  # (M, A, N)
@@ -199,10 +237,14 @@ def transition_node_fits(
         d2 += (bq[..., None] - b_tr) ** 2
         mu, var = _transition_kr(data, i, d2, zc, hh)
         y_true = (data.Z2[R, i] - zc) / r_i
-        total += gauss_log_density(y_true, mu, var).sum(axis=-1)
+        if horizon is not None:  # the re-synthesised state's own uncertainty
+            var = var + vacc[:, act]
+            vacc[:, act] = var
+            var = var + floor
+        lp[:, R] = gauss_log_density(y_true, mu, var)
         zprev[:, act] = zc
         zcur[:, act] = zc + mu * r_i
-    return total, h2
+    return (lp if per_frame else lp.sum(axis=-1)), h2
 
 
 def _transition_kr(data: TransitionData, i: int, d2: np.ndarray, zc: np.ndarray, h2):

@@ -5,12 +5,14 @@ Prior network (:func:`search_prior`)
     acyclicity, at most ``max_parents`` parents, from the empty graph and from
     ``restarts`` random DAGs; the best-scoring result is kept.  The no-parent
     and single-parent scores of every node are computed in parallel through
-    ``ctx.map``.
+    ``ctx.map``, and so are the starts (independent searches: the result is
+    the serial one).
 Transition network (:func:`search_transition`)
     Parents come only from earlier frames, so each node's search
     (addition/deletion) is independent and runs in parallel through ``ctx.map``;
     each greedy step scores all neighbouring parent sets of the node in one
-    vectorised batch.
+    vectorised batch (an added parent's squared distances are added to the
+    current set's, computed once per step, instead of summed anew).
 
 Parallel work goes to ``ctx.map`` in ``4 × workers`` round-robin batches of
 nodes (one task per node is too small to amortise the round trip).  Scores
@@ -66,6 +68,8 @@ def search_transition(
     max_parents: int,
     score: Literal["propagated", "one_step"],
     ctx: Context,
+    required: tuple[int, ...] = (),
+    horizon: int | None = None,
 ) -> NetworkSearch:
     """Parents of every transition node, searched independently per node (in parallel).
 
@@ -80,6 +84,14 @@ def search_transition(
     score : {"propagated", "one_step"}
     ctx : Context
         ``ctx.map`` runs the per-node searches.
+    required : tuple of int
+        Parents every node has (besides its self parents; the cycle phase
+        DOFs of cyclic models): the search starts from them, never deletes
+        them, and ``max_parents`` counts the others.
+    horizon : int or None
+        Frames between re-anchorings of the propagated score
+        (:func:`~mocapflow.stages.variation.scores.transition_node_fits`;
+        ``None``: never, the paper's form).
 
     Returns
     -------
@@ -90,11 +102,13 @@ def search_transition(
     pool = list(range(2 * D))
     items = []
     for i in range(D):
-        idx = [p for p in pool if p not in (i, D + i)]
+        req = [r for r in required if r not in (i, D + i)]
+        idx = [p for p in pool if p not in (i, D + i) and p not in req]
         target = np.stack([data.Y[:, i], data.Z2[:, i]], axis=1)
-        items.append((i, _top_candidates(target, data.F, idx, candidates)))
+        items.append((i, _top_candidates(target, data.F, idx, candidates), req))
     fn = functools.partial(
-        _search_transition_node, data=data, max_parents=max_parents, score=score
+        _search_transition_node, data=data, max_parents=max_parents, score=score,
+        horizon=horizon,
     )
     results = _map_batched(ctx, fn, items)
     return NetworkSearch(
@@ -128,7 +142,7 @@ def search_prior(
     seed : int
         Seed of the random initial DAGs.
     ctx : Context
-        ``ctx.map`` computes the single-parent scores.
+        ``ctx.map`` computes the single-parent scores and runs the starts.
 
     Returns
     -------
@@ -147,11 +161,17 @@ def search_prior(
     for v, sc in enumerate(singles):
         for P, s in sc.items():
             cache[(v, P)] = s
-    best = None
     rng = np.random.default_rng([int(seed), 7919])
-    for r in range(restarts + 1):
-        init = None if r == 0 else _random_dag(cands, rng, max_parents)
-        parents, sc, h = _prior_greedy(data, cands, cache, max_parents=max_parents, init=init)
+    inits = [None] + [_random_dag(cands, rng, max_parents) for _ in range(restarts)]
+    # the starts are independent (scores are deterministic, the cache only saves
+    # work): they run in parallel, each from the single-parent cache
+    runs = _map_batched(
+        ctx, functools.partial(_prior_restart, data=data, cands=cands, cache=cache,
+                               max_parents=max_parents), inits, per_worker=1,
+    )
+    best = None
+    for parents, sc, h, new in runs:
+        cache.update(new)
         if best is None or sc.sum() > best[1].sum():
             best = (parents, sc, h)
     parents, scores, bandwidth = best
@@ -177,6 +197,7 @@ def _search_transition_node(
     data: TransitionData,
     max_parents: int,
     score: str,
+    horizon: int | None = None,
     batch: int = 16,
 ) -> dict[str, Any]:
     """Greedy add/delete search of one transition node's parents (module level for ``ctx.map``).
@@ -184,9 +205,9 @@ def _search_transition_node(
     Each step scores every uncached neighbouring parent set in batches of
     ``batch`` (:func:`transition_node_fits`) and moves to the best while it improves.
     """
-    i, cands = item
+    i, cands, req = item
     cache: dict[frozenset, tuple[float, float]] = {}
-    feats = {c: (data.F[:, c][:, None] - data.F[:, c][None, :]) ** 2 for c in cands}
+    feats = {c: (data.F[:, c][:, None] - data.F[:, c][None, :]) ** 2 for c in [*cands, *req]}
 
     def d2_of(P: frozenset) -> np.ndarray:
         d2 = np.zeros((data.F.shape[0],) * 2)
@@ -194,26 +215,37 @@ def _search_transition_node(
             d2 += feats[c]
         return d2
 
-    def evaluate(sets: list[frozenset]) -> None:
+    N = data.F.shape[0]
+    buf = np.empty((batch, N, N))
+
+    def evaluate(sets: list[frozenset], base: frozenset | None = None) -> None:
+        # an addition P | {c} is the current set's distances plus column c's
+        # (computed once per step), the rest are summed from scratch
         todo = [Q for Q in dict.fromkeys(sets) if Q not in cache]
+        d2_base = d2_of(base) if base is not None and len(todo) else None
         for a in range(0, len(todo), batch):
             chunk = todo[a : a + batch]
-            sc, h2 = transition_node_fits(
-                data, i, np.stack([d2_of(Q) for Q in chunk]), score=score
-            )
+            out = buf[: len(chunk)]
+            for j, Q in enumerate(chunk):
+                extra = Q - base if d2_base is not None and base <= Q else None
+                if extra is not None and len(extra) == 1:
+                    np.add(d2_base, feats[next(iter(extra))], out=out[j])
+                else:
+                    out[j] = d2_of(Q)
+            sc, h2 = transition_node_fits(data, i, out, score=score, horizon=horizon)
             for Q, v, h in zip(chunk, sc, h2):
                 cache[Q] = (float(v), float(h))
 
-    P: frozenset = frozenset()
+    P: frozenset = frozenset(req)
     evaluate([P])
     cur = cache[P][0]
     while True:
-        moves = [P - {c} for c in P]
-        if len(P) < max_parents:
+        moves = [P - {c} for c in P if c not in req]
+        if len(P) < max_parents + len(req):
             moves += [P | {c} for c in cands if c not in P]
         if not moves:
             break
-        evaluate(moves)
+        evaluate(moves, base=P)
         best = max(moves, key=lambda Q: cache[Q][0])
         if cache[best][0] <= cur + 1e-9:
             break
@@ -301,6 +333,15 @@ class DAG:
                 if indeg[b] == 0:
                     ready.append(b)
         return out
+
+
+def _prior_restart(init, *, data: PriorData, cands: list[list[int]], cache: dict,
+                   max_parents: int):
+    """One greedy prior search from ``init`` (module level for ``ctx.map``): its result
+    and the cache entries it added."""
+    own = dict(cache)
+    parents, sc, h = _prior_greedy(data, cands, own, max_parents=max_parents, init=init)
+    return parents, sc, h, {key: val for key, val in own.items() if key not in cache}
 
 
 def _prior_greedy(

@@ -15,7 +15,8 @@ Held-out masks
     of the held-out one are left out instead.
 
 Additions to the paper: the offset retention ``λ`` of the transition mean
-(:func:`retention_of`) and the normalised-time DOF ``_phase`` (:func:`with_phase`).
+(:func:`retention_of`) and the phase DOFs (:func:`with_phase`): normalised time
+``_phase`` for non-cyclic clips, the cycle phase ``(cos φ, sin φ)`` for cycles.
 """
 
 from __future__ import annotations
@@ -29,9 +30,12 @@ from mocapflow.stages.variation.clips import Clips
 
 __all__ = [
     "PHASE",
+    "CYCLE_PHASE",
+    "INTERNAL_DOFS",
     "LearnError",
     "PriorData",
     "TransitionData",
+    "phase_columns",
     "prior_data",
     "prior_window",
     "prior_window_of",
@@ -330,30 +334,72 @@ def retention_of(half_life: float | None, rate: float) -> float:
     return float(2.0 ** (-1.0 / (half_life * rate)))
 
 
-#: Name of the normalised-time DOF added by :func:`with_phase`.
+#: Name of the normalised-time DOF added by :func:`with_phase` (non-cyclic clips).
 PHASE = "_phase"
 
+#: Names of the cycle-phase DOFs added by :func:`with_phase` (cyclic clips): the cosine
+#: and sine of ``2π · frame / frames`` of each cycle.
+CYCLE_PHASE = ("_phase_cos", "_phase_sin")
 
-def with_phase(clips: Clips) -> Clips:
-    """Clips with the extra DOF ``_phase`` = frame / (frames − 1) of each clip.
+#: Every DOF :func:`with_phase` may add; they are internal (variants drop them).
+INTERNAL_DOFS = (PHASE, *CYCLE_PHASE)
 
-    A 2nd-order model of a non-cyclic motion cannot tell apart states that
-    look alike at different times (the loop of an 'a' closing where it
-    started); normalised time disambiguates them, varies in speed from clip
-    to clip like any DOF, and tells the sampler where a variant ends.
+
+def with_phase(clips: Clips, *, cyclic: bool | None = None) -> Clips:
+    """Clips with phase DOFs: ``_phase`` (non-cyclic) or ``_phase_cos, _phase_sin`` (cycles).
+
+    Non-cyclic clips get ``_phase`` = frame / (frames − 1): a 2nd-order model of
+    a non-cyclic motion cannot tell apart states that look alike at different
+    times (the loop of an 'a' closing where it started); normalised time
+    disambiguates them, varies in speed from clip to clip like any DOF, and
+    tells the sampler where a variant ends.
+
+    Cyclic clips (gait cycles, each starting at the same event) get the cycle
+    phase ``φ = 2π · frame / frames`` as the pair ``(cos φ, sin φ)``, which wraps
+    with the cycle.  Without it the kernel-regression mean dynamics of a walk
+    have a second attractor besides the gait cycle: a state near the middle of
+    the cycle in state space has neighbours from opposite phases whose deltas
+    cancel, so the motion comes to rest there (on the figure-8 walk 5 of 8
+    streams from random prior draws stop within a cycle at sigma = 0).  Every
+    training instance advances the phase, so the phase DOFs never stall and,
+    as parents, hold the other DOFs' neighbourhoods at one phase; the phase
+    also tells the sampler where a cycle begins (loopable variants).
+
+    Parameters
+    ----------
+    clips : Clips
+    cyclic : bool, optional
+        Which kind of phase (default ``clips.cyclic``).
+
+    Returns
+    -------
+    Clips
+        The clips with the phase DOFs as the last varying columns (unchanged if
+        they are there already).
     """
-    if PHASE in clips.dof_names:
+    cyclic = clips.cyclic if cyclic is None else bool(cyclic)
+    names = CYCLE_PHASE if cyclic else (PHASE,)
+    if any(n in clips.dof_names for n in INTERNAL_DOFS):
         return clips
-    trajs = [
-        np.concatenate([t, (np.arange(len(t)) / max(len(t) - 1, 1))[:, None]], axis=1)
-        for t in clips.trajectories
-    ]
+
+    def columns(n: int) -> np.ndarray:
+        if cyclic:
+            a = 2.0 * np.pi * np.arange(n) / max(n, 1)
+            return np.stack([np.cos(a), np.sin(a)], axis=1)
+        return (np.arange(n) / max(n - 1, 1))[:, None]
+
+    trajs = [np.concatenate([t, columns(len(t))], axis=1) for t in clips.trajectories]
     return clips.replace(
         trajectories=trajs,
-        dof_names=[*clips.dof_names, PHASE],
-        varying=np.append(clips.varying, True),
-        constant_values=np.append(clips.constant_values, 0.0),
+        dof_names=[*clips.dof_names, *names],
+        varying=np.append(clips.varying, [True] * len(names)),
+        constant_values=np.append(clips.constant_values, [0.0] * len(names)),
     )
+
+
+def phase_columns(names: list[str]) -> tuple[int, ...]:
+    """Column indices of the phase DOFs among ``names`` (varying DOF names), in order."""
+    return tuple(names.index(n) for n in INTERNAL_DOFS if n in names)
 
 
 def prior_window_of(clips: Clips, k: int, window: int | None) -> int:

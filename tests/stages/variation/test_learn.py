@@ -138,7 +138,7 @@ def test_edge_cases_one_clip_constant_dof_lengths_and_bad_params():
     with_const = [np.concatenate([t, np.full((len(t), 1), 0.25)], axis=1) for t in base]
     c = make_clips(with_const, ["a", "b", "c", "k"], rate=48.0, cyclic=True)
     m = learn(c, k=8, score="one_step")["model"]
-    assert m.n_dofs == 3 and c.attrs["constant_dofs"] == ["k"]
+    assert m.n_dofs == 3 + 2 and c.attrs["constant_dofs"] == ["k"]  # + the cycle phase
     v = variants(m, 0, length=40)
     np.testing.assert_array_equal(v.full(0)[:, 3], 0.25)
     # clips of very different lengths: fine, k clamped where needed

@@ -79,7 +79,8 @@ def test_ground_truth_variance_and_timing_match_the_inputs(gt_model):
     a = variants(m, 1, count=3, sigma=0.0)
     b = variants(m, 2, count=1, sigma=0.0)
     np.testing.assert_array_equal(a.trajectories[0], a.trajectories[2])
-    np.testing.assert_allclose(a.trajectories[0], b.trajectories[0], rtol=0, atol=1e-12)
+    # (the neighbour search is single precision: batches of other sizes agree to its rounding)
+    np.testing.assert_allclose(a.trajectories[0], b.trajectories[0], rtol=0, atol=1e-5)
     assert _aligned_stats(a.trajectories[:1] * 2)[0] == 0.0
     # the mean motion is a cycle of the inputs' shape: DTW distance to the base is small
     ref = _base(np.arange(T0) / T0)
