@@ -331,11 +331,12 @@ def section_streams(model, nodes: dict, n_seeds: int) -> None:
 
 def section_variants(label: str, model, clips, nodes: dict, n_var: int) -> None:
     from mocapflow.pipeline import Context
-    from mocapflow.stages.metrics.gait import channel_range, range_excess, rotation_channels
+    from mocapflow.stages.metrics.gait import channel_range, range_excess
     from mocapflow.stages.metrics.novelty import novelty_report
     from mocapflow.stages.metrics.quality import foot_skate
     from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices
     from mocapflow.stages.variation.clips import clips_to_motions
+    from mocapflow.stages.variation.dofs import rotation_channels
     from mocapflow.stages.variation.sample import sample
 
     sp = nodes["sample"]

@@ -1,8 +1,7 @@
 """Gait metrics of generated motion streams and variants (issue 17's "Must show").
 
-Imports only :mod:`mocapflow.stages.motion`, :mod:`mocapflow.stages.variation.dofs`
-(for the BVH channels) and :mod:`.quality`; registers nothing.  Angles are radians,
-rates frames per second.
+Imports only :mod:`mocapflow.stages.motion` and :mod:`.quality`; registers nothing.
+Angles are radians, rates frames per second.
 
 hip flexion DOF
     Per side (``left`` / ``right``), the rotation DOF of a hip joint (a joint
@@ -34,7 +33,8 @@ range excess
     channel is first moved by the multiple of 2π that brings its mean nearest
     to the inputs' mean of that channel (unwrapping may start on another
     branch); the excess is how far it goes beyond the inputs' ``[min, max]``
-    → :func:`rotation_channels`, :func:`channel_range`, :func:`range_excess`.
+    → :func:`~mocapflow.stages.variation.dofs.rotation_channels` (there: metrics import
+    no paper package), :func:`channel_range`, :func:`range_excess`.
 join jerk
     The p99 of the per-frame mean joint jerk (:func:`~.quality.jerk_per_frame`)
     on the frames within ``radius`` frames of each join of clips played one
@@ -51,8 +51,6 @@ from numpy.lib.stride_tricks import sliding_window_view
 from scipy.signal import detrend
 
 from mocapflow.stages.metrics.quality import jerk_p99, seam_mask
-from mocapflow.stages.motion.datatypes import Motion
-from mocapflow.stages.variation.dofs import motion_to_dofs
 
 __all__ = [
     "cadence",
@@ -65,7 +63,6 @@ __all__ = [
     "join_jerk_p99",
     "join_mask",
     "range_excess",
-    "rotation_channels",
     "swing_hysteresis",
     "window_ranges",
 ]
@@ -297,38 +294,13 @@ def frozen_windows(x: np.ndarray, threshold: np.ndarray | float, width: int) -> 
     return frozen if frozen.ndim == 1 else frozen.any(axis=1)
 
 
-def rotation_channels(motion: Motion, *, up: str = "y") -> tuple[np.ndarray, list[str]]:
-    """BVH rotation channels of the non-root joints, continuous over time.
-
-    Parameters
-    ----------
-    motion : Motion
-        ``F`` frames.
-    up : {"y", "z"}
-        Up axis (only the root's split depends on it; the root is left out).
-
-    Returns
-    -------
-    angles : (F, C) float ndarray
-        Radians, each joint's Euler angles in its BVH channel order
-        (:func:`~mocapflow.stages.variation.dofs.motion_to_dofs`).
-    names : list of str
-        ``C`` names ``"<joint>:<axis>rotation"``.
-    """
-    dofs, names, _, _ = motion_to_dofs(motion, root="heading", up=up)
-    root = motion.skeleton.names[0]
-    keep = [i for i, n in enumerate(names)
-            if n.endswith("rotation") and n.partition(":")[0] != root]
-    return dofs[:, keep], [names[i] for i in keep]
-
-
 def channel_range(inputs: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per-channel min, max and mean over the input motions.
 
     Parameters
     ----------
     inputs : sequence of (T_c, C) float ndarray
-        E.g. :func:`rotation_channels` of each input.
+        E.g. :func:`~mocapflow.stages.variation.dofs.rotation_channels` of each input.
 
     Returns
     -------

@@ -31,7 +31,7 @@ from mocapflow.stages.motion.rotations import (
     quat_to_rotvec,
 )
 
-__all__ = ["ClipError", "dofs_to_motion", "motion_to_dofs", "padded_order"]
+__all__ = ["ClipError", "dofs_to_motion", "motion_to_dofs", "padded_order", "rotation_channels"]
 
 _AXES = "XYZ"
 
@@ -216,3 +216,28 @@ def dofs_to_motion(
         translations=trans,
         attrs=dict(attrs or {}),
     )
+
+
+def rotation_channels(motion: Motion, *, up: str = "y") -> tuple[np.ndarray, list[str]]:
+    """BVH rotation channels of the non-root joints, continuous over time.
+
+    Parameters
+    ----------
+    motion : Motion
+        ``F`` frames.
+    up : {"y", "z"}
+        Up axis (only the root's split depends on it; the root is left out).
+
+    Returns
+    -------
+    angles : (F, C) float ndarray
+        Radians, each joint's Euler angles in its BVH channel order
+        (:func:`~mocapflow.stages.variation.dofs.motion_to_dofs`).
+    names : list of str
+        ``C`` names ``"<joint>:<axis>rotation"``.
+    """
+    dofs, names, _, _ = motion_to_dofs(motion, root="heading", up=up)
+    root = motion.skeleton.names[0]
+    keep = [i for i, n in enumerate(names)
+            if n.endswith("rotation") and n.partition(":")[0] != root]
+    return dofs[:, keep], [names[i] for i in keep]

@@ -16,13 +16,13 @@ from mocapflow.stages.metrics.gait import (
     join_jerk_p99,
     join_mask,
     range_excess,
-    rotation_channels,
     swing_hysteresis,
     window_ranges,
 )
 from mocapflow.stages.metrics.quality import jerk_per_frame
 from mocapflow.stages.motion.kinematics import motion_positions
 from mocapflow.stages.motion.simulate.gait import procedural_walk
+from mocapflow.stages.variation.dofs import rotation_channels
 
 RATE = 60.0
 
