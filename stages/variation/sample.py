@@ -173,15 +173,14 @@ class Sampler:
             if not window >= 1:
                 raise SampleError(f"window must be a number of instances >= 1, got {window}")
             if self.cycle_phase and int(window) < N:
-                self._phase_bank(td.F[:, D:], int(window))
+                self._phase_bank(int(window))
 
-    def _phase_bank(self, zc: np.ndarray, window: int) -> None:
+    def _phase_bank(self, window: int) -> None:
         """Tables of the crowd mode: the bank sorted by cycle phase, wrapped by a window."""
-        N = zc.shape[0]
-        x = zc * self.stats["std"] + self.stats["mean"]
-        order = np.argsort(self.cycle_phase_of(x), kind="stable")
+        N = self.inst_phase.shape[0]
+        order = np.argsort(self.inst_phase, kind="stable")
         self.window = window
-        self.win_phase = self.cycle_phase_of(x)[order]
+        self.win_phase = self.inst_phase[order]
         self.stride = max(1, window // 4)
         self.L = L = min(window + self.stride, N)
         ext = order[np.arange(N + L) % N]
@@ -357,6 +356,16 @@ class Sampler:
             zp, zc = zc, mean + (sigma * kappa) * std * eps
             yield (zc * sd + m, mean * sd + m) if predicted else zc * sd + m
 
+    @property
+    def cycle_limit(self) -> int:
+        """Frames a stream may run without its cycle phase passing 0 (3 of the longest input)."""
+        return 3 * int(self.model.clips.lengths.max()) + 2
+
+    @staticmethod
+    def passes_zero(prev: np.ndarray, ph: np.ndarray) -> np.ndarray:
+        """Frames whose cycle phase ``ph`` passes 0 upwards from the previous ``prev``."""
+        return (prev < 0) & (ph >= 0) & (ph - prev < np.pi)
+
     def cycle_phase_of(self, x: np.ndarray) -> np.ndarray:
         """Cycle phase ``φ ∈ (−π, π]`` of frames ``x (..., D)`` (models with the cycle phase)."""
         c, s = self.phase_cols
@@ -408,7 +417,7 @@ class Sampler:
         end = np.full(count, length)
         if start_at_phase:
             start[:] = -1
-            limit = 3 * int(self.model.clips.lengths.max()) + 2
+            limit = self.cycle_limit
             prev = None
             for t in range(limit):
                 x, mu = next(gen)
@@ -416,7 +425,7 @@ class Sampler:
                 ms.append(mu)
                 ph = self.cycle_phase_of(x)
                 if prev is not None:
-                    hit = (start < 0) & (prev < 0) & (ph >= 0) & (ph - prev < np.pi)
+                    hit = (start < 0) & self.passes_zero(prev, ph)
                     start[hit] = t
                 prev = ph
                 if np.all(start >= 0):
@@ -475,13 +484,13 @@ class Sampler:
             raise SampleError("loop needs a cyclic model with the cycle phase DOFs "
                               "(learn cyclic clips with phase: true)")
         gen = self.stream(rng, count=1, sigma=sigma, noise_time=noise_time, predicted=True)
-        limit = 3 * int(self.model.clips.lengths.max()) + 2
+        limit = self.cycle_limit
         xs, ms, cuts = [], [], []
         prev = None
         while len(cuts) < count + 1:
             x, mu = next(gen)
             ph = float(self.cycle_phase_of(x[0]))
-            if prev is not None and prev < 0 <= ph and ph - prev < np.pi:
+            if prev is not None and self.passes_zero(prev, ph):
                 cuts.append(len(xs))
             prev = ph
             xs.append(x[0])
