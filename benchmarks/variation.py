@@ -402,7 +402,7 @@ def section_chaining(model, clips, nodes: dict, count: int = 5) -> None:
     print("|---|---|---|---|")
     print(f"| chained cycles | {jj / j_in:.2f} | {_pooled_jerk_p99([chain], rate) / j_in:.2f} | "
           f"<= 1.5 |")
-    if out is not None:  # the loop variants through the config's IK, each on its own
+    if out is not None:  # the loop variants through the config's IK (cleaned as one chain)
         ps = _positions(clips_to_motions(
             _ik(out["variants"], out.get("predicted"), nodes, rate)["variants"]))
         chain = np.concatenate(ps)

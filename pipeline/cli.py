@@ -480,7 +480,8 @@ def cmd_stages(args: argparse.Namespace) -> int:
         print(f"{s.name}  ({s.module})")
         if s.description:
             print(f"    {s.description}")
-        print(f"    inputs: {', '.join(s.inputs) or '-'}   outputs: {', '.join(s.outputs)}")
+        ins = [f"{i} (optional)" if i in s.optional_inputs else i for i in s.inputs]
+        print(f"    inputs: {', '.join(ins) or '-'}   outputs: {', '.join(s.outputs)}")
         if params:
             print(f"    params: {params}")
     return 0

@@ -577,7 +577,7 @@ def _node_inputs(body: Mapping[str, Any], spec: StageSpec, raw_nodes: Any, has_p
             raise c.err(ik, f"unknown node {up!r}{close_match(up, raw_nodes)}", il)
         inputs[iname] = (up, out)
     for iname in spec.inputs:
-        if iname not in inputs:
+        if iname not in inputs and iname not in spec.optional_inputs:
             raise c.err(f"{key}.inputs.{iname}", f"input of stage {sname!r} is not wired", iline)
     return inputs
 

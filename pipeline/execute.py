@@ -380,7 +380,8 @@ def _compute(store: Store, spec: TaskSpec, sspec: registry.StageSpec,
     stage runs and again before the commit (:class:`InputChangedError` otherwise).
     """
     t_load = time.perf_counter()
-    args = [load_input(store, spec.inputs[name], refs) for name in sspec.inputs]
+    args = [load_input(store, spec.inputs[name], refs) if name in spec.inputs else None
+            for name in sspec.inputs]  # an unwired optional input is None
     kwargs = dict(spec.params)
     ctx = None
     if sspec.wants_ctx:

@@ -1,7 +1,8 @@
 """Stage registry: the ``@stage`` decorator, parameter validation and discovery.
 
 A *stage* is a plain function.  Its positional parameters are **inputs** (wired
-from the graph); its keyword-only parameters are **params** (validated from the
+from the graph; one defaulting to ``None`` is optional and may be left
+unwired); its keyword-only parameters are **params** (validated from the
 type hints, defaults filled).  A keyword-only parameter named ``ctx`` is not a
 param: the engine passes a :class:`~mocapflow.pipeline.context.Context` there.
 The function returns a mapping of named outputs (the names declared in
@@ -74,6 +75,9 @@ class StageSpec:
         The stage function.
     inputs : tuple of str
         Positional parameter names, in order.
+    optional_inputs : tuple of str
+        Inputs with a default of ``None``: they may be left unwired in a graph
+        (and left out in a Python call); the stage then gets ``None``.
     input_types : dict
         Annotation of each input (resolved where possible).
     params : dict
@@ -103,6 +107,7 @@ class StageSpec:
     description: str = ""
     retries: int = 0
     extra: dict[str, Any] = field(default_factory=dict)
+    optional_inputs: tuple[str, ...] = ()
 
     def file_inputs(self) -> tuple[str, ...]:
         """Names of inputs annotated as :data:`FilePath`."""
@@ -230,9 +235,9 @@ def call(spec: StageSpec, *args: Any, **kwargs: Any) -> Mapping[str, Any]:
                         f"({', '.join(spec.inputs) or 'none'}), got {len(args)}")
     inputs = dict(zip(spec.inputs, args))
     for name in spec.inputs[len(args):]:
-        if name not in kwargs:
+        if name not in kwargs and name not in spec.optional_inputs:
             raise TypeError(f"stage {spec.name!r}: missing input {name!r}")
-        inputs[name] = kwargs.pop(name)
+        inputs[name] = kwargs.pop(name, None)
     params = validate_params(spec, kwargs)
     if spec.wants_ctx:
         if ctx is None:
@@ -248,6 +253,7 @@ def _build_spec(func, name, outputs, version, retries) -> StageSpec:
     except Exception:  # unresolved forward references: fall back to raw annotations
         hints = {k: v.annotation for k, v in sig.parameters.items()}
     inputs: list[str] = []
+    optional: list[str] = []
     input_types: dict[str, Any] = {}
     params: dict[str, tuple[Any, Any]] = {}
     wants_ctx = False
@@ -255,6 +261,11 @@ def _build_spec(func, name, outputs, version, retries) -> StageSpec:
         if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD):
             inputs.append(p.name)
             input_types[p.name] = hints.get(p.name, Any)
+            if p.default is not p.empty:
+                if p.default is not None:
+                    raise TypeError(f"stage {name!r}: input {p.name!r} may only default to "
+                                    f"None (an optional input), got {p.default!r}")
+                optional.append(p.name)
         elif p.kind == p.KEYWORD_ONLY:
             if p.name == "ctx":
                 wants_ctx = True
@@ -275,6 +286,7 @@ def _build_spec(func, name, outputs, version, retries) -> StageSpec:
         module=func.__module__,
         description=doc.splitlines()[0] if doc else "",
         retries=retries,
+        optional_inputs=tuple(optional),
     )
 
 

@@ -38,10 +38,13 @@ temporal variation
     → ``sample.Sampler.run``: the second-order transition network regresses the
     delta on position and velocity (``training.transition_data``), so timing
     varies with the draws; there is no separate time-warp model
-§7 IK clean-up, Lau Eq. 7 with w₁ = 1, w₂ = 5
-    one limb, one frame → ``ik._solve_frame``; frame by frame with contact
-    planting → ``ik._clean_limb``; contacts and targets → ``ik._clip_constraints``;
-    the stage → ``ik.ik``
+§7 IK clean-up, Lau Eq. 7 with w₁ = 1, w₂ = 5 and q̄ = the predicted mean
+    Eq. 7 without constraints over a clip, within joint limits →
+    ``ik_solver.eq7_track``; one limb over a clip with its targets →
+    ``ik_solver.solve_limb`` (by ``ik_solver.projected_gauss_newton``); joint
+    limits from the inputs' range → ``ik.joint_limits``; contacts (whole
+    stances, ``ik.stance_runs``) and targets → ``ik._clip_constraints``,
+    ``ik._limb_constraints``; a clip cleaned → ``ik._clean_clip``; the stage → ``ik.ik``
 §8 noise baselines and amplitude matching
     → ``sample.strawman_noise``, ``sample.perlin_noise``, ``sample.matched_amplitude``;
     the stage → ``sample.sample_noise``
@@ -66,7 +69,10 @@ Departures the module docstrings state (each can be switched off):
 * AR(1)-correlated sampling noise, ``noise_time``, with the long-run variance
   of white noise (``sample.Sampler.stream``; ``None`` is the paper's white noise);
 * single-precision neighbour search, and the optional phase-window search of
-  crowds (``sample.Sampler``, ``window``).
+  crowds (``sample.Sampler``, ``window``);
+* IK over whole clips instead of frame by frame, joint limits as bounds
+  (``range_margin``) and corrections that ease in and out (``ease``; 0 is Eq. 7
+  alone) (``ik``).
 """
 
 #: The modules of this family that register stages, codecs or exporters, each with

@@ -1,32 +1,45 @@
 """Inverse-kinematics clean-up of sampled variants (Lau, Bar-Joseph & Kuffner 2009, §7).
 
-Per limb (leg or arm) and frame with constraints, the limb's joint-angle DOFs
-``q`` minimise (Lau Eq. 7; paper and default weights w₁ = 1, w₂ = 5)
+Every DOF track ``q`` of a clip minimises, summed over its frames (Lau Eq. 7;
+paper and default weights w₁ = 1, w₂ = 5)
 
     w₁ ‖q − q̄‖² + w₂ ‖q − 2 q₋₁ + q₋₂‖²
 
-subject to every constrained end effector of the limb lying at its target
-(SLSQP, initialised from the sample ``q̄``; ``q₋₁, q₋₂`` are the cleaned
-previous frames; :func:`_solve_frame`).  Frames without constraints keep the
-sample; after a contact the correction eases back to it (raised cosine over
-``blend`` seconds).  The ``ik`` stage detects the contacts of each
-clip (:func:`_clip_constraints`) and cleans every limb frame by frame
-(:func:`_clean_limb`).
+with ``q̄`` the network's predicted mean of each frame (the ``sample`` stage's
+``predicted`` output, wired as the ``predicted`` input; unwired: the sample
+itself), every rotation DOF within joint limits learned from the inputs, and
+each limb's effectors at their targets.  The numerics are in
+:mod:`~mocapflow.stages.variation.ik_solver`: the DOFs without constraints by
+:func:`~mocapflow.stages.variation.ik_solver.eq7_track`, each constrained limb
+over the whole clip by :func:`~mocapflow.stages.variation.ik_solver.solve_limb`
+(targets as stiff penalties, ``stiffness``).  The ``ik`` stage detects the
+contacts of each clip (:func:`_clip_constraints`) and cleans it
+(:func:`_clean_clip`).
 
+Departures from the paper, stated
+    The paper solves frame by frame; here the sum over the clip is minimised
+    at once, so the smoothness term sees both sides of a frame and a contact
+    eases in and out without ringing (frame by frame, IK doubled the sample's
+    jerk).  Joint limits are added as bounds: each Euler channel of a non-root
+    joint stays within the inputs' range (``attrs["input_range"]``, set by
+    the ``sample`` stage) widened by ``range_margin``, which keeps a knee from
+    bending backwards.  ``w₂`` weighs second differences of frames at the
+    model's rate.
 Limbs and targets
     The limb of an effector joint is the chain of its ancestors up to (not
     including) the first joint with several children or the root; only the
-    chain's varying DOFs move.  Foot contacts are detected automatically per
-    effector (ankle and toe of each foot): height below the floor (5th
-    percentile) + ``height_threshold`` and horizontal speed below
-    ``speed_threshold``; each contact run's target is the position of
-    the effector at the run's first frame in the cleaned pose (so a contact
-    starts without a jump).  Of the detected contacts of one limb only the
-    deepest effector is held (the toe while it touches, else the ankle), so
-    the foot rolls about its ball through heel-off; contacts given in the
-    config are always held.  The config can replace the detection
+    chain's varying DOFs move for its targets (the rest of the body is the
+    unconstrained solve).  Foot contacts are detected automatically per
+    effector (ankle and toe of each foot) on the unconstrained solve: height
+    below the floor (5th percentile) + ``height_threshold`` and horizontal
+    speed below ``speed_threshold``; runs closer than ``contact_gap`` are one
+    stance and runs shorter than ``min_contact`` are dropped.  Each contact is
+    held over its whole run at one target, the effector's mean position over
+    the run, so the foot stays planted for the stance and rolls about the toe
+    once the ankle's run ends.  The config can replace the detection
     (``contacts``: frame ranges per joint) or give explicit targets
-    (``targets``: ``[frame, x, y, z]`` rows per joint, e.g. for hands).
+    (``targets``: ``[frame, x, y, z]`` rows per joint, e.g. for hands), which
+    take precedence over a contact on their frame.
 Frame numbers
     The variants are at the model's rate (the ingest ``rate``) and are exported
     at the output rate: ``attrs["output_rate"]`` (the ``output_rate`` param),
@@ -43,14 +56,14 @@ Loopable variants
     The ``sample`` stage's ``loop`` variants (``attrs["loop"]``) are consecutive
     cycles of one stream; they are cleaned as the one clip they make played in
     order (:func:`_played_in_order`), so the smoothness term and the contacts
-    run across the joins, and split back.  Their ``contacts`` and ``targets``
-    frames count along that chain; the report has one entry for it
-    (``variants``: the variant names).
+    run across the joins, and split back; their origins are chained again
+    from the cleaned root DOFs (each cycle starts where the one before ends).
+    Their ``contacts`` and ``targets`` frames count along that chain; the
+    report has one entry for it (``variants``: the variant names).
 Unreachable targets
-    When SLSQP cannot meet a target within ``tolerance`` the limb takes the
-    pose that minimises the target distance (best effort) and a warning names
-    the variant, frame, effector and the remaining error.  A detected contact
-    missed by more than ``release`` ends there (the foot lifts off early).
+    A target the solve misses by more than ``tolerance`` is reported (the
+    limb takes the pose of least cost, best effort) and a warning names the
+    variant, frames, effectors and the worst miss.
 """
 
 from __future__ import annotations
@@ -60,22 +73,27 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
-from scipy.optimize import minimize
-from scipy.spatial.transform import Rotation
 
 from mocapflow.pipeline import Context, stage
+from mocapflow.stages.metrics.quality import jerk_per_frame
 from mocapflow.stages.motion.contacts import foot_joint, true_runs
 from mocapflow.stages.motion.datatypes import Skeleton
 from mocapflow.stages.motion.kinematics import forward_kinematics
-from mocapflow.stages.motion.rotations import quat_to_matrix
 from mocapflow.stages.variation.clips import Clips, clips_to_motions, export_rate
-from mocapflow.stages.variation.dofs import padded_order
+from mocapflow.stages.variation.ik_solver import ChainFK, eq7_track, solve_limb
+from mocapflow.stages.variation.sample import chain_origins
+
+GIVEN_WEIGHT = 100.0
+"""Weight of a given contact or explicit target relative to a detected contact."""
 
 __all__ = [
+    "GIVEN_WEIGHT",
     "IKError",
     "Limb",
     "ik",
+    "joint_limits",
     "limb_of",
+    "stance_runs",
 ]
 
 class IKError(ValueError):
@@ -160,145 +178,47 @@ def _make_limb(clips: Clips, effectors: list[int]) -> Limb:
     )
 
 
-class _ChainFK:
-    """Forward kinematics of one limb at one frame, batched over candidate DOF vectors.
-
-    Rotation matrices from :class:`scipy.spatial.transform.Rotation` (upper-case
-    order = intrinsic, the convention of
-    :func:`~mocapflow.stages.motion.kinematics.euler_to_quat`).
-    """
-
-    def __init__(self, sk: Skeleton, limb: Limb, angles: np.ndarray, gpar: np.ndarray,
-                 ppar: np.ndarray):
-        self.sk, self.limb = sk, limb
-        self.angles = angles  # (J_c, 3) Euler angles of the chain at this frame
-        self.Gpar = quat_to_matrix(gpar)  # (3, 3) global rotation of the top parent
-        self.ppar = ppar
-        self.orders = [padded_order(sk.rotation_order(j)) for j in limb.joints]
-        self.offsets = sk.offsets[limb.joints]
-        self.eff_parent = [limb.joints.index(int(sk.parents[e])) for e in limb.effectors]
-        self.eff_offset = sk.offsets[limb.effectors]
-
-    def __call__(self, q: np.ndarray) -> np.ndarray:
-        """Effector positions ``(Q, E, 3)`` for DOF vectors ``q (Q, V)``."""
-        q = np.atleast_2d(q)
-        Q = q.shape[0]
-        ang = np.broadcast_to(self.angles, (Q,) + self.angles.shape).copy()
-        for v, (pos, slot) in enumerate(self.limb.dof_slots):
-            ang[:, pos, slot] = q[:, v]
-        G = np.broadcast_to(self.Gpar, (Q, 3, 3))
-        p = np.broadcast_to(self.ppar, (Q, 3))
-        gl, pl = [], []
-        for k in range(len(self.orders)):
-            p = p + G @ self.offsets[k]
-            G = G @ Rotation.from_euler(self.orders[k], ang[:, k]).as_matrix()
-            gl.append(G)
-            pl.append(p)
-        return np.stack(
-            [pl[k] + gl[k] @ off for k, off in zip(self.eff_parent, self.eff_offset)], axis=1
-        )
-
 
 @dataclass(frozen=True)
 class _Solver:
-    """Settings of the per-frame solve (the ``ik`` stage's params; ``n_blend`` in frames)."""
+    """Settings of the limb solves (the ``ik`` stage's params)."""
 
     w1: float
     w2: float
+    w_ease: float
     tolerance: float
-    release: float
-    max_change: float
+    stiffness: float
     max_iter: int
-    n_blend: int
 
 
-def _solve_frame(
-    fk: _ChainFK,
-    qbar: np.ndarray,
-    qprev: np.ndarray | None,
-    target: np.ndarray,
-    active: np.ndarray,
-    solver: _Solver,
-) -> tuple[np.ndarray, float, bool]:
-    """One limb, one frame: Lau Eq. 7 by SLSQP, with a best-effort fallback.
+def joint_limits(clips: Clips, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of each varying DOF: the inputs' range widened by ``margin``.
 
     Parameters
     ----------
-    fk : _ChainFK
-        The limb's forward kinematics at this frame.
-    qbar : (V,) float ndarray
-        Sampled DOFs of the limb.
-    qprev : (V,) float ndarray or None
-        ``2 q₋₁ − q₋₂`` of the cleaned previous frames (``q₋₁`` at frame 1,
-        ``None`` at frame 0).
-    target : (E, 3) float ndarray
-        Effector targets (rows ``active`` are constrained).
-    active : (E,) bool ndarray
-    solver : _Solver
+    clips : Clips
+        Variants; their ``attrs["input_range"]`` (from the ``sample`` stage)
+        gives the inputs' range; without it (clips not sampled) nothing is bounded.
+    margin : float
+        Radians added on both sides.
 
     Returns
     -------
-    q : (V,) float ndarray
-    error : float
-        Largest remaining target distance, metres.
-    reached : bool
-        ``error <= tolerance``.
+    low, high : (D,) float ndarray
+        Per trajectory column; ``±inf`` for the root's DOFs and other
+        non-rotation DOFs.
     """
-    w1, w2, tolerance = solver.w1, solver.w2, solver.tolerance
-    max_iter, max_change = solver.max_iter, solver.max_change
-    pred = None if qprev is None else qprev  # 2 q₋₁ − q₋₂ (or None)
-
-    def obj(q):
-        r = w1 * ((q - qbar) ** 2).sum()
-        if pred is not None:
-            r += w2 * ((q - pred) ** 2).sum()
-        return r
-
-    def obj_grad(q):
-        g = 2 * w1 * (q - qbar)
-        if pred is not None:
-            g += 2 * w2 * (q - pred)
-        return g
-
-    h = 1e-7
-
-    def cons(q):
-        return (fk(q[None])[0, active] - target[active]).ravel()
-
-    def cons_jac(q):
-        V = len(q)
-        Qs = np.concatenate([q[None], q[None] + h * np.eye(V)])
-        P = fk(Qs)[:, active].reshape(V + 1, -1)
-        return ((P[1:] - P[0]) / h).T
-
-    q0 = qbar.copy()
-    bounds = list(zip(qbar - max_change, qbar + max_change))
-    res = minimize(
-        obj, q0, jac=obj_grad, method="SLSQP", bounds=bounds,
-        constraints=[{"type": "eq", "fun": cons, "jac": cons_jac}],
-        options={"maxiter": max_iter, "ftol": 1e-12},
-    )
-    q = np.clip(res.x, qbar - max_change, qbar + max_change) if np.all(
-        np.isfinite(res.x)) else q0
-    err = float(np.linalg.norm(cons(q).reshape(-1, 3), axis=1).max())
-    if err <= tolerance:
-        return q, err, True
-    # best effort: the objective plus a stiff penalty on the target distance
-    rho = 1e5  # per m²: 1 cm off costs as much as 0.3 rad of w1-weighted change
-
-    def dist(q):
-        c = cons(q)
-        return rho * (c * c).sum() + obj(q)
-
-    def dist_grad(q):
-        return 2 * rho * cons_jac(q).T @ cons(q) + obj_grad(q)
-
-    best = min((q, q0), key=lambda x: dist(x))
-    res2 = minimize(dist, best, jac=dist_grad, method="SLSQP", bounds=bounds,
-                    options={"maxiter": max_iter, "ftol": 1e-12})
-    q2 = res2.x if dist(res2.x) < dist(best) else best
-    err2 = float(np.linalg.norm(cons(q2).reshape(-1, 3), axis=1).max())
-    return q2, err2, err2 <= tolerance
+    labels = clips.labels
+    rng = clips.attrs.get("input_range") or {"dofs": [], "low": [], "high": []}
+    lo_of = dict(zip(rng["dofs"], rng["low"]))
+    hi_of = dict(zip(rng["dofs"], rng["high"]))
+    root = clips.skeleton.names[0] if clips.skeleton is not None else None
+    low, high = np.full(len(labels), -np.inf), np.full(len(labels), np.inf)
+    for i, n in enumerate(labels):
+        joint = n.partition(":")[0]
+        if n.endswith("rotation") and joint != root and n in lo_of:
+            low[i], high[i] = lo_of[n] - margin, hi_of[n] + margin
+    return low, high
 
 
 @dataclass(frozen=True)
@@ -362,6 +282,7 @@ def _auto_effectors(sk: Skeleton) -> list[list[int]]:
 @stage("ik", outputs=("variants", "report"))
 def ik(
     variants: Clips,
+    predicted: Clips | None = None,
     *,
     w1: float = 1.0,
     w2: float = 5.0,
@@ -370,23 +291,30 @@ def ik(
     targets: dict[str, list[list[float]]] | None = None,
     height_threshold: float = 0.05,
     speed_threshold: float | None = None,
+    min_contact: float = 0.05,
+    contact_gap: float = 0.05,
+    ease: float = 0.25,
+    range_margin: float = 0.03,
+    stiffness: float = 1e6,
     tolerance: float = 1e-3,
-    release: float = 0.02,
-    max_change: float = 0.5,
-    blend: float = 0.15,
-    max_iter: int = 100,
+    max_iter: int = 50,
     mode: Literal["auto", "off"] = "auto",
     output_rate: float | None = None,
     ctx: Context,
 ) -> dict:
-    """IK clean-up of sampled variants: planted feet (and configured targets), Lau §7.
+    """IK clean-up of sampled variants: Lau Eq. 7 over each clip, planted feet, joint limits.
 
     Parameters
     ----------
     variants : Clips
         Sampled variants (pen strokes pass through unchanged).
+    predicted : Clips, optional
+        The network's predicted mean of every frame (the ``sample`` stage's
+        ``predicted``), the ``q̄`` of Lau Eq. 7; same clips and layout as
+        ``variants``.  Unwired: ``q̄`` is the sample itself.
     w1, w2 : float
-        Closeness and smoothness weights of Lau Eq. 7 (paper: w₁ = 1, w₂ = 5).
+        Closeness and smoothness weights of Lau Eq. 7 (paper: w₁ = 1, w₂ = 5;
+        ``w2`` per second difference of model frames).
     effectors : list of str, optional
         Effector joint names for automatic contact detection (default the
         ankle and toe joints of both feet; joints named only in ``contacts`` or
@@ -394,9 +322,9 @@ def ik(
     contacts : dict, optional
         ``joint -> [[start, stop], ...]`` contact frame ranges (``stop``
         excluded) replacing the detection for that joint (all clips, clipped to
-        each clip).  Frames count at the output rate (the exported BVH's 0-based
-        frame numbers) and are rounded to the nearest model frame, a range
-        keeping at least one.
+        each clip), each held at the joint's mean position over it.  Frames
+        count at the output rate (the exported BVH's 0-based frame numbers) and
+        are rounded to the nearest model frame, a range keeping at least one.
     targets : dict, optional
         ``joint -> [[frame, x, y, z], ...]`` explicit targets (metres), added
         to the detected ones (all clips).  ``frame`` is an exported frame number
@@ -408,20 +336,27 @@ def ik(
     speed_threshold : float, optional
         Horizontal speed (m/s) below which an effector may be in contact;
         default the larger of 0.5 m/s and its median speed.
+    min_contact : float
+        Seconds; shorter detected contact runs are dropped.
+    contact_gap : float
+        Seconds; detected runs of one effector closer than this are one contact.
+    ease : float
+        Seconds over which the correction a target makes eases in and out: the
+        correction from the unconstrained solve gets the smoothness weight
+        ``w1 · (ease · rate)⁴`` (:func:`~.ik_solver.solve_limb`); 0 is the
+        paper's Eq. 7 alone.
+    range_margin : float
+        Radians; each Euler channel of a non-root joint stays within the inputs'
+        range widened by this (:func:`joint_limits`).
+    stiffness : float
+        Weight of a detected contact's squared target distance (per m²) against
+        Eq. 7's terms: the default 1e6 makes 1 mm off cost as much as 1 rad off
+        ``q̄``.  Given ``contacts`` and ``targets`` weigh :data:`GIVEN_WEIGHT`
+        (100) times more, so they are met where reachable.
     tolerance : float
         Metres; a constraint met within it counts as reached, others are reported.
-    release : float
-        Metres; a detected contact whose target is missed by more than this
-        ends at that frame (the foot lifts off early); contacts given in
-        ``contacts`` are held to the end.
-    max_change : float
-        Radians; each DOF stays within this of its sampled value (keeps the
-        knee and elbow on the sampled side of full extension).
-    blend : float
-        Seconds over which the correction of a limb eases back to the sample
-        after its last constrained frame (raised cosine).
     max_iter : int
-        SLSQP iterations per frame.
+        Gauss–Newton steps of each limb's solve at most.
     mode : {"auto", "off"}
         ``off`` passes the variants through.
     output_rate : float, optional
@@ -445,7 +380,9 @@ def ik(
         ``exported_frame`` where it is held, ``error`` m (null: its limb has
         no varying DOF), ``reached``) and
         ``unreachable`` (``frame``, ``model_frame``, ``effectors``, ``error``);
-        the limbs, ``rate`` (model), ``output_rate`` and the thresholds used.
+        ``jerk_p99`` (m/s³, joint positions pooled over the clips: ``sampled``
+        and ``cleaned``), ``qbar`` (``"predicted"`` or ``"sample"``), the
+        limbs, ``rate`` (model), ``output_rate`` and the thresholds used.
     """
     if variants.kind != "motion":
         why = f"kind {variants.kind!r} has no skeleton"
@@ -456,41 +393,94 @@ def ik(
         variants = variants.replace(attrs={**variants.attrs, "output_rate": float(output_rate)})
     if mode == "off":
         return {"variants": variants, "report": {"skipped": "off"}}
+    for name, v, lo in (("w1", w1, 0.0), ("stiffness", stiffness, 0.0)):
+        if not (v > lo and math.isfinite(v)):
+            raise IKError(f"{name}: must be a finite number > 0, got {v!r}")
+    if not (w2 >= 0 and math.isfinite(w2)):
+        raise IKError(f"w2: must be a finite number >= 0, got {w2!r}")
+    if predicted is not None:
+        _check_predicted(variants, predicted)
     sk = variants.skeleton
     up = "xyz".index(variants.attrs.get("up", "y"))
     groups = _effector_groups(sk, effectors, contacts, targets)
     limbs = [_make_limb(variants, g) for g in groups]
-    solver = _Solver(w1=w1, w2=w2, tolerance=tolerance, release=release, max_change=max_change,
-                     max_iter=max_iter, n_blend=max(1, int(round(blend * variants.rate))))
+    if not (ease >= 0 and math.isfinite(ease)):
+        raise IKError(f"ease: must be a finite number of seconds >= 0, got {ease!r}")
+    solver = _Solver(w1=w1, w2=w2, w_ease=w1 * (ease * float(variants.rate)) ** 4,
+                     tolerance=tolerance, stiffness=stiffness, max_iter=max_iter)
     eff_all = sorted({e for g in groups for e in g})
     frames = _Frames(rate=float(variants.rate), output_rate=export_rate(variants))
-    out_trajs = []
+    rate = float(variants.rate)
     report: dict[str, Any] = {"clips": [], "limbs": [[sk.names[e] for e in g] for g in groups]}
+    low, high = joint_limits(variants, range_margin)
     solved = _played_in_order(variants)
-    for c, motion in enumerate(clips_to_motions(solved)):
+    means = solved if predicted is None else _played_in_order(predicted)
+    # Eq. 7 without constraints: every DOF, within its limits
+    smooth = solved.replace(trajectories=[eq7_track(t, low, high, w1=w1, w2=w2)
+                                          for t in means.trajectories])
+    lim_all = np.full((2, len(variants.dof_names)), np.inf) * np.array([[-1.0], [1.0]])
+    lim_all[:, variants.varying] = low, high
+    out_trajs = []
+    for c, motion in enumerate(clips_to_motions(smooth)):
         pos, grot = forward_kinematics(
             sk, motion.rotations, motion.root_position, translations=motion.translations
         )
         runs_of, fixed, given = _clip_constraints(
-            sk, pos, eff_all, rate=variants.rate, up=up, effectors=effectors, contacts=contacts,
+            sk, pos, eff_all, rate=rate, up=up, effectors=effectors, contacts=contacts,
             targets=targets, height_threshold=height_threshold, speed_threshold=speed_threshold,
-            frames=frames, clip=solved.names[c],
+            min_contact=min_contact, contact_gap=contact_gap, frames=frames,
+            clip=solved.names[c],
         )
-        traj, clip_report = _clean_clip(solved, c, pos, grot, limbs, eff_all, runs_of, fixed,
-                                        given, contacts=contacts, solver=solver, frames=frames,
-                                        ctx=ctx)
+        traj, clip_report = _clean_clip(smooth, means, c, pos, grot, limbs, eff_all, runs_of,
+                                        fixed, given, lim_all, contacts=contacts,
+                                        solver=solver, frames=frames, ctx=ctx)
         out_trajs.append(traj)
         report["clips"].append(clip_report)
+    origins = variants.origins
     if solved is not variants:  # the loop's cycles back as the variants they are
         out_trajs = np.split(out_trajs[0], np.cumsum(variants.lengths)[:-1])
         report["clips"][0]["variants"] = list(variants.names)
+        # the root DOFs moved: each cycle starts where the cleaned one before it ends
+        chained = chain_origins(variants, out_trajs)
+        origins = variants.origins if chained is None else chained
+    cleaned = variants.replace(trajectories=out_trajs, origins=origins,
+                               attrs={**variants.attrs, "ik": True})
     report.update(
         {"w1": w1, "w2": w2, "height_threshold": height_threshold,
-         "speed_threshold": speed_threshold, "tolerance": tolerance,
-         "rate": frames.rate, "output_rate": frames.output_rate}
+         "speed_threshold": speed_threshold, "min_contact": min_contact,
+         "contact_gap": contact_gap, "ease": ease, "range_margin": range_margin,
+         "stiffness": stiffness,
+         "tolerance": tolerance, "rate": frames.rate, "output_rate": frames.output_rate,
+         "qbar": "sample" if predicted is None else "predicted",
+         "jerk_p99": {"sampled": _jerk_p99(solved), "cleaned": _jerk_p99(
+             _played_in_order(cleaned))}}
     )
-    cleaned = variants.replace(trajectories=out_trajs, attrs={**variants.attrs, "ik": True})
     return {"variants": cleaned, "report": report}
+
+
+def _check_predicted(variants: Clips, predicted: Clips) -> None:
+    """``predicted`` has the clips and DOF layout of ``variants`` (else one-line IKError)."""
+    if predicted.dof_names != variants.dof_names or predicted.n_clips != variants.n_clips \
+            or not np.array_equal(predicted.lengths, variants.lengths):
+        raise IKError(
+            f"predicted: {predicted.n_clips} clips of {np.asarray(predicted.lengths).tolist()} "
+            f"frames and {len(predicted.dof_names)} DOFs do not match the variants' "
+            f"{variants.n_clips} of {np.asarray(variants.lengths).tolist()} and "
+            f"{len(variants.dof_names)} (wire the same "
+            f"sample node's variants and predicted)"
+        )
+
+
+def _jerk_p99(clips: Clips) -> float:
+    """p99 of the per-frame joint-position jerk pooled over the clips, m/s³."""
+    js = []
+    for m in clips_to_motions(clips):
+        p, _ = forward_kinematics(clips.skeleton, m.rotations, m.root_position,
+                                  translations=m.translations)
+        js.append(jerk_per_frame(p, clips.rate))
+    j = np.concatenate(js) if js else np.zeros(0)
+    j = j[np.isfinite(j)]
+    return float(np.percentile(j, 99)) if j.size else 0.0
 
 
 def _played_in_order(variants: Clips) -> Clips:
@@ -557,6 +547,8 @@ def _clip_constraints(
     targets: dict[str, list[list[float]]] | None,
     height_threshold: float,
     speed_threshold: float | None,
+    min_contact: float = 0.0,
+    contact_gap: float = 0.0,
     frames: _Frames | None = None,
     clip: str = "clip",
 ) -> tuple[dict[int, list[tuple[int, int]]], dict[int, np.ndarray], list[tuple[int, int, int]]]:
@@ -572,7 +564,7 @@ def _clip_constraints(
     rate : float
     up : int
         Up axis index.
-    effectors, contacts, targets, height_threshold, speed_threshold
+    effectors, contacts, targets, height_threshold, speed_threshold, min_contact, contact_gap
         As in the ``ik`` stage (``contacts`` and ``targets`` frames at the output rate).
     frames : _Frames, optional
         The model and output rates (default: both ``rate``).
@@ -613,8 +605,9 @@ def _clip_constraints(
                  if F > 1 else np.zeros(F))
             s_thr = (max(0.5, float(np.median(v))) if speed_threshold is None
                      else speed_threshold)
-            runs = true_runs((p[:, up] < floor + height_threshold) & (v < s_thr),
-                             min_length=2)
+            runs = stance_runs((p[:, up] < floor + height_threshold) & (v < s_thr),
+                               gap=int(round(contact_gap * rate)),
+                               min_length=max(2, int(round(min_contact * rate))))
         else:
             runs = []
         runs_of[e] = [(a, b) for a, b in runs if b > a]
@@ -642,6 +635,34 @@ def _clip_constraints(
     return runs_of, fixed, given
 
 
+def stance_runs(mask: np.ndarray, *, gap: int, min_length: int) -> list[tuple[int, int]]:
+    """Contact runs of a per-frame contact mask, held as whole stances.
+
+    Parameters
+    ----------
+    mask : (F,) bool ndarray
+        Frames where the effector may be in contact.
+    gap : int
+        Runs separated by at most this many frames are joined (a noisy stance
+        that flickers is one contact).
+    min_length : int
+        Joined runs shorter than this are dropped.
+
+    Returns
+    -------
+    list of (int, int)
+        Half-open frame ranges, in order.
+    """
+    runs = true_runs(mask)
+    joined: list[tuple[int, int]] = []
+    for a, b in runs:
+        if joined and a - joined[-1][1] <= gap:
+            joined[-1] = (joined[-1][0], b)
+        else:
+            joined.append((a, b))
+    return [(a, b) for a, b in joined if b - a >= min_length]
+
+
 def _contact_run(row: Any, name: str, frames: _Frames, F: int) -> tuple[int, int]:
     """A given ``[start, stop]`` of exported frames as a model-frame range clipped to ``F``.
 
@@ -657,7 +678,8 @@ def _contact_run(row: Any, name: str, frames: _Frames, F: int) -> tuple[int, int
 
 
 def _clean_clip(
-    clips: Clips,
+    smooth: Clips,
+    means: Clips,
     c: int,
     pos: np.ndarray,
     grot: np.ndarray,
@@ -666,16 +688,39 @@ def _clean_clip(
     runs_of: dict[int, list[tuple[int, int]]],
     fixed: dict[int, np.ndarray],
     given: list[tuple[int, int, int]],
+    limits: np.ndarray,
     *,
     contacts: dict[str, list[list[int]]] | None,
     solver: _Solver,
     frames: _Frames,
     ctx: Context,
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """Clip ``c`` with every limb cleaned; its varying DOFs ``(F, D)`` and its report entry
-    (frame numbers at the output rate, see the ``ik`` stage)."""
-    sk = clips.skeleton
-    full = clips.full(c)
+    """Clip ``c`` with every constrained limb solved; its varying DOFs ``(F, D)`` and its
+    report entry (frame numbers at the output rate, see the ``ik`` stage).
+
+    Parameters
+    ----------
+    smooth : Clips
+        The unconstrained Eq. 7 solve (:func:`eq7_track`) of every clip.
+    means : Clips
+        The ``q̄`` of every clip.
+    c : int
+    pos, grot : (F, J, 3), (F, J, 4) float ndarray
+        Joint positions and global rotations of ``smooth``'s clip ``c``.
+    limbs : list of Limb
+    eff_all : list of int
+    runs_of, fixed, given
+        From :func:`_clip_constraints`.
+    limits : (2, D_all) float ndarray
+        Joint limits of every DOF (:func:`joint_limits`; ``±inf`` for constants).
+    contacts : dict or None
+        The ``ik`` stage's ``contacts`` (joints whose contacts were given).
+    solver : _Solver
+    frames : _Frames
+    ctx : Context
+    """
+    sk = smooth.skeleton
+    full, qbar = smooth.full(c), means.full(c)
     errs: dict[str, list[float]] = {sk.names[e]: [] for e in eff_all}
     reached: dict[str, list[float]] = {sk.names[e]: [] for e in eff_all}
     held: dict[str, list[int]] = {sk.names[e]: [] for e in eff_all}
@@ -683,23 +728,45 @@ def _clean_clip(
     unreachable: list[dict[str, Any]] = []
     new = full.copy()
     for limb in limbs:
+        manual = [bool(contacts) and sk.names[e] in contacts for e in limb.effectors]
+        fr, ef, tg, wt = _limb_constraints(sk, limb, pos, runs_of, fixed, manual)
         if limb.dof_columns.size == 0:
             ctx.warn(f"limb {[sk.names[e] for e in limb.effectors]} has no varying DOF")
             continue
-        manual = [bool(contacts) and sk.names[e] in contacts for e in limb.effectors]
-        angles = _chain_angles(sk, limb, clips.dof_names, full)
-        _clean_limb(sk, limb, full, new, angles, pos, grot, runs_of, fixed, manual, solver,
-                    errs=errs, reached=reached, unreachable=unreachable, held=held,
-                    target_errors=target_errors)
+        if fr.size == 0:
+            continue
+        cols = limb.dof_columns
+        fk = ChainFK(sk, limb.joints, limb.dof_slots, limb.effectors,
+                     _chain_angles(sk, limb, smooth.dof_names, full),
+                     grot[:, limb.top_parent], pos[:, limb.top_parent])
+        res = solve_limb(fk, full[:, cols], qbar[:, cols], limits[0, cols], limits[1, cols],
+                         fr, ef, tg, wt, w1=solver.w1, w2=solver.w2, w_ease=solver.w_ease,
+                         stiffness=solver.stiffness,
+                         max_iter=solver.max_iter)
+        new[:, cols] = res.q
+        ok = res.error <= solver.tolerance
+        for t, k, err, good in zip(fr.tolist(), ef.tolist(), res.error.tolist(), ok.tolist()):
+            e = limb.effectors[k]
+            errs[sk.names[e]].append(err)
+            held[sk.names[e]].append(t)
+            if good:
+                reached[sk.names[e]].append(err)
+            if np.isfinite(fixed[e][t]).all():
+                target_errors[(e, t)] = (err, good)
+        for t in np.unique(fr[~ok]).tolist():
+            at = fr == t
+            unreachable.append({"model_frame": t,
+                                "effectors": [sk.names[limb.effectors[k]] for k in ef[at]],
+                                "error": float(res.error[at].max())})
     unreachable = sorted(
         ({"frame": frames.to_exported(u["model_frame"]), **u} for u in unreachable),
         key=lambda u: (u["model_frame"], u["effectors"]),
     )
     if unreachable:
-        ctx.warn(_unreachable_summary(clips.names[c], unreachable, frames))
+        ctx.warn(_unreachable_summary(smooth.names[c], unreachable, frames))
     ranges = {k: _exported_ranges(v, frames) for k, v in held.items()}
     report = {
-        "name": clips.names[c],
+        "name": smooth.names[c],
         "output_frames": frames.n_exported(full.shape[0]),
         "constrained": ranges,
         "constrained_frames": {k: sum(b - a for a, b in v) for k, v in ranges.items()},
@@ -707,15 +774,84 @@ def _clean_clip(
         "max_error_reached": {k: (max(v) if v else 0.0) for k, v in reached.items()},
         "mean_error": {k: (float(np.mean(v)) if v else 0.0) for k, v in errs.items()},
         "targets": [
-            {"effector": sk.names[e], "frame": fr, "model_frame": t,
+            {"effector": sk.names[e], "frame": fr_, "model_frame": t,
              "exported_frame": frames.to_exported(t),
              "error": target_errors.get((e, t), (None, False))[0],
              "reached": target_errors.get((e, t), (None, False))[1]}
-            for e, fr, t in given
+            for e, fr_, t in given
         ],
         "unreachable": unreachable,
     }
-    return new[:, clips.varying], report
+    return new[:, smooth.varying], report
+
+
+def _limb_constraints(
+    sk: Skeleton,
+    limb: Limb,
+    pos: np.ndarray,
+    runs_of: dict[int, list[tuple[int, int]]],
+    fixed: dict[int, np.ndarray],
+    manual: list[bool],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The constraints of one limb: frames ``(N,)``, effector slots ``(N,)``, targets
+    ``(N, 3)`` and weights ``(N,)`` (1 for a detected contact, :data:`GIVEN_WEIGHT` for a
+    given contact or target).
+
+    Of the detected contacts of the limb, each frame holds only the deepest
+    touching effector (the toe while it touches, else the ankle), so the foot
+    rolls about its heel and then its ball; each stretch of frames holding
+    one effector in one run holds it at its mean position over the stretch
+    (in ``pos``), except a stretch that takes over from another effector's
+    without a gap: its target is where the last target put the foot (its
+    position in ``pos`` at the switch, moved as the last effector was).
+    Given contacts (``manual``) are held over their whole run at its mean;
+    an explicit target replaces a contact on its frame.
+    """
+    F = pos.shape[0]
+    E = len(limb.effectors)
+    depth = np.array([len(limb_of(sk, e)) for e in limb.effectors])
+    run_id = np.full((F, E), -1)
+    explicit = np.zeros((F, E), dtype=bool)
+    for k, e in enumerate(limb.effectors):
+        for r, (a, b) in enumerate(runs_of[e]):
+            run_id[a:b, k] = r
+        explicit[:, k] = np.isfinite(fixed[e]).all(axis=1)
+    detected = (run_id >= 0) & ~np.asarray(manual, dtype=bool)[None, :]
+    deepest = np.where(detected, depth[None, :], -1)
+    keep = detected & (deepest == deepest.max(axis=1, keepdims=True))
+    keep &= np.cumsum(keep, axis=1) == 1  # one effector per frame (the first of equal depth)
+    held = (keep | ((run_id >= 0) & ~detected)) & ~explicit
+    stretches = []  # (start, stop, effector slot): one effector held in one run
+    for k in range(E):
+        for a, b in true_runs(held[:, k]):
+            cuts = np.flatnonzero(np.diff(run_id[a:b, k])) + 1 + a
+            stretches += [(int(u), int(v), k) for u, v in zip(np.r_[a, cuts], np.r_[cuts, b])]
+    fr, ef, tg, wt = [], [], [], []
+    last: tuple[int, int, np.ndarray] | None = None  # (stop, slot, target) of the last stretch
+    for u, v, k in sorted(stretches):
+        e = limb.effectors[k]
+        if last is not None and last[0] == u and last[1] != k:
+            # the foot rolls onto another effector: its target continues the last one's
+            # (the foot at the switch as the last target put it), so nothing jumps
+            prev = limb.effectors[last[1]]
+            target = pos[u - 1, e] + last[2] - pos[u - 1, prev]
+        else:
+            target = pos[u:v, e].mean(axis=0)
+        fr.append(np.arange(u, v))
+        ef.append(np.full(v - u, k))
+        tg.append(np.broadcast_to(target, (v - u, 3)))
+        wt.append(np.full(v - u, GIVEN_WEIGHT if manual[k] else 1.0))
+        last = (v, k, target)
+    for k, e in enumerate(limb.effectors):
+        t = np.flatnonzero(explicit[:, k])
+        fr.append(t)
+        ef.append(np.full(t.size, k))
+        tg.append(fixed[e][t])
+        wt.append(np.full(t.size, GIVEN_WEIGHT))
+    if not fr:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+    return (np.concatenate(fr).astype(np.int64), np.concatenate(ef).astype(np.int64),
+            np.concatenate(tg).reshape(-1, 3), np.concatenate(wt))
 
 
 def _exported_ranges(model_frames: list[int], frames: _Frames) -> list[list[int]]:
@@ -737,156 +873,6 @@ def _exported_ranges(model_frames: list[int], frames: _Frames) -> list[list[int]
         else:
             out.append([a, b])
     return out
-
-
-def _limb_run_ids(limb: Limb, runs_of: dict[int, list[tuple[int, int]]], F: int) -> np.ndarray:
-    """``(F, E)`` index of each effector's contact run at each frame (-1: none)."""
-    run_id = np.full((F, len(limb.effectors)), -1)
-    for k, e in enumerate(limb.effectors):
-        for r, (a, b) in enumerate(runs_of[e]):
-            run_id[a:b, k] = r
-    return run_id
-
-
-def _frame_targets(
-    limb: Limb,
-    t: int,
-    run_id: np.ndarray,
-    depth: list[int],
-    manual: list[bool],
-    fixed: dict[int, np.ndarray],
-    planted: dict[tuple[int, int], np.ndarray],
-) -> tuple[np.ndarray, list[tuple[int, int]]]:
-    """Targets ``(E, 3)`` of the limb's effectors at frame ``t`` (NaN: free) and new contacts.
-
-    Explicit targets are all held; of the detected contacts only the deepest
-    (toe over ankle) is, so the foot can roll about it; manual contacts are
-    always held.  A contact run not yet planted is returned as pending
-    ``(effector, run)`` (planted where the effector ends up this frame).
-    """
-    T = np.full((len(limb.effectors), 3), np.nan)
-    pending = []
-    touching = [k for k in range(len(limb.effectors)) if run_id[t, k] >= 0]
-    held = max(touching, key=lambda k: depth[k]) if touching else -1
-    for k, e in enumerate(limb.effectors):
-        if np.isfinite(fixed[e][t]).all():
-            T[k] = fixed[e][t]
-        elif run_id[t, k] >= 0 and (k == held or manual[k]):
-            key = (k, int(run_id[t, k]))
-            if key in planted:
-                T[k] = planted[key]
-            else:
-                pending.append(key)
-    return T, pending
-
-
-def _lift_off(run_id: np.ndarray, t: int, active: np.ndarray, manual: list[bool]) -> None:
-    """End the detected contact runs of the ``active`` effectors after frame ``t``."""
-    for k in np.flatnonzero(active):
-        r = run_id[t, k]
-        if r >= 0 and not manual[k]:
-            run_id[t + 1 :, k] = np.where(run_id[t + 1 :, k] == r, -1, run_id[t + 1 :, k])
-
-
-def _clean_limb(
-    sk: Skeleton,
-    limb: Limb,
-    full: np.ndarray,
-    new: np.ndarray,
-    angles: np.ndarray,
-    pos: np.ndarray,
-    grot: np.ndarray,
-    runs_of: dict[int, list[tuple[int, int]]],
-    fixed: dict[int, np.ndarray],
-    manual: list[bool],
-    solver: _Solver,
-    *,
-    errs: dict[str, list[float]],
-    reached: dict[str, list[float]],
-    unreachable: list[dict[str, Any]],
-    held: dict[str, list[int]] | None = None,
-    target_errors: dict[tuple[int, int], tuple[float, bool]] | None = None,
-) -> None:
-    """Solve one limb frame by frame into ``new`` (Lau Eq. 7), easing back after contacts.
-
-    Parameters
-    ----------
-    sk : Skeleton
-    limb : Limb
-    full : (F, D_all) float ndarray
-        Sampled DOFs of the clip.
-    new : (F, D_all) float ndarray
-        Cleaned DOFs, updated in place (the limb's columns).
-    angles : (F, J_c, 3) float ndarray
-        Sampled Euler angles of the chain (:func:`_chain_angles`).
-    pos, grot : (F, J, 3), (F, J, 4) float ndarray
-        Sampled joint positions and global rotations.
-    runs_of, fixed
-        From :func:`_clip_constraints`.
-    manual : list of bool
-        Per effector: its contacts were given (never lifted off).
-    solver : _Solver
-    errs, reached, unreachable
-        Per-effector errors, errors on reached frames and unreachable frames
-        (``model_frame``, ``effectors``, ``error``), appended to.
-    held : dict, optional
-        Per effector name: its constrained model frames, appended to.
-    target_errors : dict, optional
-        ``(effector, model frame) -> (error, reached)`` of the explicit targets, set.
-    """
-    held = {} if held is None else held
-    target_errors = {} if target_errors is None else target_errors
-    cols = limb.dof_columns
-    F = full.shape[0]
-    depth = [len(limb_of(sk, e)) for e in limb.effectors]
-    run_id = _limb_run_ids(limb, runs_of, F)
-    planted: dict[tuple[int, int], np.ndarray] = {}  # (effector, run) -> target
-    offset, since = None, 0
-    n_blend = solver.n_blend
-    for t in range(F):
-        qbar = full[t, cols]
-        qprev = None
-        if t >= 2:
-            qprev = 2 * new[t - 1, cols] - new[t - 2, cols]
-        elif t == 1:
-            qprev = new[0, cols]
-        T, pending = _frame_targets(limb, t, run_id, depth, manual, fixed, planted)
-        act = np.isfinite(T).all(axis=-1)
-        if not act.any() and not pending:
-            # after a contact: ease the correction back to the sample
-            if offset is not None and since < n_blend:
-                since += 1
-                new[t, cols] = qbar + offset * 0.5 * (1 + np.cos(np.pi * since / n_blend))
-            continue
-        fk = _ChainFK(sk, limb, angles[t], grot[t, limb.top_parent], pos[t, limb.top_parent])
-        if act.any():
-            q, err, ok = _solve_frame(fk, qbar, qprev, T, act, solver)
-            if not ok:
-                names = [sk.names[e] for k, e in enumerate(limb.effectors) if act[k]]
-                unreachable.append({"model_frame": t, "effectors": names, "error": err})
-                if err > solver.release:  # lift off: end these detected contacts here
-                    _lift_off(run_id, t, act, manual)
-        else:
-            w1, w2 = solver.w1, solver.w2
-            q = qbar if qprev is None else (w1 * qbar + w2 * qprev) / (w1 + w2)
-            ok = True
-        new[t, cols] = q
-        P = fk(q[None])[0]
-        offset, since = new[t, cols] - qbar, 0
-        for key in pending:  # a contact starts: plant where the effector is now
-            planted[key] = P[key[0]].copy()
-            errs[sk.names[limb.effectors[key[0]]]].append(0.0)
-            reached[sk.names[limb.effectors[key[0]]]].append(0.0)
-            held.setdefault(sk.names[limb.effectors[key[0]]], []).append(t)
-        for k, e in enumerate(limb.effectors):
-            if act[k]:
-                err_k = float(np.linalg.norm(P[k] - T[k]))
-                errs[sk.names[e]].append(err_k)
-                held.setdefault(sk.names[e], []).append(t)
-                if ok:
-                    reached[sk.names[e]].append(err_k)
-                if np.isfinite(fixed[e][t]).all():
-                    target_errors[(e, t)] = (err_k, err_k <= solver.tolerance)
 
 
 def _chain_angles(sk: Skeleton, limb: Limb, names: list[str], full: np.ndarray) -> np.ndarray:
@@ -926,3 +912,4 @@ def _unreachable_summary(name: str, unreachable: list[dict[str, Any]],
     ]
     note = frames.note() if frames is not None else ""
     return f"{name}: target unreachable, best effort: {'; '.join(parts)}{note}"
+

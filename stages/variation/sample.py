@@ -66,6 +66,7 @@ from mocapflow.stages.variation.training import (
 __all__ = [
     "SampleError",
     "Sampler",
+    "chain_origins",
     "input_range",
     "matched_amplitude",
     "perlin_noise",
@@ -571,7 +572,7 @@ def sample(
     origins = None
     if loop:
         x, mu, _ = sampler.cycles(ctx.rng, count=count, sigma=sigma, noise_time=noise_time)
-        origins = _chain_origins(clips, x)
+        origins = chain_origins(clips, x)
     else:
         x, mu = sampler.run(ctx.rng, count=count, length=length, sigma=sigma, stop_at_end=stop,
                             noise_time=noise_time, predicted=True,
@@ -601,7 +602,7 @@ def _variant_length(
     return length, stop
 
 
-def _chain_origins(clips: Clips, cycles: list[np.ndarray]) -> np.ndarray | None:
+def chain_origins(clips: Clips, cycles: list[np.ndarray]) -> np.ndarray | None:
     """Origins ``(C, 4)`` that chain consecutive cycles: each starts where the last ends.
 
     With the root as heading rate and heading-frame velocity (``root="heading"``)

@@ -95,3 +95,35 @@ def test_output_dims_name_a_bare_ndarray_output():
         _encode_outputs(spec, {"track": np.zeros((2, 2)), "other": np.zeros(1)})
     with pytest.raises(TypeError, match="output_dims for unknown outputs"):
         stage("dims_probe_bad", outputs=("a",), output_dims={"b": ("x",)})(lambda: {})
+
+
+@stage("toy_optional_input_test", outputs=("values",))
+def _optional_input(values, offset=None, *, scale: float = 1.0):
+    """An input that may be left unwired (``offset``)."""
+    out = np.asarray(values, dtype=np.float64) * scale
+    return {"values": out if offset is None else out + np.asarray(offset)}
+
+
+def test_optional_inputs_may_be_left_unwired(tmp_path, store, graph_of):
+    """An input defaulting to None: unwired in a graph (or left out in Python) it is None;
+    wired, it is loaded as any input; an input with another default is refused."""
+    cfg = write_config(tmp_path / "o.yaml", """\
+        nodes:
+          src: {stage: toy_source, params: {n: 4}}
+          alone: {stage: toy_optional_input_test, inputs: {values: src.values},
+                  params: {scale: 2.0}}
+          both: {stage: toy_optional_input_test,
+                 inputs: {values: src.values, offset: src.values}}
+        """)
+    r = run(graph_of(cfg), store)
+    assert r.ok
+    src = codecs.decode(store.load("toy_source", r.records[0]["key"], "values"))
+    got = {rec["node"]: codecs.decode(store.load("toy_optional_input_test", rec["key"], "values"))
+           for rec in r.records if rec["node"] != "src"}
+    np.testing.assert_array_equal(got["alone"], 2 * src)
+    np.testing.assert_array_equal(got["both"], 2 * src)
+    np.testing.assert_array_equal(_optional_input(src)["values"], src)  # Python call
+    with pytest.raises(TypeError, match="input 'b' may only default to None"):
+        @stage("toy_bad_default_test", outputs=("v",))
+        def _bad(a, b=1.0):
+            return {"v": a}
