@@ -169,3 +169,23 @@ def test_crowd_window_keeps_the_gait_and_checks_its_param(walk_model):
     assert abs(np.median(cads) / ref - 1) <= 0.15
     with pytest.raises(SampleError, match="window"):
         Sampler(model, window=0)
+
+
+@pytest.mark.parametrize("window", [None, 40])
+def test_agent_blocks_give_the_transition_of_one_batch(walk_model, window, monkeypatch):
+    """Agents go through the transition network AGENT_BLOCK at a time (the kernel tables
+    of a block stay in cache): the same means and spreads as all agents in one batch."""
+    import mocapflow.stages.variation.sample as sample_module
+
+    _, model = walk_model
+    s = Sampler(model, window=window)
+    rng = np.random.default_rng(5)
+    x = s.run(rng, count=100, length=6, sigma=1.0, noise_time=0.1)  # 100 agents in motion
+    st = s.stats
+    zp, zc = ((x[:, t] - st["mean"]) / st["std"] for t in (4, 5))
+    blocked = s.transition(zp, zc)
+    assert sample_module.AGENT_BLOCK < 100
+    monkeypatch.setattr(sample_module, "AGENT_BLOCK", 1000)
+    whole = s.transition(zp, zc)
+    for a, b in zip(blocked, whole):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
