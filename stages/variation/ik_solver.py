@@ -10,7 +10,8 @@ after it as well as those before (solved frame by frame, the term can only
 follow the past, and corrections ring):
 
 * :func:`eq7_track`: every DOF without constraints, within its joint limits
-  (a banded linear solve, bounded columns by :func:`scipy.optimize.lsq_linear`);
+  (a banded linear solve; columns it takes beyond a limit again within the
+  limits by :func:`projected_gauss_newton`);
 * :func:`solve_limb`: one limb's DOFs over the whole clip with its effector
   targets as stiff penalties (:func:`projected_gauss_newton`, bounds = joint
   limits, a sparse Jacobian from :class:`ChainFK` by finite differences).
@@ -25,7 +26,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import sparse
 from scipy.linalg import solveh_banded
-from scipy.optimize import lsq_linear
 from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 
@@ -77,15 +77,14 @@ def eq7_track(
     q = solveh_banded(ab, w1 * qbar, check_finite=False)
     out = (q < low - 1e-12) | (q > high + 1e-12)
     bad = np.flatnonzero(out.any(axis=0))
-    if bad.size:
+    if bad.size:  # the bounded columns: a linear least-squares problem within the limits
         A = sparse.vstack([np.sqrt(w1) * sparse.identity(F), np.sqrt(w2) * D2]).tocsr()
         zeros = np.zeros(F - 2)
         for d in bad:
             b = np.concatenate([np.sqrt(w1) * qbar[:, d], zeros])
-            x0 = np.clip(q[:, d], low[d], high[d])
-            res = lsq_linear(A, b, bounds=(low[d], high[d]), method="trf", tol=1e-12,
-                             lsmr_tol="auto", max_iter=200)
-            q[:, d] = np.clip(res.x if np.all(np.isfinite(res.x)) else x0, low[d], high[d])
+            lo, hi = np.full(F, low[d]), np.full(F, high[d])
+            q[:, d], _ = projected_gauss_newton(lambda x, b=b: A @ x - b, lambda x: A,
+                                                np.clip(q[:, d], lo, hi), lo, hi, max_iter=50)
     return q
 
 
