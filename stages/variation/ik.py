@@ -62,8 +62,10 @@ Loopable variants
     report has one entry for it (``variants``: the variant names).
 Unreachable targets
     A target the solve misses by more than ``tolerance`` is reported (the
-    limb takes the pose of least cost, best effort) and a warning names the
-    variant, frames, effectors and the worst miss.
+    limb takes the pose of least cost, best effort; ``given``: a given contact
+    or target).  A warning names the variant, frames, effectors and the worst
+    miss of the given ones and of detected contacts missed by more than
+    :data:`DETECTED_WARN` (1 cm).
 """
 
 from __future__ import annotations
@@ -86,7 +88,12 @@ from mocapflow.stages.variation.sample import chain_origins
 GIVEN_WEIGHT = 100.0
 """Weight of a given contact or explicit target relative to a detected contact."""
 
+DETECTED_WARN = 0.01
+"""Metres: a detected contact missed by more than this is warned about (all misses beyond
+``tolerance`` are in the report)."""
+
 __all__ = [
+    "DETECTED_WARN",
     "GIVEN_WEIGHT",
     "IKError",
     "Limb",
@@ -379,7 +386,8 @@ def ik(
         target: ``effector``, ``frame`` as given, ``model_frame``,
         ``exported_frame`` where it is held, ``error`` m (null: its limb has
         no varying DOF), ``reached``) and
-        ``unreachable`` (``frame``, ``model_frame``, ``effectors``, ``error``);
+        ``unreachable`` (``frame``, ``model_frame``, ``effectors``, ``error``,
+        ``given``);
         ``jerk_p99`` (m/s³, joint positions pooled over the clips: ``sampled``
         and ``cleaned``), ``qbar`` (``"predicted"`` or ``"sample"``), the
         limbs, ``rate`` (model), ``output_rate`` and the thresholds used.
@@ -757,13 +765,16 @@ def _clean_clip(
             at = fr == t
             unreachable.append({"model_frame": t,
                                 "effectors": [sk.names[limb.effectors[k]] for k in ef[at]],
-                                "error": float(res.error[at].max())})
+                                "error": float(res.error[at].max()),
+                                "given": bool((wt[at] > 1.0).any())})
     unreachable = sorted(
         ({"frame": frames.to_exported(u["model_frame"]), **u} for u in unreachable),
         key=lambda u: (u["model_frame"], u["effectors"]),
     )
-    if unreachable:
-        ctx.warn(_unreachable_summary(smooth.names[c], unreachable, frames))
+    # a detected contact is best effort: misses under DETECTED_WARN are reported, not warned
+    loud = [u for u in unreachable if u["given"] or u["error"] > DETECTED_WARN]
+    if loud:
+        ctx.warn(_unreachable_summary(smooth.names[c], loud, frames))
     ranges = {k: _exported_ranges(v, frames) for k, v in held.items()}
     report = {
         "name": smooth.names[c],
@@ -889,13 +900,11 @@ def _chain_angles(sk: Skeleton, limb: Limb, names: list[str], full: np.ndarray) 
 
 
 def _frame_ranges(model_frames: list[int], frames: _Frames | None = None) -> str:
-    """``[3, 4, 5, 9]`` → ``"frames 3-5, frame 9"`` (runs of model frames, named by their
-    first and last exported frame numbers when ``frames`` is given)."""
-    out = frames.to_exported if frames is not None else int
-    ranges = _exported_ranges(model_frames, _Frames(1.0, 1.0))
-    return ", ".join(
-        f"frame {out(a)}" if b == a + 1 else f"frames {out(a)}-{out(b - 1)}" for a, b in ranges
-    )
+    """``[3, 4, 5, 9]`` → ``"frames 3-5, frame 9"``: runs of model frames as the exported
+    frames in their time span when ``frames`` is given (:func:`_exported_ranges`; runs that
+    meet at the output rate are one)."""
+    ranges = _exported_ranges(model_frames, frames or _Frames(1.0, 1.0))
+    return ", ".join(f"frame {a}" if b == a + 1 else f"frames {a}-{b - 1}" for a, b in ranges)
 
 
 def _unreachable_summary(name: str, unreachable: list[dict[str, Any]],

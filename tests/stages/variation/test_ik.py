@@ -12,7 +12,15 @@ from mocapflow.stages.motion.kinematics import motion_positions
 from mocapflow.stages.motion.simulate.gait import procedural_walk
 from mocapflow.stages.motion.simulate.skeleton import procedural_skeleton
 from mocapflow.stages.variation.clips import clips_from_motions, clips_to_motions, make_clips
-from mocapflow.stages.variation.ik import IKError, ik, joint_limits, limb_of, stance_runs
+from mocapflow.stages.variation.ik import (
+    IKError,
+    _frame_ranges,
+    _Frames,
+    ik,
+    joint_limits,
+    limb_of,
+    stance_runs,
+)
 from mocapflow.stages.variation.ik_solver import eq7_track, projected_gauss_newton
 
 
@@ -48,6 +56,9 @@ def test_planted_feet_within_millimetres_and_less_skate(skating):
     assert sum(r["constrained_frames"].values()) > 60
     # detected contacts weigh `stiffness` (1e6) against the eased correction: a few mm
     assert max(r["max_error"].values()) <= 3e-3  # measured 2.6 mm
+    # misses beyond `tolerance` are reported; a detected contact's under 1 cm is not warned
+    assert r["unreachable"] and not any(u["given"] for u in r["unreachable"])
+    assert not ctx.warnings
     before, after = _skate(bad, toes, thr), _skate(out, toes, thr)
     assert after < 0.5 * before  # measured: 0.092 -> 0.024 m/s
     # stiffer contacts are met within a millimetre, with no warning
@@ -201,3 +212,12 @@ def test_stage_passes_strokes_and_off_through_and_limbs():
         "LHipJoint", "LeftUpLeg", "LeftLeg", "LeftFoot"]
     assert [sk.names[j] for j in limb_of(sk, sk.index("LeftHand"))][-2:] == [
         "LeftArm", "LeftForeArm"]
+
+
+def test_warnings_name_exported_frames_once():
+    """Model frames at 60 fps exported at 30: two model frames that are one exported frame
+    are named once (the report said "frames 18-18", "frame 2, frames 2-3")."""
+    thirty = _Frames(rate=60.0, output_rate=30.0)
+    assert _frame_ranges([4, 5, 6, 20], thirty) == "frames 2-3, frame 10"
+    assert _frame_ranges([36, 37], thirty) == "frame 18"
+    assert _frame_ranges([3, 4, 5, 9]) == "frames 3-5, frame 9"
