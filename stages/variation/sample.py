@@ -245,8 +245,11 @@ class Sampler:
 
         Returns
         -------
-        mean, std : (B, D) float ndarray
-            As :meth:`_transition_block`.
+        mean : (B, D) float ndarray
+            Mean of frame ``t+2`` (standardised): ``x[t+1]`` plus the kernel mean
+            of the delta, with the offset retention ``λ``.
+        std : (B, D) float ndarray
+            Standard deviation of frame ``t+2`` (standardised units).
         """
         B = zp.shape[0]
         step = AGENT_BLOCK
@@ -257,21 +260,7 @@ class Sampler:
         return (np.concatenate([m for m, _ in parts]), np.concatenate([s for _, s in parts]))
 
     def _transition_block(self, zp: np.ndarray, zc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The transition network's conditional Gaussian of the next frame (Lau Eq. 5–6).
-
-        Parameters
-        ----------
-        zp, zc : (B, D) float ndarray
-            Frames ``t`` and ``t+1``, standardised.
-
-        Returns
-        -------
-        mean : (B, D) float ndarray
-            Mean of frame ``t+2`` (standardised): ``x[t+1]`` plus the kernel mean
-            of the delta, with the offset retention ``λ``.
-        std : (B, D) float ndarray
-            Standard deviation of frame ``t+2`` (standardised units).
-        """
+        """:meth:`transition` for one block of agents (the same parameters and returns)."""
         vscale = self.vw / self.ratio
         g = np.concatenate([zp, zc, (zc - zp) * vscale], axis=1).astype(np.float32)  # (B, 3D)
         qd = (g[:, self.cols] * self.wmask).transpose(1, 0, 2)  # (D, B, pmax)
