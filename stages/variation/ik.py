@@ -401,19 +401,13 @@ def ik(
         variants = variants.replace(attrs={**variants.attrs, "output_rate": float(output_rate)})
     if mode == "off":
         return {"variants": variants, "report": {"skipped": "off"}}
-    for name, v, lo in (("w1", w1, 0.0), ("stiffness", stiffness, 0.0)):
-        if not (v > lo and math.isfinite(v)):
-            raise IKError(f"{name}: must be a finite number > 0, got {v!r}")
-    if not (w2 >= 0 and math.isfinite(w2)):
-        raise IKError(f"w2: must be a finite number >= 0, got {w2!r}")
+    _check_weights(w1=w1, stiffness=stiffness, w2=w2, ease=ease, range_margin=range_margin)
     if predicted is not None:
         _check_predicted(variants, predicted)
     sk = variants.skeleton
     up = "xyz".index(variants.attrs.get("up", "y"))
     groups = _effector_groups(sk, effectors, contacts, targets)
     limbs = [_make_limb(variants, g) for g in groups]
-    if not (ease >= 0 and math.isfinite(ease)):
-        raise IKError(f"ease: must be a finite number of seconds >= 0, got {ease!r}")
     solver = _Solver(w1=w1, w2=w2, w_ease=w1 * (ease * float(variants.rate)) ** 4,
                      tolerance=tolerance, stiffness=stiffness, max_iter=max_iter)
     eff_all = sorted({e for g in groups for e in g})
@@ -464,6 +458,15 @@ def ik(
              _played_in_order(cleaned))}}
     )
     return {"variants": cleaned, "report": report}
+
+
+def _check_weights(**values: float) -> None:
+    """``w1`` and ``stiffness`` finite and > 0, the others finite and >= 0 (else IKError)."""
+    for name, v in values.items():
+        positive = name in ("w1", "stiffness")
+        if not (math.isfinite(v) and (v > 0 if positive else v >= 0)):
+            raise IKError(f"{name}: must be a finite number {'>' if positive else '>='} 0, "
+                          f"got {v!r}")
 
 
 def _check_predicted(variants: Clips, predicted: Clips) -> None:

@@ -200,6 +200,11 @@ def test_unreachable_target_is_best_effort_with_a_warning(skating):
         ik(bad, effectors=["NoSuchJoint"])
     with pytest.raises(IKError, match="frame 500"):
         ik(bad, targets={"LeftFoot": [[500, 0, 0, 0]]})
+    for bad_param, fragment in (({"ease": -0.1}, "ease: must be a finite number >= 0"),
+                                ({"stiffness": 0.0}, "stiffness: must be a finite number > 0"),
+                                ({"range_margin": -1.0}, "range_margin: must be")):
+        with pytest.raises(IKError, match=fragment):
+            ik(bad, **bad_param)
 
 
 def test_stage_passes_strokes_and_off_through_and_limbs():
