@@ -106,7 +106,8 @@ def _config_args(p: argparse.ArgumentParser) -> None:
                    help="input files/globs replacing the config's parts (repeatable)")
     p.add_argument("--set", action="append", dest="sets", metavar="NODE.PARAM=VALUE",
                    default=[], help="override a param; VALUE is parsed as YAML (repeatable; "
-                                    "params.NAME=VALUE sets a shared param)")
+                                    "params.NAME=VALUE sets a shared param; NODE.seeds=N, "
+                                    "=[0, 7, 9] or =null sets the node's seed fan-out)")
     p.add_argument("--target", action="append", dest="targets", metavar="NODE",
                    help="target node (repeatable; default: the config's targets)")
 

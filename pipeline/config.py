@@ -23,7 +23,9 @@ checked by :func:`~mocapflow.pipeline.registry.coerce` (finite, at most
 Command-line overrides
 ----------------------
 ``sets=["node.param=value", ...]`` (values parsed as YAML; ``params.NAME=value``
-sets a shared param before interpolation) and ``parts=[glob, ...]`` (replaces the
+sets a shared param before interpolation; ``node.seeds=…`` replaces the node's
+``seeds:`` fan-out: a list of seeds, ``{count: N}``, an integer ``N`` for seeds
+``0 … N−1``, or ``null`` for one task) and ``parts=[glob, ...]`` (replaces the
 config's parts).
 """
 
@@ -505,7 +507,14 @@ def _parse_node(name: str, body: Any, raw_nodes: Any, c: FileErrors, has_parts: 
     spec = _node_stage(name, body, key, nline, c)
     inputs = _node_inputs(body, spec, raw_nodes, has_parts, key, nline, c)
     seeds = None
-    if "seeds" in body and body["seeds"] is not None:
+    sets = dict(sets)
+    if "seeds" in sets:  # --set NODE.seeds=...: the node's fan-out from the command line
+        raw = sets.pop("seeds")
+        if isinstance(raw, int) and not isinstance(raw, bool):
+            raw = {"count": raw}  # N: seeds 0 .. N-1
+        if raw is not None:
+            seeds = _parse_seeds(raw, FileErrors(CMDLINE), f"--set {name}.seeds", None)
+    elif "seeds" in body and body["seeds"] is not None:
         seeds = _parse_seeds(body["seeds"], c, f"{key}.seeds", line_of(body, "seeds"))
     gather = body.get("gather", False)
     if not isinstance(gather, bool):

@@ -109,6 +109,26 @@ def test_parts_override_missing_file(tmp_path):
               parts=[str(tmp_path / "none.txt")])
 
 
+def test_seeds_from_the_command_line():
+    """``--set NODE.seeds=…`` sets the fan-out without editing the YAML (issue 16 item 5)."""
+    text = "nodes:\n  a: {stage: toy_source, seeds: {count: 3}}\n  b: {stage: toy_source}\n"
+    assert parse_config(text).nodes["a"].seeds == [0, 1, 2]
+    for value, want in (("5", [0, 1, 2, 3, 4]), ("[0, 7, 9]", [0, 7, 9]),
+                        ("{count: 2}", [0, 1]), ("null", None)):
+        assert parse_config(text, sets=[f"a.seeds={value}"]).nodes["a"].seeds == want
+    cfg = parse_config(text, sets=["b.seeds=2"])  # a node without seeds: gets a fan-out
+    assert cfg.nodes["b"].seeds == [0, 1] and cfg.nodes["a"].seeds == [0, 1, 2]
+    assert parse_config(text, sets=["a.seeds=null", "a.seed=4"]).nodes["a"].params["seed"] == 4
+    for value, fragment in (("[1, 1]", "--set a.seeds[1]: duplicate seed 1"),
+                            ("0", "--set a.seeds.count: expected a positive integer, got 0"),
+                            ("x", "--set a.seeds: expected a non-empty list of seeds")):
+        with pytest.raises(ConfigError) as e:
+            parse_config(text, sets=[f"a.seeds={value}"])
+        assert str(e.value).startswith(f"<command line>: {fragment}"), str(e.value)
+    with pytest.raises(ConfigError, match="seed is set per task by seeds:"):
+        parse_config(text, sets=["a.seed=4"])
+
+
 def test_seeds_count_and_list(tmp_path):
     cfg = parse_config("nodes:\n  a: {stage: toy_source, seeds: {count: 3}}\n"
                        "  b: {stage: toy_source, seeds: [7, 9]}\n")
