@@ -23,8 +23,8 @@ Departures from the paper, stated
     jerk).  Joint limits are added as bounds: each Euler channel of a non-root
     joint stays within the inputs' range (``attrs["input_range"]``, set by
     the ``sample`` stage) widened by ``range_margin``, which keeps a knee from
-    bending backwards.  ``w₂`` weighs second differences of frames at the
-    model's rate.
+    bending backwards.  ``w₂`` weighs second differences of frames at 60 fps
+    (the paper's rate) and is scaled to the model's rate (:data:`W2_RATE`).
 Limbs and targets
     The limb of an effector joint is the chain of its ancestors up to (not
     including) the first joint with several children or the root; only the
@@ -85,6 +85,10 @@ from mocapflow.stages.variation.clips import Clips, clips_to_motions, export_rat
 from mocapflow.stages.variation.ik_solver import ChainFK, eq7_track, solve_limb
 from mocapflow.stages.variation.sample import chain_origins
 
+W2_RATE = 60.0
+"""Frames per second at which ``w2`` weighs second differences (the paper's rate): at
+``rate`` the weight is ``w2 · (rate / 60)⁴``, the same smoothing in time at any rate."""
+
 GIVEN_WEIGHT = 100.0
 """Weight of a given contact or explicit target relative to a detected contact."""
 
@@ -97,6 +101,7 @@ __all__ = [
     "GIVEN_WEIGHT",
     "IKError",
     "Limb",
+    "W2_RATE",
     "ik",
     "joint_limits",
     "limb_of",
@@ -320,8 +325,12 @@ def ik(
         ``predicted``), the ``q̄`` of Lau Eq. 7; same clips and layout as
         ``variants``.  Unwired: ``q̄`` is the sample itself.
     w1, w2 : float
-        Closeness and smoothness weights of Lau Eq. 7 (paper: w₁ = 1, w₂ = 5;
-        ``w2`` per second difference of model frames).
+        Closeness and smoothness weights of Lau Eq. 7 (paper: w₁ = 1, w₂ = 5).
+        ``w2`` weighs second differences of frames at 60 fps (the paper's
+        rate); at another model rate it is scaled by ``(rate / 60)⁴``
+        (:data:`W2_RATE`), so it smooths the same in time (at 120 fps, the
+        per-frame weight let the sample's noise through: jerk 1.72 × the
+        input's after IK on cmu_131_02, 0.68 × scaled).
     effectors : list of str, optional
         Effector joint names for automatic contact detection (default the
         ankle and toe joints of both feet; joints named only in ``contacts`` or
@@ -408,7 +417,8 @@ def ik(
     up = "xyz".index(variants.attrs.get("up", "y"))
     groups = _effector_groups(sk, effectors, contacts, targets)
     limbs = [_make_limb(variants, g) for g in groups]
-    solver = _Solver(w1=w1, w2=w2, w_ease=w1 * (ease * float(variants.rate)) ** 4,
+    w2_model = w2 * (float(variants.rate) / W2_RATE) ** 4  # the same smoothing in time
+    solver = _Solver(w1=w1, w2=w2_model, w_ease=w1 * (ease * float(variants.rate)) ** 4,
                      tolerance=tolerance, stiffness=stiffness, max_iter=max_iter)
     eff_all = sorted({e for g in groups for e in g})
     frames = _Frames(rate=float(variants.rate), output_rate=export_rate(variants))
@@ -418,7 +428,7 @@ def ik(
     solved = _played_in_order(variants)
     means = solved if predicted is None else _played_in_order(predicted)
     # Eq. 7 without constraints: every DOF, within its limits
-    smooth = solved.replace(trajectories=[eq7_track(t, low, high, w1=w1, w2=w2)
+    smooth = solved.replace(trajectories=[eq7_track(t, low, high, w1=w1, w2=w2_model)
                                           for t in means.trajectories])
     lim_all = np.full((2, len(variants.dof_names)), np.inf) * np.array([[-1.0], [1.0]])
     lim_all[:, variants.varying] = low, high
@@ -448,7 +458,7 @@ def ik(
     cleaned = variants.replace(trajectories=out_trajs, origins=origins,
                                attrs={**variants.attrs, "ik": True})
     report.update(
-        {"w1": w1, "w2": w2, "height_threshold": height_threshold,
+        {"w1": w1, "w2": w2, "w2_per_model_frame": w2_model, "height_threshold": height_threshold,
          "speed_threshold": speed_threshold, "min_contact": min_contact,
          "contact_gap": contact_gap, "ease": ease, "range_margin": range_margin,
          "stiffness": stiffness,

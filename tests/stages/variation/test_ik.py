@@ -226,3 +226,23 @@ def test_warnings_name_exported_frames_once():
     assert _frame_ranges([4, 5, 6, 20], thirty) == "frames 2-3, frame 10"
     assert _frame_ranges([36, 37], thirty) == "frame 18"
     assert _frame_ranges([3, 4, 5, 9]) == "frames 3-5, frame 9"
+
+
+def test_smoothing_is_the_same_in_time_at_any_model_rate():
+    """w2 weighs second differences at 60 fps and is scaled to the model's rate: a 5 Hz
+    ripple keeps the same fraction at 60 and 120 fps (per frame at 120 fps it kept 0.98
+    instead of 0.73, and variants of cmu_131_02 at its native rate kept 1.7 x the jerk)."""
+    kept = {}
+    for rate in (60.0, 120.0):
+        walk = clips_from_motions([procedural_walk(int(2 * rate), rate=rate, seed=2,
+                                                   variation=0.0)])
+        col = walk.labels.index("Spine:Xrotation") if "Spine:Xrotation" in walk.labels else 8
+        t = walk.trajectories[0].copy()
+        ripple = 0.05 * np.sin(2 * np.pi * 5.0 * np.arange(len(t)) / rate)
+        t[:, col] += ripple
+        r = ik(walk.replace(trajectories=[t]), effectors=[], ctx=Context())
+        out = r["variants"].trajectories[0][:, col] - walk.trajectories[0][:, col]
+        mid = slice(int(0.5 * rate), int(1.5 * rate))  # away from the clip's ends
+        kept[rate] = float(np.dot(out[mid], ripple[mid]) / np.dot(ripple[mid], ripple[mid]))
+        assert r["report"]["w2_per_model_frame"] == pytest.approx(5.0 * (rate / 60.0) ** 4)
+    assert kept[60.0] < 0.8 and abs(kept[120.0] - kept[60.0]) <= 0.05 * kept[60.0], kept
