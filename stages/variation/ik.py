@@ -80,7 +80,7 @@ from mocapflow.pipeline import Context, stage
 from mocapflow.stages.metrics.quality import jerk_per_frame
 from mocapflow.stages.motion.contacts import foot_joint, true_runs
 from mocapflow.stages.motion.datatypes import Skeleton
-from mocapflow.stages.motion.kinematics import forward_kinematics
+from mocapflow.stages.motion.kinematics import forward_kinematics, motion_positions
 from mocapflow.stages.variation.clips import Clips, clips_to_motions, export_rate
 from mocapflow.stages.variation.ik_solver import ChainFK, eq7_track, solve_limb
 from mocapflow.stages.variation.sample import chain_origins
@@ -494,11 +494,7 @@ def _check_predicted(variants: Clips, predicted: Clips) -> None:
 
 def _jerk_p99(clips: Clips) -> float:
     """p99 of the per-frame joint-position jerk pooled over the clips, m/s³."""
-    js = []
-    for m in clips_to_motions(clips):
-        p, _ = forward_kinematics(clips.skeleton, m.rotations, m.root_position,
-                                  translations=m.translations)
-        js.append(jerk_per_frame(p, clips.rate))
+    js = [jerk_per_frame(motion_positions(m), clips.rate) for m in clips_to_motions(clips)]
     j = np.concatenate(js) if js else np.zeros(0)
     j = j[np.isfinite(j)]
     return float(np.percentile(j, 99)) if j.size else 0.0
@@ -766,20 +762,21 @@ def _clean_clip(
                          max_iter=solver.max_iter)
         new[:, cols] = res.q
         ok = res.error <= solver.tolerance
-        for t, k, err, good in zip(fr.tolist(), ef.tolist(), res.error.tolist(), ok.tolist()):
-            e = limb.effectors[k]
-            errs[sk.names[e]].append(err)
-            held[sk.names[e]].append(t)
-            if good:
-                reached[sk.names[e]].append(err)
-            if np.isfinite(fixed[e][t]).all():
+        for k, e in enumerate(limb.effectors):
+            name, mine = sk.names[e], ef == k
+            errs[name] += res.error[mine].tolist()
+            held[name] += fr[mine].tolist()
+            reached[name] += res.error[mine & ok].tolist()
+            explicit = mine & np.isfinite(fixed[e][fr]).all(axis=1)
+            for t, err, good in zip(fr[explicit].tolist(), res.error[explicit].tolist(),
+                                    ok[explicit].tolist()):
                 target_errors[(e, t)] = (err, good)
         for t in np.unique(fr[~ok]).tolist():
             at = fr == t
             unreachable.append({"model_frame": t,
                                 "effectors": [sk.names[limb.effectors[k]] for k in ef[at]],
                                 "error": float(res.error[at].max()),
-                                "given": bool((wt[at] > 1.0).any())})
+                                "given": bool((wt[at] >= GIVEN_WEIGHT).any())})
     unreachable = sorted(
         ({"frame": frames.to_exported(u["model_frame"]), **u} for u in unreachable),
         key=lambda u: (u["model_frame"], u["effectors"]),

@@ -16,7 +16,8 @@ follow the past, and corrections ring):
   targets as stiff penalties (:func:`projected_gauss_newton`, bounds = joint
   limits, a sparse Jacobian from :class:`ChainFK` by finite differences).
 
-``w₂`` weighs second differences per frame at the model's rate.
+Here ``w₂`` weighs second differences of model frames: the ``ik`` stage
+scales the paper's weight, given at 60 fps, to the model's rate.
 """
 
 from __future__ import annotations
@@ -153,13 +154,10 @@ class LimbSolve:
         The limb's DOFs.
     error : (N,) float ndarray
         Distance of each constrained effector from its target, metres.
-    iterations : int
-        Gauss–Newton steps taken.
     """
 
     q: np.ndarray
     error: np.ndarray
-    iterations: int
 
 
 def solve_limb(
@@ -253,11 +251,11 @@ def solve_limb(
 
     start = np.clip(x0, low, high).ravel()
     if N == 0:
-        return LimbSolve(q=start.reshape(F, V), error=np.zeros(0), iterations=0)
-    x, n_iter = projected_gauss_newton(residuals, jacobian, start, lo, hi, max_iter=max_iter)
+        return LimbSolve(q=start.reshape(F, V), error=np.zeros(0))
+    x, _ = projected_gauss_newton(residuals, jacobian, start, lo, hi, max_iter=max_iter)
     X = x.reshape(F, V)
     err = np.linalg.norm(effector_positions(X) - target, axis=1)
-    return LimbSolve(q=X, error=err, iterations=n_iter)
+    return LimbSolve(q=X, error=err)
 
 
 def projected_gauss_newton(
