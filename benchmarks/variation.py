@@ -8,6 +8,8 @@ learn, sample and ik params; the walk model is learned once from the files):
    paper): cadence of each hip flexion DOF over the inputs' (target within
    +-15 %), cycles made, frozen half-second windows (a hip flexion range below
    half the inputs' smallest; target 0) -- :mod:`mocapflow.stages.metrics.gait`;
+   and the crowd mode at sigma 0 and the config's, with the one-step error of its
+   conditional mean against the exact search;
 2. exported variants of ``cmu_131_02.bvh`` and of the figure-8 walk after IK
    (at the model's rate, as the inputs): jerk p99 and toe skate over the
    input's (targets <= 1.5, <= 1.2), the largest excess of a BVH rotation
@@ -18,8 +20,10 @@ learn, sample and ik params; the walk model is learned once from the files):
    start phase): jerk p99 at the joins over the inputs' p99 (target <= 1.5);
 4. speed, BLAS pinned to one thread per process (env vars set before NumPy is
    imported, threadpoolctl when installed): learning the shipped walk on 1 and
-   2 workers (targets <= 30 s on 2, >= 1.6x), sampling the walk model with
-   1,000 agents batched and 15 per call (target <= 30 us per agent-frame), each
+   2 workers (targets <= 30 s on 2, >= 1.6x), streaming 1,000 agents of the walk
+   model frame by frame (timed after the prior's two frames), with the exact neighbour
+   search and in the crowd mode (:data:`CROWD_WINDOW`; target <= 30 us per
+   agent-frame), and 15 variants per call as the ``sample`` stage makes them, each
    measured in a fresh subprocess, for this checkout and -- with
    ``--baseline DIR`` -- for the code importable from DIR (``PYTHONPATH=DIR``,
    run outside the repository), as ratios;
@@ -69,6 +73,9 @@ STROKES_CONFIG = REPO / "configs" / "variation_strokes.yaml"
 SECOND_LETTER = "b"
 #: stream length, frames (10 s at 60 fps)
 STREAM_FRAMES = 600
+CROWD_WINDOW = 64
+"""``Sampler(model, window=...)`` of the crowd-mode rows: each agent searches its k nearest
+among the 64 instances nearest to it in cycle phase (of ~360 on the walk)."""
 
 
 # ----------------------------------------------------------------------------- config
@@ -142,12 +149,12 @@ def _subset(c, n_clips: int, n_dofs: int | None = None):
 
 
 def streams(model, rng, *, count: int, length: int, sigma: float,
-            noise_time: float | None) -> np.ndarray:
+            noise_time: float | None, window: int | None = None) -> np.ndarray:
     """``(count, length, D)`` streams: ``Sampler.stream`` (frame by frame) when it exists,
-    else ``Sampler.run``.  Columns are ``model.clips.labels``."""
+    else ``Sampler.run``; ``window``: the crowd mode.  Columns are ``model.clips.labels``."""
     from mocapflow.stages.variation.sample import Sampler
 
-    s = Sampler(model)
+    s = Sampler(model) if window is None else Sampler(model, window=window)
     if hasattr(s, "stream"):
         gen = s.stream(rng, count=count, sigma=sigma, noise_time=noise_time)
         return np.stack(list(itertools.islice(gen, length)), axis=1)
@@ -303,19 +310,21 @@ def section_streams(model, nodes: dict, n_seeds: int) -> None:
           f"whole take: {', '.join(f'{s} {v:.3f}' for s, v in zip(sides, take))} Hz; frozen "
           f"below {', '.join(f'{v:.3f}' for v in thr)} rad per {width} frames; hysteresis "
           f"{', '.join(f'{v:.3f}' for v in hyst)} rad")
-    print("| sigma | noise_time s | "
+    print("| sigma | noise_time s | Sampler window | "
           + " | ".join(f"cadence {s} / inputs' (median, min-max)" for s in sides)
           + " | streams within +-15 % (both hips) | "
           "cycles per stream (median, min; both hips) | frozen windows (total, worst stream) "
           "| target | seconds |")
-    print("|---|---|---|" + "---|" * (len(sides) - 1) + "---|---|---|---|---|")
-    rows = [(s_, nt) for s_ in sorted({0.0, 0.15, sigma, 1.0})] + [(1.0, None)]
-    for s_, nt_ in rows:  # the issue's sigma 0, 0.15 and 1, the config's, and white noise
+    print("|---|---|---|---|" + "---|" * (len(sides) - 1) + "---|---|---|---|---|")
+    # the issue's sigma 0, 0.15 and 1, the config's, white noise, and the crowd mode
+    rows = ([(s_, nt, None) for s_ in sorted({0.0, 0.15, sigma, 1.0})] + [(1.0, None, None)]
+            + [(s_, nt, CROWD_WINDOW) for s_ in sorted({0.0, sigma})])
+    for s_, nt_, win in rows:
         ratios, cycles, frozen = [], [], []
         t0 = time.perf_counter()
         for seed in range(n_seeds):
             x = streams(model, np.random.default_rng(seed), count=1, length=STREAM_FRAMES,
-                        sigma=s_, noise_time=nt_)[0]
+                        sigma=s_, noise_time=nt_, window=win)[0]
             cad = [cadence(x[:, k], rate, hysteresis=h) for k, h in zip(cols, hyst)]
             ratios.append([v / ref for v, _ in cad])
             cycles.append([n for _, n in cad])
@@ -325,9 +334,28 @@ def section_streams(model, nodes: dict, n_seeds: int) -> None:
         cells = " | ".join(f"{np.median(r[:, i]):.2f} ({r[:, i].min():.2f}-{r[:, i].max():.2f})"
                            for i in range(len(sides)))
         n_win = STREAM_FRAMES // width
-        print(f"| {s_:g} | {nt_} | {cells} | {within} / {n_seeds} | "
+        print(f"| {s_:g} | {nt_} | {win or 'all (exact)'} | {cells} | {within} / {n_seeds} | "
               f"{np.median(cy):.0f}, {cy.min()} | {fr.sum()} of {n_seeds * n_win}, {fr.max()} "
               f"| +-15 %, 0 frozen | {time.perf_counter() - t0:.1f} |")
+    _crowd_error(model, sigma, nt)
+
+
+def _crowd_error(model, sigma: float, noise_time: float | None) -> None:
+    """One-step error of the crowd mode's conditional mean, in the exact std's units."""
+    from mocapflow.stages.variation.sample import Sampler
+
+    exact = Sampler(model)
+    if not hasattr(exact, "stats"):
+        return
+    x = exact.run(np.random.default_rng(5), count=200, length=60, sigma=sigma,
+                  noise_time=noise_time)
+    z = (x - exact.stats["mean"]) / exact.stats["std"]
+    m0, s0 = exact.transition(z[:, 40], z[:, 41])
+    m1, s1 = Sampler(model, window=CROWD_WINDOW).transition(z[:, 40], z[:, 41])
+    d = np.abs(m1 - m0) / s0
+    print(f"crowd mode (window {CROWD_WINDOW}) vs exact, 200 states x {z.shape[-1]} DOFs: "
+          f"|mean difference| / exact std median {np.median(d):.3f}, p99 "
+          f"{np.percentile(d, 99):.3f}; std ratio median {np.median(s1 / s0):.3f}")
 
 
 def section_variants(label: str, model, clips, nodes: dict, n_var: int) -> None:
@@ -415,7 +443,7 @@ def section_chaining(model, clips, nodes: dict, count: int = 5) -> None:
     print(f"inputs' jerk p99 {j_in:.0f} m/s^3")
 
 
-def _speed_worker(config: str, quick: bool, window: int | None) -> dict:
+def _speed_worker(config: str, quick: bool) -> dict:
     """Timings of the code importable in this process (run as a subprocess)."""
     import mocapflow
     from mocapflow.stages.variation.sample import Sampler
@@ -424,25 +452,38 @@ def _speed_worker(config: str, quick: bool, window: int | None) -> dict:
     _, clips = _walk_clips(nodes)
     if quick:
         clips = _subset(clips, 4, 20)
-    _, t1 = _learn(clips, nodes, 1)
-    model, t2 = _learn(clips, nodes, 2)
+    model, t1 = _learn(clips, nodes, 1)
     sp = nodes["sample"]
-    kw = {} if window is None else {"window": window}
-    s = Sampler(model, **kw)
+    sigma, nt = float(sp["sigma"]), sp["noise_time"]
     res = {"code": str(Path(mocapflow.__file__).resolve().parent), "learn_1": t1,
-           "learn_2": t2, "dofs": int(model.n_dofs), "clips": int(clips.n_clips)}
-    for count, n in ((1000, 5 if quick else 30), (15, 60 if quick else 600)):
-        rng = np.random.default_rng(0)
-        s.run(rng, count=count, length=4, sigma=float(sp["sigma"]), noise_time=sp["noise_time"])
+           "dofs": int(model.n_dofs), "clips": int(clips.n_clips)}
+    # sampling is timed before the 2-worker learning (whose processes may linger)
+    frames = 5 if quick else 40
+    for key, win in (("", None), ("_crowd", CROWD_WINDOW)):
+        s = Sampler(model) if win is None else Sampler(model, window=win)
+        # streaming: 1,000 agents advanced frame by frame, timed after the prior's two frames
+        gen = s.stream(np.random.default_rng(0), count=1000, sigma=sigma, noise_time=nt)
+        for _ in range(4):
+            next(gen)
         w0, c0 = time.perf_counter(), time.process_time()
-        s.run(rng, count=count, length=n, sigma=float(sp["sigma"]), noise_time=sp["noise_time"])
+        for _ in range(frames):
+            next(gen)
         w, c = time.perf_counter() - w0, time.process_time() - c0
-        res[f"us_{count}"] = 1e6 * w / (count * n)
-        res[f"cpu_us_{count}"] = 1e6 * c / (count * n)
+        res[f"us_1000{key}"] = 1e6 * w / (1000 * frames)
+        res[f"cpu_us_1000{key}"] = 1e6 * c / (1000 * frames)
+    # variants as the sample stage makes them (exact search): 15 per call, prior included
+    s = Sampler(model)
+    n = 60 if quick else 600
+    rng = np.random.default_rng(0)
+    s.run(rng, count=15, length=4, sigma=sigma, noise_time=nt)
+    w0 = time.perf_counter()
+    s.run(rng, count=15, length=n, sigma=sigma, noise_time=nt)
+    res["us_15"] = 1e6 * (time.perf_counter() - w0) / (15 * n)
+    _, res["learn_2"] = _learn(clips, nodes, 2)
     return res
 
 
-def _run_worker(layout: Path | None, config: Path, quick: bool, window: int | None) -> dict:
+def _run_worker(layout: Path | None, config: Path, quick: bool) -> dict:
     env = dict(os.environ)
     env.pop("PYTHONPATH", None)
     cwd = REPO
@@ -450,28 +491,30 @@ def _run_worker(layout: Path | None, config: Path, quick: bool, window: int | No
         env["PYTHONPATH"] = str(layout)
         cwd = Path("/tmp")
     cmd = [sys.executable, str(Path(__file__).resolve()), "--speed-worker", "--config",
-           str(config)] + (["--quick"] if quick else []) + (
-        ["--window", str(window)] if window else [])
+           str(config)] + (["--quick"] if quick else [])
     r = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True)
     if r.returncode:
         raise RuntimeError(f"speed worker ({layout or 'this checkout'}) failed:\n{r.stderr}")
     return json.loads(r.stdout.strip().splitlines()[-1])
 
 
-def section_speed(quick: bool, baseline: Path | None, window: int | None) -> None:
-    ours = _run_worker(None, WALK_CONFIG, quick, window)
+def section_speed(quick: bool, baseline: Path | None) -> None:
+    ours = _run_worker(None, WALK_CONFIG, quick)
     base = None
     if baseline is not None:
         cfg = baseline / "mocapflow" / "configs" / "variation.yaml"
-        base = _run_worker(baseline, cfg if cfg.exists() else WALK_CONFIG, quick, None)
+        base = _run_worker(baseline, cfg if cfg.exists() else WALK_CONFIG, quick)
     print(f"\n## 4. speed, BLAS 1 thread per process: the shipped walk config, "
           f"{ours['clips']} clips, {ours['dofs']} DOFs ({ours['code']}"
           + (f"; baseline {base['code']}, {base['dofs']} DOFs" if base else
              "; no --baseline: ratio columns skipped") + ")")
     rows = [("learn, 1 worker (s)", "learn_1", "-"), ("learn, 2 workers (s)", "learn_2", "<= 30"),
-            ("sample 1,000 agents batched (us / agent-frame, wall)", "us_1000", "<= 30"),
-            ("sample 1,000 agents (CPU us / agent-frame)", "cpu_us_1000", "-"),
-            ("sample 15 per call (us / agent-frame, wall)", "us_15", "-")]
+            ("stream 1,000 agents, exact search (us / agent-frame, wall)", "us_1000", "-"),
+            ("stream 1,000 agents, exact search (CPU us / agent-frame)", "cpu_us_1000", "-"),
+            (f"stream 1,000 agents, crowd mode window {CROWD_WINDOW} (us / agent-frame, wall)",
+             "us_1000_crowd", "<= 30"),
+            ("stream 1,000 agents, crowd mode (CPU us / agent-frame)", "cpu_us_1000_crowd", "-"),
+            ("sample 15 per call, prior included (us / agent-frame, wall)", "us_15", "-")]
     print("| measure | ours |" + (" baseline | ours / baseline |" if base else "") + " target |")
     print("|---|---|" + ("---|---|" if base else "") + "---|")
     for name, key, target in rows:
@@ -483,7 +526,7 @@ def section_speed(quick: bool, baseline: Path | None, window: int | None) -> Non
     line = f"speed-up 2 vs 1 worker: ours {su:.2f}x (target >= 1.6x)"
     if base:
         line += f", baseline {base['learn_1'] / base['learn_2']:.2f}x"
-    print(line + (f"; Sampler window {window}" if window else ""))
+    print(line)
 
 
 def section_strokes(n_var: int) -> None:
@@ -563,7 +606,7 @@ def section_quality(model, walk, nodes: dict, n_var: int, quick: bool) -> None:
         print(f"| {name} | {j:.0f} | {s:.3f} | {dd.mean():.2f} +- {dd.std():.2f} |")
 
 
-def main(quick: bool = False, baseline: Path | None = None, window: int | None = None) -> None:
+def main(quick: bool = False, baseline: Path | None = None) -> None:
     n_var = 5 if quick else 15
     t_all = time.perf_counter()
     print(f"# variation benchmark ({'quick' if quick else 'full'}); data {DATA}")
@@ -585,7 +628,7 @@ def main(quick: bool = False, baseline: Path | None = None, window: int | None =
     section_variants("cmu_131_02.bvh", cmu_model, cmu, nodes, n_var)
     section_variants("figure-8 walk (pymo_AV_8Walk)", model, walk, nodes, n_var)
     section_chaining(model, walk, nodes)
-    section_speed(quick, baseline, window)
+    section_speed(quick, baseline)
     section_strokes(n_var)
     section_quality(model, walk, nodes, n_var, quick)
     print(f"\n# total {time.perf_counter() - t_all:.0f} s")
@@ -597,12 +640,10 @@ if __name__ == "__main__":
                     help="small run (5 streams, 5 variants, 20-DOF cmu and speed models)")
     ap.add_argument("--baseline", type=Path, default=None,
                     help="layout dir of today's code (PYTHONPATH for the speed subprocess)")
-    ap.add_argument("--window", type=int, default=None,
-                    help="Sampler window (crowd mode) for the speed run of this checkout")
     ap.add_argument("--speed-worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--config", default=str(WALK_CONFIG), help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.speed_worker:
-        print(json.dumps(_speed_worker(a.config, a.quick, a.window)))
+        print(json.dumps(_speed_worker(a.config, a.quick)))
     else:
-        main(a.quick, a.baseline, a.window)
+        main(a.quick, a.baseline)

@@ -27,8 +27,10 @@ Sampling (the ``sample`` stage, :class:`Sampler`)
     mean of every frame given the sampled ones before it.
     Crowds: :meth:`Sampler.stream` yields frame by frame for any number of
     agents; ``Sampler(model, window=W)`` restricts each agent's neighbour
-    search to the ``W`` instances nearest in cycle phase (an approximation,
-    several times faster; ``None`` is the exact search).
+    search to the ``W`` instances nearest in cycle phase and selects the ``k``
+    nearest on exponents rounded to 1/512 (an approximation, ~4x faster on the
+    walk at ``W = 64``: one-step mean within 0.03 of the exact std at the
+    median; ``None`` is the exact search).
 Noise baselines (Lau §8, the ``sample_noise`` stage)
     ``strawman``: an input clip, time-warped by a random smooth monotone warp,
     plus Gaussian-smoothed white noise.  ``perlin``: an input clip plus 1-D
@@ -77,6 +79,10 @@ __all__ = [
 
 
 AGENT_BLOCK = 32
+EXPONENT_STEPS = 512.0
+"""Crowd mode: the kernel exponents are rounded to 1 / 512 for the nearest-instance
+selection (weights within 0.2 % of the ``k``-th count as ties)."""
+_QMIN = -32768
 """Agents per transition block: the ``(D, block, N)`` kernel tables of one block stay in
 cache (1,000 agents of the 54-DOF walk in one block: 3x slower per agent-frame)."""
 
@@ -89,9 +95,10 @@ class Sampler:
     """Precomputed tables for sampling a :class:`VariationModel`, and its samplers.
 
     The neighbour search of the transition network runs in single precision
-    (the distance expansion ``|q|² − 2 q·u + |u|²`` as a batched matrix product
-    over DOFs, the ``k`` nearest by a partition, the kernel sums as a second
-    product); the sampled state is kept in double precision.
+    (the kernel exponents ``c (|q|² − 2 q·u + |u|²)`` as one batched matrix
+    product over DOFs, the ``k`` nearest by a partition, :meth:`nearest`, the
+    kernel sums as a second product, :meth:`kernel_sums`); the sampled state is
+    kept in double precision.
 
     Parameters
     ----------
@@ -100,8 +107,9 @@ class Sampler:
         Cyclic models (with the cycle phase DOFs): each agent searches its
         ``k`` nearest instances among the ``window`` training instances nearest
         to it in cycle phase (rounded out to a bin of agents sharing one slice
-        of the phase-sorted bank), instead of among all of them — the crowd
-        mode, several times faster; ``None`` (default): all instances (exact).
+        of the phase-sorted bank), instead of among all of them, selected on
+        rounded exponents (:meth:`nearest` ``quantized``) — the crowd mode,
+        several times faster; ``None`` (default): all instances (exact).
     """
 
     def __init__(self, model: VariationModel, *, window: int | None = None):
@@ -146,10 +154,13 @@ class Sampler:
             self.wmask[i, : len(c)] = 1.0
         U = (bank[:, self.cols] * self.wmask).astype(np.float32)  # (N, D, pmax)
         # the kernel exponent e = −d² / 2h² = c (|q|² − 2 q·u + |u|²) with c = −1 / 2h²,
-        # per DOF: tables pre-scaled so that e is one product and two sums
+        # per DOF, as one product: the query [q, 1, c|q|²] times the table
+        # [−2c u; c|u|²; 1] (pmax + 2 rows per instance)
         self.c = (-0.5 / np.maximum(model.transition_bandwidth**2, 1e-30)).astype(np.float32)
-        self.Ue = np.ascontiguousarray(U.transpose(1, 2, 0) * (-2.0 * self.c)[:, None, None])
-        self.Ae = np.ascontiguousarray((U * U).sum(axis=-1).T * self.c[:, None])  # (D, N)
+        Ut = U.transpose(1, 2, 0) * (-2.0 * self.c)[:, None, None]  # (D, pmax, N)
+        Ac = (U * U).sum(axis=-1).T * self.c[:, None]  # (D, N)
+        self.Ue = np.ascontiguousarray(np.concatenate(
+            [Ut, Ac[:, None, :], np.ones_like(Ac)[:, None, :]], axis=1), dtype=np.float32)
         Y = td.Y.T  # (D, N)
         Zc = td.F[:, D:].T  # (D, N) standardised x[t+1]
         self.retention = float(p.get("retention", 1.0))
@@ -189,10 +200,11 @@ class Sampler:
         self.win_phase = self.inst_phase[order]
         self.stride = max(1, window // 4)
         self.L = L = min(window + self.stride, N)
-        ext = order[np.arange(N + L) % N]
-        self.Uw = np.ascontiguousarray(self.Ue[:, :, ext])
-        self.Aw = np.ascontiguousarray(self.Ae[:, ext])
-        self.YYZw = np.ascontiguousarray(self.YYZ[:, ext])
+        # per bin of agents the contiguous tables of its slice (matmul needs them contiguous)
+        starts = np.arange(0, N, self.stride)
+        sl = order[(starts[:, None] + np.arange(L)[None, :]) % N]  # (bins, L)
+        self.Uw = [np.ascontiguousarray(self.Ue[:, :, i]) for i in sl]
+        self.YYZw = [np.ascontiguousarray(self.YYZ[:, i]) for i in sl]
 
     # ------------------------------------------------------------------ the networks
     def sample_prior(
@@ -235,8 +247,10 @@ class Sampler:
     def transition(self, zp: np.ndarray, zc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The transition network's conditional Gaussian of the next frame (Lau Eq. 5–6).
 
-        Agents are taken :data:`AGENT_BLOCK` at a time, so the ``(D, block, N)``
-        kernel tables stay in cache (:meth:`_transition_block`).
+        Agents are taken :data:`AGENT_BLOCK` at a time, so that the
+        ``(D, block, N)`` kernel tables stay in cache (:meth:`kernel_sums`); in
+        the crowd mode (``window``) the agents are first grouped by the phase
+        slice of the bank they search.
 
         Parameters
         ----------
@@ -252,23 +266,7 @@ class Sampler:
             Standard deviation of frame ``t+2`` (standardised units).
         """
         B = zp.shape[0]
-        step = AGENT_BLOCK
-        if B <= step:
-            return self._transition_block(zp, zc)
-        parts = [self._transition_block(zp[i : i + step], zc[i : i + step])
-                 for i in range(0, B, step)]
-        return (np.concatenate([m for m, _ in parts]), np.concatenate([s for _, s in parts]))
-
-    def _transition_block(self, zp: np.ndarray, zc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`transition` for one block of agents (the same parameters and returns)."""
-        vscale = self.vw / self.ratio
-        g = np.concatenate([zp, zc, (zc - zp) * vscale], axis=1).astype(np.float32)  # (B, 3D)
-        qd = (g[:, self.cols] * self.wmask).transpose(1, 0, 2)  # (D, B, pmax)
-        qq = np.einsum("dbp,dbp->db", qd, qd)[..., None] * self.c[:, None, None]
-        if self.window is None:
-            e = qd @ self.Ue  # (D, B, N)
-            e += self.Ae[:, None, :]
-        else:  # crowd mode: agents binned by the start of their phase window
+        if self.window is not None:  # crowd mode: agents sorted by the start of their window
             N = self.win_phase.shape[0]
             ph = self.cycle_phase_of(zc * self.stats["std"] + self.stats["mean"])
             first = (np.searchsorted(self.win_phase, ph) - self.window // 2) % N
@@ -276,31 +274,22 @@ class Sampler:
             agents = np.argsort(bins, kind="stable")
             bins = bins[agents]
             cut = np.flatnonzero(np.diff(bins)) + 1
-            blocks = [(int(bins[lo]) * self.stride, lo, hi) for lo, hi in
-                      zip(np.r_[0, cut], np.r_[cut, len(bins)])]
-            qd, qq = qd[:, agents], qq[:, agents]
-            e = np.empty((self.D, len(agents), self.L), dtype=np.float32)
-            for a0, lo, hi in blocks:
-                blk = np.matmul(qd[:, lo:hi], self.Uw[:, :, a0 : a0 + self.L], out=e[:, lo:hi])
-                blk += self.Aw[:, None, a0 : a0 + self.L]
-        e += qq
-        k = self.k
-        N = e.shape[-1]
-        # the k nearest instances = the k largest exponents (ties included), from a partition
-        part = np.partition(e, N - k, axis=-1)
-        thr = part[..., N - k : N - k + 1]
-        mask = e >= thr
-        far = thr < -60.0  # weights that could underflow: shift those rows (the shift cancels)
-        if far.any():
-            e -= np.where(far, part[..., N - k :].max(axis=-1, keepdims=True), 0.0)
-        w = np.exp(e, out=e)
-        w *= mask
-        if self.window is None:
-            s = (w @ self.YYZ).astype(np.float64)  # (D, B, 4): Σw·Δ, Σw·Δ², Σw·z[t+1], Σw
+            groups = [(int(bins[lo]), lo, hi) for lo, hi in zip(np.r_[0, cut], np.r_[cut, B])]
+            zp, zc = zp[agents], zc[agents]
         else:
-            s = np.empty((self.D, len(agents), 4))
-            for a0, lo, hi in blocks:
-                s[:, agents[lo:hi]] = w[:, lo:hi] @ self.YYZw[:, a0 : a0 + self.L]
+            groups = [(None, 0, B)]
+        vscale = self.vw / self.ratio
+        g = np.concatenate([zp, zc, (zc - zp) * vscale], axis=1).astype(np.float32)  # (B, 3D)
+        q = (g[:, self.cols] * self.wmask).transpose(1, 0, 2)  # (D, B, pmax)
+        qq = np.einsum("dbp,dbp->db", q, q) * self.c[:, None]
+        qa = np.concatenate([q, np.ones_like(qq)[..., None], qq[..., None]], axis=-1)
+        s = np.empty((self.D, B, 4))
+        step = AGENT_BLOCK
+        for b, lo, hi in groups:
+            U, YYZ = (self.Ue, self.YYZ) if b is None else (self.Uw[b], self.YYZw[b])
+            for c0 in range(lo, hi, step):
+                c1 = min(c0 + step, hi)
+                s[:, c0:c1] = self.kernel_sums(qa[:, c0:c1], U, YYZ, quantized=b is not None)
         sw = s[..., 3]
         mu = s[..., 0] / sw
         var = np.maximum(s[..., 1] / sw - mu * mu, 0.0) + self.ms * self.ms
@@ -308,7 +297,84 @@ class Sampler:
         lam = self.retention
         if lam < 1.0:
             mean += (lam - 1.0) * (zc - (s[..., 2] / sw).T)
-        return mean, np.sqrt(var).T * self.ratio
+        std = np.sqrt(var).T * self.ratio
+        if self.window is not None:  # back to the callers' order
+            back = np.empty_like(agents)
+            back[agents] = np.arange(B)
+            mean, std = mean[back], std[back]
+        return mean, std
+
+    def kernel_sums(
+        self, qa: np.ndarray, U: np.ndarray, YYZ: np.ndarray, *, quantized: bool = False
+    ) -> np.ndarray:
+        """Kernel-weighted sums over each query's ``k`` nearest instances (Lau Eq. 6).
+
+        Parameters
+        ----------
+        qa : (D, b, pmax + 2) float32 ndarray
+            Per DOF the agents' padded query features, then ``1`` and ``c|q|²``.
+        U : (D, pmax + 2, n) float32 ndarray
+            The matching slice of the instance table (:attr:`Ue`, :attr:`Uw`).
+        YYZ : (D, n, 4) float32 ndarray
+            The instances' ``Δ``, ``Δ²``, ``z[t+1]`` and ``1``.
+        quantized : bool
+            The selection of :meth:`nearest` (the crowd mode).
+
+        Returns
+        -------
+        (D, b, 4) float ndarray
+            ``Σw·Δ, Σw·Δ², Σw·z[t+1], Σw`` with ``w = exp(−d² / 2h²)`` over the
+            ``k`` nearest instances (ties included).
+        """
+        e = qa @ U  # (D, b, n): the kernel exponents, <= 0
+        n = e.shape[-1]
+        k = min(self.k, n)
+        mask = self.nearest(e, k, quantized=quantized)
+        w = np.exp(e)  # (a masked exp is several times slower than exp and product)
+        w *= mask
+        sums = w @ YYZ
+        # rows whose weights underflowed (every selected instance far): again with the
+        # exponents shifted by their largest, which cancels in the ratios
+        far = sums[..., 3] < 1e-25
+        if far.any():
+            ef = e[far]
+            wf = np.exp(ef - ef.max(axis=-1, keepdims=True)) * mask[far]
+            sums[far] = np.einsum("rn,rnc->rc", wf, YYZ[np.nonzero(far)[0]])
+        return sums
+
+    @staticmethod
+    def nearest(e: np.ndarray, k: int, *, quantized: bool = False) -> np.ndarray:
+        """Mask of the ``k`` largest kernel exponents along the last axis (ties included).
+
+        Parameters
+        ----------
+        e : (..., n) float32 ndarray
+            Kernel exponents ``−d² / 2h²`` (≤ 0).
+        k : int
+            ``1 ≤ k ≤ n``.
+        quantized : bool
+            Select on the exponents rounded up to multiples of
+            ``1 /`` :data:`EXPONENT_STEPS` (an int16 partition): the mask is the
+            exact one plus the exponents within one step below the ``k``-th.
+            Rows whose ``k``-th exponent is below ``−32767 / EXPONENT_STEPS``
+            are selected exactly.
+
+        Returns
+        -------
+        (..., n) bool ndarray
+        """
+        n = e.shape[-1]
+        if not quantized:
+            return e >= np.partition(e, n - k, axis=-1)[..., n - k : n - k + 1]
+        qe = np.empty(e.shape, dtype=np.int16)  # clamped, then rounded towards 0 (up)
+        np.multiply(np.maximum(e, _QMIN / EXPONENT_STEPS), EXPONENT_STEPS, out=qe,
+                    casting="unsafe")
+        thr = np.partition(qe, n - k, axis=-1)[..., n - k : n - k + 1]
+        mask = qe >= thr
+        far = thr[..., 0] <= _QMIN + 1
+        if far.any():
+            mask[far] = Sampler.nearest(e[far], k)
+        return mask
 
     # ------------------------------------------------------------------ samplers
     def stream(

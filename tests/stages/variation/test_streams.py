@@ -171,6 +171,71 @@ def test_crowd_window_keeps_the_gait_and_checks_its_param(walk_model):
         Sampler(model, window=0)
 
 
+def test_quantized_nearest_is_the_exact_selection_plus_ties_within_one_step():
+    """The crowd mode's int16 selection: every exact k-nearest instance is kept, the extra
+    ones lie within 1 / EXPONENT_STEPS of the k-th exponent, and rows too far for the
+    int16 range (k-th exponent below -64) are selected exactly."""
+    from mocapflow.stages.variation.sample import EXPONENT_STEPS
+
+    rng = np.random.default_rng(0)
+    e = -rng.gamma(1.0, 0.4, size=(20, 30, 80)).astype(np.float32)
+    e[3, :5] -= 200.0  # far rows: every exponent below the int16 range
+    e[4, :3, :40] = e[4, :3, :1]  # many exact ties
+    k = 30
+    exact = Sampler.nearest(e, k)
+    quant = Sampler.nearest(e, k, quantized=True)
+    assert np.all(exact.sum(-1) >= k)
+    assert np.all(quant >= exact)  # a superset, row by row
+    kth = np.sort(e, axis=-1)[..., -k][..., None]
+    extra = quant & ~exact
+    assert extra.any() and np.all(e[extra] >= (kth - 1.0 / EXPONENT_STEPS)
+                                  .repeat(e.shape[-1], -1)[extra] - 1e-6)
+    np.testing.assert_array_equal(quant[3, :5], exact[3, :5])
+    assert quant.sum() <= 1.02 * exact.sum()
+
+
+@pytest.mark.parametrize("quantized", [False, True])
+def test_kernel_sums_of_far_queries_do_not_underflow(walk_model, quantized):
+    """Queries far from every instance (all exponents below -100: float32 weights
+    underflow to 0) get the kernel mean of their k nearest, as in float64."""
+    _, model = walk_model
+    s = Sampler(model)
+    rng = np.random.default_rng(4)
+    n, k = 80, s.k
+    e = -rng.uniform(0.0, 3.0, size=(3, 4, n)).astype(np.float32)
+    e[1, 2] -= 150.0
+    e[2, :] -= 400.0
+    Y = rng.standard_normal((3, n, 4)).astype(np.float32)
+    Y[..., 3] = 1.0
+    got = s.kernel_sums(e, np.broadcast_to(np.eye(n, dtype=np.float32), (3, n, n)), Y,
+                        quantized=quantized)
+    e64 = e.astype(np.float64)
+    kth = np.sort(e64, axis=-1)[..., -k][..., None]
+    w = np.exp(e64 - e64.max(axis=-1, keepdims=True)) * (e64 >= kth)
+    ref = np.einsum("dbn,dnc->dbc", w, Y.astype(np.float64))
+    ratio = got[..., :3] / got[..., 3:]
+    assert np.all(np.isfinite(ratio))
+    np.testing.assert_allclose(ratio, ref[..., :3] / ref[..., 3:], rtol=1e-3, atol=1e-3)
+
+
+def test_crowd_mode_keeps_the_callers_agent_order(walk_model):
+    """Crowd-mode agents are sorted by their phase slice of the bank and put back: the
+    transition of permuted agents is the permuted transition."""
+    _, model = walk_model
+    s = Sampler(model, window=64)
+    x = s.run(np.random.default_rng(2), count=90, length=6, sigma=1.0, noise_time=0.1)
+    st = s.stats
+    zp, zc = ((x[:, t] - st["mean"]) / st["std"] for t in (4, 5))
+    perm = np.random.default_rng(3).permutation(90)
+    m, sd = s.transition(zp, zc)
+    mp, sp = s.transition(zp[perm], zc[perm])
+    np.testing.assert_allclose(mp, m[perm], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(sp, sd[perm], rtol=1e-5, atol=1e-6)
+    # and the crowd mode's one-step mean stays near the exact search's (in exact stds)
+    me, se = Sampler(model).transition(zp, zc)
+    assert np.median(np.abs(m - me) / se) < 0.1
+
+
 @pytest.mark.parametrize("window", [None, 40])
 def test_agent_blocks_give_the_transition_of_one_batch(walk_model, window, monkeypatch):
     """Agents go through the transition network AGENT_BLOCK at a time (the kernel tables
