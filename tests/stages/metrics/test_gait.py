@@ -127,6 +127,17 @@ def test_range_excess_known_overshoot_and_wrap():
         range_excess(x[:, :2], low, high)
 
 
+def test_range_excess_takes_the_best_turn_when_the_inputs_span_more_than_one():
+    """Inputs spanning more than 2π (a near-gimbal joint): the shift nearest the mean
+    leaves a track 1 rad out although the track shifted by a turn lies inside."""
+    low, high, mean = np.array([-5.0]), np.array([4.6]), np.array([-0.2])
+    x = np.linspace(-6.0, -2.0, 40)[:, None]  # mean -4: nearest turn is 0, 1 rad below
+    assert range_excess(x, low, high, mean)[0] == 0.0  # +2π: [0.28, 4.28] lies inside
+    assert range_excess(x, low, high)[0] == pytest.approx(1.0)
+    y = np.linspace(-6.0, 3.0, 40)[:, None]  # 9 rad: no turn fits; the smaller excess
+    assert range_excess(y, low, high, mean)[0] == pytest.approx(1.0)
+
+
 def test_rotation_channels_of_a_walk_exclude_the_root_and_match_the_range():
     m = procedural_walk(120, rate=RATE, seed=1)
     ang, names = rotation_channels(m)
