@@ -31,7 +31,10 @@ Moradoff §3.5–3.7 neighbourhood distance  neighbourhood.window_cost (per slot
                                           synth._coarsest_level
   meeting point                           search.LevelSearch._meet (coarsest level);
                                           refine.LevelRefinement._rejoin (searched again at
-                                          every finer level)
+                                          every finer level; followed to its finest seam:
+                                          synth._follow_meetings)
+  constrained frames with their           refine.LevelRefinement._join_windows (no join
+  neighbourhood                           within ``slots`` of a constraint)
   son selection                           refine.LevelRefinement.son_track (the level:
                                           refine.LevelRefinement.refine)
   candidate acceleration (children of     refine.LevelRefinement._candidate_lines,

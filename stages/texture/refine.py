@@ -279,8 +279,10 @@ class LevelRefinement(LevelSearch):
         """Inclusive ranges of join positions: the scheduled one and the fallback.
 
         The scheduled window is ``±meeting_window`` nodes around the transition,
-        after the previous join and the left run's constraints, up to the right
-        run's first constraint and while the left line stays in the input;
+        after the previous join and ``slots`` nodes after the left run's
+        constraints, up to ``slots`` nodes before the right run's first
+        constraint (a constraint is copied with its neighbourhood) and while
+        the left line stays in the input;
         when it can be, it is narrowed so that the runs on both sides keep
         ``MIN_RUN_FRAMES`` (and more than ``slots`` nodes) — long enough to
         smooth, no bridge of a few frames.  The fallback window reaches from
@@ -289,11 +291,12 @@ class LevelRefinement(LevelSearch):
         S, w = self.p.slots, self.p.meeting_window
         a1, b1, a2, b2 = tr.a1, tr.b1, tr.a2, tr.b2
         lo = max(a1 + 1, b1 + 1 - w, (prev_join + 1) if prev_join is not None else a1 + 1)
+        # a constraint is copied with its neighbourhood: no join within `slots` of it
         if tr.left_anchors:
-            lo = max(lo, max(tr.left_anchors) + 1)
+            lo = max(lo, max(tr.left_anchors) + 1 + S)
         hi = min(b2, a2 + w)
         if tr.right_anchors:
-            hi = min(hi, min(tr.right_anchors))
+            hi = min(hi, min(tr.right_anchors) - S)
         lo = max(lo, a1 + 1)
         hi_left = b1 + (self.view.n - 1 - tr.left_end) + 1  # m - 1 must keep L in range
         hi = min(hi, hi_left)

@@ -45,7 +45,7 @@ from typing import Any, Literal
 import numpy as np
 
 from mocapflow.pipeline import Context, stage
-from mocapflow.stages.metrics.quality import jerk_p99
+from mocapflow.stages.metrics.quality import jerk_p99, seams_from_source
 from mocapflow.stages.motion.datatypes import Motion
 from mocapflow.stages.motion.kinematics import (
     motion_positions,
@@ -299,7 +299,9 @@ def synthesize_source(
     -------
     source_index : (L,) int ndarray
     info : dict
-        ``meetings``: gap key -> meeting point (output frame, coarsest level's resolution).
+        ``meetings``: gap key -> meeting point: the seam of the finest track it became
+        (synthesis frame ``t``, the jump between ``t - 1`` and ``t``;
+        :func:`_follow_meetings`).
     """
     if not constraints and not cyclic:
         constraints = [(0, 0)]  # unconstrained: the output starts where the input starts
@@ -315,14 +317,52 @@ def synthesize_source(
         graph_slack=graph_slack,
         rng=rng,
     )
-    info: dict[str, Any] = {
-        "meetings": {str(k): int(v) * 2**top for k, v in upper.meetings.items()}
-    }
+    meetings = dict(upper.meetings)
     for l in range(top - 1, -1, -1):
         pos, node, _ = _anchors(constraints, l)
         refinement = LevelRefinement(views, l, n_out, cyclic, upper, params, rng)
         upper = refinement.refine(dict(zip(pos, node)))
+        meetings = _follow_meetings(meetings, upper.src, pos, cyclic)
+    info: dict[str, Any] = {"meetings": {str(k): int(v) for k, v in meetings.items()}}
     return upper.src.copy(), info
+
+
+def _follow_meetings(meetings: dict, src: np.ndarray, anchor_pos: list[int],
+                     cyclic: bool) -> dict:
+    """Each meeting point carried to the refined level: the seam of the refined track
+    nearest twice its parent position, between the gap's two anchors (refinement
+    searches every join again around there, :meth:`LevelRefinement._rejoin`).
+
+    Parameters
+    ----------
+    meetings : dict
+        Gap key ``(i, j)`` (constraint indices) -> meeting position at the parent level.
+    src : (n,) int ndarray
+        Source track of the refined level.
+    anchor_pos : list of int
+        Constraint positions at the refined level.
+    cyclic : bool
+
+    Returns
+    -------
+    dict
+        Gap key -> seam position (``t``: the jump lies between ``t - 1`` and ``t``); a
+        gap whose refined track has no seam left between its anchors is dropped.
+    """
+    seams = seams_from_source(src, cyclic=cyclic)
+    n = src.size
+    out = {}
+    for key, p in meetings.items():
+        i, j = key
+        lo, hi = anchor_pos[i], anchor_pos[j]
+        if cyclic and hi <= lo:
+            hi += n
+        cand = np.concatenate([seams, seams + n]) if cyclic else seams
+        cand = cand[(cand > lo) & (cand <= hi)]
+        if cand.size:
+            target = 2 * p + (n if cyclic and 2 * p <= lo else 0)
+            out[key] = int(cand[np.argmin(np.abs(cand - target))] % n)
+    return out
 
 
 # --------------------------------------------------------------------------- stage
