@@ -40,7 +40,8 @@ Moradoff §3.5–3.7 neighbourhood distance  neighbourhood.window_cost (per slot
   candidate acceleration (children of     refine.LevelRefinement._candidate_lines,
   the parent's 3 best ±candidate_range)   search.LevelSearch.candidates
 Moradoff §3.7.2 graph path                graph.transition_costs, graph.transition_graph,
-                                          graph.graph_path (DFS under a cost bound);
+                                          graph.graph_path (DFS under a cost bound, keeping
+                                          max_run: graph._min_cost_to_end);
                                           per gap: synth._graph_level
 Moradoff §3.8 adaptive local smoothing    smoothing.adaptive_smoothing (with the input's floor
                                           and jerk limit: assemble._smooth_seams)

@@ -9,7 +9,14 @@ path of exactly the gap's length from the left anchor to the right anchor is
 found by depth-first search under a cost bound (``(1 + graph_slack)`` × the
 cheapest such path); candidates are visited in random (seeded) order, so
 every seed gives another path.  The exact remaining-cost table makes the DFS
-prune every branch that cannot meet the bound.  Finer levels then select the
+prune every branch that cannot meet the bound.  It carries the length of the
+verbatim run each node ends, so the path keeps ``max_run`` (no run of natural
+successors longer than the synthesis' limit, counting the run that enters the
+gap); a gap too short to keep it is searched without it.  The ``slots`` edges
+beside each constraint are natural successors (a constrained node is copied
+with its neighbourhood), and the input's last nodes never jump into its first
+(:func:`mocapflow.stages.texture.synth._graph_level`: the finer levels could not
+join the two lines).  Finer levels then select the
 sons of the path nodes (children ``±candidate_range``) with the usual
 refinement (:mod:`~mocapflow.stages.texture.refine`).  The path is driven by
 :func:`mocapflow.stages.texture.synth._graph_level`, which also reports the
@@ -106,13 +113,33 @@ def transition_graph(costs: np.ndarray, *, threshold: float = 0.1) -> np.ndarray
     return E
 
 
-def _min_cost_to_end(E: np.ndarray, end: np.ndarray, steps: int) -> np.ndarray:
-    """``D[k, v]``: cheapest ``k``-edge path from ``v`` into ``end`` (inf: none)."""
+def _min_cost_to_end(
+    E: np.ndarray, end: np.ndarray, steps: int, max_run: int | None, end_run: int = 0
+) -> np.ndarray:
+    """``D[k, v, i]``: cheapest ``k``-edge path from ``v`` into ``end`` when ``v`` is the
+    ``i + 1``-th node of a verbatim run, no run longer than ``max_run`` nodes (inf: none;
+    ``max_run=None``: no limit, one run index); the run reaching ``end`` goes on for
+    ``end_run`` more nodes.
+    """
     n = E.shape[0]
-    D = np.full((steps + 1, n), np.inf)
-    D[0, end] = 0.0
+    if max_run is None:
+        D = np.full((steps + 1, n, 1), np.inf)
+        D[0, end] = 0.0
+        for k in range(1, steps + 1):
+            D[k, :, 0] = np.min(E + D[k - 1, :, 0][None, :], axis=1)
+        return D
+    R = max_run
+    nat = np.full(n, np.inf)
+    nat[:-1] = np.diagonal(E, 1)  # the natural successor's edge
+    J = E.copy()
+    J[np.arange(n - 1), np.arange(1, n)] = np.inf  # jumps only
+    D = np.full((steps + 1, n, R), np.inf)
+    D[0, end[:, None], np.arange(max(R - end_run, 1))[None, :]] = 0.0
     for k in range(1, steps + 1):
-        D[k] = np.min(E + D[k - 1][None, :], axis=1)
+        jump = np.min(J + D[k - 1, :, 0][None, :], axis=1)  # a jump starts a new run
+        cont = np.full((n, R), np.inf)
+        cont[:-1, :-1] = nat[:-1, None] + D[k - 1, 1:, 1:]  # v → v+1, one node longer
+        D[k] = np.minimum(jump[:, None], cont)
     return D
 
 
@@ -125,6 +152,10 @@ def graph_path(
     end: int | None,
     slack: float = 0.5,
     unit: float = 1.0,
+    max_run: int | None = None,
+    run_before: int = 1,
+    keep: int = 0,
+    end_run: int = 0,
     where: str = "gap",
 ) -> np.ndarray:
     """A random path of exactly ``steps`` edges under a cost bound (DFS).
@@ -142,6 +173,18 @@ def graph_path(
         Cost bound ``(1 + slack) × cheapest + slack × unit``.
     unit : float
         Cost unit of the level.
+    max_run : int, optional
+        Most nodes a verbatim run (natural successors) may have; a path that
+        cannot keep to it (too few edges) is searched without it.  ``None``: no limit.
+    run_before : int
+        Nodes of the verbatim run that ends at ``start`` (``start`` included).
+    keep : int
+        Natural edges the path keeps after ``start`` and before ``end`` (a
+        constrained node is copied with its neighbourhood); dropped where the
+        input or the gap is too short for them.
+    end_run : int
+        Nodes the verbatim run reaching ``end`` goes on for after it (counted
+        against ``max_run``).
     where : str
         Gap description for error messages.
 
@@ -156,29 +199,64 @@ def graph_path(
         No path of that length joins the anchors.
     """
     n = E.shape[0]
+    head = keep if start is not None and start + keep < n else 0
+    tail = keep if end is not None and end - keep >= 0 else 0
+    if head or tail:
+        if steps - head - tail >= 1 and (start is None or end is None
+                                         or start + head <= n - 1):
+            try:
+                inner = graph_path(
+                    E, steps - head - tail, rng,
+                    start=None if start is None else start + head,
+                    end=None if end is None else end - tail, slack=slack, unit=unit,
+                    max_run=max_run, run_before=run_before + head, keep=0,
+                    end_run=tail, where=where)
+                none = np.zeros(0, np.int64)
+                return np.concatenate([
+                    np.arange(start, start + head, dtype=np.int64) if head else none, inner,
+                    np.arange(end - tail + 1, end + 1, dtype=np.int64) if tail else none])
+            except UnreachableGapError:
+                pass  # the gap cannot keep the neighbourhoods: search without them
     end_set = np.arange(n) if end is None else np.array([end])
-    D = _min_cost_to_end(E, end_set, steps)
     starts = np.arange(n) if start is None else np.array([start])
-    feasible = starts[np.isfinite(D[steps, starts])]
+    R = None if max_run is None else max(int(max_run), 1)
+    i0 = 0 if R is None or start is None else min(max(int(run_before), 1), R) - 1
+    D = _min_cost_to_end(E, end_set, steps, R, end_run)
+    if R is not None and not np.isfinite(D[steps, starts, i0]).any():
+        R, i0 = None, 0  # the run limit cannot be kept on this gap
+        D = _min_cost_to_end(E, end_set, steps, R)
+    feasible = starts[np.isfinite(D[steps, starts, i0])]
     if feasible.size == 0:
         raise UnreachableGapError(
             f"{where}: unreachable — no path of {steps} transitions in the transition graph "
             f"joins input node {start} to input node {end} at the coarsest level; raise "
             "graph_threshold, move the constraints, or use method='meeting_point'"
         )
-    best = float(np.min(D[steps, feasible]))
+    best = float(np.min(D[steps, feasible, i0]))
     bound = best * (1.0 + slack) + slack * unit
-    # depth-first search with the exact remaining-cost table as pruning bound
+    nat = np.full(n, np.inf)
+    nat[:-1] = np.diagonal(E, 1)
+    J = E.copy()
+    J[np.arange(n - 1), np.arange(1, n)] = np.inf
+    # depth-first search with the exact remaining-cost table as pruning bound;
+    # a stack entry: (path, cost so far, run index of its last node)
     first = rng.permutation(feasible)
-    first = first[D[steps, first] <= bound]
-    stack: list[tuple[list[int], float]] = [([int(v)], 0.0) for v in first[::-1]]
+    first = first[D[steps, first, i0] <= bound]
+    stack: list[tuple[list[int], float, int]] = [([int(v)], 0.0, i0) for v in first[::-1]]
     while stack:
-        path, acc = stack.pop()
+        path, acc, i = stack.pop()
         k = steps - (len(path) - 1)
         if k == 0:
             return np.asarray(path, dtype=np.int64)
         u = path[-1]
-        nxt = np.flatnonzero(np.isfinite(E[u]) & (acc + E[u] + D[k - 1] <= bound + 1e-12))
-        for v in rng.permutation(nxt)[::-1]:
-            stack.append((path + [int(v)], acc + float(E[u, v])))
+        nxt = [(int(v), acc + float(J[u, v]), 0) for v in np.flatnonzero(
+            np.isfinite(J[u]) & (acc + J[u] + D[k - 1, :, 0] <= bound + 1e-12))]
+        # (with no limit the natural successor keeps run index 0)
+        inext = 0 if R is None else i + 1
+        if (u + 1 < n and (R is None or inext < R)
+                and acc + nat[u] + D[k - 1, u + 1, inext] <= bound + 1e-12):
+            nxt.append((u + 1, acc + float(nat[u]), inext))
+        for j in rng.permutation(len(nxt))[::-1]:
+            v, c, iv = nxt[j]
+            stack.append((path + [v], c, iv))
     raise UnreachableGapError(f"{where}: no path within the cost bound {bound:.3g}")

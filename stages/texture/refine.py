@@ -339,6 +339,8 @@ class LevelRefinement(LevelSearch):
         own = novel[np.abs(novel - tr.right_start) <= self.p.candidate_range]  # the drawn line
         span = 2 * S + 1  # a new run plays at least this long before the input ends
         any_line = np.arange(-self.p.meeting_window - (tr.a2 - tr.b1), self.view.n)
+        if tr.right_anchors:  # a constrained run keeps its line
+            any_line = starts
         return (
             (own, window, True, span),
             (novel, window, True, span),

@@ -175,6 +175,10 @@ def _graph_level(
     """
     view = search.view
     E = transition_graph(transition_costs(view, slots=params.slots), threshold=threshold)
+    # no jump from the input's last nodes into its first: the finer levels could extend
+    # neither line to join them (the left one ends the input, the right one starts it)
+    S = params.slots
+    E[-S:, :S] = np.inf
     n = search.n
     meetings = {}
     for g in gaps:
@@ -187,7 +191,9 @@ def _graph_level(
         end = int(src[g.hi % n]) if g.right else None
         where = _gap_name(g, search)
         path = graph_path(
-            E, steps, rng, start=start, end=end, slack=slack, unit=view.unit, where=where
+            E, steps, rng, start=start, end=end, slack=slack, unit=view.unit,
+            max_run=search.max_run_nodes, run_before=_run_into(src, g.lo, search.cyclic),
+            keep=params.slots, where=where,
         )
         if g.left and g.right:
             nodes, pos = path[1:-1], np.arange(g.lo + 1, g.hi)
@@ -208,6 +214,23 @@ def _graph_level(
             else:
                 meetings[g.key] = (g.lo + g.hi) // 2
     return meetings
+
+
+def _run_into(src: np.ndarray, t: int, cyclic: bool) -> int:
+    """Nodes of the verbatim run of ``src`` that ends at position ``t`` (0: unfilled)."""
+    n = src.size
+    if not cyclic and not 0 <= t < n or src[t % n] < 0:
+        return 0
+    run = 1
+    while run < n:
+        u = t - run
+        if not cyclic and u < 0:
+            break
+        a, b = src[u % n], src[(u + 1) % n]
+        if a < 0 or b != a + 1:
+            break
+        run += 1
+    return run
 
 
 def _gap_name(g, search: LevelSearch) -> str:

@@ -4,7 +4,10 @@ The salsa take (``cmu_60_01_scaled.bvh``, 120 fps, synthesised at 30 fps) with
 three constraints.  Before the fix the report's ``meetings`` were the coarsest
 level's positions ×8, inside verbatim runs after refinement (29 of 40 over 20
 seeds), and refinement could join right next to a constrained frame (a seam at
-or within one frame of a constraint in 5 of 20 seeds).
+or within one frame of a constraint in 5 of 20 seeds).  The graph path
+(``method="graph_path"``) ignored ``max_run``: it replayed 534-552 of the 561
+frames verbatim (limit 168); it now keeps the run limit in its search (a run-length
+state in the remaining-cost table) and natural edges beside each constraint.
 """
 
 from __future__ import annotations
@@ -25,15 +28,17 @@ SEEDS = range(20)
 SLOTS = 3  # the synth default: a constraint keeps this many verbatim frames each side
 
 
-@pytest.fixture(scope="module")
-def salsa_runs(shared_data):
+@pytest.fixture(scope="module", params=[("meeting_point", SEEDS), ("graph_path", SEEDS[:10])],
+                ids=["meeting_point", "graph_path"])
+def salsa_runs(request, shared_data):
+    method, seeds = request.param
     path = shared_data / "bvh" / "cmu_60_01_scaled.bvh"
     motion = ingest_bvh(str(path), rate=30, ctx=Context())["motion"]
     pyr = build_pyramid(motion, levels=4)
     runs = []
-    for seed in SEEDS:
+    for seed in seeds:
         r = synth(pyr, motion, length=1024, levels=4, constraints=CONSTRAINTS, seed=seed,
-                  foot_ik=False, ctx=seeded_context(seed))
+                  method=method, foot_ik=False, ctx=seeded_context(seed))
         runs.append((r["source_index"], r["report"]))
     return motion.n_frames, runs
 
