@@ -148,7 +148,10 @@ def run_row(motion, length: int, seeds: list[int], levels: int, variants: dict):
         for name, params in variants.items():
             t0 = time.process_time()  # CPU seconds: robust to other jobs on the machine
             pyr = build_pyramid(motion, levels=levels)
-            r = synth(pyr, motion, length=length, seed=seed, ctx=seeded_context(seed), **params)
+            # output at the synthesis rate, as the inputs it is measured against (the stage
+            # exports at the source file's rate by default)
+            r = synth(pyr, motion, length=length, seed=seed, ctx=seeded_context(seed),
+                      output_rate=motion.rate, **params)
             seconds = time.process_time() - t0
             res[name].append(evaluate(ref, r["motion"], r["source_index"], seconds))
         rng = np.random.default_rng(1000 + seed)

@@ -29,7 +29,7 @@ Sampling (the ``sample`` stage, :class:`Sampler`)
     agents; ``Sampler(model, window=W)`` restricts each agent's neighbour
     search to the ``W`` instances nearest in cycle phase and selects the ``k``
     nearest on exponents rounded to 1/512 (an approximation, ~4x faster on the
-    walk at ``W = 64``: one-step mean within 0.03 of the exact std at the
+    walk at ``W = 64``: one-step mean within 0.04 of the exact std at the
     median; ``None`` is the exact search).
 Noise baselines (Lau §8, the ``sample_noise`` stage)
     ``strawman``: an input clip, time-warped by a random smooth monotone warp,
@@ -79,12 +79,14 @@ __all__ = [
 
 
 AGENT_BLOCK = 32
+"""Agents per transition block: the ``(D, block, N)`` kernel tables of one block stay in
+cache (1,000 agents of the 54-DOF walk in one block: 3x slower per agent-frame)."""
+
 EXPONENT_STEPS = 512.0
 """Crowd mode: the kernel exponents are rounded to 1 / 512 for the nearest-instance
 selection (weights within 0.2 % of the ``k``-th count as ties)."""
-_QMIN = -32768
-"""Agents per transition block: the ``(D, block, N)`` kernel tables of one block stay in
-cache (1,000 agents of the 54-DOF walk in one block: 3x slower per agent-frame)."""
+
+_QMIN = -32768  # the int16 floor of the rounded exponents
 
 
 class SampleError(ValueError):
