@@ -73,7 +73,9 @@ Departures from the thesis (the module docstrings say why):
   (search.LevelSearch._settled), and a run reaching ``max_run`` of the input
   must jump where the jump fits best (search.LevelSearch._jump_earlier);
 * smoothing: a seam also fails the test while its jerk exceeds
-  ``jerk_tolerance`` × the input's p99 jerk (smoothing.seam_test).
+  ``jerk_tolerance`` × the input's p99 jerk (smoothing.seam_test); its frame
+  counts are the thesis' at 30 fps and scale with the synthesis rate
+  (smoothing.SMOOTHING_RATE).
 
 How refinement keeps the coarse plan (the drawn line tried first, joins
 ``MIN_RUN_FRAMES`` apart, no bridge of a few frames into the input's end) is

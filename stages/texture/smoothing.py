@@ -16,6 +16,11 @@ sign-aligned, weighted sum, normalised) and on the root features; ``k`` widens
 by one per failing test until no discontinuity remains (or ``max_widening`` is
 reached).
 
+Every frame count above is at 30 fps (:data:`SMOOTHING_RATE`, the thesis'
+rate); at a higher synthesis rate each scales by ``rate / 30`` (the Gaussian
+becomes a sampled one of the same width in seconds), so the smoothing and the
+test cover the same time at any rate.
+
 Constrained frames are pinned: after every pass the rotation and height offsets
 that smoothing introduced at a constrained frame are removed by a displacement
 that decays to zero (raised cosine) over the smoothing radius.
@@ -45,26 +50,46 @@ __all__ = [
     "seam_test",
 ]
 
-#: Frames on each side of a seam used to evaluate the acceleration test.
+#: Frame rate at which the frame counts of the smoothing are stated (the thesis' 30
+#: fps): at another rate the Gaussian's width, the window and its taper, and the test's
+#: reference frames scale by ``rate / SMOOTHING_RATE``, so a pass smooths the same span
+#: of time (at 120 fps the 5 taps covered a quarter of it: 19 of 28 seams failed).
+SMOOTHING_RATE = 30.0
+#: Frames on each side of a seam used to evaluate the acceleration test (at 30 fps).
 _HALF = 6
-#: Taper (frames) of a smoothing window.
+#: Taper (frames at 30 fps) of a smoothing window.
 _TAPER = 5
 
 
-def gaussian_taps(width: int = 5) -> np.ndarray:
+def _scale(rate: float) -> float:
+    """Frames at ``rate`` per frame at :data:`SMOOTHING_RATE` (1 at or below it)."""
+    return max(float(rate) / SMOOTHING_RATE, 1.0)
+
+
+def gaussian_taps(width: int = 5, scale: float = 1.0) -> np.ndarray:
     """Binomial approximation of a Gaussian with ``width`` taps (odd).
 
     Parameters
     ----------
     width : int
+        Taps at :data:`SMOOTHING_RATE` (std ``√(width − 1) / 2`` frames).
+    scale : float
+        Frames per frame at :data:`SMOOTHING_RATE` (:func:`_scale`): above 1,
+        a sampled Gaussian of ``scale`` × that std, cut at 3 std.
 
     Returns
     -------
-    (width,) float ndarray
+    (T,) float ndarray
+        ``T = width`` at ``scale = 1``.
     """
     if width < 3 or width % 2 == 0:
         raise ValueError(f"gaussian_width must be odd and >= 3, got {width}")
-    w = np.array([comb(width - 1, k) for k in range(width)], dtype=np.float64)
+    if scale <= 1.0:
+        w = np.array([comb(width - 1, k) for k in range(width)], dtype=np.float64)
+        return w / w.sum()
+    sd = scale * np.sqrt(width - 1) / 2.0
+    x = np.arange(-int(np.ceil(3 * sd)), int(np.ceil(3 * sd)) + 1)
+    w = np.exp(-0.5 * (x / sd) ** 2)
     return w / w.sum()
 
 
@@ -115,13 +140,14 @@ def _blend_quaternions(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarra
     return out / np.linalg.norm(out, axis=-1, keepdims=True)
 
 
-def _window(L: int, centre: float, inner: float, cyclic: bool) -> np.ndarray:
-    """Weight 1 within ``inner`` of ``centre``, cosine taper over ``_TAPER`` frames."""
+def _window(L: int, centre: float, inner: float, cyclic: bool, taper: float = _TAPER
+            ) -> np.ndarray:
+    """Weight 1 within ``inner`` of ``centre``, cosine taper over ``taper`` frames."""
     f = np.arange(L, dtype=np.float64)
     d = np.abs(f - centre)
     if cyclic:
         d = np.minimum(d, L - d)
-    x = np.clip((d - inner) / _TAPER, 0.0, 1.0)
+    x = np.clip((d - inner) / taper, 0.0, 1.0)
     return 0.5 * (1.0 + np.cos(np.pi * x))
 
 
@@ -159,8 +185,8 @@ def seam_test(
         smoothing passes the ones of the unsmoothed track, whose reference
         frames do not yet feel the smoothing window.
     jerk_limit : float, optional
-        Largest mean joint jerk (m/s³) allowed at the three frames whose
-        jerk stencil spans the seam; a seam above it fails as well.
+        Largest mean joint jerk (m/s³) allowed at the three frames (at 30 fps)
+        whose jerk stencil spans the seam; a seam above it fails as well.
 
     Returns
     -------
@@ -175,7 +201,9 @@ def seam_test(
         return np.ones(0, bool), np.zeros(0), np.zeros(0)
     L = rotations.shape[0]
     J = rotations.shape[1]
-    raw = seams[:, None] + np.arange(-_HALF, _HALF)[None, :]
+    r = _scale(rate)
+    half, nref = int(round(_HALF * r)), int(round(3 * r))  # frames at this rate
+    raw = seams[:, None] + np.arange(-half, half)[None, :]
     if cyclic:
         idx, ok = np.mod(raw, L), np.ones(raw.shape, bool)
     else:
@@ -200,9 +228,9 @@ def seam_test(
     a_ok = ok[:, 2:] & ok[:, 1:-1] & ok[:, :-2]
     acc = np.full(idx.shape, np.nan)
     acc[:, 1:-1] = np.where(a_ok, a, np.nan)
-    i = _HALF - 1  # frame before the seam, local index
+    i = half - 1  # frame before the seam, local index
     seam_acc = np.nanmax(acc[:, i : i + 2], axis=1)
-    ref = np.concatenate([acc[:, i - 3 : i], acc[:, i + 2 : i + 5]], axis=1)
+    ref = np.concatenate([acc[:, i - nref : i], acc[:, i + 2 : i + 2 + nref]], axis=1)
     with np.errstate(invalid="ignore"):
         ref_acc = np.where(np.isfinite(ref).any(1), np.nanmean(ref, 1), 0)
     if reference is not None:
@@ -213,7 +241,8 @@ def seam_test(
         j = pos[:, 3:] - 3 * pos[:, 2:-1] + 3 * pos[:, 1:-2] - pos[:, :-3]
         j = np.linalg.norm(j, axis=-1).mean(-1) * rate**3  # local frame f = index + 1
         j_ok = ok[:, 3:] & ok[:, :-3]
-        jerk = np.where(j_ok, j, np.nan)[:, i - 2 : i + 1]  # frames i-1, i, i+1
+        m = int(round(r)) - 1  # frames i-1, i, i+1 at 30 fps, widened with the rate
+        jerk = np.where(j_ok, j, np.nan)[:, i - 2 - m : i + 1 + m]
         with np.errstate(invalid="ignore"):
             passed &= ~(np.nanmax(np.nan_to_num(jerk, nan=0.0), axis=1) > jerk_limit)
     return passed, seam_acc, ref_acc
@@ -299,13 +328,13 @@ def adaptive_smoothing(
     cyclic : bool
         Loop mode (windows wrap).
     gaussian_width : int
-        Taps of the Gaussian (5).
+        Taps of the Gaussian (5) at :data:`SMOOTHING_RATE`.
     accel_tolerance : float
         Seam acceleration allowed, relative to the mean reference acceleration.
     accel_floor : float
         Seam accelerations below this (m/s²) pass whatever the references.
     max_widening : int
-        Largest ``k``.
+        Largest ``k`` (passes; pass ``k`` smooths ``±k`` frames at 30 fps).
     jerk_limit : float, optional
         Seams whose jerk exceeds this (m/s³) fail too (see :func:`seam_test`).
 
@@ -317,7 +346,9 @@ def adaptive_smoothing(
     feat = np.array(features, dtype=np.float64)
     rot0, feat0 = rot.copy(), feat.copy()
     seams = np.asarray(seams, dtype=np.int64)
-    taps = gaussian_taps(gaussian_width)
+    r = _scale(rate)
+    taps = gaussian_taps(gaussian_width, r)
+    taper = _TAPER * r
     k = np.zeros(seams.size, dtype=np.int64)
     L = rot.shape[0]
     passed, sa, ref = seam_test(
@@ -338,11 +369,11 @@ def adaptive_smoothing(
         k[fail] += 1
         w = np.zeros(L)
         for t, kk in zip(seams[fail], k[fail]):
-            w = np.maximum(w, _window(L, t - 0.5, float(kk), cyclic))
+            w = np.maximum(w, _window(L, t - 0.5, kk * r, cyclic, taper))
         rot = _blend_quaternions(rot, filter_quaternions(rot, taps, cyclic=cyclic), w)
         feat = feat + w[:, None] * (_filter_linear(feat, taps, cyclic=cyclic) - feat)
         if len(constrained):
-            _pin(rot, feat, rot0, feat0, constrained, int(k.max()) + _TAPER + 2, cyclic)
+            _pin(rot, feat, rot0, feat0, constrained, int(k.max() * r + taper) + 2, cyclic)
         passed, sa, _ = seam_test(
             skeleton,
             rot,

@@ -561,14 +561,17 @@ def synth(
     smoothing : bool
         Adaptive local smoothing (Moradoff §3.8).
     gaussian_width : int
-        Taps of the smoothing Gaussian (5).
+        Taps of the smoothing Gaussian (5) at 30 fps; at a higher synthesis rate
+        the Gaussian keeps its width in seconds
+        (:data:`~mocapflow.stages.texture.smoothing.SMOOTHING_RATE`).
     accel_tolerance : float
         Acceleration test threshold relative to the reference frames.
     jerk_tolerance : float
         A seam also fails the smoothing test while its jerk exceeds this
         multiple of the input's p99 jerk (0 disables).
     max_widening : int
-        Largest smoothing half width ``k``.
+        Most smoothing passes per seam; pass ``k`` smooths ``±k`` frames at 30 fps
+        (``±k · rate / 30`` frames at the synthesis rate).
     foot_ik : bool
         Pin the stance toes with two-bone leg IK after smoothing (no foot skate
         at the seams; constrained frames untouched).
