@@ -359,7 +359,8 @@ def _follow_meetings(meetings: dict, src: np.ndarray, anchor_pos: list[int],
     Parameters
     ----------
     meetings : dict
-        Gap key ``(i, j)`` (constraint indices) -> meeting position at the parent level.
+        Gap key ``(i, j)`` (constraint indices, ``"free"``: the free start of a loop
+        without constraints, node 0) -> meeting position at the parent level.
     src : (n,) int ndarray
         Source track of the refined level.
     anchor_pos : list of int
@@ -376,8 +377,8 @@ def _follow_meetings(meetings: dict, src: np.ndarray, anchor_pos: list[int],
     n = src.size
     out = {}
     for key, p in meetings.items():
-        i, j = key
-        lo, hi = anchor_pos[i], anchor_pos[j]
+        # a loop without constraints has one free anchor at output node 0 ("free")
+        lo, hi = (anchor_pos[a] if isinstance(a, int) else 0 for a in key)
         if cyclic and hi <= lo:
             hi += n
         cand = np.concatenate([seams, seams + n]) if cyclic else seams

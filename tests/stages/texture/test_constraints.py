@@ -67,3 +67,17 @@ def test_constraints_exact_and_copied_with_their_neighbourhood(salsa_runs):
             assert src[o] == i
             # no transition within SLOTS frames of a constrained frame
             assert not np.any(np.abs(seams - o) <= SLOTS), (o, seams.tolist())
+
+
+@pytest.mark.parametrize("method", ["meeting_point", "graph_path"])
+@pytest.mark.parametrize("constraints", [[], [[50, 100]]], ids=["free", "one"])
+def test_loop_meetings_are_seams(shared_data, method, constraints):
+    """Loops: the wrap gap's meeting (a free start without constraints) is followed to
+    its seam too (the free anchor is node 0 at every level)."""
+    path = shared_data / "bvh" / "pymo_AV_8Walk_Meredith_HVHA_Rep1.bvh"
+    motion = ingest_bvh(str(path), rate=30, ctx=Context())["motion"]
+    r = synth(build_pyramid(motion, levels=4), motion, length=400, levels=4, loop=True,
+              constraints=constraints, method=method, foot_ik=False, ctx=seeded_context(0))
+    seams = set(M.seams_from_source(r["source_index"], cyclic=True).tolist())
+    assert len(r["report"]["meetings"]) == 1
+    assert all(t in seams for t in r["report"]["meetings"].values())
