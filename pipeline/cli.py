@@ -28,6 +28,7 @@ import os
 import sys
 import traceback
 from collections.abc import Sequence
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -141,6 +142,14 @@ def _exec_args(p: argparse.ArgumentParser) -> None:
                    help="print the Slurm job script and exit (needs no Slurm)")
 
 
+def _version() -> str:
+    """The installed distribution's version."""
+    try:
+        return metadata.version("mocapflow")
+    except metadata.PackageNotFoundError:  # pragma: no cover - not installed
+        return "(not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``mocapflow``."""
     parser = argparse.ArgumentParser(
@@ -150,6 +159,8 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--debug", action="store_true", dest="debug_top",
                         help="show tracebacks")
+    parser.add_argument("--version", action="version", version=f"mocapflow {_version()}",
+                        help="print the installed version and exit")
     sub = parser.add_subparsers(dest="verb", metavar="VERB", required=True)
 
     p = sub.add_parser("run", help="run a graph (only what changed is recomputed)")

@@ -252,3 +252,14 @@ def test_verbs_and_flags_keep_their_names():
                               "--parts", "x/*.bvh", "--parts", "y.bvh", "--target", "t"])
     assert args.sets == ["a.b=1", "c.d=x"] and args.parts == ["x/*.bvh", "y.bvh"]
     assert args.executor == "local" and args.targets == ["t"]
+
+
+def test_version_prints_the_installed_version(capsys):
+    from importlib.metadata import version
+
+    from mocapflow.pipeline.cli import main
+
+    with pytest.raises(SystemExit) as exit_:  # argparse's version action, as for --help
+        main(["--version"])
+    assert exit_.value.code == 0
+    assert capsys.readouterr().out.strip() == f"mocapflow {version('mocapflow')}"
