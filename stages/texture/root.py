@@ -395,7 +395,8 @@ def plant_feet(
         Toe contacts of the input.
     cyclic : bool
     smooth : float
-        Gaussian sigma (frames) applied to the accumulated root offset.
+        Gaussian sigma (frames) applied to the accumulated root offset (the
+        caller scales it with the rate: 2 at 30 fps).
 
     Returns
     -------
