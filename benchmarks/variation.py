@@ -154,7 +154,7 @@ def streams(model, rng, *, count: int, length: int, sigma: float,
     else ``Sampler.run``; ``window``: the crowd mode.  Columns are ``model.clips.labels``."""
     from mocapflow.stages.variation.sample import Sampler
 
-    s = Sampler(model) if window is None else Sampler(model, window=window)
+    s = Sampler(model, window=window)
     if hasattr(s, "stream"):
         gen = s.stream(rng, count=count, sigma=sigma, noise_time=noise_time)
         return np.stack(list(itertools.islice(gen, length)), axis=1)
@@ -460,7 +460,7 @@ def _speed_worker(config: str, quick: bool) -> dict:
     # sampling is timed before the 2-worker learning (whose processes may linger)
     frames = 5 if quick else 40
     for key, win in (("", None), ("_crowd", CROWD_WINDOW)):
-        s = Sampler(model) if win is None else Sampler(model, window=win)
+        s = Sampler(model, window=win)
         # streaming: 1,000 agents advanced frame by frame, timed after the prior's two frames
         gen = s.stream(np.random.default_rng(0), count=1000, sigma=sigma, noise_time=nt)
         for _ in range(4):

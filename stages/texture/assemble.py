@@ -50,7 +50,7 @@ from mocapflow.stages.texture.root import (
     rotate_xz,
     toe_displacements,
 )
-from mocapflow.stages.texture.smoothing import SMOOTHING_RATE, adaptive_smoothing
+from mocapflow.stages.texture.smoothing import adaptive_smoothing, rate_scale
 
 __all__ = ["ACCEL_FLOOR", "assemble_motion"]
 
@@ -142,9 +142,8 @@ def _planted_velocity(pyramid, motion, rot, feat, src, loop) -> np.ndarray:
     trans = feat[:, 4:].reshape(len(src), J, 3) if feat.shape[1] > 4 else None
     local = level_positions(motion.skeleton, rot, feat[:, 3], trans)[:, toes][..., [0, 2]]
     # the planted root offset is smoothed over 2 frames at 30 fps, the same time at any rate
-    smooth = 2.0 * max(motion.rate / SMOOTHING_RATE, 1.0)
     return plant_feet(feat[:, 0], feat[:, 1:3], local, src, disp_in, contact, cyclic=loop,
-                      smooth=smooth)
+                      smooth=2.0 * rate_scale(motion.rate))
 
 
 def _place_root(

@@ -113,6 +113,17 @@ def transition_graph(costs: np.ndarray, *, threshold: float = 0.1) -> np.ndarray
     return E
 
 
+def _natural_and_jumps(E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(n,)`` cost of each node's natural successor edge (inf for the last) and the
+    ``(n, n)`` edge costs without those edges (jumps only)."""
+    n = E.shape[0]
+    nat = np.full(n, np.inf)
+    nat[:-1] = np.diagonal(E, 1)
+    J = E.copy()
+    J[np.arange(n - 1), np.arange(1, n)] = np.inf
+    return nat, J
+
+
 def _min_cost_to_end(
     E: np.ndarray, end: np.ndarray, steps: int, max_run: int | None, end_run: int = 0
 ) -> np.ndarray:
@@ -129,10 +140,7 @@ def _min_cost_to_end(
             D[k, :, 0] = np.min(E + D[k - 1, :, 0][None, :], axis=1)
         return D
     R = max_run
-    nat = np.full(n, np.inf)
-    nat[:-1] = np.diagonal(E, 1)  # the natural successor's edge
-    J = E.copy()
-    J[np.arange(n - 1), np.arange(1, n)] = np.inf  # jumps only
+    nat, J = _natural_and_jumps(E)
     D = np.full((steps + 1, n, R), np.inf)
     D[0, end[:, None], np.arange(max(R - end_run, 1))[None, :]] = 0.0
     for k in range(1, steps + 1):
@@ -201,22 +209,20 @@ def graph_path(
     n = E.shape[0]
     head = keep if start is not None and start + keep < n else 0
     tail = keep if end is not None and end - keep >= 0 else 0
-    if head or tail:
-        if steps - head - tail >= 1 and (start is None or end is None
-                                         or start + head <= n - 1):
-            try:
-                inner = graph_path(
-                    E, steps - head - tail, rng,
-                    start=None if start is None else start + head,
-                    end=None if end is None else end - tail, slack=slack, unit=unit,
-                    max_run=max_run, run_before=run_before + head, keep=0,
-                    end_run=tail, where=where)
-                none = np.zeros(0, np.int64)
-                return np.concatenate([
-                    np.arange(start, start + head, dtype=np.int64) if head else none, inner,
-                    np.arange(end - tail + 1, end + 1, dtype=np.int64) if tail else none])
-            except UnreachableGapError:
-                pass  # the gap cannot keep the neighbourhoods: search without them
+    if (head or tail) and steps - head - tail >= 1:
+        try:
+            inner = graph_path(
+                E, steps - head - tail, rng,
+                start=None if start is None else start + head,
+                end=None if end is None else end - tail, slack=slack, unit=unit,
+                max_run=max_run, run_before=run_before + head, keep=0,
+                end_run=tail, where=where)
+            none = np.zeros(0, np.int64)
+            return np.concatenate([
+                np.arange(start, start + head, dtype=np.int64) if head else none, inner,
+                np.arange(end - tail + 1, end + 1, dtype=np.int64) if tail else none])
+        except UnreachableGapError:
+            pass  # the gap cannot keep the neighbourhoods: search without them
     end_set = np.arange(n) if end is None else np.array([end])
     starts = np.arange(n) if start is None else np.array([start])
     R = None if max_run is None else max(int(max_run), 1)
@@ -234,10 +240,7 @@ def graph_path(
         )
     best = float(np.min(D[steps, feasible, i0]))
     bound = best * (1.0 + slack) + slack * unit
-    nat = np.full(n, np.inf)
-    nat[:-1] = np.diagonal(E, 1)
-    J = E.copy()
-    J[np.arange(n - 1), np.arange(1, n)] = np.inf
+    nat, J = _natural_and_jumps(E)
     # depth-first search with the exact remaining-cost table as pruning bound;
     # a stack entry: (path, cost so far, run index of its last node)
     first = rng.permutation(feasible)
@@ -251,8 +254,7 @@ def graph_path(
         u = path[-1]
         nxt = [(int(v), acc + float(J[u, v]), 0) for v in np.flatnonzero(
             np.isfinite(J[u]) & (acc + J[u] + D[k - 1, :, 0] <= bound + 1e-12))]
-        # (with no limit the natural successor keeps run index 0)
-        inext = 0 if R is None else i + 1
+        inext = 0 if R is None else i + 1  # (no limit: one run index)
         if (u + 1 < n and (R is None or inext < R)
                 and acc + nat[u] + D[k - 1, u + 1, inext] <= bound + 1e-12):
             nxt.append((u + 1, acc + float(nat[u]), inext))

@@ -47,6 +47,7 @@ __all__ = [
     "adaptive_smoothing",
     "filter_quaternions",
     "gaussian_taps",
+    "rate_scale",
     "seam_test",
 ]
 
@@ -61,7 +62,7 @@ _HALF = 6
 _TAPER = 5
 
 
-def _scale(rate: float) -> float:
+def rate_scale(rate: float) -> float:
     """Frames at ``rate`` per frame at :data:`SMOOTHING_RATE` (1 at or below it)."""
     return max(float(rate) / SMOOTHING_RATE, 1.0)
 
@@ -74,7 +75,7 @@ def gaussian_taps(width: int = 5, scale: float = 1.0) -> np.ndarray:
     width : int
         Taps at :data:`SMOOTHING_RATE` (std ``√(width − 1) / 2`` frames).
     scale : float
-        Frames per frame at :data:`SMOOTHING_RATE` (:func:`_scale`): above 1,
+        Frames per frame at :data:`SMOOTHING_RATE` (:func:`rate_scale`): above 1,
         a sampled Gaussian of ``scale`` × that std, cut at 3 std.
 
     Returns
@@ -201,7 +202,7 @@ def seam_test(
         return np.ones(0, bool), np.zeros(0), np.zeros(0)
     L = rotations.shape[0]
     J = rotations.shape[1]
-    r = _scale(rate)
+    r = rate_scale(rate)
     half, nref = int(round(_HALF * r)), int(round(3 * r))  # frames at this rate
     raw = seams[:, None] + np.arange(-half, half)[None, :]
     if cyclic:
@@ -346,7 +347,7 @@ def adaptive_smoothing(
     feat = np.array(features, dtype=np.float64)
     rot0, feat0 = rot.copy(), feat.copy()
     seams = np.asarray(seams, dtype=np.int64)
-    r = _scale(rate)
+    r = rate_scale(rate)
     taps = gaussian_taps(gaussian_width, r)
     taper = _TAPER * r
     k = np.zeros(seams.size, dtype=np.int64)

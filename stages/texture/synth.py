@@ -221,16 +221,10 @@ def _run_into(src: np.ndarray, t: int, cyclic: bool) -> int:
     n = src.size
     if not cyclic and not 0 <= t < n or src[t % n] < 0:
         return 0
-    run = 1
-    while run < n:
-        u = t - run
-        if not cyclic and u < 0:
-            break
-        a, b = src[u % n], src[(u + 1) % n]
-        if a < 0 or b != a + 1:
-            break
-        run += 1
-    return run
+    back = t - np.arange(n if cyclic else t + 1)  # t, t-1, … (wrapping in a loop)
+    v = src[back % n]
+    follows = (v[1:] >= 0) & (v[:-1] == v[1:] + 1)  # v[u] continues v[u + 1]
+    return 1 + (int(np.argmin(follows)) if not follows.all() else follows.size)
 
 
 def _gap_name(g, search: LevelSearch) -> str:
