@@ -26,14 +26,20 @@ import json
 import logging
 import os
 import sys
+import textwrap
 import traceback
 from collections.abc import Sequence
 from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from rich import box
+from rich.console import Console
+from rich.table import Table
+
 from mocapflow.pipeline import registry
-from mocapflow.pipeline.config import ConfigError, load_stage_modules
+from mocapflow.pipeline.config import ConfigError, load_stage_modules, shipped_configs
+from mocapflow.pipeline.config_yaml import close_match
 from mocapflow.pipeline.demo import DemoError, DemoStep, load_demo_spec, run_demo
 from mocapflow.pipeline.execute import OK, TaskRecord
 from mocapflow.pipeline.executors import (
@@ -44,7 +50,7 @@ from mocapflow.pipeline.executors import (
     slurm_job_script,
 )
 from mocapflow.pipeline.export import EXPORT_LAYOUT, ExportError, export_results
-from mocapflow.pipeline.graph import Graph, file_overrides, load_graph, task_name
+from mocapflow.pipeline.graph import Graph, file_overrides, load_graph, part_label, task_name
 from mocapflow.pipeline.lock import (
     FrozenError,
     default_lock_path,
@@ -57,7 +63,9 @@ from mocapflow.pipeline.progress import Progress, StageWarningFilter, warning_li
 from mocapflow.pipeline.registry import ParamError
 from mocapflow.pipeline.runner import RunResult, run
 from mocapflow.pipeline.show import entry_summary, find_entry
+from mocapflow.pipeline.stage_docs import config_schema, param_docs
 from mocapflow.pipeline.store import Store, StoreError
+from mocapflow.pipeline.store_backends import STORAGE_OPTIONS_ENV, parse_storage_options
 
 __all__ = ["build_parser", "main"]
 
@@ -69,10 +77,14 @@ EPILOG = """examples:
   mocapflow export configs/texture.yaml --target synth --to out/
   mocapflow lock configs/variation.yaml && mocapflow run configs/variation.yaml --frozen
   mocapflow run configs/skin.yaml --scheduler-file ~/scheduler.json
+  mocapflow run skin --store s3://bucket/store --storage-option client_kwargs.endpoint_url=URL
+  mocapflow run skin --executor slurm --slurm-partition gpu --slurm-gres gpu:1 --print-job-script
 
 environment:
-  MOCAPFLOW_STORE          default --store (else ./.mocapflow)
-  MOCAPFLOW_STAGE_MODULES  comma-separated modules to import for their @stage registrations
+  MOCAPFLOW_STORE            default --store (else ./.mocapflow)
+  MOCAPFLOW_STORAGE_OPTIONS  fsspec options of a URL store, a JSON object that --storage-option
+                             items update, e.g. {"client_kwargs": {"endpoint_url": "URL"}}
+  MOCAPFLOW_STAGE_MODULES    comma-separated modules to import for their @stage registrations
 """
 
 
@@ -95,14 +107,27 @@ def _common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--store", default=None,
                    help=f"store root: a directory or fsspec URL (default: $MOCAPFLOW_STORE or "
                         f"./{DEFAULT_STORE})")
+    p.add_argument("--storage-option", action="append", dest="storage_options", default=[],
+                   metavar="KEY=VALUE",
+                   help="fsspec option of a URL store (repeatable; VALUE is parsed as YAML, a "
+                        "dotted KEY sets a nested option: client_kwargs.endpoint_url=URL; "
+                        "on top of $MOCAPFLOW_STORAGE_OPTIONS, a JSON object)")
     p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                    help="show tracebacks")
     p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
                    help="no progress output")
 
 
-def _config_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("config", metavar="CONFIG", help="graph config (YAML)")
+def _json_flag(p: argparse.ArgumentParser, what: str = "the result") -> None:
+    p.add_argument("--json", action="store_true",
+                   help=f"print {what} as one JSON document on stdout")
+
+
+def _config_args(p: argparse.ArgumentParser, *, target_help: str =
+                 "target node (repeatable; default: the config's targets)") -> None:
+    p.add_argument("config", metavar="CONFIG",
+                   help="graph config (YAML), or a shipped graph by name: "
+                        + ", ".join(shipped_configs()))
     p.add_argument("--parts", action="append", metavar="GLOB",
                    help="input files/globs replacing the config's parts (repeatable)")
     p.add_argument("--set", action="append", dest="sets", metavar="NODE.PARAM=VALUE",
@@ -110,7 +135,7 @@ def _config_args(p: argparse.ArgumentParser) -> None:
                                     "params.NAME=VALUE sets a shared param; NODE.seeds=N, "
                                     "=[0, 7, 9] or =null sets the node's seed fan-out)")
     p.add_argument("--target", action="append", dest="targets", metavar="NODE",
-                   help="target node (repeatable; default: the config's targets)")
+                   help=target_help)
 
 
 def _exec_args(p: argparse.ArgumentParser) -> None:
@@ -132,12 +157,20 @@ def _exec_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--fail-fast", action="store_true",
                    help="stop at the first failed task (default: run all independent work)")
     s = p.add_argument_group("slurm (--executor slurm)")
-    s.add_argument("--slurm-queue", default=None, help="partition")
-    s.add_argument("--slurm-account", default=None, help="account")
+    s.add_argument("--slurm-queue", "--slurm-partition", default=None, metavar="PARTITION",
+                   help="partition (#SBATCH -p)")
+    s.add_argument("--slurm-account", default=None, help="account (#SBATCH -A)")
     s.add_argument("--slurm-cores", type=int, default=4, help="cores per job (default 4)")
     s.add_argument("--slurm-memory", default="8GB", help="memory per job (default 8GB)")
     s.add_argument("--slurm-walltime", default="01:00:00", help="walltime (default 01:00:00)")
     s.add_argument("--slurm-jobs", type=int, default=1, help="number of jobs (default 1)")
+    s.add_argument("--slurm-gres", default=None, metavar="GRES",
+                   help="generic resources per job, e.g. gpu:1 (#SBATCH --gres)")
+    s.add_argument("--slurm-log-dir", default=None, metavar="DIR",
+                   help="folder of the jobs' output and error files (default: the folder "
+                        "sbatch runs in)")
+    s.add_argument("--slurm-job-extra", action="append", default=[], metavar="DIRECTIVE",
+                   help="a further #SBATCH directive, e.g. --constraint=avx2 (repeatable)")
     s.add_argument("--print-job-script", action="store_true",
                    help="print the Slurm job script and exit (needs no Slurm)")
 
@@ -171,42 +204,55 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fail if any key or output digest differs from the lock file")
     p.add_argument("--lock", default=None, metavar="PATH",
                    help="lock file (default: <config stem>.lock.json next to the config)")
-    p.add_argument("--json", action="store_true", help="print a JSON document of the tasks")
+    _json_flag(p, "the tasks (node, part, status, key, seconds, outputs, warnings)")
 
     p = sub.add_parser("plan", help="what would run and why (runs nothing)")
     _config_args(p)
     _common(p)
-    p.add_argument("--force", action="append", default=[], metavar="NODE")
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--force", action="append", default=[], metavar="NODE",
+                   help="plan NODE as recomputed even when cached (repeatable)")
+    _json_flag(p, "each task's status, key and reason")
 
     p = sub.add_parser("status", help="state of every task: up to date, last run status")
     _config_args(p)
     _common(p)
-    p.add_argument("--json", action="store_true")
+    _json_flag(p, "each task's state")
 
     p = sub.add_parser("explain", help="which key components changed since the last run")
     _config_args(p)
-    p.add_argument("node", metavar="NODE[/PART]")
+    p.add_argument("node", metavar="NODE[/PART]",
+                   help="a node, or one of its parts (id, unique suffix or file stem)")
     _common(p)
-    p.add_argument("--json", action="store_true")
+    _json_flag(p, "the changes of each task")
 
     p = sub.add_parser("dag", help="show the graph")
     _config_args(p)
     _common(p)
     p.add_argument("--dot", action="store_true", help="Graphviz dot output")
+    _json_flag(p, "the nodes (stage, tasks, inputs) and targets")
 
-    p = sub.add_parser("stages", help="list registered stages")
+    p = sub.add_parser("stages", help="list registered stages and what their params mean")
+    p.add_argument("name", nargs="?", metavar="NAME",
+                   help="one stage, or a family (skin, texture, variation, motion): every "
+                        "param with its type, default and meaning")
     _common(p)
-    p.add_argument("--json", action="store_true")
+    _json_flag(p, "the stages (inputs, outputs, params with type, default and doc)")
+
+    p = sub.add_parser("schema", help="JSON Schema of graph configs (for editors)")
+    p.add_argument("--out", default=None, metavar="PATH",
+                   help="write it to PATH (default: stdout)")
+    _common(p)
 
     p = sub.add_parser("show", help="manifest and arrays of a store entry")
-    p.add_argument("entry", metavar="ENTRY", help="STAGE/KEY or a key prefix")
+    p.add_argument("entry", metavar="ENTRY",
+                   help="STAGE/KEY, a key prefix, or NODE[/PART] as in explain")
     _common(p)
-    p.add_argument("--json", action="store_true")
+    _json_flag(p, "the manifest and outputs")
 
     p = sub.add_parser("export", help="write the targets' outputs as ordinary files",
                        description="Run the graph if needed, then export. " + EXPORT_LAYOUT)
-    _config_args(p)
+    _config_args(p, target_help="target NODE, or NODE/PART for one part's outputs "
+                                "(repeatable; default: the config's targets)")
     p.add_argument("--to", required=True, metavar="DIR", help="output directory")
     p.add_argument("--format", action="append", default=[], metavar="TYPE=F1,F2",
                    help="file formats of one output type (repeatable), e.g. "
@@ -214,10 +260,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "frame)")
     _exec_args(p)
     _common(p)
+    _json_flag(p, "the files written")
 
     p = sub.add_parser("verify", help="re-read every entry and check its digests")
     _common(p)
-    p.add_argument("--json", action="store_true")
+    _json_flag(p, "the entry count and the problems found")
 
     p = sub.add_parser("gc", help="remove staging debris (and, with --keep-*, unreachable "
                                   "entries)")
@@ -231,7 +278,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--min-age", type=float, default=600.0, metavar="SECONDS",
                    help="staging dirs whose writer cannot be checked (another host) are "
                         "removed once this old (default 600)")
-    p.add_argument("--json", action="store_true")
+    _json_flag(p, "what was (or would be) removed")
 
     p = sub.add_parser("lock", help="run, then write every node/part key and output digest")
     _config_args(p)
@@ -240,6 +287,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--lock", default=None, metavar="PATH",
                    help="lock file (default: <config stem>.lock.json next to the config; "
                         ".yaml for YAML)")
+    _json_flag(p, "the lock path and task count")
 
     p = sub.add_parser("demo", help="run the shipped graphs on generated data")
     p.add_argument("--out", default="demo-output", metavar="DIR",
@@ -248,6 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="demo description (default: the packaged configs/demo.yaml)")
     _exec_args(p)
     _common(p)
+    _json_flag(p, "each step's files and counts")
     return parser
 
 
@@ -256,10 +305,25 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _store(args: argparse.Namespace) -> Store:
     root = args.store or os.environ.get("MOCAPFLOW_STORE") or DEFAULT_STORE
+    items = getattr(args, "storage_options", None) or ()
+    local = "://" not in str(root) or str(root).startswith("file://")
+    if items and local:
+        raise UserError(f"--storage-option is for fsspec URL stores (s3://...), not the local "
+                        f"directory {root}")
+    try:  # $MOCAPFLOW_STORAGE_OPTIONS is ignored by local stores
+        options = None if local else parse_storage_options(
+            items, os.environ.get(STORAGE_OPTIONS_ENV))
+    except ValueError as e:
+        raise UserError(str(e)) from None
     try:
-        return Store(root)
-    except (ValueError, ImportError, OSError) as e:
+        store = Store(root, storage_options=options or None)
+    except ImportError as e:
+        extra = " (pip install 'mocapflow[s3]')" if str(root).startswith("s3") else ""
+        raise UserError(f"--store {root}: {e}{extra}") from None
+    except (ValueError, OSError, TypeError) as e:
         raise UserError(f"--store {root}: {e}") from None
+    store.probe()  # a bad endpoint, option or bucket: one line now, not a failure per task
+    return store
 
 
 def _load(args: argparse.Namespace, config: str | None = None, *, parts=None, sets=None,
@@ -277,10 +341,16 @@ def _executor(args: argparse.Namespace) -> Executor:
     if args.workers is not None and args.workers < 1:
         raise UserError(f"--workers must be at least 1, got {args.workers}")
     slurm = ex_opts(args)
+
+    def show_dashboard(link: str | None) -> None:
+        print(f"dashboard: {link or 'none (the scheduler serves no dashboard)'}",
+              file=sys.stderr, flush=True)
+
     return make_executor(args.executor, workers=args.workers, address=args.address,
                          scheduler_file=args.scheduler_file, slurm=slurm,
                          store=args.store or os.environ.get("MOCAPFLOW_STORE"),
-                         worker_timeout=args.worker_timeout)
+                         worker_timeout=args.worker_timeout,
+                         on_dashboard=None if getattr(args, "quiet", False) else show_dashboard)
 
 
 def _progress(args: argparse.Namespace, total: int, label: str = "") -> Progress:
@@ -325,6 +395,58 @@ def _raise_failures(result: RunResult, args: argparse.Namespace | None = None,
         raise Failed(f"{task_name(r.node, r.part)} {r.status}: {r.error}")
 
 
+#: Figures shown per row of the run summary (the first ones the target stages report).
+SUMMARY_FIGURES = 6
+#: Rows of the run summary (then one line "… and N more").
+SUMMARY_ROWS = 40
+
+
+def summary_table(graph: Graph, result: RunResult) -> Table | None:
+    """The run summary: one row per target task, its status, seconds and key figures.
+
+    Returns
+    -------
+    rich.table.Table or None
+        ``None`` when the run has no target task.
+    """
+    recs = [r for r in result.records if r.node in graph.targets]
+    if not recs:
+        return None
+    names: list[str] = []
+    for r in recs:
+        for k in r.figures or {}:
+            if k not in names and len(names) < SUMMARY_FIGURES:
+                names.append(k)
+    table = Table(title=f"{graph.config.name}: {len(recs)} target task(s)", title_justify="left",
+                  box=box.SIMPLE_HEAD, pad_edge=False)
+    for col in ("task", "status", "s", *names):
+        table.add_column(col, justify="left" if col in ("task", "status") else "right",
+                         overflow="fold")
+    for r in recs[:SUMMARY_ROWS]:
+        figs = r.figures or {}
+        table.add_row(task_name(r.node, part_label(r.part) if r.part else None), r.status,
+                      f"{r.seconds:.1f}", *(_fmt_figure(figs.get(n)) for n in names))
+    if len(recs) > SUMMARY_ROWS:
+        table.caption = f"… and {len(recs) - SUMMARY_ROWS} more (mocapflow status --json)"
+    return table
+
+
+def _fmt_figure(v: Any) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.0f}"
+    return str(v)
+
+
+def _print_summary(args: argparse.Namespace, graph: Graph, result: RunResult) -> None:
+    if getattr(args, "quiet", False) or getattr(args, "json", False):
+        return
+    table = summary_table(graph, result)
+    if table is not None:
+        Console(stderr=True, highlight=False).print(table)
+
+
 def _print_warnings(result: RunResult) -> None:
     for line in warning_lines(result.records):  # once per message, with a count
         print(line, file=sys.stderr)
@@ -351,6 +473,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             result = _run_graph(args, graph, store, ex, lock=lock)
         except FrozenError as e:
             raise Failed(str(e)) from None
+    _print_summary(args, graph, result)
     _print_warnings(result)
     if args.json:
         _print_json({"run_id": result.run_id, "ok": result.ok, "counts": result.counts,
@@ -368,7 +491,8 @@ def ex_opts(args: argparse.Namespace) -> SlurmOptions:
     """Slurm options from parsed arguments."""
     return SlurmOptions(queue=args.slurm_queue, cores=args.slurm_cores, memory=args.slurm_memory,
                         walltime=args.slurm_walltime, jobs=args.slurm_jobs,
-                        account=args.slurm_account)
+                        account=args.slurm_account, gres=args.slurm_gres,
+                        log_dir=args.slurm_log_dir, job_extra=tuple(args.slurm_job_extra))
 
 
 def cmd_plan(args: argparse.Namespace) -> int:
@@ -431,6 +555,15 @@ def cmd_explain(args: argparse.Namespace) -> int:
 def cmd_dag(args: argparse.Namespace) -> int:
     graph = _load(args)
     cfg = graph.config
+    if args.json:
+        _print_json({"graph": cfg.name, "targets": list(graph.targets), "nodes": [
+            {"name": n, "stage": cfg.nodes[n].stage, "gather": bool(cfg.nodes[n].gather),
+             "tasks": len(graph.node_parts[n]),
+             "seeds": None if cfg.nodes[n].seeds is None else list(cfg.nodes[n].seeds),
+             "inputs": {i: w if w == "part" else list(w) if isinstance(w, tuple) else w
+                        for i, w in cfg.nodes[n].inputs.items()}}
+            for n in graph.nodes]})
+        return 0
     if args.dot:
         print(f'digraph "{cfg.name}" {{\n  rankdir=LR;')
         for n in graph.nodes:
@@ -472,31 +605,80 @@ def _fmt_ann(ann: Any) -> str:
     return str(ann).replace("typing.", "").replace("mocapflow.pipeline.registry.", "")
 
 
+def _first_sentence(text: str) -> str:
+    head = text.split(". ")[0].rstrip(".")
+    return head if len(head) <= 90 else head[:89] + "…"
+
+
 def cmd_stages(args: argparse.Namespace) -> int:
     load_stage_modules(discover=True)
     stages = registry.registered_stages()
+    if args.name is not None:
+        family = {n: s for n, s in stages.items()
+                  if f".{args.name}." in f"{s.module}." and n != args.name}
+        if args.name in stages:
+            stages = {args.name: stages[args.name]}
+        elif family:  # a family (``texture``): its stages
+            stages = family
+        else:
+            raise UserError(f"no stage or stage family named {args.name!r}"
+                            f"{close_match(args.name, stages)} ({len(stages)} stages "
+                            "registered: mocapflow stages)")
+    docs = {n: param_docs(s.func) for n, s in stages.items()}
     if args.json:
         _print_json([{
             "name": s.name, "module": s.module, "inputs": list(s.inputs),
             "outputs": list(s.outputs), "description": s.description, "version": s.version,
             "params": {p: {"type": _fmt_ann(a),
                            "default": None if d is inspect.Parameter.empty else d,
-                           "required": d is inspect.Parameter.empty}
+                           "required": d is inspect.Parameter.empty,
+                           "doc": docs[s.name].get(p, "")}
                        for p, (a, d) in s.params.items()},
         } for s in stages.values()])
         return 0
     for s in stages.values():
-        params = ", ".join(
-            f"{p}: {_fmt_ann(a)}" + ("" if d is inspect.Parameter.empty else f" = {d!r}")
-            for p, (a, d) in s.params.items())
         print(f"{s.name}  ({s.module})")
         if s.description:
             print(f"    {s.description}")
         ins = [f"{i} (optional)" if i in s.optional_inputs else i for i in s.inputs]
         print(f"    inputs: {', '.join(ins) or '-'}   outputs: {', '.join(s.outputs)}")
-        if params:
-            print(f"    params: {params}")
+        for p, (a, d) in s.params.items():
+            sig = f"{p}: {_fmt_ann(a)}" + ("" if d is inspect.Parameter.empty else f" = {d!r}")
+            doc = docs[s.name].get(p, "")
+            if args.name is not None:  # one stage: the whole text
+                print(f"    {sig}")
+                if doc:
+                    print(textwrap.fill(doc, width=96, initial_indent="        ",
+                                        subsequent_indent="        "))
+            else:
+                print(f"    {sig}" + (f"  — {_first_sentence(doc)}" if doc else ""))
     return 0
+
+
+def cmd_schema(args: argparse.Namespace) -> int:
+    load_stage_modules(discover=True)
+    text = json.dumps(config_schema(registry.registered_stages()), indent=1, default=str)
+    if args.out is None:
+        sys.stdout.write(text + "\n")
+        return 0
+    try:
+        Path(args.out).write_text(text + "\n", encoding="utf-8")
+    except OSError as e:
+        raise UserError(f"--out {args.out}: {e.strerror or e}") from None
+    if not getattr(args, "quiet", False):
+        print(f"wrote {args.out}", file=sys.stderr)
+    return 0
+
+
+def _flat_timings(t: dict[str, Any], prefix: str = "") -> list[tuple[str, float]]:
+    """``{"compute": 2.8, "steps": {"search": 2.0}}`` → ``compute``, ``steps.search``."""
+    out: list[tuple[str, float]] = []
+    for k, v in t.items():
+        if isinstance(v, dict):
+            out += _flat_timings(v, f"{prefix}{k}.")
+        elif isinstance(v, (int, float)):
+            out.append((f"{prefix}{k}", float(v)))
+    return out
 
 
 def cmd_show(args: argparse.Namespace) -> int:
@@ -517,7 +699,7 @@ def cmd_show(args: argparse.Namespace) -> int:
             print(f"  {k:<9} {man[k]}")
     t = man.get("timings") or {}
     if t:
-        print("  timings   " + ", ".join(f"{k} {v:.3f}s" for k, v in t.items()))
+        print("  timings   " + ", ".join(f"{k} {v:.3f}s" for k, v in _flat_timings(t)))
     comps = man.get("components") or {}
     if comps:
         print(f"  params    {json.dumps(comps.get('params'), default=str)}")
@@ -553,17 +735,38 @@ def _export_formats(items: Sequence[str]) -> dict[str, tuple[str, ...]]:
     return out
 
 
+def _part_targets(graph: Graph, specs: Sequence[str]) -> set[tuple[str, str | None]] | None:
+    """The ``(node, part)`` tasks named by ``--target NODE/PART`` values (``None``: every
+    task of the targets)."""
+    if not any("/" in s for s in specs):
+        return None
+    keep: set[tuple[str, str | None]] = set()
+    for spec in specs:
+        try:
+            keep.update((t.node, t.part) for t in graph.find(spec))
+        except KeyError as e:
+            raise UserError(f"--target {spec}: {e.args[0]}") from None
+    return keep
+
+
 def cmd_export(args: argparse.Namespace) -> int:
-    graph = _load(args)
+    specs = args.targets or []
+    graph = _load(args, targets=[s.partition("/")[0] for s in specs] or None)
+    keep = _part_targets(graph, specs)
     store = _store(args)
     with _executor(args) as ex:
         result = _run_graph(args, graph, store, ex)
     _print_warnings(result)
     _raise_failures(result, args, store)
-    files = export_results(graph, store, result.records, args.to,
+    records = [r for r in result.records if keep is None or (r.node, r.part) in keep]
+    files = export_results(graph, store, records, args.to,
                            formats=_export_formats(args.format))
-    for f in files:
-        print(f)
+    if args.json:
+        _print_json({"directory": str(args.to), "files": [str(f) for f in files]})
+        return 0
+    if not getattr(args, "quiet", False):
+        for f in files:
+            print(f)
     print(f"exported {len(files)} file(s) to {args.to}", file=sys.stderr)
     return 0
 
@@ -609,6 +812,9 @@ def cmd_lock(args: argparse.Namespace) -> int:
     _raise_failures(result, args, store)
     path = write_lock(args.lock or default_lock_path(args.config),
                       lock_document(graph, result.records))
+    if args.json:
+        _print_json({"lock": str(path), "tasks": len(result.records)})
+        return 0
     print(path)
     print(f"locked {len(result.records)} task(s) of {graph.config.name}", file=sys.stderr)
     return 0
@@ -633,6 +839,11 @@ def cmd_demo(args: argparse.Namespace) -> int:
             return result
 
         summary = run_demo(spec, out, store, ex, announce=announce, run_graph=run_step)
+    if args.json:
+        _print_json({"out": str(out), "store": str(store.root), "steps": [
+            {"label": s.label, "files": s.files, "export_to": str(s.export_to),
+             "counts": s.counts} for s in summary]})
+        return 0
     print(f"demo results in {out}")
     for s in summary:
         print(f"  {s.label}: {s.files} file(s) in {s.export_to}  ({s.counts['computed']} "
@@ -643,8 +854,8 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 VERBS = {
     "run": cmd_run, "plan": cmd_plan, "status": cmd_status, "explain": cmd_explain,
-    "dag": cmd_dag, "stages": cmd_stages, "show": cmd_show, "export": cmd_export,
-    "verify": cmd_verify, "gc": cmd_gc, "lock": cmd_lock, "demo": cmd_demo,
+    "dag": cmd_dag, "stages": cmd_stages, "schema": cmd_schema, "show": cmd_show,
+    "export": cmd_export, "verify": cmd_verify, "gc": cmd_gc, "lock": cmd_lock, "demo": cmd_demo,
 }
 
 

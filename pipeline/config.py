@@ -38,6 +38,7 @@ import types
 import typing
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
@@ -71,7 +72,9 @@ __all__ = [
     "load_config",
     "load_stage_modules",
     "parse_config",
+    "resolve_config",
     "resolve_stage",
+    "shipped_configs",
 ]
 
 TOP_KEYS = ("graph", "description", "params", "parts", "targets", "nodes")
@@ -241,6 +244,48 @@ def filepath_params(spec: StageSpec) -> tuple[str, ...]:
 # --------------------------------------------------------------------------- load
 
 
+def shipped_configs() -> dict[str, Path]:
+    """The graphs shipped in the package (``mocapflow.configs``), by name.
+
+    Returns
+    -------
+    dict
+        ``{name: path}`` for every ``<name>.yaml`` of the package that is a graph
+        (the demo descriptions ``demo*.yaml`` are not).
+    """
+    try:
+        base = Path(str(files("mocapflow.configs")))
+    except (ModuleNotFoundError, TypeError):  # pragma: no cover - not installed
+        return {}
+    return {p.stem: p for p in sorted(base.glob("*.yaml")) if not p.stem.startswith("demo")}
+
+
+def resolve_config(config: str | os.PathLike) -> Path:
+    """A config path, or the name of a shipped graph (``texture``) as its path.
+
+    A name (no folder, no ``.yaml``) that is not a file in the working directory
+    is looked up in :func:`shipped_configs`.
+
+    Raises
+    ------
+    ConfigError
+        Neither a file nor a shipped graph (the message lists the shipped names).
+    """
+    path = Path(config)
+    if path.exists():
+        return path
+    text = str(config)
+    shipped = shipped_configs()
+    if os.sep not in text and "/" not in text and not path.suffix:
+        if text in shipped:
+            return shipped[text]
+        names = ", ".join(shipped) or "none installed"
+        hint = close_match(text, list(shipped))
+        raise ConfigError(f"no config file or shipped graph named {text!r}"
+                          f"{hint} (shipped graphs: {names})", file=text)
+    return path
+
+
 def load_config(
     path: str | os.PathLike,
     *,
@@ -253,7 +298,7 @@ def load_config(
     Parameters
     ----------
     path : path-like
-        The YAML file.
+        The YAML file, or the name of a shipped graph (:func:`resolve_config`).
     sets : iterable of ``"node.param=value"`` or mapping ``{"node.param": value}``
         Overrides (string values are parsed as YAML).  ``params.NAME`` sets a
         shared param.
@@ -271,7 +316,7 @@ def load_config(
     ConfigError
         With ``FILE:LINE: key: problem``.
     """
-    path = Path(path)
+    path = resolve_config(path)
     file = str(path)
     try:
         if path.stat().st_size > MAX_CONFIG_BYTES:
@@ -417,8 +462,27 @@ def _part_ids(doc_i: LineDict, doc: LineDict, parts: Sequence[str] | None, c: Fi
         raw_parts.lines = [line_of(doc, "parts") or 0]
     if not isinstance(raw_parts, list):
         raise c.err("parts", "must be a list of paths/globs", line_of(doc, "parts"))
-    return expand_parts(raw_parts, c, "parts", getattr(raw_parts, "lines", None), base=root,
-                        relative_to=root)
+    try:
+        return expand_parts(raw_parts, c, "parts", getattr(raw_parts, "lines", None), base=root,
+                            relative_to=root)
+    except ConfigError as e:
+        hint = _env_hint(doc.get("parts"))
+        if not hint:
+            raise
+        raise ConfigError(e.problem + hint, file=e.file, line=e.line, key=e.key) from None
+
+
+def _env_hint(raw: Any) -> str:
+    """`` (set VAR ...)`` for the environment variables that a missing part came from."""
+    texts = raw if isinstance(raw, list) else [raw]
+    names = sorted({m for t in texts if isinstance(t, str)
+                    for m in re.findall(r"\$\{env:([A-Za-z_][A-Za-z0-9_]*)", t)})
+    if not names:
+        return ""
+    said = ", ".join(f"{n}={os.environ[n]!r}" if n in os.environ else f"{n} unset"
+                     for n in names)
+    return f"; the path comes from ${{env:{names[0]}}} ({said}): set it to the folder " \
+           "holding the data, or pass --parts"
 
 
 def _parse_nodes(doc_i: LineDict, doc: LineDict, set_items: list[tuple[str, str, Any]],

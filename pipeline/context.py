@@ -68,6 +68,10 @@ class Context:
 
     Attributes
     ----------
+    figures : dict
+        ``name -> number or short text`` set by :meth:`figure`: the few key
+        figures of the task's result that ``mocapflow run`` prints in its summary
+        table (kept in the manifest and the run record, never in an output).
     timings : dict
         ``step -> seconds`` measured by :meth:`timer` (the engine stores them in
         the manifest's ``timings["steps"]`` and in the run record).
@@ -81,6 +85,7 @@ class Context:
     workers: int = 1
     rng: np.random.Generator | None = None
     timings: dict[str, float] = field(default_factory=dict)
+    figures: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.rng is None:
@@ -116,6 +121,17 @@ class Context:
             yield
         finally:
             self.timings[step] = self.timings.get(step, 0.0) + time.perf_counter() - t0
+
+    def figure(self, name: str, value: float | int | str) -> None:
+        """Report a key figure of the result (``ctx.figure("holes filled", 412)``).
+
+        Figures are derived from the outputs, so they are as reproducible as the
+        outputs; they go to the manifest and the run summary, not into a key or a
+        digest.  Numbers are kept as given, text cut to 40 characters.
+        """
+        if isinstance(value, bool) or not isinstance(value, (int, float, str)):
+            value = str(value)
+        self.figures[str(name)] = value[:40] if isinstance(value, str) else value
 
     def progress(self, done: int, total: int, label: str = "") -> None:
         """Report progress of long work inside the stage."""

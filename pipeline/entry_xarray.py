@@ -16,13 +16,10 @@ from __future__ import annotations
 import os
 from typing import Any
 
-from mocapflow.pipeline.store import EntryNotFoundError, Store, StoreError
+from mocapflow.pipeline.show import EntryAmbiguousError, find_node_entry
+from mocapflow.pipeline.store import Store
 
 __all__ = ["EntryAmbiguousError", "find_node_entry", "open_entry"]
-
-
-class EntryAmbiguousError(StoreError, LookupError):
-    """Several committed entries were produced by one node and part (give ``part``)."""
 
 
 def _as_store(store: Store | str | os.PathLike) -> Store:
@@ -31,55 +28,6 @@ def _as_store(store: Store | str | os.PathLike) -> Store:
     if isinstance(store, (str, os.PathLike)):
         return Store(os.fspath(store))
     raise TypeError(f"store: expected a path, URL or Store, got {type(store).__name__}")
-
-
-def find_node_entry(store: Store, node: str, part: str | None = None) -> tuple[str, str]:
-    """The committed ``(stage, key)`` of ``node`` (and ``part``).
-
-    Parameters
-    ----------
-    store : Store
-    node : str
-        Graph node name (the manifest's ``node``).
-    part : str, optional
-        Part name such as ``"seed=0"``; may be left out when the node's entries
-        all have one part.  When a node/part was committed several times (e.g.
-        with different parameters), the entry of its most recent run record is
-        taken, else the most recently committed.
-
-    Raises
-    ------
-    EntryNotFoundError
-        No committed entry of that node (and part); the message lists the nodes.
-    EntryAmbiguousError
-        ``part`` left out and the node has entries of several parts.
-    """
-    found = []
-    for stage, key in store.entries():
-        man = store.manifest(stage, key) or {}
-        if man.get("node") == node and (part is None or man.get("part") == part):
-            found.append((man, stage, key))
-    if not found:
-        mans = (store.manifest(s, k) or {} for s, k in store.entries())
-        nodes = sorted({str(m.get("node") or "?") for m in mans})
-        what = f"node {node!r}" + (f" part {part!r}" if part is not None else "")
-        raise EntryNotFoundError(
-            f"no committed entry of {what} in store {store.root} "
-            f"(nodes with entries: {', '.join(nodes) or 'none'})"
-        )
-    parts = sorted({str(m.get("part")) for m, _, _ in found})
-    if part is None and len(parts) > 1:
-        raise EntryAmbiguousError(
-            f"node {node!r} has entries of {len(parts)} parts ({', '.join(parts[:5])}"
-            f"{'…' if len(parts) > 5 else ''}); pass part="
-        )
-    if len(found) > 1:
-        rec = store.last_task_record(node, found[0][0].get("part"))
-        for _, stage, key in found:
-            if rec and rec.get("key") == key:
-                return stage, key
-        found.sort(key=lambda f: str(f[0].get("committed_at")))
-    return found[-1][1], found[-1][2]
 
 
 def _import_xarray() -> Any:

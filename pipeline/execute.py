@@ -94,6 +94,8 @@ class TaskRecord:
         ``load``, ``check`` (re-reading the input files), ``compute``, ``encode``,
         ``commit`` seconds of a computed task, and ``steps``: the stage's own
         ``ctx.timer`` steps (``step -> seconds``).
+    figures : dict or None
+        The stage's ``ctx.figure`` key figures (of a hit: from its manifest).
 
     Notes
     -----
@@ -114,6 +116,7 @@ class TaskRecord:
     warnings: tuple[str, ...] = ()
     traceback: str | None = None
     timings: dict[str, Any] | None = None
+    figures: dict[str, Any] | None = None
 
     @property
     def ok(self) -> bool:
@@ -137,6 +140,8 @@ class TaskRecord:
         }
         if self.traceback is not None:
             out["traceback"] = self.traceback
+        if self.figures:
+            out["figures"] = dict(self.figures)
         if self.timings is not None:
             out["timings"] = self.timings
         return out
@@ -333,7 +338,8 @@ def execute_task(store: Store, spec: TaskSpec, known: Mapping[int, TaskRecord],
     man = store.manifest(spec.stage, key)
     if man is not None and not spec.force:
         return spec.record("hit", outputs=manifest_digests(man),
-                           seconds=time.perf_counter() - t0, key=key, components=comps)
+                           seconds=time.perf_counter() - t0, key=key, components=comps,
+                           figures=man.get("figures") or None)
     return _compute_with_retries(store, spec, sspec, refs, key, comps, man, t0)
 
 
@@ -401,14 +407,17 @@ def _compute(store: Store, spec: TaskSpec, sspec: registry.StageSpec,
                                "compute": t_enc - t_call}
     if ctx is not None and ctx.timings:
         timings["steps"] = dict(ctx.timings)
+    figures = dict(ctx.figures) if ctx is not None else {}
     manifest = _manifest(spec, refs, comps, warnings, attempt, timings)
+    if figures:
+        manifest["figures"] = figures
     if existing is not None:  # --force on a committed entry: replace it only if it differs
         new = {o: codecs.digest_encoded(e) for o, e in encoded.items()}
         old = manifest_digests(existing)
         if new == old:
             return spec.record("computed", key=key, components=comps, outputs=old,
                                warnings=tuple(warnings), seconds=time.perf_counter() - t0,
-                               timings=timings)
+                               timings=timings, figures=figures or None)
         warnings.append(f"--force: outputs differ from the committed entry {spec.stage}/{key} "
                         "(is the stage deterministic?); replacing it")
         store.delete(spec.stage, key)
@@ -417,7 +426,8 @@ def _compute(store: Store, spec: TaskSpec, sspec: registry.StageSpec,
     digests = store.commit(spec.stage, key, encoded, manifest)
     return spec.record("computed", key=key, components=comps, outputs=dict(digests),
                        warnings=tuple(warnings), seconds=time.perf_counter() - t0,
-                       timings={**manifest["timings"], "commit": time.perf_counter() - t_commit})
+                       timings={**manifest["timings"], "commit": time.perf_counter() - t_commit},
+                       figures=figures or None)
 
 
 def _encode_outputs(sspec: registry.StageSpec, result: Any) -> dict[str, codecs.Encoded]:

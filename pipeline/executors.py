@@ -18,6 +18,12 @@ worker within ``worker_timeout`` seconds (at start, or all lost during the run)
 fails the run or its remaining tasks instead of waiting for ever; a store that
 lives in this process's memory (``memory://``) runs the local cluster's workers
 as threads of this process and is refused for clusters elsewhere.
+
+Once a cluster is up (local, external or Slurm) the executor reports the
+address of its Dask dashboard to ``on_dashboard`` (the command prints it as
+``dashboard: URL`` on stderr; bokeh serves it).  Workers open the run's store
+from its pickled root and storage options, so every worker reaches the same
+store with the same endpoint and credentials.
 """
 
 from __future__ import annotations
@@ -43,6 +49,7 @@ __all__ = [
     "SlurmOptions",
     "SyncExecutor",
     "WORKER_TIMEOUT_S",
+    "dashboard_link",
     "make_executor",
     "process_local_store",
     "slurm_job_script",
@@ -220,11 +227,15 @@ class DistributedExecutor(Executor):
     in_process : bool or None
         Whether the workers are threads of this process (they then see a
         ``memory://`` store); ``None``: ask the workers when it matters.
+    on_dashboard : callable, optional
+        Called once the client is up with the dashboard's URL, or ``None`` when
+        the scheduler serves no dashboard.
     """
 
     def __init__(self, client_factory: Callable[[], tuple[Any, Callable[[], None]]], *,
                  name: str, workers: int = 1, description: str = "",
-                 worker_timeout: float | None = None, in_process: bool | None = False) -> None:
+                 worker_timeout: float | None = None, in_process: bool | None = False,
+                 on_dashboard: Callable[[str | None], None] | None = None) -> None:
         self._factory = client_factory
         self._client = None
         self._closer: Callable[[], None] | None = None
@@ -233,6 +244,7 @@ class DistributedExecutor(Executor):
         self.worker_timeout = worker_timeout
         self._in_process = in_process
         self._description = description or name
+        self.on_dashboard = on_dashboard
 
     @property
     def client(self):
@@ -246,6 +258,8 @@ class DistributedExecutor(Executor):
         if self._client is None:
             client, closer = self._factory()
             try:
+                if self.on_dashboard is not None:
+                    self.on_dashboard(dashboard_link(client))
                 self._wait_first_worker(client)
                 client.register_worker_callbacks(
                     setup=functools.partial(_quiet_worker_logging, os.getpid()))
@@ -375,6 +389,19 @@ class DistributedExecutor(Executor):
             finally:
                 self._closer = None
                 self._client = None
+
+
+def dashboard_link(client: Any) -> str | None:
+    """The URL of the Dask dashboard of ``client``'s scheduler, or ``None`` if it has none.
+
+    A scheduler started without a dashboard (``--no-dashboard``, or bokeh
+    missing) has no ``dashboard`` service.
+    """
+    try:
+        link = client.dashboard_link
+    except (KeyError, AttributeError, OSError):
+        return None
+    return str(link) if link else None
 
 
 def _outcome(call: Call, fut: Any) -> Any:
@@ -519,7 +546,32 @@ def task_mapper() -> Callable[[Callable[[Any], Any], list[Any]], list[Any]] | No
 
 @dataclass
 class SlurmOptions:
-    """Options of ``--executor slurm`` (dask-jobqueue ``SLURMCluster``)."""
+    """Options of ``--executor slurm`` (dask-jobqueue ``SLURMCluster``).
+
+    Attributes
+    ----------
+    queue : str, optional
+        Partition (``#SBATCH -p``).
+    cores : int
+        Cores per job: one single-threaded worker process each.
+    memory : str
+        Memory per job (``#SBATCH --mem``), e.g. ``"8GB"``.
+    walltime : str
+        ``HH:MM:SS`` (``#SBATCH -t``).
+    jobs : int
+        Number of jobs to submit.
+    account : str, optional
+        ``#SBATCH -A``.
+    gres : str, optional
+        Generic resources, e.g. ``"gpu:1"`` (``#SBATCH --gres=gpu:1``).
+    log_dir : str, optional
+        Folder of the jobs' output and error files (dask-jobqueue ``log_directory``).
+    job_extra : sequence of str
+        Further ``#SBATCH`` directives, e.g. ``"--constraint=avx2"`` (the
+        ``#SBATCH`` prefix is optional).
+    extra : dict
+        Further ``SLURMCluster`` keyword arguments (they win over the above).
+    """
 
     queue: str | None = None
     cores: int = 4
@@ -527,7 +579,29 @@ class SlurmOptions:
     walltime: str = "01:00:00"
     jobs: int = 1
     account: str | None = None
+    gres: str | None = None
+    log_dir: str | None = None
+    job_extra: Sequence[str] = ()
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def directives(self) -> list[str]:
+        """The extra ``#SBATCH`` directives (without the prefix): ``--gres``, then ``job_extra``.
+
+        Raises
+        ------
+        ExecutorError
+            An empty directive, or one that does not start with ``-``.
+        """
+        out = [f"--gres={self.gres}"] if self.gres else []
+        for d in self.job_extra:
+            text = d.strip()
+            if text.startswith("#SBATCH"):
+                text = text[len("#SBATCH"):].strip()
+            if not text.startswith("-") or "\n" in text:
+                raise ExecutorError(f"--slurm-job-extra {d!r}: expected one sbatch option such "
+                                    "as --constraint=avx2 (the #SBATCH prefix is optional)")
+            out.append(text)
+        return out
 
     def cluster_kwargs(self) -> dict[str, Any]:
         """Keyword arguments for ``SLURMCluster``: one single-threaded worker per core."""
@@ -543,6 +617,11 @@ class SlurmOptions:
             kw["queue"] = self.queue
         if self.account:
             kw["account"] = self.account
+        directives = self.directives()
+        if directives:
+            kw["job_extra_directives"] = directives
+        if self.log_dir:
+            kw["log_directory"] = os.path.abspath(os.path.expanduser(self.log_dir))
         env = os.environ.get("MOCAPFLOW_STAGE_MODULES")
         if env:
             kw["job_script_prologue"] = [f"export MOCAPFLOW_STAGE_MODULES={env}"]
@@ -643,7 +722,8 @@ def _timeout(kind: str, worker_timeout: float | None) -> float | None:
 def make_executor(kind: str = "local", *, workers: int | None = None, address: str | None = None,
                   scheduler_file: str | None = None, slurm: SlurmOptions | None = None,
                   client: Any = None, store: Any = None,
-                  worker_timeout: float | None = None) -> Executor:
+                  worker_timeout: float | None = None,
+                  on_dashboard: Callable[[str | None], None] | None = None) -> Executor:
     """Build an executor from command-line style options.
 
     Parameters
@@ -665,6 +745,9 @@ def make_executor(kind: str = "local", *, workers: int | None = None, address: s
     worker_timeout : float, optional
         Seconds to wait for a first worker, and the longest a run goes without
         any worker (default :data:`WORKER_TIMEOUT_S` of the kind; ``0``: wait for ever).
+    on_dashboard : callable, optional
+        Called with the cluster's dashboard URL (``None``: it serves none) when
+        a cluster-backed executor starts; ``sync`` never calls it.
 
     Returns
     -------
@@ -682,7 +765,7 @@ def make_executor(kind: str = "local", *, workers: int | None = None, address: s
         return DistributedExecutor(lambda: (client, lambda: None), name="client", workers=n,
                                    description=f"client {client.scheduler.address}",
                                    worker_timeout=_timeout("client", worker_timeout),
-                                   in_process=None)
+                                   in_process=None, on_dashboard=on_dashboard)
     if address or scheduler_file:
         if address and scheduler_file:
             raise ExecutorError("give --address or --scheduler-file, not both")
@@ -694,7 +777,8 @@ def make_executor(kind: str = "local", *, workers: int | None = None, address: s
         return DistributedExecutor(_external_factory(address, scheduler_file), name="external",
                                    workers=workers or 1,
                                    description=f"external cluster {where}",
-                                   worker_timeout=_timeout("external", worker_timeout))
+                                   worker_timeout=_timeout("external", worker_timeout),
+                                   on_dashboard=on_dashboard)
     if kind == "sync":
         return SyncExecutor()
     if kind == "local":
@@ -706,7 +790,7 @@ def make_executor(kind: str = "local", *, workers: int | None = None, address: s
         return DistributedExecutor(_local_factory(n, processes=not local_store), name="local",
                                    workers=n, description=f"local cluster, {n} {what}",
                                    worker_timeout=_timeout("local", worker_timeout),
-                                   in_process=local_store)
+                                   in_process=local_store, on_dashboard=on_dashboard)
     if kind == "slurm":
         if local_store:
             raise ExecutorError(f"--store {store_root(store)} lives in this process's memory; "
@@ -716,7 +800,8 @@ def make_executor(kind: str = "local", *, workers: int | None = None, address: s
         return DistributedExecutor(_slurm_factory(opts), name="slurm",
                                    workers=opts.jobs * opts.cores,
                                    description=f"slurm, {opts.jobs} job(s) × {opts.cores} cores",
-                                   worker_timeout=_timeout("slurm", worker_timeout))
+                                   worker_timeout=_timeout("slurm", worker_timeout),
+                                   on_dashboard=on_dashboard)
     raise ExecutorError(f"unknown executor {kind!r} (sync, local or slurm)")
 
 

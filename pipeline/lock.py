@@ -47,7 +47,8 @@ class FrozenError(ValueError):
 
 
 def default_lock_path(config_path: str | os.PathLike) -> Path:
-    """``<config stem>.lock.json`` next to the config."""
+    """``<config stem>.lock.json`` next to the config (a shipped graph given by name,
+    ``texture``: ``./texture.lock.json`` in the working directory)."""
     p = Path(config_path)
     return p.with_name(p.stem + ".lock.json")
 

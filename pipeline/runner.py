@@ -47,7 +47,7 @@ __all__ = ["RunResult", "host_facts", "new_run_id", "run"]
 #: ``timings`` only for computed tasks: ``load``, ``check``, ``compute``, ``encode``,
 #: ``commit`` and the stage's ``steps``).
 RECORD_FIELDS = ("node", "part", "stage", "key", "components", "status", "seconds", "error",
-                 "outputs", "warnings", "traceback", "timings")
+                 "outputs", "warnings", "traceback", "timings", "figures")
 
 
 def new_run_id() -> str:

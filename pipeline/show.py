@@ -10,18 +10,25 @@ from __future__ import annotations
 import os
 from typing import Any
 
+from mocapflow.pipeline.graph import part_label
 from mocapflow.pipeline.store import EntryNotFoundError, Store, StoreError
 from mocapflow.pipeline.store_zarr import describe_outputs
 
-__all__ = ["AmbiguousEntryError", "entry_summary", "find_entry"]
+__all__ = ["AmbiguousEntryError", "EntryAmbiguousError", "entry_summary", "find_entry",
+           "find_node_entry"]
 
 
 class AmbiguousEntryError(StoreError, LookupError):
     """More than one committed entry matches a key prefix."""
 
 
+class EntryAmbiguousError(StoreError, LookupError):
+    """Several committed entries were produced by one node and part (give ``part``)."""
+
+
 def find_entry(store: Store, entry: str) -> tuple[str, str]:
-    """The committed ``(stage, key)`` named by ``STAGE/KEY-PREFIX`` or ``KEY-PREFIX``.
+    """The committed ``(stage, key)`` named by ``STAGE/KEY-PREFIX``, ``KEY-PREFIX``, or
+    ``NODE[/PART]`` as in ``mocapflow explain`` (see :func:`find_node_entry`).
 
     Raises
     ------
@@ -36,6 +43,8 @@ def find_entry(store: Store, entry: str) -> tuple[str, str]:
         cands = [(s, k) for s, k in entries if s == stage and k.startswith(key)]
     else:
         cands = [(s, k) for s, k in entries if k.startswith(entry)]
+    if not cands and any(_manifest_node(store, s, k) == stage for s, k in entries):
+        return find_node_entry(store, stage, key or None)
     if not cands:
         hint = _linked_hint(store, stage, key) if sep else _linked_hint(store, None, entry)
         raise EntryNotFoundError(f"no committed entry matches in store {store.root}{hint}")
@@ -44,6 +53,68 @@ def find_entry(store: Store, entry: str) -> tuple[str, str]:
         raise AmbiguousEntryError(f"{len(cands)} entries match ({names}…); give more of "
                                   "the key")
     return cands[0]
+
+
+def _manifest_node(store: Store, stage: str, key: str) -> str | None:
+    return (store.manifest(stage, key) or {}).get("node")
+
+
+def _part_matches(part: str | None, spec: str) -> bool:
+    """``spec`` names ``part`` as :meth:`Graph.find` does: the id, a suffix, its label, or
+    a substring of it."""
+    if part is None:
+        return spec == "all"
+    return part == spec or part.endswith(spec) or part_label(part) == spec or spec in part
+
+
+def find_node_entry(store: Store, node: str, part: str | None = None) -> tuple[str, str]:
+    """The committed ``(stage, key)`` of ``node`` (and ``part``).
+
+    Parameters
+    ----------
+    store : Store
+    node : str
+        Graph node name (the manifest's ``node``).
+    part : str, optional
+        Part name such as ``"seed=0"``, or any unique suffix, label
+        (``cmu_131_02.seed3``) or substring of it; may be left out when the node's
+        entries all have one part.  When a node/part was committed several times
+        (e.g. with different parameters), the entry of its most recent run record
+        is taken, else the most recently committed.
+
+    Raises
+    ------
+    EntryNotFoundError
+        No committed entry of that node (and part); the message lists the nodes.
+    EntryAmbiguousError
+        ``part`` left out, or matching, entries of several parts.
+    """
+    mans = [(store.manifest(s, k) or {}, s, k) for s, k in store.entries()]
+    found = [f for f in mans if f[0].get("node") == node]
+    if part is not None:
+        exact = [f for f in found if f[0].get("part") == part]
+        found = exact or [f for f in found if _part_matches(f[0].get("part"), part)]
+    if not found:
+        nodes = sorted({str(m.get("node") or "?") for m, _, _ in mans})
+        what = f"node {node!r}" + (f" part {part!r}" if part is not None else "")
+        raise EntryNotFoundError(
+            f"no committed entry of {what} in store {store.root} "
+            f"(nodes with entries: {', '.join(nodes) or 'none'})"
+        )
+    parts = sorted({str(m.get("part")) for m, _, _ in found})
+    if len(parts) > 1:
+        raise EntryAmbiguousError(
+            f"node {node!r} has entries of {len(parts)} parts" +
+            (f" matching {part!r}" if part is not None else "") +
+            f" ({', '.join(parts[:5])}{'…' if len(parts) > 5 else ''}); name one"
+        )
+    if len(found) > 1:
+        rec = store.last_task_record(node, found[0][0].get("part"))
+        for _, stage, key in found:
+            if rec and rec.get("key") == key:
+                return stage, key
+        found.sort(key=lambda f: str(f[0].get("committed_at")))
+    return found[-1][1], found[-1][2]
 
 
 def _linked_hint(store: Store, stage: str | None, prefix: str) -> str:

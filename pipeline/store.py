@@ -121,7 +121,10 @@ class Store:
         Commit through ``staging/`` + ``os.rename``.  Default: True for local
         roots; fsspec URLs are always written in place, manifest last.
     storage_options : dict, optional
-        Passed to fsspec for URL roots.
+        Passed to fsspec for URL roots (endpoint, credentials, ...; see
+        :func:`~mocapflow.pipeline.store_backends.parse_storage_options`).  They
+        travel with the store to Dask workers and never enter a cache key, a
+        digest, a manifest or a run record.
 
     Attributes
     ----------
@@ -194,6 +197,18 @@ class Store:
 
     def __hash__(self) -> int:
         return hash(self.root)
+
+    def probe(self) -> None:
+        """Reach the root once (a URL root: its endpoint, options and bucket).
+
+        Raises
+        ------
+        StoreAccessError
+            One line naming the store, e.g. a bucket that does not exist or an
+            endpoint that cannot be reached.  A root not created yet is fine.
+        """
+        with self._io("opening the store"):
+            self.backend.probe()
 
     def location(self, *parts: str) -> str:
         """Backend path of ``parts`` under the root (``location("staging")``)."""

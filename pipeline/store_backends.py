@@ -15,6 +15,10 @@ documents, list, remove, measure, and hand Zarr a store for one entry.
   No atomic rename: documents are written in place.
 * :class:`KeySink`: where :mod:`~mocapflow.pipeline.store_zarr` puts the Zarr keys
   of an entry being written (relative keys under one base path of a backend).
+* :func:`parse_storage_options`: the fsspec options of a URL root from
+  ``--storage-option KEY=VALUE`` items and ``$MOCAPFLOW_STORAGE_OPTIONS`` (JSON).
+  They reach the filesystem only: the store pickles them to its workers, and no
+  cache key, digest, manifest or run record contains them.
 
 fsspec is imported when a :class:`FsspecBackend` is made, not with this module:
 a local store never needs it, and it costs about 60 ms at import.
@@ -23,18 +27,33 @@ a local store never needs it, and it costs about 60 ms at import.
 from __future__ import annotations
 
 import errno
+import json
 import os
 import posixpath
 import shutil
 import stat
 import uuid
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from datetime import UTC, datetime
 from typing import Any, Protocol
 
 from mocapflow.pipeline import store_zarr
+from mocapflow.pipeline.config_yaml import parse_yaml_value
 
-__all__ = ["Backend", "FsspecBackend", "KeySink", "LocalBackend"]
+__all__ = [
+    "STORAGE_OPTIONS_ENV",
+    "Backend",
+    "FsspecBackend",
+    "KeySink",
+    "LocalBackend",
+    "parse_storage_options",
+]
+
+#: Environment variable holding fsspec storage options as a JSON object.
+STORAGE_OPTIONS_ENV = "MOCAPFLOW_STORAGE_OPTIONS"
+
+#: fsspec protocols whose first path segment is a bucket (container) that must exist.
+_BUCKET_PROTOCOLS = frozenset({"s3", "s3a", "gs", "gcs", "az", "abfs", "abfss"})
 
 
 class Backend(Protocol):
@@ -103,6 +122,9 @@ class Backend(Protocol):
 
     def zarr_store(self, path: str) -> Any:
         """A read-only Zarr store rooted at ``path``."""
+
+    def probe(self) -> None:
+        """Reach the root once (raise ``OSError`` of one line if it cannot be used)."""
 
 
 #: Most bytes one ``read(2)`` returns on Linux.
@@ -283,6 +305,9 @@ class LocalBackend:
     def zarr_store(self, path: str) -> Any:
         return store_zarr.local_store(path)
 
+    def probe(self) -> None:
+        """Nothing to reach: a local root is created on first write."""
+
 
 class FsspecBackend:
     """Storage operations on an fsspec filesystem (no atomic rename)."""
@@ -385,6 +410,111 @@ class FsspecBackend:
 
     def zarr_store(self, path: str) -> Any:
         return store_zarr.fsspec_store(self.url(path), self.storage_options)
+
+    def probe(self) -> None:
+        """List the root once, so that a bad endpoint, option or bucket fails before any work.
+
+        A root that does not exist yet is fine (a new store), but on an object
+        store (``s3://``, ``gs://``, ``az://``) its bucket must exist.
+
+        Raises
+        ------
+        OSError
+            One line: what the filesystem said (its own exception type named
+            when it is not an ``OSError``, e.g. a connection error), or which
+            bucket is missing.
+        """
+        try:
+            self.fs.ls(self.root, detail=False)
+            return
+        except FileNotFoundError:
+            pass
+        except Exception as e:
+            raise _one_line_oserror(e) from e
+        protocols = self.fs.protocol
+        protocols = {protocols} if isinstance(protocols, str) else set(protocols)
+        bucket = self.root.strip("/").split("/", 1)[0]
+        if not bucket or not protocols & _BUCKET_PROTOCOLS:
+            return
+        try:
+            self.fs.info(bucket)
+        except FileNotFoundError:
+            raise OSError(f"bucket {bucket} does not exist (or is not visible with these "
+                          "credentials and storage options)") from None
+        except Exception as e:
+            raise _one_line_oserror(e) from e
+
+
+def _one_line_oserror(exc: BaseException) -> OSError:
+    """An ``OSError`` saying what ``exc`` said, on one line (its type named if not an OSError)."""
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    if isinstance(exc, OSError):
+        return exc if exc.strerror else OSError(text)
+    return OSError(f"{type(exc).__name__}: {text}")
+
+
+def parse_storage_options(items: Sequence[str] = (), env: str | None = None) -> dict[str, Any]:
+    """fsspec storage options from ``KEY=VALUE`` items on top of a JSON object.
+
+    Parameters
+    ----------
+    items : sequence of str
+        ``KEY=VALUE`` (``--storage-option``): VALUE is read as YAML (``anon=true``
+        is a bool, ``client_kwargs={region_name: eu-west-1}`` a mapping; quote it
+        to keep a string: ``key='0123'``); a dotted KEY sets a nested option
+        (``client_kwargs.endpoint_url=http://127.0.0.1:9000``).  Later items win.
+    env : str, optional
+        A JSON object (``$MOCAPFLOW_STORAGE_OPTIONS``), the base the items update.
+
+    Returns
+    -------
+    dict
+        The options (nested mappings merged key by key).
+
+    Raises
+    ------
+    ValueError
+        An item without ``=`` or with an empty key, a JSON that is not an object,
+        or a dotted key below an option that is not a mapping.  Messages name
+        the key, never a value (values may be secrets).
+    """
+    opts: dict[str, Any] = {}
+    if env is not None and env.strip():
+        try:
+            doc = json.loads(env)
+        except ValueError as e:
+            raise ValueError(f"${STORAGE_OPTIONS_ENV} is not valid JSON ({e.msg} at "
+                             f"line {e.lineno} column {e.colno})") from None
+        if not isinstance(doc, dict):
+            raise ValueError(f"${STORAGE_OPTIONS_ENV} must be a JSON object "
+                             '(e.g. {"anon": true})')
+        _merge(opts, doc)
+    for item in items:
+        key, sep, text = item.partition("=")
+        names = [n.strip() for n in key.split(".")]
+        if not sep or not all(names):
+            raise ValueError(f"--storage-option {key.strip()!r}{'=…' if sep else ''}: expected "
+                             "KEY=VALUE (a dotted KEY sets a nested option)")
+        value = parse_yaml_value(text, key=f"--storage-option {key.strip()}")
+        where = opts
+        for i, name in enumerate(names[:-1]):
+            where = where.setdefault(name, {})
+            if not isinstance(where, dict):
+                raise ValueError(f"--storage-option {key.strip()}: "
+                                 f"{'.'.join(names[:i + 1])} is not a mapping")
+        _merge(where, {names[-1]: value})
+    return opts
+
+
+def _merge(into: dict[str, Any], new: Mapping[str, Any]) -> None:
+    """Update ``into`` with ``new``, merging nested mappings key by key."""
+    for k, v in new.items():
+        if isinstance(v, Mapping):
+            if not isinstance(into.get(k), dict):
+                into[k] = {}
+            _merge(into[k], v)
+        else:
+            into[k] = v
 
 
 def _readlink(path: str) -> str:

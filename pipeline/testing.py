@@ -99,7 +99,14 @@ def toy_read_file(path: FilePath) -> dict:
 
 @stage("toy_add", outputs=("values",))
 def toy_add(values: np.ndarray, *, amount: float = 1.0) -> dict:
-    """Add a constant: ``values : (N,) float ndarray`` → ``values + amount``."""
+    """Add a constant: ``values : (N,) float ndarray`` → ``values + amount``.
+
+    Parameters
+    ----------
+    values : (N,) float ndarray
+    amount : float
+        Added to every value.
+    """
     return {"values": np.asarray(values) + amount}
 
 

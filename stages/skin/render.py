@@ -444,9 +444,11 @@ def render(
     max_frames : int
         At most this many rendered frames (0: no limit).
     view : {"front", "back", "side", "iso"}
+        Camera direction relative to the body (as in :func:`render_frames`).
     follow : bool
         Camera follows the body.
     show_markers : bool
+        Draw the markers as spheres over the mesh.
 
     Returns
     -------
@@ -504,7 +506,9 @@ def render_modes(
     stride, max_frames : int
         Frame subsampling of the rendering.
     view : {"front", "back", "side", "iso"}
+        Camera direction relative to the body (as in :func:`render_frames`).
     follow : bool
+        Camera follows the body.
     deform_params : dict, optional
         Params of :func:`mocapflow.stages.skin.deform.deform` other than ``mode``
         (e.g. ``quadratic_damping``); default: the stage's defaults.

@@ -234,6 +234,7 @@ def stickfigure(
     n_panels : int
         Poses in the strip.
     view : {"side", "front", "top"}
+        Camera: from the side (sagittal plane), the front, or above.
     video : bool
         Also render a video (exported as MP4).
     video_step : int

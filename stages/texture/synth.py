@@ -511,6 +511,8 @@ def synth(
     path : list of [x, z] (or [x, y, z]), optional
         Ground path to follow.
     path_mode : {"polyline", "spline"}
+        How ``path`` points are joined: straight segments, or a cubic spline
+        through them (periodic when the path is closed).
     loop : bool
         Cyclic output (last → first seam smoothed).
     seed : int

@@ -972,6 +972,7 @@ def sample_noise(
         Noise std in units of each DOF's std (match it to the model's variants
         with :func:`matched_amplitude`).
     count : int
+        Baseline trajectories per task.
     length : int, optional
         Default the median input length.
     seed : int

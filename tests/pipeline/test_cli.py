@@ -122,7 +122,8 @@ def test_explain_plan_dag_stages_show(cli, toy_config, tmp_path):
     code, out, _ = cli("stages", "--json")
     st = {x["name"]: x for x in json.loads(out)}
     assert st["toy_add"]["params"]["amount"] == {"type": "float", "default": 1.0,
-                                                 "required": False}
+                                                 "required": False,
+                                                 "doc": "Added to every value."}
     key = Store(s).entries()[0][1]
     code, out, _ = cli("show", key[:10], "--store", s)
     assert code == 0 and out.startswith("entry ") and "data: float64 (dim_0=5)" in out
@@ -241,7 +242,7 @@ def test_verbs_and_flags_keep_their_names():
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "verb")
     assert set(sub.choices) == {"run", "plan", "status", "explain", "dag", "stages", "show",
-                                "export", "verify", "gc", "lock", "demo"}
+                                "export", "verify", "gc", "lock", "demo", "schema"}
     run_flags = {o for a in sub.choices["run"]._actions for o in a.option_strings}
     assert run_flags >= {"--store", "--parts", "--set", "--target", "--force", "--fail-fast",
                          "--json", "--executor", "--workers", "--address", "--scheduler-file",

@@ -70,8 +70,11 @@ def test_export_labels_cannot_leave_to(cli, tmp_path, monkeypatch):
         """)
     code, out, err = cli("export", cfg, "--to", work / "out", "--store", work / "s", *SYNC,
                          "-q")
+    assert code == 0 and out == "", err  # -q: no file list
+    code, out, err = cli("export", cfg, "--to", work / "out", "--store", work / "s", *SYNC,
+                         "--json")
     assert code == 0, err
-    written = [Path(p) for p in out.split()]
+    written = [Path(p) for p in json.loads(out)["files"]]
     assert written == [work / "out" / "read" / "a.seedx_v.txt" / "values.npy"]  # not a.seedx/v
     assert np.load(written[0]).tolist() == [1.0, 2.0, 3.0]
     # records naming parts that climb out (whatever made them): still under --to

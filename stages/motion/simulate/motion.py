@@ -38,10 +38,16 @@ def simulate_walk(
     Parameters
     ----------
     n_frames : int
+        Frames to generate.
     rate : float
+        Frames per second (Hz).
     gait : {"walk", "run"}
+        Walking or running.
     speed : float, optional
+        Mean forward speed in m/s (default 1.3 walking, 3.2 running).
     variation : float
+        Relative standard deviation of the per-cycle period and speed (0: exactly
+        periodic).
     seed : int
         Seeds ``ctx.rng``, the only source of randomness.
     ctx : Context
@@ -67,7 +73,9 @@ def simulate_range_of_motion(
     Parameters
     ----------
     n_frames : int
+        Frames to generate.
     rate : float
+        Frames per second (Hz).
     seed : int
         Seeds ``ctx.rng``.
     ctx : Context
