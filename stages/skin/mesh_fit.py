@@ -12,7 +12,7 @@ to the markers (:func:`_nonrigid_fit`).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import scipy.sparse as sp
@@ -21,12 +21,16 @@ from scipy.sparse.linalg import splu
 from mocapflow.pipeline import Context, FilePath, stage
 from mocapflow.stages.motion.absolute_orientation import absolute_orientation
 from mocapflow.stages.motion.axes import frame_basis
-from mocapflow.stages.motion.datatypes import Mesh
+from mocapflow.stages.motion.datatypes import Mesh, Motion
 from mocapflow.stages.motion.geometry import vertex_normals
+from mocapflow.stages.motion.rotations import quat_from_axis_angle, quat_identity
+from mocapflow.stages.motion.simulate.body import Body, skin, skinning_transforms
 from mocapflow.stages.motion.simulate.capsules import procedural_body
 from mocapflow.stages.motion.simulate.makehuman import load_makehuman_body
+from mocapflow.stages.motion.simulate.markers import find_joint
 from mocapflow.stages.motion.simulate.skeleton import procedural_skeleton
 from mocapflow.stages.skin.binding import DeformError, closest_points_on_triangles
+from mocapflow.stages.skin.registration import DEFAULT_SCHEDULE, affine_registration
 from mocapflow.stages.skin.segmentation import Segmentation
 
 __all__ = [
@@ -130,8 +134,16 @@ def fit_detailed_mesh(
     marker_offset: float = 0.0,
     allow_scale: bool = True,
     trim: float = 0.1,
+    method: Literal["allen", "icp"] = "allen",
+    schedule: tuple[tuple[float, float, float, int], ...] = DEFAULT_SCHEDULE,
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """Fit a template mesh to marker positions: affine ICP, then non-rigid ICP.
+    """Fit a template mesh to marker positions: affine ICP, then a non-rigid fit.
+
+    ``method="allen"`` (default): after the alignment, the per-vertex affine field
+    of Allen et al. (2003), :func:`~mocapflow.stages.skin.registration.affine_registration`
+    (data, smoothness and landmark terms, coarse to fine by ``schedule``).
+    ``method="icp"`` (the earlier fit, kept as a baseline): the Laplacian
+    displacement below.
 
     An Allen et al. (2003)-style optimisation reduced to displacements: the
     template is first aligned by an iterated affine transform (bounding-box
@@ -165,6 +177,10 @@ def fit_detailed_mesh(
         proportions: an affine map).
     trim : float
         Fraction of worst correspondences ignored in the alignment.
+    method : {"allen", "icp"}
+        Non-rigid fit: per-vertex affine field, or Laplacian displacement.
+    schedule : tuple of (float, float, float, int)
+        ``method="allen"``: stages ``(landmark, smoothness, data weight, iterations)``.
 
     Returns
     -------
@@ -194,8 +210,16 @@ def fit_detailed_mesh(
     aligned = {"rms_mm": float(np.sqrt(np.mean(dist**2)) * 1000),
                "median_mm": float(np.median(dist) * 1000),
                "p90_mm": float(np.percentile(dist, 90) * 1000)}  # fmt: skip
-    out = _nonrigid_fit(X, Y, faces, lm_m, lm_v, stiffness=stiffness,
-                        marker_offset=marker_offset, outward=outward)
+    if method == "allen":
+        wound = faces if outward > 0 else faces[:, [0, 2, 1]]  # normals outward for the offset
+        out, _ = affine_registration(X, wound, Y, landmarks=dict(zip(lm_m.tolist(),
+                                     lm_v.tolist())), marker_offset=marker_offset,
+                                     schedule=schedule)  # fmt: skip
+    elif method == "icp":
+        out = _nonrigid_fit(X, Y, faces, lm_m, lm_v, stiffness=stiffness,
+                            marker_offset=marker_offset, outward=outward)
+    else:
+        raise DeformError(f"fit_mesh: unknown method {method!r} (allen, icp)")
     dist = _marker_correspondences(Y, out, faces, marker_offset * outward)[3]
     info = {
         "scale": S_tot,
@@ -331,6 +355,8 @@ def fit_mesh(
     marker_offset: float = 0.0,
     allow_scale: bool = True,
     template_frame: int | None = None,
+    method: Literal["allen", "icp"] = "allen",
+    schedule: list[list[float]] | None = None,
     ctx: Context,
 ) -> dict[str, Any]:
     """Fit a detailed template mesh to the marker surface's reference pose.
@@ -355,6 +381,12 @@ def fit_mesh(
         Frame of an animated template to use (its pose must match the markers'
         reference pose); default: the frame closest to the markers' reference
         positions (e.g. the simulator's true mesh at the reference frame).
+    method : {"allen", "icp"}
+        ``allen``: per-vertex affine registration (Allen et al. 2003; P&H §5.1);
+        ``icp``: the earlier Laplacian displacement fit (baseline).
+    schedule : list of [landmark, smoothness, data, iterations], optional
+        ``allen``'s coarse-to-fine weights (default
+        :data:`~mocapflow.stages.skin.registration.DEFAULT_SCHEDULE`).
 
     Returns
     -------
@@ -389,7 +421,9 @@ def fit_mesh(
     fitted, info = fit_detailed_mesh(
         V, template.faces, segmentation.reference, landmarks=lm,
         stiffness=tuple(stiffness) if stiffness else (30.0, 10.0, 3.0, 1.0),
-        marker_offset=marker_offset, allow_scale=allow_scale,
+        marker_offset=marker_offset, allow_scale=allow_scale, method=method,
+        schedule=tuple((float(a), float(b), float(c), int(n)) for a, b, c, n in schedule)
+        if schedule else DEFAULT_SCHEDULE,
     )  # fmt: skip
     ref, faces = segmentation.reference, segmentation.faces
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]]])
@@ -409,11 +443,47 @@ def fit_mesh(
     return {"mesh": mesh, "report": report}
 
 
+def skeleton_bones(body: Body, R: np.ndarray, p: np.ndarray) -> dict[str, list[list[float]]]:
+    """Bone axes of a posed body: ``{joint name: [start (3,), end (3,)]}``.
+
+    A joint's bone runs from it to the child farthest along the bone into it (the
+    spine continues up into the neck, not sideways into a shoulder; the root's
+    bone goes up), or to its end site.
+
+    Parameters
+    ----------
+    body : Body
+    R : (J, 3, 3) float ndarray
+    p : (J, 3) float ndarray
+        One frame of :func:`~mocapflow.stages.motion.simulate.body.skinning_transforms`.
+
+    Returns
+    -------
+    dict
+    """
+    sk = body.skeleton
+    bind = body.bind_positions()
+    ends: dict[int, np.ndarray] = {}
+    for j in range(sk.n_joints):
+        par = sk.parents[j]
+        into = bind[j] - bind[par] if par >= 0 else np.array([0.0, 1.0, 0.0])
+        into = into / max(float(np.linalg.norm(into)), 1e-12)
+        kids = [bind[c] for c in np.flatnonzero(sk.parents == j)]
+        kids += [bind[j] + sk.end_offsets[e] for e in np.flatnonzero(sk.end_parents == j)]
+        kids = [k for k in kids if np.linalg.norm(k - bind[j]) > 1e-6]
+        if kids:
+            ends[j] = max(kids, key=lambda k: float((k - bind[j]) @ into))
+    return {sk.names[j]: [p[j].tolist(), (R[j] @ (end - bind[j]) + p[j]).tolist()]
+            for j, end in sorted(ends.items())}
+
+
 @stage("template_mesh", outputs=("mesh",))
 def template_mesh(
     *,
     body_mesh: FilePath | None = None,
     n_vertices: int = 13000,
+    pose: Literal["rest", "bind"] = "rest",
+    leg_abduction: float = 0.0,
     ctx: Context,
 ) -> dict[str, Any]:
     """A detailed body mesh to fit to the markers (the paper's scan), in its T-pose.
@@ -426,15 +496,44 @@ def template_mesh(
         a procedural body around the procedural CMU skeleton.
     n_vertices : int
         Vertex count of the procedural body.
+    pose : {"rest", "bind"}
+        ``rest``: posed by its rig into the rest pose of the procedural CMU
+        skeleton (T-pose, arms out, the simulator's calibration pose but for the
+        leg abduction; the MakeHuman mesh is modelled in an A-pose); ``bind``:
+        as modelled.
+    leg_abduction : float
+        ``rest``: hip abduction (degrees) of the pose, to match a calibration pose
+        with the legs apart (the simulator's is 12, ``capture_motion``'s
+        ``calibration_abduction``); the registration bends less where the poses agree.
 
     Returns
     -------
     dict
-        ``mesh``: rest :class:`Mesh` in metres, y up, facing +z.
+        ``mesh``: rest :class:`Mesh` in metres, y up, facing +z; ``attrs`` also
+        carry the rig for :func:`~mocapflow.stages.skin.registration.anatomical_landmarks`:
+        ``joint_names``, ``vertex_part`` (dominant joint per vertex), ``bones``
+        (``{joint: [start, end]}`` in the mesh's pose).
     """
     if body_mesh is not None:
         body = load_makehuman_body(body_mesh)
     else:
         body = procedural_body(procedural_skeleton(), n_vertices=n_vertices)
-    return {"mesh": Mesh(body.vertices, body.faces, attrs={"source": body.attrs.get("source"),
-                                                           "up": "+y", "forward": "+z"})}
+    J = body.skeleton.n_joints
+    if pose == "rest":
+        sk = procedural_skeleton()
+        rot = quat_identity((1, sk.n_joints))
+        for side, sign in (("Left", 1.0), ("Right", -1.0)):
+            j = find_joint(sk.names, f"{side}UpLeg")
+            if j is not None and leg_abduction:
+                rot[0, j] = quat_from_axis_angle(np.array([0.0, 0.0, 1.0]),
+                                                 np.radians(sign * leg_abduction))
+        rest = Motion(sk, np.zeros((1, 3)), rot, rate=1.0)
+        R, p = skinning_transforms(body, rest)
+        R, p = R[0], p[0]
+        V = skin(body, R[None], p[None])[0]
+    else:
+        R, p, V = np.broadcast_to(np.eye(3), (J, 3, 3)), body.bind_positions(), body.vertices
+    attrs = {"source": body.attrs.get("source"), "up": "+y", "forward": "+z", "pose": pose,
+             "joint_names": list(body.skeleton.names), "vertex_part": body.part.tolist(),
+             "bones": skeleton_bones(body, R, p)}  # fmt: skip
+    return {"mesh": Mesh(V, body.faces, attrs=attrs)}
