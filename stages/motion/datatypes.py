@@ -55,6 +55,23 @@ def _f64(a: Any, shape_tail: tuple[int, ...] | None = None, name: str = "array")
     return arr
 
 
+def _hz(rate: float | None) -> str:
+    """``"120 Hz"`` (``"? Hz"`` when unknown)."""
+    return "? Hz" if rate is None else f"{float(rate):.4g} Hz"
+
+
+def _axes(attrs: dict[str, Any]) -> str:
+    """``", up +z"`` when ``attrs`` names the up axis, else ``""``."""
+    up = attrs.get("up") if isinstance(attrs, dict) else None
+    return f", up {str(up)[:8]}" if up else ""
+
+
+def _names(names: Sequence[str], most: int = 3) -> str:
+    """The first ``most`` names, then ``…`` (a repr stays one line)."""
+    shown = ", ".join(str(n)[:24] for n in list(names)[:most])
+    return shown + (", …" if len(names) > most else "")
+
+
 # --------------------------------------------------------------------------- markers
 
 
@@ -136,6 +153,18 @@ class Markers:
             self.status = np.asarray(self.status, dtype=np.int8)
             if self.status.shape != self.positions.shape[:2]:
                 raise ValueError(f"status: expected {self.positions.shape[:2]}")
+
+    def __repr__(self) -> str:
+        """One line: frames × markers, rate, up axis, missing share (never array contents)."""
+        F, M = self.positions.shape[:2]
+        missing = 100.0 * (1.0 - self.visible.mean()) if F * M else 0.0
+        extra = f", {self.fragments.shape[1]} fragments" if self.fragments.shape[1] else ""
+        if self.analogs is not None:
+            extra += f", {self.analogs.shape[1]} analog channels"
+        if self.status is not None:
+            extra += f", {100.0 * (self.status == 2).mean():.1f}% filled"
+        return (f"Markers({F} frames × {M} markers @ {_hz(self.rate)}{_axes(self.attrs)}, "
+                f"{missing:.1f}% missing{extra})")
 
     @property
     def n_frames(self) -> int:
@@ -334,6 +363,11 @@ class Skeleton:
         if np.any(self.parents[1:] >= np.arange(1, J)) or np.any(self.parents[1:] < 0):
             raise ValueError("skeleton: every parent must come before its child")
 
+    def __repr__(self) -> str:
+        """One line: joint count, root, end sites."""
+        root = f", root {self.names[0][:24]!r}" if self.names else ""
+        return f"Skeleton({self.n_joints} joints{root}, {len(self.end_parents)} end sites)"
+
     @property
     def n_joints(self) -> int:
         """Number of joints ``J``."""
@@ -398,6 +432,15 @@ class Motion:
             if self.translations.shape != (F, J, 3):
                 raise ValueError(f"translations: expected {(F, J, 3)}")
         self.rate = float(self.rate)
+
+    def __repr__(self) -> str:
+        """One line: frames × joints, rate, duration, root, up axis."""
+        F, J = self.rotations.shape[:2]
+        secs = f", {F / self.rate:.3g} s" if self.rate > 0 else ""
+        root = f", root {self.skeleton.names[0][:24]!r}" if J else ""
+        extra = ", joint translations" if self.translations is not None else ""
+        return (f"Motion({F} frames × {J} joints @ {_hz(self.rate)}{secs}{root}"
+                f"{_axes(self.attrs)}{extra})")
 
     @property
     def n_frames(self) -> int:
@@ -544,6 +587,14 @@ class Mesh:
             pd[name] = a
         self.point_data = pd
 
+    def __repr__(self) -> str:
+        """One line: (frames ×) vertices, faces, rate, up axis, point-data names."""
+        V, T = self.vertices.shape[-2], self.faces.shape[0]
+        head = (f"{self.vertices.shape[0]} frames × {V} vertices @ {_hz(self.rate)}"
+                if self.animated else f"{V} vertices")
+        pd = f", point data: {_names(sorted(self.point_data))}" if self.point_data else ""
+        return f"Mesh({head}, {T} faces{_axes(self.attrs)}{pd})"
+
     @property
     def animated(self) -> bool:
         """Whether ``vertices`` holds one pose per frame."""
@@ -629,6 +680,13 @@ class Strokes:
                 raise ValueError("times and points disagree in length")
         self.rate = float(self.rate)
 
+    def __repr__(self) -> str:
+        """One line: samples, strokes, rate, letter."""
+        letter = self.attrs.get("letter") if isinstance(self.attrs, dict) else None
+        tail = f", letter {str(letter)[:8]!r}" if letter is not None else ""
+        return (f"Strokes({len(self.points)} samples in {len(self.stroke_starts)} strokes "
+                f"@ {_hz(self.rate)}{tail})")
+
     def strokes(self) -> list[np.ndarray]:
         """The pen-down runs as a list of ``(n_i, 2)`` arrays."""
         return np.split(self.points, self.stroke_starts[1:])
@@ -673,6 +731,11 @@ class StrokesSet(list):
             if not isinstance(s, Strokes):
                 raise TypeError(f"StrokesSet holds Strokes, got {type(s).__name__}")
         super().__init__(items)
+
+    def __repr__(self) -> str:
+        """One line: how many examples and samples (not each one)."""
+        n = sum(len(s.points) for s in self)
+        return f"StrokesSet({len(self)} examples, {n} samples)"
 
 
 def _encode_set(ss: StrokesSet) -> Encoded:
