@@ -9,9 +9,22 @@ everything the engine can check before running anything; every problem is a
 (:mod:`~mocapflow.pipeline.config_yaml`), applies shared-param overrides,
 interpolates ``${params.NAME}`` and ``${env:VAR,default}``
 (:mod:`~mocapflow.pipeline.config_interpolation`), expands parts
-(:mod:`~mocapflow.pipeline.config_parts`), then validates, in this
+(:mod:`~mocapflow.pipeline.config_parts`; a part entry may be a capture session,
+:mod:`~mocapflow.pipeline.session`, whose trials' fields are kept in
+:attr:`GraphConfig.part_fields`), then validates, in this
 order: name and description, parts, nodes (stage, inputs, seeds, gather,
-params), wiring, cycles, fan-out, targets, file params.
+params), wiring, cycles, per-part params, fan-out, targets, file params.
+
+Per-part params
+---------------
+A node param whose whole value is ``${part.FIELD}`` or ``${part.FIELD,DEFAULT}``
+is kept as a :class:`~mocapflow.pipeline.config_interpolation.PartRef` in
+:attr:`NodeConfig.part_params`; :attr:`NodeConfig.params` holds its default
+(validated here; ``None`` without one).  The graph resolves it per task and
+validates each task's params with the stage's validator
+(:func:`~mocapflow.pipeline.graph.build_graph`).  Only a node fanned out over
+parts (wired to ``part``, or below a node that is, and not a gather) may have
+one.
 
 Loading is bounded (see :mod:`~mocapflow.pipeline.config_yaml` for the YAML
 limits): a graph fans out to at most :data:`MAX_TASKS` tasks (parts × seeds,
@@ -31,6 +44,7 @@ config's parts).
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import os
 import re
@@ -43,7 +57,7 @@ from pathlib import Path
 from typing import Any
 
 from mocapflow.pipeline import registry
-from mocapflow.pipeline.config_interpolation import Budget, interpolate
+from mocapflow.pipeline.config_interpolation import Budget, PartRef, interpolate
 from mocapflow.pipeline.config_parts import expand_parts
 from mocapflow.pipeline.config_yaml import (
     MAX_CONFIG_BYTES,
@@ -67,6 +81,7 @@ __all__ = [
     "ConfigError",
     "GraphConfig",
     "NodeConfig",
+    "PartRef",
     "expand_parts",
     "filepath_params",
     "load_config",
@@ -115,6 +130,9 @@ class NodeConfig:
         One task over all parts (each input becomes a list ordered by part).
     line : int
         Line of the node in the config.
+    part_params : dict
+        ``param -> PartRef`` for per-part params (``${part.FIELD,DEFAULT}``); their
+        entry in :attr:`params` is the default (``None`` without one).
     """
 
     name: str
@@ -126,6 +144,7 @@ class NodeConfig:
     line: int = 0
     description: str = ""
     param_lines: dict[str, int] = field(default_factory=dict)
+    part_params: dict[str, PartRef] = field(default_factory=dict)
 
     def upstream(self) -> list[str]:
         """Names of the nodes this node reads from (sorted, unique)."""
@@ -163,6 +182,9 @@ class GraphConfig:
         Absolute folder that relative part ids are relative to: the config
         file's folder (the working directory for a config given as text).
         ``None``: part ids are the files' paths.
+    part_fields : dict
+        ``part id -> {field: value}`` for the trials of capture sessions (an
+        ordinary part has none): what ``${part.FIELD}`` params read.
     """
 
     name: str
@@ -174,6 +196,7 @@ class GraphConfig:
     nodes: dict[str, NodeConfig]
     overrides: dict[str, Any] = field(default_factory=dict)
     root: str | None = None
+    part_fields: dict[str, dict[str, Any]] = field(default_factory=dict)
 
     def part_path(self, part: str) -> str:
         """The file of part id ``part`` (absolute when :attr:`root` is set)."""
@@ -370,8 +393,10 @@ def parse_config(
     doc_i = _interpolate_document(doc, shared, env, c)
     name, description = _name_and_description(doc_i, doc, path, c)
     root = os.path.abspath(path.parent if path is not None else os.curdir)
-    part_ids = _part_ids(doc_i, doc, parts, c, root)
+    part_fields: dict[str, dict[str, Any]] = {}
+    part_ids = _part_ids(doc_i, doc, parts, c, root, part_fields)
     nodes = _parse_nodes(doc_i, doc, set_items, bool(part_ids), c)
+    _check_part_params(nodes, doc_i["nodes"], c)
     _check_fan_out(nodes, doc_i["nodes"], len(part_ids), c)
     targets = _targets(doc_i, doc, nodes, c)
     _check_file_params(nodes, c)
@@ -385,6 +410,7 @@ def parse_config(
         nodes=nodes,
         overrides=_overrides(set_items, parts),
         root=root,
+        part_fields=part_fields,
     )
 
 
@@ -451,11 +477,13 @@ def _name_and_description(doc_i: LineDict, doc: LineDict, path: Path | None, c: 
 
 
 def _part_ids(doc_i: LineDict, doc: LineDict, parts: Sequence[str] | None, c: FileErrors,
-              root: str) -> list[str]:
+              root: str, fields: dict[str, dict[str, Any]]) -> list[str]:
     """Part ids from ``--parts`` (when given: relative to the working directory) or
-    ``parts:`` (relative to the config's folder ``root``), expressed relative to ``root``."""
+    ``parts:`` (relative to the config's folder ``root``), expressed relative to ``root``
+    (the fields of session trials go to ``fields``)."""
     if parts is not None:
-        return expand_parts(list(parts), FileErrors(CMDLINE), "--parts", relative_to=root)
+        return expand_parts(list(parts), FileErrors(CMDLINE), "--parts", relative_to=root,
+                            fields=fields)
     raw_parts = doc_i.get("parts") or []
     if isinstance(raw_parts, str):
         raw_parts = LineList([raw_parts])
@@ -464,7 +492,7 @@ def _part_ids(doc_i: LineDict, doc: LineDict, parts: Sequence[str] | None, c: Fi
         raise c.err("parts", "must be a list of paths/globs", line_of(doc, "parts"))
     try:
         return expand_parts(raw_parts, c, "parts", getattr(raw_parts, "lines", None), base=root,
-                            relative_to=root)
+                            relative_to=root, fields=fields)
     except ConfigError as e:
         hint = _env_hint(doc.get("parts"))
         if not hint:
@@ -583,7 +611,7 @@ def _parse_node(name: str, body: Any, raw_nodes: Any, c: FileErrors, has_parts: 
     gather = body.get("gather", False)
     if not isinstance(gather, bool):
         raise c.err(f"{key}.gather", "must be true or false", line_of(body, "gather"))
-    params, lines = _node_params(name, body, spec, sets, seeds, key, nline, c)
+    params, lines, part_params = _node_params(name, body, spec, sets, seeds, key, nline, c)
     description = body.get("description", "") or ""
     return NodeConfig(
         name=name,
@@ -595,6 +623,7 @@ def _parse_node(name: str, body: Any, raw_nodes: Any, c: FileErrors, has_parts: 
         line=nline or 0,
         description=str(description),
         param_lines={p: ln for p, ln in lines.items() if ln},
+        part_params=part_params,
     )
 
 
@@ -657,8 +686,9 @@ def _node_inputs(body: Mapping[str, Any], spec: StageSpec, raw_nodes: Any, has_p
 
 def _node_params(name: str, body: Mapping[str, Any], spec: StageSpec, sets: dict[str, Any],
                  seeds: list[int] | None, key: str, nline: int | None, c: FileErrors
-                 ) -> tuple[dict[str, Any], dict[str, int]]:
-    """(validated params with defaults, ``param -> line`` (0: set on the command line))."""
+                 ) -> tuple[dict[str, Any], dict[str, int], dict[str, PartRef]]:
+    """(validated params with defaults, ``param -> line`` (0: set on the command line),
+    per-part params: ``param -> PartRef``, their default validated in ``params``)."""
     sname = body["stage"]
     raw_params = body.get("params") or LineDict()
     pline = line_of(body, "params") or nline
@@ -669,6 +699,12 @@ def _node_params(name: str, body: Mapping[str, Any], spec: StageSpec, sets: dict
     for p, v in sets.items():
         given[p] = v
         lines[p] = 0
+    part_params = {p: v for p, v in given.items() if isinstance(v, PartRef)}
+    for p, ref in part_params.items():  # validated as its default (per task: its value)
+        if ref.has_default:
+            given[p] = ref.default
+        else:
+            del given[p]
     for p, v in given.items():
         where_file = c.file if lines[p] else CMDLINE
         pk = f"{key}.params.{p}" if lines[p] else f"--set {name}.{p}"
@@ -687,11 +723,24 @@ def _node_params(name: str, body: Mapping[str, Any], spec: StageSpec, sets: dict
                               file=where_file, line=lines[p] or None, key=pk)
     if seeds is not None and "seed" in spec.params:
         given.setdefault("seed", seeds[0])
+    for p in part_params:
+        if p not in spec.params:
+            raise c.err(f"{key}.params.{p}", f"unknown param for stage {sname!r}"
+                        f"{close_match(p, spec.params)}", lines[p] or None)
+        if seeds is not None and p == "seed":
+            raise c.err(f"{key}.params.{p}", "seed is set per task by seeds:", lines[p] or None)
+    unset = [p for p in part_params if p not in given]  # ${part.F} without a default
+    check = spec
+    if unset:  # a required param given as ${part.F}: checked per task only
+        check = dataclasses.replace(spec, params={k: v for k, v in spec.params.items()
+                                                  if k not in unset})
     try:
-        params = registry.validate_params(spec, given)
+        params = registry.validate_params(check, given)
     except ParamError as e:
         raise c.err(f"{key}.params", str(e), pline) from None
-    return params, lines
+    if unset:
+        params = {p: params.get(p) for p in spec.params}
+    return params, lines, part_params
 
 
 def _parse_seeds(raw: Any, c: FileErrors, key: str, line: int | None) -> list[int]:
@@ -737,7 +786,9 @@ def _check_fan_out(nodes: Mapping[str, NodeConfig], raw_nodes: Any, n_parts: int
         base = 1
         if not n.gather:
             for iname, w in n.inputs.items():
-                if w == "part" and n.params.get(overridden.get(iname, "")) is not None:
+                param = overridden.get(iname, "")
+                if (w == "part" and n.params.get(param) is not None
+                        and param not in n.part_params):
                     continue  # read once from the file the param names
                 base = max(base, n_parts if w == "part" else fan[w[0]])
         seeds = len(n.seeds) if n.seeds is not None else 1
@@ -750,6 +801,21 @@ def _check_fan_out(nodes: Mapping[str, NodeConfig], raw_nodes: Any, n_parts: int
                 f"nodes.{name}", n.line or None)
             raise c.err(key, f"fans out to {fan[name]:,} tasks{how}: the graph would have "
                         f"{total:,} tasks, more than the {MAX_TASKS:,} it may have", line)
+
+
+def _check_part_params(nodes: Mapping[str, NodeConfig], raw_nodes: Any, c: FileErrors
+                       ) -> None:
+    """``${part.FIELD}`` params only on nodes fanned out over parts (not gathers or sources)."""
+    per_part: dict[str, bool] = {}
+    for name, n in nodes.items():
+        per_part[name] = not n.gather and any(
+            w == "part" or per_part[w[0]] for w in n.inputs.values())
+        if n.part_params and not per_part[name]:
+            p = next(iter(n.part_params))
+            why = "a gather" if n.gather else "not fanned out over parts (no part input upstream)"
+            raise c.err(f"nodes.{name}.params.{p}", f"{n.part_params[p].text} needs a task per "
+                        f"part, but node {name!r} has one task: it is {why}",
+                        n.param_lines.get(p) or n.line or None)
 
 
 def _check_wiring(nodes: dict[str, NodeConfig], raw_nodes: Any, c: FileErrors) -> None:

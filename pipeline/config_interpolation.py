@@ -8,6 +8,13 @@ value is then parsed as YAML, like ``--set`` values); a reference inside a
 longer string is formatted into it (non-strings as JSON).  Line information of
 the loaded document is kept, so later errors still name their line.
 
+A node param whose whole value is ``${part.FIELD}`` or ``${part.FIELD,DEFAULT}``
+is a per-part param: it becomes a :class:`PartRef` (its ``DEFAULT`` interpolated
+now: a literal read as YAML, ``${params.NAME}``, ``${env:VAR}``, or ``null``), which
+the graph resolves per task to the part's field (the fields of a capture
+session, :mod:`~mocapflow.pipeline.session`).  ``${part.…}`` anywhere else is an
+error.
+
 Interpolation is bounded like YAML loading (a reference may name a value that
 holds references, so a few lines could otherwise expand without end): one pass
 makes at most :data:`~mocapflow.pipeline.config_yaml.MAX_NODES` values and
@@ -22,6 +29,7 @@ from __future__ import annotations
 import json
 import re
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 from mocapflow.pipeline.config_yaml import (
@@ -37,10 +45,51 @@ from mocapflow.pipeline.config_yaml import (
     parse_yaml_value,
 )
 
-__all__ = ["MAX_REF_CHAIN", "Budget", "interpolate"]
+__all__ = ["MAX_REF_CHAIN", "Budget", "PartRef", "interpolate"]
 
 #: Longest chain of ``${params.NAME}`` references (a param naming a param naming ...).
 MAX_REF_CHAIN = 32
+
+
+#: Where ``${part.…}`` may stand: the whole value of a node param.
+_PART_KEY = re.compile(r"^nodes\.[^.\[]+\.params\.[^.\[]+$")
+_PART_REF = re.compile(r"^\$\{part\.([A-Za-z_][A-Za-z0-9_]*)\s*(?:,(.*))?\}$", re.DOTALL)
+
+
+@dataclass(frozen=True)
+class PartRef:
+    """A per-part param value ``${part.FIELD}`` / ``${part.FIELD,DEFAULT}``.
+
+    Attributes
+    ----------
+    field : str
+        The part's field it reads.
+    default : any
+        The value for a part without the field (already interpolated).
+    has_default : bool
+        Whether a default was given (without one every part needs the field).
+    text : str
+        The reference as written (for messages).
+    """
+
+    field: str
+    default: Any = None
+    has_default: bool = False
+    text: str = ""
+
+    def value(self, fields: Mapping[str, Any] | None) -> Any:
+        """The value for a part with ``fields``.
+
+        Raises
+        ------
+        KeyError
+            The part has no such field and there is no default.
+        """
+        if fields and self.field in fields:
+            return fields[self.field]
+        if self.has_default:
+            return self.default
+        raise KeyError(self.field)
 
 
 class Budget:
@@ -89,8 +138,38 @@ def _resolve_ref(ref: str, params: Mapping[str, Any], env: Mapping[str, str], c:
                         f"(${{params.{stack[0]}}} -> ... -> ${{{ref}}})", line)
         return interpolate(params[name], params, env, c, key, line, (*stack, name),
                            budget=budget, depth=depth)
+    if ref.startswith("part."):
+        raise c.err(key, f"${{{ref}}} must be the whole value of a node param "
+                    "(nodes.NODE.params.PARAM: ${part.FIELD} or ${part.FIELD,DEFAULT})", line)
     raise c.err(key, f"cannot interpolate ${{{ref}}} "
-                "(use ${params.NAME} or ${env:VAR,default})", line)
+                "(use ${params.NAME}, ${env:VAR,default} or, as a node param, "
+                "${part.FIELD,default})", line)
+
+
+def _part_ref(text: str, params: Mapping[str, Any], env: Mapping[str, str], c: FileErrors,
+              key: str, line: int | None, stack: tuple[str, ...], budget: Budget,
+              depth: int) -> PartRef:
+    """``${part.FIELD[,DEFAULT]}`` (the whole value of a node param) → :class:`PartRef`."""
+    m = _PART_REF.fullmatch(text)
+    if m is None:
+        raise c.err(key, f"malformed per-part reference {text[:80]!r} (expected "
+                    "${part.FIELD} or ${part.FIELD,DEFAULT})", line)
+    if not _PART_KEY.match(key):
+        raise c.err(key, f"{text[:80]} must be the whole value of a node param "
+                    "(nodes.NODE.params.PARAM)", line)
+    name, raw = m.group(1), m.group(2)
+    if raw is None:
+        return PartRef(name, None, False, text)
+    raw = raw.strip()
+    if raw.startswith("${part."):
+        raise c.err(key, f"the default of ${{part.{name},…}} cannot be another ${{part.…}}",
+                    line)
+    if "${" in raw:
+        default = interpolate(raw, params, env, c, key, line, stack, budget=budget,
+                              depth=depth)
+    else:
+        default = parse_yaml_value(raw, file=c.file, key=key, line=line)
+    return PartRef(name, default, True, text)
 
 
 def interpolate(value: Any, params: Mapping[str, Any], env: Mapping[str, str], c: FileErrors,
@@ -132,6 +211,8 @@ def interpolate(value: Any, params: Mapping[str, Any], env: Mapping[str, str], c
     if depth > MAX_DEPTH:
         raise c.err(key, f"nesting deeper than {MAX_DEPTH} levels", line)
     if isinstance(value, str):
+        if value.lstrip().startswith("${part."):
+            return _part_ref(value.strip(), params, env, c, key, line, stack, budget, depth)
         whole = REF.fullmatch(value.strip())
         if whole:
             return _resolve_ref(whole.group(1), params, env, c, key, line, stack, budget, depth)

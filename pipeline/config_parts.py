@@ -1,9 +1,11 @@
-"""Part entries of a graph config → part ids: paths and globs, bounded.
+"""Part entries of a graph config → part ids: paths, globs and sessions, bounded.
 
-``parts:`` entries (and ``--parts``) are file paths or globs.  :func:`expand_parts`
-turns them into part ids (see its docstring: ids never depend on the working
-directory).  Globs are bounded (:func:`bounded_glob`): at most
-:data:`MAX_GLOB_MATCHES` matches and, for ``**`` patterns, at most
+``parts:`` entries (and ``--parts``) are file paths, globs or capture sessions
+(:mod:`~mocapflow.pipeline.session`: an entry naming a session file gives its
+trials as parts, each with its fields).  :func:`expand_parts` turns them into
+part ids (see its docstring: ids never depend on the working directory).
+Globs are bounded (:func:`bounded_glob`): at most :data:`MAX_GLOB_MATCHES`
+matches and, for ``**`` patterns, at most
 :data:`MAX_GLOB_ENTRIES` directory entries looked at (and
 :data:`MAX_GLOB_SECONDS` of walking), and a symlink that leads
 back into a directory being walked is not followed again (Python's ``glob``
@@ -23,6 +25,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from mocapflow.pipeline.config_yaml import FileErrors, short
+from mocapflow.pipeline.session import is_session, read_session
 
 __all__ = ["MAX_GLOB_ENTRIES", "MAX_GLOB_MATCHES", "MAX_GLOB_SECONDS", "GlobLimitError",
            "bounded_glob", "expand_parts"]
@@ -143,8 +146,9 @@ def _dir_id(path: str) -> tuple[int, int] | None:
 
 def expand_parts(entries: Sequence[Any], c: FileErrors, key: str,
                  lines: Sequence[int] | None = None, *, base: str | None = None,
-                 relative_to: str | None = None) -> list[str]:
-    """Expand part entries (paths or globs) into part ids.
+                 relative_to: str | None = None,
+                 fields: dict[str, dict[str, Any]] | None = None) -> list[str]:
+    """Expand part entries (paths, globs or session files) into part ids.
 
     Parameters
     ----------
@@ -192,6 +196,9 @@ def expand_parts(entries: Sequence[Any], c: FileErrors, key: str,
             if os.path.isdir(where):
                 raise c.err(k, f"{entry!r} is a directory (use a glob such as {entry}/*.bvh)",
                             line)
+            if is_session(where):
+                _add_session(where, os.path.isabs(entry), relative_to, out, seen, fields)
+                continue
             found = [where]
         for p in found:
             pid = _part_id(p, absolute=os.path.isabs(entry), relative_to=relative_to)
@@ -199,6 +206,24 @@ def expand_parts(entries: Sequence[Any], c: FileErrors, key: str,
                 seen.add(pid)
                 out.append(pid)
     return out
+
+
+def _add_session(path: str, absolute: bool, relative_to: str | None, out: list[str],
+                 seen: set[str], fields: dict[str, dict[str, Any]] | None) -> None:
+    """Append the trials of the session ``path`` to ``out`` (and their fields)."""
+    session = read_session(path)
+    c = FileErrors(session.path)
+    for t in session.trials:
+        pid = _part_id(t.path, absolute=absolute or os.path.isabs(t.text),
+                       relative_to=relative_to)
+        if pid not in seen:
+            seen.add(pid)
+            out.append(pid)
+        elif fields is not None and fields.get(pid, t.fields) != t.fields:
+            raise c.err("trial", f"trial {short(t.text, 100)} is already a part with other "
+                        "fields (from another session)", t.line)
+        if fields is not None and t.fields:
+            fields[pid] = dict(t.fields)
 
 
 def _in(where: str, entry: str, base: str | None) -> str:

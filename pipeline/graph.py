@@ -28,6 +28,21 @@ Rules (see the README's config format):
   input wired to ``part`` reads that file instead of each part's file, so the
   node has a single task, broadcast to every part (a range-of-motion trial read
   once for all trials).  Left ``None``, the node runs per part as usual.
+* Per-part params (``${part.FIELD,DEFAULT}``, :attr:`NodeConfig.part_params
+  <mocapflow.pipeline.config.NodeConfig.part_params>`) take, in each task, the
+  field of the task's part (:attr:`GraphConfig.part_fields
+  <mocapflow.pipeline.config.GraphConfig.part_fields>`: the fields of a capture
+  session's trials), else the default; the task's params are then validated by
+  the stage's validator.  A task standing for several parts (one task of a
+  node, or a group below) needs the same value from each of them.
+* A file override whose param is per-part groups the parts by file: parts
+  naming the same file share one task, whose part id is ``"PARAM=FILE"`` (FILE
+  the file's id, made like a part id: relative to the config's folder, or
+  absolute when the part's id is); parts with no file read their own file in a
+  task of their own (their part id).  When every part names the same file the
+  node has a single task as above (so a plain part list keeps its tasks and
+  keys).  Nodes below take these groups as their parts; a node below both a
+  group and its parts matches each part to its group (its tasks are per part).
 """
 
 from __future__ import annotations
@@ -210,8 +225,12 @@ def part_label(part: str | None) -> str:
 # --------------------------------------------------------------------------- matching
 
 
-def _matcher(parts: Sequence[str | None]):
-    """``q -> p``: the upstream part for ``q`` (exact, prefix before ``#``, or broadcast)."""
+def _matcher(parts: Sequence[str | None], alias: Mapping[str, str] | None = None):
+    """``q -> p``: the upstream part for ``q`` (exact, prefix before ``#``, or broadcast).
+
+    ``alias`` (of a grouped upstream, see the module docstring) maps a part id to
+    the upstream's group first (``"<part>#seed=1"`` → ``"<group>#seed=1"``).
+    """
     if len(parts) == 1 and parts[0] is None:
         return lambda q: None
     index = {p: p for p in parts}
@@ -219,6 +238,11 @@ def _matcher(parts: Sequence[str | None]):
     def match(q: str | None) -> str | None | bool:
         if q is None:
             return False
+        if alias:
+            head, sep, rest = q.partition("#")
+            g = alias.get(head)
+            if g is not None:
+                q = g + sep + rest
         cur = q
         while True:
             if cur in index:
@@ -231,8 +255,9 @@ def _matcher(parts: Sequence[str | None]):
     return match
 
 
-def _covers(fine: Sequence[str | None], coarse: Sequence[str | None]) -> bool:
-    match = _matcher(coarse)
+def _covers(fine: Sequence[str | None], coarse: Sequence[str | None],
+            alias: Mapping[str, str] | None = None) -> bool:
+    match = _matcher(coarse, alias)
     return all(match(q) is not False for q in fine)
 
 
@@ -251,24 +276,96 @@ def file_overrides(node: NodeConfig) -> dict[str, str]:
     }
 
 
-def _node_parts(node: NodeConfig, config: GraphConfig,
-                known: dict[str, list[str | None]]) -> list[str | None]:
+def _per_part_overrides(node: NodeConfig) -> dict[str, str]:
+    """``input -> param`` for the node's file overrides whose param is per-part."""
+    spec = registry.lookup(node.stage)
+    declared = spec.extra.get("file_overrides", {}) if spec is not None else {}
+    return {i: p for i, p in declared.items()
+            if node.inputs.get(i) == "part" and p in node.part_params}
+
+
+def _param_error(node: NodeConfig, config: GraphConfig, param: str, problem: str
+                 ) -> ConfigError:
+    return ConfigError(problem, file=config.file,
+                       line=node.param_lines.get(param) or node.line or None,
+                       key=f"nodes.{node.name}.params.{param}")
+
+
+def _part_value(node: NodeConfig, config: GraphConfig, param: str, part: str) -> Any:
+    """The value of the per-part param ``param`` for the part ``part``."""
+    ref = node.part_params[param]
+    fields = config.part_fields.get(part)
+    try:
+        return ref.value(fields)
+    except KeyError:
+        have = ", ".join(sorted(fields)) if fields else "none: not from a session"
+        raise _param_error(node, config, param, f"part {part} has no field {ref.field!r} "
+                           f"(its fields: {have}) and {ref.text} has no default") from None
+
+
+def _file_id(path: str, config: GraphConfig, absolute: bool) -> str:
+    """The id of a file named by a per-part param (made like a part id)."""
+    if absolute or config.root is None:
+        return os.path.normpath(path).replace(os.sep, "/")
+    try:
+        return os.path.relpath(path, config.root).replace(os.sep, "/")
+    except ValueError:  # another drive (Windows)
+        return path.replace(os.sep, "/")
+
+
+def _groups(node: NodeConfig, config: GraphConfig, param: str
+            ) -> tuple[list[str | None], dict[str, str] | None]:
+    """(task parts, ``part -> task part``) of a file override with a per-part param."""
+    values = [_part_value(node, config, param, q) for q in config.parts]
+    if not values or all(v is None for v in values):
+        return list(config.parts), None  # every part reads its own file
+    if all(v == values[0] for v in values):
+        return [None], None  # one file for all: one task, as without ${part.…}
+    parts_set = set(config.parts)
+    alias: dict[str, str] = {}
+    ids: dict[str, str] = {}  # file -> group id
+    out: dict[str | None, None] = {}
+    for q, v in zip(config.parts, values):
+        if v is None:
+            g = q
+        else:
+            g = ids.get(str(v))
+            if g is None:
+                g = ids[str(v)] = f"{param}={_file_id(str(v), config, os.path.isabs(q))}"
+                if g in parts_set:
+                    raise _param_error(node, config, param, f"group id {g!r} is also a part id "
+                                       "(rename that file)")
+        alias[q] = g
+        out.setdefault(g, None)
+    return list(out), alias
+
+
+def _node_parts(node: NodeConfig, config: GraphConfig, known: dict[str, list[str | None]],
+                aliases: dict[str, dict[str, str] | None]
+                ) -> tuple[list[str | None], dict[str, str] | None]:
+    """(task parts of the node, ``part -> task part`` when they are groups of parts)."""
+    grouped = _per_part_overrides(node)
     overridden = file_overrides(node)
+    alias: dict[str, str] | None = None
     if node.gather:
         base: list[str | None] = [None]
     else:
-        cands: list[list[str | None]] = []
+        cands: list[tuple[list[str | None], dict[str, str] | None]] = []
         for iname, w in node.inputs.items():
+            if iname in grouped:
+                cands.append(_groups(node, config, grouped[iname]))
+                continue
             if iname in overridden:
                 continue
-            cands.append(list(config.parts) if w == "part" else known[w[0]])
+            cands.append((list(config.parts), None) if w == "part"
+                         else (known[w[0]], aliases.get(w[0])))
         if not cands:
             base = [None]
         else:
             base = None  # type: ignore[assignment]
-            for cand in sorted(cands, key=len, reverse=True):
-                if all(_covers(cand, other) for other in cands):
-                    base = cand
+            for cand, cand_alias in sorted(cands, key=lambda ca: len(ca[0]), reverse=True):
+                if all(_covers(cand, other, other_alias) for other, other_alias in cands):
+                    base, alias = cand, cand_alias
                     break
             if base is None:
                 srcs = [("part" if w == "part" else w[0]) for w in node.inputs.values()]
@@ -276,8 +373,41 @@ def _node_parts(node: NodeConfig, config: GraphConfig,
                     f"inputs fan out over parts that do not match ({', '.join(srcs)})",
                     file=config.file, line=node.line or None, key=f"nodes.{node.name}.inputs")
     if node.seeds is None:
-        return base
-    return [f"{q}#seed={s}" if q is not None else f"seed={s}" for q in base for s in node.seeds]
+        return base, alias
+    return ([f"{q}#seed={s}" if q is not None else f"seed={s}" for q in base
+             for s in node.seeds], alias)
+
+
+def _members(part: str | None, config: GraphConfig, groups: Mapping[str, list[str]] | None
+             ) -> list[str]:
+    """The parts a task of part id ``part`` stands for."""
+    if part is None:
+        return list(config.parts)
+    head = part.split("#", 1)[0]
+    if head.startswith("seed="):
+        return list(config.parts)
+    if groups is not None and head in groups:
+        return groups[head]
+    return [head]
+
+
+def _task_part_params(node: NodeConfig, part: str | None, config: GraphConfig,
+                      groups: Mapping[str, list[str]] | None) -> dict[str, Any]:
+    """``param -> value`` of the node's per-part params for the task of ``part``."""
+    members = _members(part, config, groups)
+    out: dict[str, Any] = {}
+    for p in node.part_params:
+        values = {}
+        for q in members:
+            v = _part_value(node, config, p, q)
+            values.setdefault(repr(v), (q, v))
+        if len(values) > 1:
+            (q1, v1), (q2, v2) = list(values.values())[:2]
+            raise _param_error(node, config, p, f"task {task_name(node.name, part)} stands for "
+                               f"several parts that give {node.part_params[p].text} different "
+                               f"values ({q1}: {v1!r}, {q2}: {v2!r})")
+        out[p] = next(iter(values.values()))[1] if values else node.params.get(p)
+    return out
 
 
 def build_graph(config: GraphConfig, targets: Sequence[str] | None = None) -> Graph:
@@ -313,8 +443,9 @@ def build_graph(config: GraphConfig, targets: Sequence[str] | None = None) -> Gr
             stack.extend(config.nodes[n].upstream())
 
     node_parts: dict[str, list[str | None]] = {}
+    aliases: dict[str, dict[str, str] | None] = {}
     for name, node in config.nodes.items():
-        node_parts[name] = _node_parts(node, config, node_parts)
+        node_parts[name], aliases[name] = _node_parts(node, config, node_parts, aliases)
 
     tasks: list[Task] = []
     index: dict[tuple[str, str | None], int] = {}
@@ -324,10 +455,27 @@ def build_graph(config: GraphConfig, targets: Sequence[str] | None = None) -> Gr
     for name in order:
         node = config.nodes[name]
         overridden = file_overrides(node)
+        grouped = _per_part_overrides(node)
+        groups = _invert(aliases[name]) if node.part_params else None
+        spec = registry.lookup(node.stage) if node.part_params else None
         for part in node_parts[name]:
-            inputs = _task_inputs(node, part, config, node_parts, index, overridden, part_match,
-                                  matchers)
-            params = _resolve_sidecars(node.stage, dict(node.params), inputs)
+            params = dict(node.params)
+            over = overridden
+            if node.part_params:
+                params.update(_task_part_params(node, part, config, groups))
+                try:
+                    params = registry.validate_params(spec, params)  # type: ignore[arg-type]
+                except registry.ParamError as e:
+                    p = next((q for q in node.part_params if q in str(e)),
+                             next(iter(node.part_params)))
+                    raise _param_error(node, config, p, f"part {part}: {e}") from None
+                if grouped:
+                    over = {i: f for i, f in overridden.items() if i not in grouped}
+                    over.update({i: str(params[p]) for i, p in grouped.items()
+                                 if params.get(p) is not None})
+            inputs = _task_inputs(node, part, config, node_parts, index, over, part_match,
+                                  matchers, aliases)
+            params = _resolve_sidecars(node.stage, params, inputs)
             seed = params.get("seed") if isinstance(params.get("seed"), int) else 0
             if node.seeds is not None:
                 seed = int(part.rsplit("seed=", 1)[1])  # type: ignore[union-attr]
@@ -344,7 +492,8 @@ def build_graph(config: GraphConfig, targets: Sequence[str] | None = None) -> Gr
 def _task_inputs(node: NodeConfig, part: str | None, config: GraphConfig,
                  node_parts: Mapping[str, list[str | None]],
                  index: Mapping[tuple[str, str | None], int], overridden: Mapping[str, str],
-                 part_match: Any, matchers: dict[str, Any]) -> dict[str, Wire]:
+                 part_match: Any, matchers: dict[str, Any],
+                 aliases: Mapping[str, Mapping[str, str] | None]) -> dict[str, Wire]:
     """The wires of the task ``(node, part)`` (its upstream tasks are already indexed)."""
     inputs: dict[str, Wire] = {}
     for iname, w in node.inputs.items():
@@ -364,10 +513,20 @@ def _task_inputs(node: NodeConfig, part: str | None, config: GraphConfig,
         else:
             match = matchers.get(up)
             if match is None:
-                match = matchers[up] = _matcher(up_parts)
+                match = matchers[up] = _matcher(up_parts, aliases.get(up))
             p = match(part)
             inputs[iname] = TaskWire(index[(up, p)], out)
     return inputs
+
+
+def _invert(alias: Mapping[str, str] | None) -> dict[str, list[str]] | None:
+    """``task part -> parts`` from ``part -> task part``."""
+    if alias is None:
+        return None
+    out: dict[str, list[str]] = {}
+    for q, g in alias.items():
+        out.setdefault(g, []).append(q)
+    return out
 
 
 def load_graph(path: str | os.PathLike, *, sets: Iterable[str] | Mapping[str, Any] = (),

@@ -354,3 +354,14 @@ def assert_stage_contract(name: str, inputs: Sequence[Any] = (),
             f"{name}.{out}: two calls with the same part and seed differ (impure stage, or "
             "one whose result depends on ctx.workers?)")
     return first
+
+
+@stage("toy_read_ref", outputs=("values",), file_overrides={"path": "ref"})
+def toy_read_ref(path: FilePath, *, ref: FilePath | None = None) -> dict:
+    """Numbers of the reference file ``ref`` or, without one, of the part ``path``.
+
+    A file override (``file_overrides={"path": "ref"}``): when ``ref`` is set the
+    engine passes it as ``path`` too, and runs one task per distinct ``ref`` file
+    (a toy range-of-motion trial, for session tests).
+    """
+    return {"values": read_numbers(ref if ref is not None else path)}
