@@ -266,6 +266,8 @@ def procedural_body(
     grid.point_data["sdf"] = _sdf_grid(caps, lo, dims, resolution, blend).ravel()
     surf = grid.contour([0.0], scalars="sdf", method="flying_edges").triangulate().clean()
     surf = surf.connectivity("largest") if surf.n_points else surf
+    if surf.n_points and not surf.is_all_triangles:  # clean() turns slivers into lines/points
+        surf = pv.PolyData(np.asarray(surf.points), np.asarray(surf.faces))
     if surf.n_points > n_vertices:
         surf = surf.decimate(1.0 - n_vertices / surf.n_points).clean()
     v = np.asarray(surf.points, dtype=np.float64)

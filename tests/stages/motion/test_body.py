@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -139,3 +140,21 @@ def test_makehuman_body_driven_by_the_procedural_walk():
     for j in range(1, sk.n_joints):
         assert np.linalg.norm(p[:, j] - p[:, sk.parents[j]], axis=1) == pytest.approx(
             np.linalg.norm(sk.offsets[j]), abs=1e-9)
+
+
+
+def test_procedural_body_of_a_reshaped_skeleton_is_a_triangle_mesh():
+    """The subject of seed 3 of benchmarks/fit_mesh.py (its bone lengths): the marching-cubes
+    surface's clean() left sliver cells as lines, and the decimation refused the mesh."""
+    spec = importlib.util.spec_from_file_location(
+        "fit_mesh_bench", Path(__file__).resolve().parents[3] / "benchmarks" / "fit_mesh.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    sk = procedural_skeleton()
+    f, _ = bench._draws(3, sk.names)
+    shaped = Skeleton(names=sk.names, parents=sk.parents, offsets=sk.offsets * f[:, None],
+                      channels=sk.channels, end_parents=sk.end_parents,
+                      end_offsets=sk.end_offsets * f[sk.end_parents][:, None])
+    body = procedural_body(shaped, n_vertices=13000)
+    assert body.faces.shape[1] == 3 and len(body.vertices) <= 13000
+    assert np.bincount(body.faces.ravel(), minlength=len(body.vertices)).min() >= 3
