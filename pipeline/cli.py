@@ -1,7 +1,7 @@
 """The ``mocapflow`` command line.
 
 Verbs: ``run``, ``plan``, ``status``, ``explain``, ``dag``, ``stages``, ``show``,
-``export``, ``verify``, ``gc``, ``lock``, ``demo`` (``mocapflow VERB --help``).
+``export``, ``report``, ``verify``, ``gc``, ``lock``, ``demo`` (``mocapflow VERB --help``).
 User errors (bad config, missing file, bad flag, ``--frozen`` mismatch, failed
 tasks) print one line on stderr and exit non-zero (2 for usage/config errors,
 1 for failed tasks, store problems and lock mismatches); ``--debug`` adds the
@@ -129,7 +129,9 @@ def _config_args(p: argparse.ArgumentParser, *, target_help: str =
                    help="graph config (YAML), or a shipped graph by name: "
                         + ", ".join(shipped_configs()))
     p.add_argument("--parts", action="append", metavar="GLOB",
-                   help="input files/globs replacing the config's parts (repeatable)")
+                   help="input files/globs replacing the config's parts (repeatable); a "
+                        "session file (YAML with trials:, or CSV whose first column is "
+                        "trial) gives its trials and their fields")
     p.add_argument("--set", action="append", dest="sets", metavar="NODE.PARAM=VALUE",
                    default=[], help="override a param; VALUE is parsed as YAML (repeatable; "
                                     "params.NAME=VALUE sets a shared param; NODE.seeds=N, "
@@ -262,6 +264,18 @@ def build_parser() -> argparse.ArgumentParser:
     _common(p)
     _json_flag(p, "the files written")
 
+    p = sub.add_parser("report", help="write an HTML page of the last run: summary and figures",
+                       description="Write DIR/<graph>-<run id>.html: the run's summary table "
+                                   "and the figures of each task (one self-contained page, "
+                                   "no scripts). Runs nothing: reports the last run of the "
+                                   "graph in the store.")
+    _config_args(p)
+    p.add_argument("--to", required=True, metavar="DIR", help="output directory")
+    p.add_argument("--run-id", default=None, metavar="ID",
+                   help="report this run (default: the graph's last run in the store)")
+    _common(p)
+    _json_flag(p, "the page's path, run id, figure count and notes")
+
     p = sub.add_parser("verify", help="re-read every entry and check its digests")
     _common(p)
     _json_flag(p, "the entry count and the problems found")
@@ -289,11 +303,18 @@ def build_parser() -> argparse.ArgumentParser:
                         ".yaml for YAML)")
     _json_flag(p, "the lock path and task count")
 
-    p = sub.add_parser("demo", help="run the shipped graphs on generated data")
+    p = sub.add_parser("demo", help="run the shipped graphs on generated data",
+                       description="Run every shipped graph on data the project generates "
+                                   "itself, each step exporting for the next; sized for a "
+                                   "quick first look (a few minutes, ~100 MB) unless --full.")
     p.add_argument("--out", default="demo-output", metavar="DIR",
                    help="output folder (default ./demo-output); the store is DIR/store")
     p.add_argument("--spec", default=None, metavar="PATH",
                    help="demo description (default: the packaged configs/demo.yaml)")
+    p.add_argument("--full", action="store_true",
+                   help="full sizes (each step's full: overrides in the demo description: "
+                        "longer captures and walk, more seeds, larger renders, per-frame "
+                        "mesh files; ~8 min on 2 cores, ~0.5 GB)")
     _exec_args(p)
     _common(p)
     _json_flag(p, "each step's files and counts")
@@ -324,6 +345,30 @@ def _store(args: argparse.Namespace) -> Store:
         raise UserError(f"--store {root}: {e}") from None
     store.probe()  # a bad endpoint, option or bucket: one line now, not a failure per task
     return store
+
+
+def _redacted_command(argv: Sequence[str]) -> list[str]:
+    """``argv`` with each ``--storage-option`` value shown as ``***`` (it may be a secret).
+
+    The command line goes into the run record, which is stored with the results.
+    """
+    out: list[str] = []
+    hide_next = False
+    for arg in argv:
+        flag, eq, value = arg.partition("=")
+        if hide_next:
+            out.append(f"{flag}=***" if eq else "***")
+            hide_next = False
+        elif flag.startswith("--stora") and "--storage-option".startswith(flag):  # abbrev too
+            if eq:
+                key, sep, _ = value.partition("=")
+                out.append(f"{flag}={key}=***" if sep else f"{flag}=***")
+            else:
+                out.append(arg)
+                hide_next = True
+        else:
+            out.append(arg)
+    return out
 
 
 def _load(args: argparse.Namespace, config: str | None = None, *, parts=None, sets=None,
@@ -371,7 +416,7 @@ def _run_graph(args: argparse.Namespace, graph: Graph, store: Store, executor: E
     progress = _progress(args, len(graph.tasks), label)
     return run(graph, store, executor=executor, force=getattr(args, "force", None) or (),
                fail_fast=getattr(args, "fail_fast", False), lock=lock, progress=progress,
-               command=sys.argv)
+               command=_redacted_command(sys.argv))
 
 
 def _raise_failures(result: RunResult, args: argparse.Namespace | None = None,
@@ -771,6 +816,27 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    from mocapflow.pipeline.report import ReportError, render_report  # noqa: PLC0415
+
+    graph = _load(args)
+    store = _store(args)
+    try:
+        rep = render_report(graph, store, run_id=args.run_id)
+        path = rep.write(args.to)
+    except ReportError as e:
+        raise UserError(str(e)) from None
+    if args.json:
+        _print_json({"path": str(path), "graph": rep.graph, "run_id": rep.run_id,
+                     "figures": rep.images, "notes": rep.notes})
+        return 0
+    print(path)
+    if not getattr(args, "quiet", False):
+        print(f"report of run {rep.run_id}: {rep.images} figure(s)"
+              + (f", {len(rep.notes)} note(s)" if rep.notes else ""), file=sys.stderr)
+    return 0
+
+
 def cmd_verify(args: argparse.Namespace) -> int:
     store = _store(args)
     entries = store.entries()
@@ -830,32 +896,59 @@ def cmd_demo(args: argparse.Namespace) -> int:
         if step.description:
             print(f"== {step.label}: {step.description}", file=sys.stderr)
 
+    ran: list[tuple[Graph, str]] = []  # (graph, run id) of each step, for the report
+
     with _executor(args) as ex:
 
         def run_step(graph: Graph, step: DemoStep) -> RunResult:
             result = _run_graph(args, graph, store, ex, label=step.label)
             _print_warnings(result)
             _raise_failures(result, args, store)
+            ran.append((graph, result.run_id))
             return result
 
-        summary = run_demo(spec, out, store, ex, announce=announce, run_graph=run_step)
+        summary = run_demo(spec, out, store, ex, full=args.full, announce=announce,
+                           run_graph=run_step)
+    # --- REPORT CALL SITE: one page per step's run in DIR/report, when
+    # mocapflow.pipeline.report (write_report) is installed; skipped without it
+    reports: list[Path] = []
+    try:
+        from mocapflow.pipeline.report import ReportError, write_report  # noqa: PLC0415
+    except ImportError:
+        pass
+    else:
+        try:
+            reports = [write_report(g, store, out / "report", run_id=rid) for g, rid in ran]
+        except ReportError as e:
+            print(f"warning: demo report not written: {e}", file=sys.stderr)
+    # --- end of the report call site
     if args.json:
-        _print_json({"out": str(out), "store": str(store.root), "steps": [
+        _print_json({"out": str(out), "store": str(store.root), "full": args.full,
+                     "reports": [str(r) for r in reports], "steps": [
             {"label": s.label, "files": s.files, "export_to": str(s.export_to),
-             "counts": s.counts} for s in summary]})
+             "counts": s.counts, "look_at": [str(p) for _, ps in s.shown for p in ps]}
+            for s in summary]})
         return 0
     print(f"demo results in {out}")
     for s in summary:
         print(f"  {s.label}: {s.files} file(s) in {s.export_to}  ({s.counts['computed']} "
               f"computed, {s.counts['hit']} hit)")
     print(f"  store: {store.root}")
+    print("where to look:")
+    for s in summary:  # one file: its path; several: the glob and how many
+        shown = ", ".join(str(ps[0].relative_to(s.export_to)) if len(ps) == 1 else
+                          f"{g} ({len(ps)})" for g, ps in s.shown if ps)
+        print(f"  {s.label}: {s.export_to}/" + (f"  {shown}" if shown else ""))
+    for r in reports:
+        print(f"report: {r}")
     return 0
 
 
 VERBS = {
     "run": cmd_run, "plan": cmd_plan, "status": cmd_status, "explain": cmd_explain,
     "dag": cmd_dag, "stages": cmd_stages, "schema": cmd_schema, "show": cmd_show,
-    "export": cmd_export, "verify": cmd_verify, "gc": cmd_gc, "lock": cmd_lock, "demo": cmd_demo,
+    "export": cmd_export, "report": cmd_report, "verify": cmd_verify, "gc": cmd_gc,
+    "lock": cmd_lock, "demo": cmd_demo,
 }
 
 

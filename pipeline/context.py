@@ -21,9 +21,29 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["Context", "part_seed"]
+__all__ = ["HINT_SEP", "Context", "part_seed", "split_hint"]
 
 log = logging.getLogger("mocapflow")
+
+#: Between a warning's message and its "what to do" hint in ``Context.warnings``,
+#: the manifests and the run records (which keep warnings as plain strings).
+HINT_SEP = " — what to do: "
+
+
+def split_hint(warning: str) -> tuple[str, str | None]:
+    """A stored warning's message and its hint (``None`` without one).
+
+    Parameters
+    ----------
+    warning : str
+        As :meth:`Context.warn` stored it.
+
+    Returns
+    -------
+    tuple of (str, str or None)
+    """
+    msg, sep, hint = str(warning).partition(HINT_SEP)
+    return (msg, hint) if sep else (msg, None)
 
 
 def part_seed(seed: int, part: str | None) -> list[int]:
@@ -59,8 +79,9 @@ class Context:
     mapper : callable, optional
         ``mapper(fn, items) -> list``; the engine passes one that fans out on
         the run's executor.  Defaults to a sequential map.
-    progress : callable, optional
-        ``progress(done, total, label)`` hook for long work.
+    progress_hook : callable, optional
+        ``progress_hook(done, total, label)``, called by :meth:`progress`; the
+        engine sets one that forwards (rate-limited) to the command's display.
     rng : numpy.random.Generator, optional
         The generator ``ctx.rng``; by default one seeded from ``seed`` and
         ``part`` (:func:`part_seed`).  The engine never passes one; it is for
@@ -91,21 +112,46 @@ class Context:
         if self.rng is None:
             self.rng = np.random.default_rng(part_seed(self.seed, self.part))
 
-    def map(self, fn: Callable[[Any], Any], items: Iterable[Any]) -> list[Any]:
+    def map(self, fn: Callable[[Any], Any], items: Iterable[Any], *,
+            progress: str | None = None) -> list[Any]:
         """Apply ``fn`` to every item, in parallel where the executor allows.
 
         ``fn`` must be a picklable (module-level) function or a
-        ``functools.partial`` of one; results come back in item order.
+        ``functools.partial`` of one; results come back in item order.  With
+        ``progress`` (a label), items done are reported through
+        :meth:`progress`: after each item when the map is sequential, at the
+        end when it runs on the executor.
         """
         items = list(items)
-        if self.mapper is None or len(items) <= 1:
-            return [fn(x) for x in items]
-        return list(self.mapper(fn, items))
+        n = len(items)
+        if self.mapper is None or n <= 1:
+            out = []
+            for i, x in enumerate(items):
+                out.append(fn(x))
+                if progress is not None:
+                    self.progress(i + 1, n, progress)
+            return out
+        if progress is not None:
+            self.progress(0, n, progress)
+        out = list(self.mapper(fn, items))
+        if progress is not None:
+            self.progress(n, n, progress)
+        return out
 
-    def warn(self, message: str) -> None:
-        """Record a warning; the engine stores it in the entry manifest and prints it."""
-        self.warnings.append(str(message))
-        log.warning("%s%s", f"[{self.part}] " if self.part else "", message)
+    def warn(self, message: str, hint: str | None = None) -> None:
+        """Record a warning; the engine stores it in the entry manifest and prints it.
+
+        Parameters
+        ----------
+        message : str
+            What happened.
+        hint : str, optional
+            What to do about it (or why it may not matter), printed after the
+            message; stored in the same string, after :data:`HINT_SEP`.
+        """
+        text = str(message) + (f"{HINT_SEP}{hint}" if hint else "")
+        self.warnings.append(text)
+        log.warning("%s%s", f"[{self.part}] " if self.part else "", text)
 
     @contextlib.contextmanager
     def timer(self, step: str) -> Iterator[None]:
@@ -134,9 +180,15 @@ class Context:
         self.figures[str(name)] = value[:40] if isinstance(value, str) else value
 
     def progress(self, done: int, total: int, label: str = "") -> None:
-        """Report progress of long work inside the stage."""
+        """Report progress of long work inside the stage (``done`` of ``total`` ``label``).
+
+        Cheap enough to call per item of a loop: the engine forwards a few
+        updates a second (and always the last) to the command's display.  It
+        never enters an output, a key or a manifest; without a hook it does
+        nothing.
+        """
         if self.progress_hook is not None:
-            self.progress_hook(done, total, label)
+            self.progress_hook(int(done), int(total), str(label))
 
     def child_rng(self, *key: int) -> np.random.Generator:
         """An independent generator for sub-task ``key`` (for work inside ``map``)."""

@@ -9,7 +9,15 @@ with ``steps:``, each step a mapping::
     parts: ["{out}/sim/*.c3d"]    # optional; {out} is the demo folder
     targets: [render]             # optional (default: the config's targets)
     set: {node.param: value}      # optional overrides ({out} substituted too)
+    formats: {mesh: [pc2]}        # optional: output type -> export file formats
     export_to: skin               # folder under {out} (default: the config's stem)
+    show: ["render/*/*.mp4"]      # optional: globs (under export_to) printed at the end
+    full:                         # optional: what ``mocapflow demo --full`` changes
+      set: {node.param: value}    #   merged over set:
+      formats: {mesh: [vtp, pc2]} #   replaces formats:
+
+The defaults are sized for a quick first look; ``full=True`` (``--full``) applies
+every step's ``full:`` overrides (the full-size run).
 
 Steps run in order with one executor and one store; each step's targets are
 exported to ``{out}/<export_to>`` before the next step starts, so a step can
@@ -23,7 +31,7 @@ read what an earlier one exported.  Python use::
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib.resources import as_file, files
 from pathlib import Path
 from typing import Any
@@ -47,7 +55,9 @@ __all__ = [
     "substitute_out",
 ]
 
-STEP_KEYS = {"config", "parts", "targets", "set", "export_to", "name", "description"}
+STEP_KEYS = {"config", "parts", "targets", "set", "export_to", "name", "description",
+             "formats", "show", "full"}
+FULL_KEYS = {"set", "formats"}
 
 
 class DemoError(ValueError):
@@ -82,16 +92,19 @@ class DemoStep:
     sets: dict[str, Any]
     targets: list[str] | None
     export_to: Path
+    formats: dict[str, list[str]] | None = None
+    show: list[str] | None = None
 
 
 @dataclass(frozen=True)
 class StepSummary:
-    """What one step produced."""
+    """What one step produced (``shown``: each ``show:`` glob and the exported files it matches)."""
 
     label: str
     export_to: Path
     files: int
     counts: dict[str, int]
+    shown: list[tuple[str, list[Path]]] = field(default_factory=list)
 
 
 def load_demo_spec(path: str | Path | None = None) -> DemoSpec:
@@ -135,13 +148,25 @@ def substitute_out(value: Any, out: str) -> Any:
     return value
 
 
-def demo_step(spec: DemoSpec, i: int, out: Path) -> DemoStep:
+def _mapping(value: Any, where: str) -> dict:
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise DemoError(f"demo.yaml: {where}: expected a mapping")
+    return value
+
+
+def demo_step(spec: DemoSpec, i: int, out: Path, *, full: bool = False) -> DemoStep:
     """Step ``i`` of ``spec``, checked, with ``{out}`` (the demo folder) substituted.
+
+    ``full``: apply the step's ``full:`` overrides (``set:`` merged, ``formats:``
+    replaced).
 
     Raises
     ------
     DemoError
-        Not a mapping with ``config:``, or an unknown key.
+        Not a mapping with ``config:``, an unknown key, or a ``full:``, ``set:``
+        or ``formats:`` that is not a mapping.
     """
     step = spec.steps[i]
     if not isinstance(step, dict) or "config" not in step:
@@ -149,6 +174,17 @@ def demo_step(spec: DemoSpec, i: int, out: Path) -> DemoStep:
     unknown = set(step) - STEP_KEYS
     if unknown:
         raise DemoError(f"demo.yaml: steps[{i}]: unknown key {sorted(unknown)[0]!r}")
+    extra = _mapping(step.get("full"), f"steps[{i}].full")
+    unknown = set(extra) - FULL_KEYS
+    if unknown:
+        raise DemoError(f"demo.yaml: steps[{i}].full: unknown key {sorted(unknown)[0]!r} "
+                        f"(it may hold {sorted(FULL_KEYS)})")
+    sets = dict(_mapping(step.get("set"), f"steps[{i}].set"))
+    formats = step.get("formats")
+    if full:
+        sets.update(_mapping(extra.get("set"), f"steps[{i}].full.set"))
+        formats = extra.get("formats", formats)
+    formats = _mapping(formats, f"steps[{i}].formats") or None
     cfg_name = str(step["config"])
     return DemoStep(
         index=i,
@@ -156,9 +192,11 @@ def demo_step(spec: DemoSpec, i: int, out: Path) -> DemoStep:
         label=step.get("name") or Path(cfg_name).stem,
         description=step.get("description") or None,
         parts=substitute_out(step.get("parts"), str(out)),
-        sets=substitute_out(step.get("set") or {}, str(out)),
+        sets=substitute_out(sets, str(out)),
         targets=step.get("targets"),
         export_to=out / str(step.get("export_to") or Path(cfg_name).stem),
+        formats={k: [str(f) for f in v] for k, v in formats.items()} if formats else None,
+        show=[str(g) for g in step.get("show") or []],
     )
 
 
@@ -172,6 +210,7 @@ def _run_checked(graph: Graph, step: DemoStep, store: Store, executor: Executor)
 
 
 def run_demo(spec: DemoSpec, out: Path, store: Store, executor: Executor, *,
+             full: bool = False,
              announce: Callable[[DemoStep], None] | None = None,
              run_graph: Callable[[Graph, DemoStep], RunResult] | None = None
              ) -> list[StepSummary]:
@@ -185,6 +224,8 @@ def run_demo(spec: DemoSpec, out: Path, store: Store, executor: Executor, *,
     store : Store
     executor : Executor
         Shared by every step.
+    full : bool
+        Apply every step's ``full:`` overrides (the full-size demo).
     announce : callable, optional
         ``announce(step)`` before a step's config is loaded.
     run_graph : callable, optional
@@ -198,7 +239,7 @@ def run_demo(spec: DemoSpec, out: Path, store: Store, executor: Executor, *,
     """
     summary = []
     for i in range(len(spec.steps)):
-        step = demo_step(spec, i, out)
+        step = demo_step(spec, i, out, full=full)
         if announce is not None:
             announce(step)
         with as_file(spec.base / step.config) as cfg_path:
@@ -208,6 +249,11 @@ def run_demo(spec: DemoSpec, out: Path, store: Store, executor: Executor, *,
                 result = _run_checked(graph, step, store, executor)
             else:
                 result = run_graph(graph, step)
-        written = export_results(graph, store, result.records, step.export_to)
-        summary.append(StepSummary(step.label, step.export_to, len(written), result.counts))
+        written = export_results(graph, store, result.records, step.export_to,
+                                 formats=step.formats)
+        done = set(written)
+        shown = [(g, sorted(p for p in step.export_to.glob(g) if p in done))
+                 for g in step.show or []]
+        summary.append(StepSummary(step.label, step.export_to, len(written), result.counts,
+                                   shown))
     return summary

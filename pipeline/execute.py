@@ -39,8 +39,9 @@ from threadpoolctl import ThreadpoolController
 from mocapflow.pipeline import codecs, keys, registry
 from mocapflow.pipeline.config import resolve_stage
 from mocapflow.pipeline.context import Context
-from mocapflow.pipeline.executors import CallOutcome, task_mapper
+from mocapflow.pipeline.executors import CallOutcome, progress_sink, task_mapper
 from mocapflow.pipeline.graph import task_name
+from mocapflow.pipeline.progress import ProgressReporter
 from mocapflow.pipeline.store import Store
 from mocapflow.pipeline.task_keys import (
     InputChangedError,
@@ -377,6 +378,18 @@ def _compute_with_retries(store: Store, spec: TaskSpec, sspec: registry.StageSpe
                        key=key, components=comps)
 
 
+def _progress_reporter(spec: TaskSpec) -> ProgressReporter | None:
+    """The ``ctx.progress`` hook of a task: rate-limited updates to the executor's sink.
+
+    Only the display sees them: never an output, a key or the manifest.
+    """
+    sink = progress_sink()
+    if sink is None:
+        return None
+    return ProgressReporter(sink, {"run": spec.run_id, "index": spec.index,
+                                   "node": spec.node, "part": spec.part})
+
+
 def _compute(store: Store, spec: TaskSpec, sspec: registry.StageSpec,
              refs: Mapping[int, TaskRecord], key: str, comps: dict, existing: dict | None,
              attempt: int, t0: float) -> TaskRecord:
@@ -390,15 +403,21 @@ def _compute(store: Store, spec: TaskSpec, sspec: registry.StageSpec,
             for name in sspec.inputs]  # an unwired optional input is None
     kwargs = dict(spec.params)
     ctx = None
+    reporter = None
     if sspec.wants_ctx:
-        ctx = Context(part=spec.part, seed=spec.seed,
-                      mapper=task_mapper(), workers=spec.workers)
+        reporter = _progress_reporter(spec)
+        ctx = Context(part=spec.part, seed=spec.seed, mapper=task_mapper(),
+                      workers=spec.workers, progress_hook=reporter)
         kwargs["ctx"] = ctx
     t_check = time.perf_counter()
     files = read_inputs_check(spec.file_digests)
     t_call = time.perf_counter()
-    with single_threaded_blas():
-        result = sspec.func(*args, **kwargs)
+    try:
+        with single_threaded_blas():
+            result = sspec.func(*args, **kwargs)
+    finally:
+        if reporter is not None:
+            reporter.flush()  # the last update, if the rate limit held it back
     t_enc = time.perf_counter()
     encoded = _encode_outputs(sspec, result)
     files.recheck()

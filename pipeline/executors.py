@@ -52,6 +52,7 @@ __all__ = [
     "dashboard_link",
     "make_executor",
     "process_local_store",
+    "progress_sink",
     "slurm_job_script",
     "task_mapper",
 ]
@@ -160,13 +161,18 @@ def _error_line(exc: BaseException) -> str:
 
 
 class Executor:
-    """Base class: ``run(calls, on_done=..., fail_fast=...) -> {index: result}``."""
+    """Base class: ``run(calls, on_done=..., fail_fast=..., on_progress=...) -> {index: result}``.
+
+    ``on_progress(message)``, when given, receives the progress updates the
+    calls send through :func:`progress_sink` while they run (in this process).
+    """
 
     name = "base"
     workers = 1
 
     def run(self, calls: Sequence[Call], *, on_done: Callable[[Any], None] | None = None,
-            fail_fast: bool = False) -> dict[int, Any]:
+            fail_fast: bool = False,
+            on_progress: Callable[[dict[str, Any]], None] | None = None) -> dict[int, Any]:
         raise NotImplementedError
 
     def describe(self) -> str:
@@ -189,7 +195,18 @@ class SyncExecutor(Executor):
     name = "sync"
 
     def run(self, calls: Sequence[Call], *, on_done: Callable[[Any], None] | None = None,
-            fail_fast: bool = False) -> dict[int, Any]:
+            fail_fast: bool = False,
+            on_progress: Callable[[dict[str, Any]], None] | None = None) -> dict[int, Any]:
+        previous = _LOCAL_LISTENER[0]
+        _LOCAL_LISTENER[0] = on_progress
+        try:
+            return self._run(calls, on_done, fail_fast)
+        finally:
+            _LOCAL_LISTENER[0] = previous
+
+    @staticmethod
+    def _run(calls: Sequence[Call], on_done: Callable[[Any], None] | None,
+             fail_fast: bool) -> dict[int, Any]:
         results: dict[int, Any] = {}
         stop = False
         for call in calls:
@@ -299,20 +316,32 @@ class DistributedExecutor(Executor):
                 "share, or --executor sync / local")
 
     def run(self, calls: Sequence[Call], *, on_done: Callable[[Any], None] | None = None,
-            fail_fast: bool = False) -> dict[int, Any]:
+            fail_fast: bool = False,
+            on_progress: Callable[[dict[str, Any]], None] | None = None) -> dict[int, Any]:
         """Submit each call once its dependencies are done, with their results as arguments.
 
         Dependencies are resolved here, not through Dask futures: results are tiny
         references, so tasks carry no data locality and the scheduler balances them
         over every worker.  A call whose dependency failed runs here (it only
-        records itself as skipped).
+        records itself as skipped).  ``on_progress`` receives the workers'
+        progress events (topic :data:`PROGRESS_TOPIC`, subscribed for the run;
+        called on the client's event loop thread).
         """
         if not calls:
             return {}
-        from distributed import as_completed  # noqa: PLC0415 (heavy)
-
         self._check_store(calls)
         client = self.client
+        if on_progress is None:
+            return self._run(client, calls, on_done, fail_fast)
+        client.subscribe_topic(PROGRESS_TOPIC, functools.partial(_on_event, on_progress))
+        try:
+            return self._run(client, calls, on_done, fail_fast)
+        finally:
+            client.unsubscribe_topic(PROGRESS_TOPIC)
+
+    def _run(self, client: Any, calls: Sequence[Call], on_done: Callable[[Any], None] | None,
+             fail_fast: bool) -> dict[int, Any]:
+        from distributed import as_completed  # noqa: PLC0415 (heavy)
         by_index = {c.index: c for c in calls}
         by_key = {c.key: c for c in calls}
         waiting = {c.index: set(c.deps) for c in calls}
@@ -394,14 +423,24 @@ class DistributedExecutor(Executor):
 def dashboard_link(client: Any) -> str | None:
     """The URL of the Dask dashboard of ``client``'s scheduler, or ``None`` if it has none.
 
-    A scheduler started without a dashboard (``--no-dashboard``, or bokeh
-    missing) has no ``dashboard`` service.
+    Every scheduler runs an HTTP server (metrics and health routes) and lists it
+    as its ``dashboard`` service, so ``client.dashboard_link`` names a port even
+    when the dashboard itself is off (``dashboard_address=None``,
+    ``--no-dashboard``, or bokeh missing).  A scheduler in this process (a
+    local or Slurm cluster) is asked whether it serves the bokeh dashboard; the
+    link of a scheduler elsewhere is returned as it is.
     """
     try:
         link = client.dashboard_link
     except (KeyError, AttributeError, OSError):
         return None
-    return str(link) if link else None
+    if not link:
+        return None
+    scheduler = getattr(getattr(client, "cluster", None), "scheduler", None)
+    http_app = getattr(scheduler, "http_application", None)
+    if http_app is not None and not getattr(http_app, "applications", True):
+        return None  # only the scheduler's own routes: no bokeh application
+    return str(link)
 
 
 def _outcome(call: Call, fut: Any) -> Any:
@@ -511,6 +550,47 @@ def _quiet_worker_logging(driver_pid: int) -> None:
     log.propagate = False
 
 
+# --------------------------------------------------------------------------- ctx.progress
+
+#: Dask event topic of the tasks' progress updates (``Worker.log_event``).
+PROGRESS_TOPIC = "mocapflow-progress"
+#: The in-process listener of :class:`SyncExecutor` while it runs (``[callable or None]``).
+_LOCAL_LISTENER: list[Callable[[dict[str, Any]], None] | None] = [None]
+
+
+def _on_event(on_progress: Callable[[dict[str, Any]], None], event: Any) -> None:
+    """Client side: one ``(timestamp, message)`` event of :data:`PROGRESS_TOPIC`."""
+    try:
+        on_progress(event[1])
+    except Exception:  # pragma: no cover - a display error must not break the client
+        log.debug("progress listener failed", exc_info=True)
+
+
+def _log_event(worker: Any, message: dict[str, Any]) -> None:
+    worker.log_event(PROGRESS_TOPIC, message)
+
+
+def progress_sink() -> Callable[[dict[str, Any]], None] | None:
+    """Where the current task sends its progress updates.
+
+    Returns
+    -------
+    callable or None
+        Inside a ``distributed`` worker: a function that logs the update as a
+        Dask event (:data:`PROGRESS_TOPIC`; the scheduler forwards it to a
+        client that subscribed, keeps the last few otherwise).  In a
+        :class:`SyncExecutor` run: its ``on_progress`` listener.  ``None``
+        when nobody listens.
+    """
+    try:
+        from distributed import get_worker  # noqa: PLC0415 (heavy)
+
+        worker = get_worker()
+    except (ImportError, ValueError):
+        return _LOCAL_LISTENER[0]
+    return functools.partial(_log_event, worker)
+
+
 # --------------------------------------------------------------------------- ctx.map
 
 
@@ -604,7 +684,14 @@ class SlurmOptions:
         return out
 
     def cluster_kwargs(self) -> dict[str, Any]:
-        """Keyword arguments for ``SLURMCluster``: one single-threaded worker per core."""
+        """Keyword arguments for ``SLURMCluster``: one single-threaded worker per core.
+
+        Raises
+        ------
+        ExecutorError
+            A bad directive (:meth:`directives`), or a log folder whose path holds
+            whitespace (the ``#SBATCH -o``/``-e`` lines are not quoted).
+        """
         kw: dict[str, Any] = {
             "cores": self.cores,
             "processes": self.cores,
@@ -621,7 +708,11 @@ class SlurmOptions:
         if directives:
             kw["job_extra_directives"] = directives
         if self.log_dir:
-            kw["log_directory"] = os.path.abspath(os.path.expanduser(self.log_dir))
+            log_dir = os.path.abspath(os.path.expanduser(self.log_dir))
+            if any(c.isspace() for c in log_dir):  # sbatch would split the unquoted #SBATCH -o
+                raise ExecutorError(f"--slurm-log-dir {log_dir!r}: the #SBATCH -o/-e lines "
+                                    "cannot hold a path with spaces; choose a folder without")
+            kw["log_directory"] = log_dir
         env = os.environ.get("MOCAPFLOW_STAGE_MODULES")
         if env:
             kw["job_script_prologue"] = [f"export MOCAPFLOW_STAGE_MODULES={env}"]

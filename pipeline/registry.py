@@ -41,6 +41,8 @@ __all__ = [
     "get_stage",
     "lookup",
     "registered_stages",
+    "report_figures",
+    "report_provider",
     "stage",
     "validate_params",
 ]
@@ -377,6 +379,56 @@ def get_stage(name: str) -> StageSpec:
         close = difflib.get_close_matches(name, list(_REGISTRY), n=3)
         hint = f" (did you mean {', '.join(close)}?)" if close else ""
         raise KeyError(f"unknown stage {name!r}{hint}") from None
+
+
+# --------------------------------------------------------------------------- report figures
+
+#: ``stage name -> provider`` of the figures ``mocapflow report`` shows per task.
+_REPORT_PROVIDERS: dict[str, Callable[..., Any]] = {}
+
+
+def report_figures(*names: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Register the report provider of one or more stages (``@report_figures("clean")``).
+
+    A provider is ``fn(outputs, entry) -> list of (title, item)``: ``outputs`` maps
+    each output name of a committed entry to its decoded value, ``entry`` is a
+    :class:`~mocapflow.pipeline.report.ReportEntry` (node, part, manifest, and
+    ``entry.upstream(input)`` for the decoded outputs an input was wired to).  An
+    item is a matplotlib ``Figure``, an ``(H, W, 3|4)`` uint8 image or an HTML
+    fragment (:func:`~mocapflow.pipeline.report.html_table`).  Families register
+    providers in a module listed in their ``STAGE_MODULES``, so discovery finds them.
+
+    Parameters
+    ----------
+    *names : str
+        Stage names the provider draws.
+
+    Returns
+    -------
+    decorator
+        Returns the function unchanged.
+    """
+    if not names:
+        raise TypeError("report_figures needs at least one stage name")
+
+    def decorate(fn: Callable[..., Any]) -> Callable[..., Any]:
+        for n in names:
+            previous = _REPORT_PROVIDERS.get(n)
+            if previous is not None and (previous.__module__, previous.__qualname__) != (
+                    fn.__module__, fn.__qualname__):
+                raise ValueError(f"report figures of stage {n!r} registered twice: "
+                                 f"{previous.__module__}.{previous.__qualname__} and "
+                                 f"{fn.__module__}.{fn.__qualname__}")
+            _REPORT_PROVIDERS[n] = fn
+        return fn
+
+    return decorate
+
+
+def report_provider(name: str) -> Callable[..., Any] | None:
+    """The report provider of stage ``name`` after discovery (``None``: the stage has none)."""
+    discover()
+    return _REPORT_PROVIDERS.get(name)
 
 
 # --------------------------------------------------------------------------- params

@@ -119,7 +119,9 @@ def run(graph: Graph, store: Store, *, executor: Executor | None = None,
         a key already differs; tasks whose key turns out different fail without
         running; digests are compared after).
     progress : Progress, optional
-        Gets ``update(record dict)`` per finished task and ``close()``.
+        Gets ``update(record dict)`` per finished task and ``close()``; if it
+        has ``task_progress``, also the running tasks' ``ctx.progress`` updates
+        (``task_progress(message)``, possibly from another thread).
     run_id : str, optional
     command : sequence of str, optional
         Recorded in the run record.
@@ -145,7 +147,7 @@ def run(graph: Graph, store: Store, *, executor: Executor | None = None,
         todo_idx = {t.index for t in todo}
         calls = [_call(t, todo_idx, known, store, files, run_id, force, lock, executor.workers)
                  for t in todo]
-        records.update(_execute(graph, todo, calls, executor, fail_fast, progress))
+        records.update(_execute(graph, todo, calls, executor, fail_fast, progress, run_id))
     if progress is not None:
         progress.close()
     ordered = [records[t.index] for t in graph.tasks]
@@ -195,14 +197,22 @@ def _call(t: Task, todo_idx: set[int], known: Mapping[int, TaskRecord], store: S
 
 
 def _execute(graph: Graph, todo: Sequence[Task], calls: Sequence[Call], executor: Executor,
-             fail_fast: bool, progress: Any) -> dict[int, TaskRecord]:
+             fail_fast: bool, progress: Any, run_id: str) -> dict[int, TaskRecord]:
     """Run the calls on the executor; every task of ``todo`` gets a record."""
 
     def on_done(res: TaskRecord | CallOutcome) -> None:
         if progress is not None:
             progress.update(_as_record(graph.tasks[res.index], res).as_dict())
 
-    results = executor.run(calls, on_done=on_done, fail_fast=fail_fast)
+    inner = getattr(progress, "task_progress", None)
+    kw: dict[str, Any] = {}
+    if inner is not None:
+        def on_progress(message: dict[str, Any]) -> None:
+            if message.get("run") == run_id:  # (a shared cluster runs others' tasks too)
+                inner(message)
+
+        kw["on_progress"] = on_progress
+    results = executor.run(calls, on_done=on_done, fail_fast=fail_fast, **kw)
     return {t.index: _as_record(t, results.get(t.index)) for t in todo}
 
 

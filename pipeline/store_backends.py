@@ -421,9 +421,16 @@ class FsspecBackend:
         ------
         OSError
             One line: what the filesystem said (its own exception type named
-            when it is not an ``OSError``, e.g. a connection error), or which
-            bucket is missing.
+            when it is not an ``OSError``, e.g. a connection error), which
+            bucket is missing, or that the URL names none (``s3://``: the
+            store would be the whole account).
         """
+        protocols = self.fs.protocol
+        protocols = {protocols} if isinstance(protocols, str) else set(protocols)
+        bucket = self.root.strip("/").split("/", 1)[0]
+        on_buckets = bool(protocols & _BUCKET_PROTOCOLS)
+        if on_buckets and not bucket:
+            raise OSError("the URL names no bucket (expected PROTOCOL://BUCKET/PREFIX)")
         try:
             self.fs.ls(self.root, detail=False)
             return
@@ -431,10 +438,7 @@ class FsspecBackend:
             pass
         except Exception as e:
             raise _one_line_oserror(e) from e
-        protocols = self.fs.protocol
-        protocols = {protocols} if isinstance(protocols, str) else set(protocols)
-        bucket = self.root.strip("/").split("/", 1)[0]
-        if not bucket or not protocols & _BUCKET_PROTOCOLS:
+        if not on_buckets:
             return
         try:
             self.fs.info(bucket)

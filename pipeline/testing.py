@@ -356,6 +356,22 @@ def assert_stage_contract(name: str, inputs: Sequence[Any] = (),
     return first
 
 
+@stage("toy_progress", outputs=("values",))
+def toy_progress(values: np.ndarray, *, steps: int = 100, seconds: float = 0.0,
+                 message: str = "", hint: str = "", ctx: Context) -> dict:
+    """Pass ``values`` through, calling ``ctx.progress(i, steps, "steps")`` for i = 1..steps.
+
+    ``seconds`` are slept over the steps; a ``message`` is warned once, with ``hint``.
+    """
+    for i in range(1, steps + 1):
+        if seconds:
+            time.sleep(seconds / steps)
+        ctx.progress(i, steps, "steps")
+    if message:
+        ctx.warn(message, hint=hint or None)
+    return {"values": np.asarray(values)}
+
+
 @stage("toy_read_ref", outputs=("values",), file_overrides={"path": "ref"})
 def toy_read_ref(path: FilePath, *, ref: FilePath | None = None) -> dict:
     """Numbers of the reference file ``ref`` or, without one, of the part ``path``.
