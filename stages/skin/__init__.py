@@ -72,9 +72,12 @@ Departures from the paper (each module docstring says why, with measurements):
 * deformation: sharpened weights β ∝ β_bary^4 (``beta_sharpness``), a ridge
   toward rigid on the quadratic (``quadratic_damping`` 0.3; 0 = P&H Eq. 6), an
   optional thin-plate residual (``residual_kernel``), the B-spline dilation
-  shrunk until the system is well conditioned (kernels._well_conditioned_kernel);
+  shrunk until the system is well conditioned (kernels._well_conditioned_kernel),
+  the quadratic held at the edge of its markers' box (``support_margin``,
+  parts.PartModel.basis) and each vertex's non-rigid displacement softly clamped
+  at the part markers' deviation from rigid (``clamp_margin``, parts.soft_clamp);
   the paper exactly: ``beta_sharpness=1, quadratic_damping=0,
-  residual_kernel="cubic_bspline"``.
+  residual_kernel="cubic_bspline", support_margin=None, clamp_margin=None``.
 """
 
 #: The modules of this family that register stages, codecs or exporters, each with
@@ -89,4 +92,5 @@ STAGE_MODULES = {
     "mesh_fit": ("fit_mesh", "template_mesh"),
     "deform": ("deform",),
     "render": ("render", "render_error", "render_modes"),
+    "report_figures": (),  # figures of the report page (mocapflow report)
 }

@@ -362,7 +362,9 @@ def _marker_surface(
     if len(few):
         ctx.warn(
             f"clean: marker(s) with fewer than {MIN_NEIGHBOURS} surface neighbours are neither "
-            f"merged nor filled (holes stay NaN): {_names(labels, few)}"
+            f"merged nor filled (holes stay NaN): {_names(labels, few)}",
+            hint="give clean.surface a marker-surface file that connects them to their "
+                 "neighbours; harmless if they are never occluded",
         )
     return surf, few
 
@@ -383,6 +385,7 @@ def _pca_merge_rounds(
     models = None
     fill_cache: dict = {}  # the rounds' data differ only where fragments were merged
     for k in range(rounds):
+        ctx.progress(1 + k, 1 + rounds, "merge passes")
         left = np.flatnonzero(assigned < 0)
         if not len(left):
             break
@@ -426,12 +429,14 @@ def _merge(
     if not (merge and U):
         mrep = {"merges": [], "rejections": [], "conflicts": [], "merged_by_depth": {}}
         return P.copy(), np.full(U, -1, dtype=np.int64), mrep
+    ctx.progress(0, 1 + pca_rounds, "merge passes")
     X, assigned, mrep = merge_fragments(
         P, frags, surf, alpha1=alpha1, alpha2=alpha2,
         fragment_labels=markers.fragment_labels, depths=(1,), ctx=ctx,
     )
     X = _pca_merge_rounds(X, assigned, mrep, markers, surf, alpha1=alpha1, alpha2=alpha2,
                           variance=variance, rounds=pca_rounds, ctx=ctx)
+    ctx.progress(1 + pca_rounds, 1 + pca_rounds, "merge passes")
     return X, assigned, mrep
 
 
@@ -650,4 +655,22 @@ def clean(
                              "smooth_iterations": smooth_iterations, "fill_model": fill_model,
                              "fill_predictors": fill_predictors})
     out = _cleaned_markers(markers, Xs, status, vis2, assigned, ref_frame)
+    _key_figures(report, status, ctx)
     return {"markers": out, "report": report, "surface": surf.to_mesh()}
+
+
+#: A merge whose mean distance to its prediction exceeds this share of ε₂ is counted
+#: as a wrong-merge risk in the run summary (it passed, but with little margin).
+RISKY_MERGE_SHARE = 0.8
+
+
+def _key_figures(report: dict[str, Any], status: np.ndarray, ctx: Context) -> None:
+    """The run summary's figures of a clean (``ctx.figure``; never in an output)."""
+    t1 = report["table1"]
+    ctx.figure("holes filled", t1["filled"])
+    ctx.figure("samples filled %", round(100.0 * t1["filled"] / max(status.size, 1), 2))
+    ctx.figure("merges", t1["merged"])
+    ctx.figure("unmerged fragments", len(report.get("rejections") or []))
+    ctx.figure("wrong-merge risk", sum(
+        1 for m in report.get("merges") or []
+        if m.get("eps2_mm") and m["mean_mm"] > RISKY_MERGE_SHARE * m["eps2_mm"]))

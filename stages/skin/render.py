@@ -27,6 +27,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -36,6 +37,7 @@ import numpy as np
 
 from mocapflow.pipeline import Context, ParamError, stage
 from mocapflow.pipeline.codecs import Encoded, codec, component_coords, exporter, frame_coords
+from mocapflow.pipeline.context import split_hint
 from mocapflow.stages.motion.axes import AxisError, frame_basis
 from mocapflow.stages.motion.datatypes import Markers, Mesh
 from mocapflow.stages.skin.binding import closest_points_on_triangles
@@ -100,6 +102,11 @@ class Video:
     def n_frames(self) -> int:
         """Number of frames ``F``."""
         return self.frames.shape[0]
+
+    def __repr__(self) -> str:
+        """One line: frames, image size, rate (never the pixels)."""
+        F, H, W = self.frames.shape[:3]
+        return f"Video({F} frames of {W}×{H} px @ {self.rate:.4g} Hz)"
 
 
 def _encode_video(v: Video) -> Encoded:
@@ -267,6 +274,7 @@ def render_frames(
     follow: bool = True,
     background: str = "white",
     marker_size: float | None = None,
+    progress: Callable[[int, int, str], Any] | None = None,
 ) -> np.ndarray:
     """Render one or more synchronised panels of animated meshes, side by side.
 
@@ -290,6 +298,8 @@ def render_frames(
     background : str
     marker_size : float, optional
         Marker sphere size in pixels (default ``height / 70``).
+    progress : callable, optional
+        ``progress(done, total, "frames")`` after each frame (``ctx.progress``).
 
     Returns
     -------
@@ -329,6 +339,8 @@ def render_frames(
         pl.render()
         img = pl.screenshot(return_img=True)
         out[f] = img[:height, : width * len(panels), :3]
+        if progress is not None:
+            progress(f + 1, F, "frames")
     pl.close()
     return out
 
@@ -466,7 +478,7 @@ def render(
     if show_markers:
         panel["markers"] = markers.positions[idx]
     frames = render_frames([panel], width=width, height=height, view=view, follow=follow,
-                           **_axes(markers))
+                           **_axes(markers), progress=ctx.progress)
     rate = (mesh.rate or markers.rate) / max(1, stride)
     return {"video": Video(frames, rate, {"source_frames": idx.tolist(), "kind": "mesh"})}
 
@@ -529,13 +541,14 @@ def render_modes(
     idx = _frame_indices(x.shape[0], stride, max_frames)
     shown = markers.take_frames(idx)
     panels, messages = [], []
-    for mode in modes:
+    for i, mode in enumerate(modes):
+        ctx.progress(i, len(modes), "deform modes")
         sub = Context(part=ctx.part, mapper=ctx.mapper, workers=ctx.workers)
         try:
             out = deform(shown, segmentation, mesh, mode=mode, **params, ctx=sub)
         except (TypeError, ParamError) as e:
             raise RenderError(f"render_modes: bad deform_params: {e}") from None
-        messages += sub.warnings  # fallbacks, reported once below
+        messages += sub.warnings  # fallbacks (with their hints), reported once below
         panels.append({
             "vertices": out["mesh"].vertices,
             "faces": mesh.faces, "markers": shown.positions,
@@ -544,11 +557,12 @@ def render_modes(
     for msg in sorted(set(messages)):
         ctx.warn(msg)
     frames = render_frames(panels, width=width, height=height, view=view, follow=follow,
-                           **_axes(markers))
+                           **_axes(markers), progress=ctx.progress)
     video = Video(frames, markers.rate / max(1, stride),
                   {"source_frames": idx.tolist(), "kind": "modes", "modes": modes})  # fmt: skip
     return {"video": video, "report": {"modes": modes, "frames": len(idx),
-                                       "fallbacks": sorted(set(messages))}}  # fmt: skip
+                                       "fallbacks": sorted({split_hint(m)[0]
+                                                            for m in messages})}}  # fmt: skip
 
 
 def vertex_errors(mesh: np.ndarray, truth: np.ndarray, truth_faces: np.ndarray) -> np.ndarray:
@@ -620,7 +634,7 @@ def render_error(
              "clim": (0.0, clim_mm), "cmap": "inferno", "scalar_title": "error (mm)",
              "title": "distance to ground truth"}  # fmt: skip
     frames = render_frames([panel], width=width, height=height, view=view, follow=follow,
-                           **_axes(mesh))
+                           **_axes(mesh), progress=ctx.progress)
     report = {
         "mean_mm": float(np.mean(err_all)),
         "p95_mm": float(np.percentile(err_all, 95)),
@@ -628,6 +642,8 @@ def render_error(
         "frames_evaluated": "all" if same else len(idx),
         "vertex_to_vertex": bool(same),
     }
+    for name in ("mean", "p95", "max"):
+        ctx.figure(f"error {name} mm", round(report[f"{name}_mm"], 2))
     video = Video(frames, (mesh.rate or 30.0) / max(1, stride),
                   {"source_frames": idx.tolist(), "kind": "error", "clim_mm": clim_mm})  # fmt: skip
     shown = mesh.vertices if same else mesh.vertices[idx]

@@ -644,7 +644,10 @@ def _warn_small_parts(names: list[str], alpha: np.ndarray, ctx: Context) -> None
         if k < 10:
             ctx.warn(
                 f"part {n!r} has {k} markers (< 10): deform will use a rigid "
-                "transform for it (the quadratic is under-determined)"
+                "transform for it (the quadratic is under-determined)",
+                hint="harmless where the part moves rigidly (head, pelvis); for a part "
+                     "that bends, raise segment.min_part_markers to merge it into a "
+                     "neighbour, or give it more markers with segment.override",
             )
 
 

@@ -51,7 +51,10 @@ Moradoff §3.8 adaptive local smoothing    smoothing.adaptive_smoothing (with th
 Moradoff §3.10 root trajectory            root.integrate_root (placed at the first constraint:
                                           assemble._place_root)
   new root paths (polyline, spline,       root.PathCurve, root.follow_path, root.figure_eight
-  e.g. a figure-8)
+  e.g. a figure-8)                        (warnings: assemble._place_root)
+closed paths looped (not in the thesis)   root.follow_path (``cyclic``: stride paced to whole
+                                          laps, root.PACE_TOLERANCE); legs take up the paced
+                                          root (assemble.PATH_IK in assemble._foot_ik)
 loops (cyclic output; not in the thesis)  the ``loop`` param: wrapped gaps (search.gaps_of),
                                           wrapped positions in search.LevelSearch and
                                           refine.verbatim_runs, the last → first seam smoothed
@@ -72,6 +75,9 @@ Departures from the thesis (the module docstrings say why):
   transition has ``slots`` verbatim nodes behind it
   (search.LevelSearch._settled), and a run reaching ``max_run`` of the input
   must jump where the jump fits best (search.LevelSearch._jump_earlier);
+* paths: the sway kept around the path is high-passed again, a loop on a
+  closed path is paced to whole laps and the legs take up the paced root
+  (root, assemble.PATH_IK);
 * smoothing: a seam also fails the test while its jerk exceeds
   ``jerk_tolerance`` × the input's p99 jerk (smoothing.seam_test); its frame
   counts are the thesis' at 30 fps and scale with the synthesis rate
@@ -90,4 +96,5 @@ STAGE_MODULES = {
     "pyramid": ("pyramid",),
     "synth": ("synth",),
     "stickfigure": ("stickfigure",),
+    "report_figures": (),  # figures of the report page (mocapflow report)
 }

@@ -1,14 +1,20 @@
 """Stick-figure renderings of a motion: a PNG strip of poses, or an MP4.
 
-``stickfigure`` (stage) draws evenly spaced frames of a motion side by side
-(bones as lines from forward kinematics, ``y`` up, seen from the side or from
-above) and returns a :class:`StickStrip`; its exporter writes ``<stem>.png``
+``stickfigure`` (stage) draws frames spread over a motion side by side (bones
+as lines from forward kinematics, ``y`` up, seen from the side or from above)
+and returns a :class:`StickStrip`; its exporter writes ``<stem>.png``
 and, when the strip holds the video frames too, ``<stem>.mp4``.  matplotlib and
 imageio(-ffmpeg) are imported inside the functions.
+
+Panels of a cyclic motion (a walk) taken at a fixed stride that happens to be a
+multiple of the gait period would all show the same phase; :func:`panel_frames`
+detects the period (:func:`cycle_period`) and spaces the panels ``q/n`` of a cycle
+apart (``q`` coprime with ``n``), so ``n`` panels show ``n`` different phases.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -20,7 +26,8 @@ from mocapflow.pipeline.codecs import Encoded, codec, component_coords, exporter
 from mocapflow.stages.motion.datatypes import Motion
 from mocapflow.stages.motion.kinematics import motion_positions
 
-__all__ = ["StickStrip", "render_strip", "render_video", "stickfigure"]
+__all__ = ["StickStrip", "cycle_period", "panel_frames", "render_strip", "render_video",
+           "stickfigure"]
 
 
 @dataclass(eq=False)
@@ -101,6 +108,99 @@ def _canvas(fig) -> np.ndarray:
     return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
 
 
+def cycle_period(pos: np.ndarray, *, min_lag: int = 3, min_peak: float = 0.3
+                 ) -> float | None:
+    """Period (frames, sub-frame) of a cyclic motion from its joint positions, or ``None``.
+
+    The signal is heading-independent: every joint's height and its horizontal
+    distance from the root, standardised; the period is the first peak of their
+    summed autocorrelation after it first drops below zero, refined by a parabola
+    through the peak and its neighbours.
+
+    Parameters
+    ----------
+    pos : (F, J, 3) ndarray
+        Joint positions, ``y`` up.
+    min_lag : int
+        Shortest period considered.
+    min_peak : float
+        The peak's normalised autocorrelation must exceed this (else ``None``:
+        not cyclic enough).
+
+    Returns
+    -------
+    float or None
+    """
+    F = pos.shape[0]
+    if F < 4 * max(min_lag, 1):
+        return None
+    rel = pos - pos[:, :1]
+    X = np.concatenate([pos[..., 1], np.hypot(rel[..., 0], rel[..., 2])], axis=1)
+    X = X - X.mean(axis=0)
+    std = X.std(axis=0)
+    keep = std > 1e-6 * max(float(std.max()), 1e-12)
+    if not keep.any():
+        return None
+    X = X[:, keep] / std[keep]
+    n = 1 << int(np.ceil(np.log2(2 * F)))
+    spec = np.fft.rfft(X, n, axis=0)
+    ac = np.fft.irfft((spec * spec.conj()).real, n, axis=0)[:F].sum(axis=1)
+    ac = ac / (F - np.arange(F))  # unbiased: each lag averages over its own overlap
+    ac = ac / ac[0]
+    half = F // 2
+    below = np.flatnonzero(ac[:half] < 0)
+    if not below.size:
+        return None
+    start = max(int(below[0]), min_lag)
+    if start >= half - 1:
+        return None
+    k = start + int(np.argmax(ac[start:half]))
+    if ac[k] < min_peak or k in (start, half - 1):
+        return None
+    a, b, c = ac[k - 1], ac[k], ac[k + 1]
+    den = a - 2 * b + c
+    return float(k + (0.5 * (a - c) / den if den < 0 else 0.0))
+
+
+def panel_frames(pos: np.ndarray, n_panels: int) -> list[int]:
+    """Frames for ``n_panels`` poses spread over a motion, at different phases if cyclic.
+
+    Evenly spaced frames show one phase ``n`` times when their spacing is a
+    multiple of the cycle (a walk's stride).  With a detected period ``P``
+    (:func:`cycle_period`) the spacing is ``q P / n`` instead, ``q`` the largest
+    integer coprime with ``n`` for which the panels still fit in the motion: panel
+    ``i`` is at phase ``i q / n`` (mod 1), so the ``n`` panels show ``n`` different
+    phases, ``1/n`` of a cycle apart, spread over the motion (centred).  Without a
+    period, or a motion too short for it, evenly spaced frames.
+
+    Parameters
+    ----------
+    pos : (F, J, 3) ndarray
+        Joint positions, ``y`` up.
+    n_panels : int
+
+    Returns
+    -------
+    list of int
+        Increasing frame indices.
+    """
+    F = pos.shape[0]
+    n = max(1, min(n_panels, F))
+    even = [int(f) for f in np.unique(np.linspace(0, F - 1, n).round().astype(int))]
+    period = cycle_period(pos) if n > 1 else None
+    if period is None:
+        return even
+    q = int(np.floor((F - 1) / (n - 1) * n / period))
+    while q >= 1 and math.gcd(q, n) != 1:
+        q -= 1
+    step = q * period / n
+    if q < 1 or step < 1:
+        return even
+    start = 0.5 * ((F - 1) - (n - 1) * step)
+    frames = np.unique(np.clip(np.round(start + step * np.arange(n)), 0, F - 1).astype(int))
+    return [int(f) for f in frames]
+
+
 def render_strip(
     motion: Motion,
     *,
@@ -110,7 +210,7 @@ def render_strip(
     dpi: int = 80,
     highlight: list[int] | None = None,
 ) -> tuple[np.ndarray, list[int]]:
-    """Evenly spaced poses side by side.
+    """Poses spread over the motion side by side, at different phases (:func:`panel_frames`).
 
     Parameters
     ----------
@@ -135,8 +235,7 @@ def render_strip(
     import matplotlib.pyplot as plt  # noqa: PLC0415 (heavy)
 
     pos = motion_positions(motion)
-    F = motion.n_frames
-    frames = np.unique(np.linspace(0, F - 1, max(1, min(n_panels, F))).round().astype(int))
+    frames = np.asarray(panel_frames(pos, n_panels), dtype=int)
     h, v = _axes(view)
     par = motion.skeleton.parents
     fig, axs = plt.subplots(

@@ -87,4 +87,5 @@ STAGE_MODULES = {
     "sample": ("sample", "sample_noise"),
     "ik": ("ik",),
     "plots": ("variation_plots",),
+    "report_figures": (),  # figures of the report page (mocapflow report)
 }

@@ -470,7 +470,22 @@ def ik(
          "jerk_p99": {"sampled": _jerk_p99(solved), "cleaned": _jerk_p99(
              _played_in_order(cleaned))}}
     )
+    _key_figures(report, cleaned, ctx)
     return {"variants": cleaned, "report": report}
+
+
+def _key_figures(report: dict[str, Any], cleaned: Clips, ctx: Context) -> None:
+    """The run summary's figures of the clean-up (``ctx.figure``; never in an output)."""
+    clips = report["clips"]
+    errs = [e for c in clips for e in c["max_error_reached"].values()]
+    ctx.figure("variants", cleaned.n_clips)
+    ctx.figure("constrained frames", sum(sum(c["constrained_frames"].values()) for c in clips))
+    ctx.figure("unreached", sum(len(c["unreachable"]) for c in clips))
+    if errs:
+        ctx.figure("max reached error mm", round(1000.0 * max(errs), 2))
+    j = report["jerk_p99"]
+    if j["sampled"] > 0:
+        ctx.figure("jerk cleaned/sampled", round(j["cleaned"] / j["sampled"], 3))
 
 
 def _check_weights(**values: float) -> None:
@@ -787,7 +802,10 @@ def _clean_clip(
     # a detected contact is best effort: misses under DETECTED_WARN are reported, not warned
     loud = [u for u in unreachable if u["given"] or u["error"] > DETECTED_WARN]
     if loud:
-        ctx.warn(_unreachable_summary(smooth.names[c], loud, frames))
+        ctx.warn(_unreachable_summary(smooth.names[c], loud, frames),
+                 hint="the variant keeps the nearest pose it reaches (its report lists each "
+                      "miss); if a foot slides visibly, check ik.contacts / ik.targets at "
+                      "those frames or lower the sampling sigma")
     ranges = {k: _exported_ranges(v, frames) for k, v in held.items()}
     report = {
         "name": smooth.names[c],

@@ -1,7 +1,8 @@
 """Plots of inputs and variants like Lau, Bar-Joseph & Kuffner 2009 (Fig. 1 right, Fig. 6).
 
 * ``strokes``: the input pen strokes and the generated ones (Fig. 1, right);
-* ``dof_time``: a few DOFs against time, inputs in grey, variants in colour;
+* ``dof_time``: a few DOFs against time, inputs in grey, variants in colour
+  (every DOF / PCA figure has a legend: inputs vs variants, with their counts);
 * ``dof_dof``: one DOF against another (phase portrait);
 * ``pca``: inputs and variants projected on the first principal components of
   the inputs (standardised DOFs): PC1 and PC2 against time, PC1 against PC2
@@ -108,6 +109,16 @@ def _colors(n: int):
     return [cmap(x) for x in np.linspace(0.0, 0.9, max(n, 1))]
 
 
+def _legend(a, n_inputs: int, n_variants: int) -> None:
+    """Legend on axes ``a``: grey inputs vs coloured variants, with their counts."""
+    from matplotlib.lines import Line2D  # noqa: PLC0415 (heavy)
+
+    mid = _colors(3)[1]
+    handles = [Line2D([], [], color="0.6", lw=1.5, label=f"inputs ({n_inputs})"),
+               Line2D([], [], color=mid, lw=0.9, label=f"variants ({n_variants})")]
+    a.legend(handles=handles, loc="best", fontsize=7, framealpha=0.8)
+
+
 def figure_strokes(inputs: Clips, variants: Clips) -> np.ndarray:
     """Fig. 1 (right): input strokes (left panel) and generated strokes (right panel).
 
@@ -167,6 +178,7 @@ def figure_dof_time(inputs: Clips, variants: Clips, dofs: list[str] | None = Non
         for x, c in zip(xout, cols):
             a.plot(np.arange(len(x)) / variants.rate, x[:, d], color=c, lw=0.9)
         a.set_ylabel(name, fontsize=8)
+    _legend(ax[0, 0], len(xin), len(xout))
     ax[-1, 0].set_xlabel("time (s)")
     return _render(fig)
 
@@ -195,6 +207,7 @@ def figure_dof_dof(
         a.plot(x[:, 0], x[:, 1], color=c, lw=0.9)
     a.set_xlabel(pair[0], fontsize=8)
     a.set_ylabel(pair[1], fontsize=8)
+    _legend(a, inputs.n_clips, variants.n_clips)
     return _render(fig)
 
 
@@ -239,6 +252,7 @@ def figure_pca(inputs: Clips, variants: Clips) -> np.ndarray:
         a.plot(y[:, 0], y[:, 1], color=c, lw=0.9)
     a.set_xlabel("PC1")
     a.set_ylabel("PC2")
+    _legend(a, len(pin), len(pout))
     k99 = int(np.searchsorted(energy, 0.99) + 1)
     fig.suptitle(f"{len(labels)} DOFs; 99 % energy in {k99} principal components", fontsize=9)
     return _render(fig)

@@ -664,9 +664,36 @@ def sample(
                             noise_time=noise_time, predicted=True,
                             start_at_phase=sampler.cycle_phase)
     attrs = {"sigma": sigma, "noise_time": noise_time, "loop": bool(loop)}
-    return {"variants": _variant_clips(clips, x, attrs=attrs, origins=origins),
+    variants = _variant_clips(clips, x, attrs=attrs, origins=origins)
+    _key_figures(_strip_internal(clips), variants, ctx)
+    return {"variants": variants,
             "predicted": _variant_clips(clips, mu, attrs={**attrs, "predicted_mean": True},
                                         origins=origins)}
+
+
+def _key_figures(inputs: Clips, variants: Clips, ctx: Context) -> None:
+    """The run summary's figures of a sampling (``ctx.figure``; never in an output).
+
+    ``jerk ratio``: mean absolute third difference of the standardised DOFs, variants
+    over inputs; ``out of range %``: samples outside the inputs' per-DOF range.
+    """
+    std = np.concatenate(inputs.trajectories, axis=0).std(axis=0)
+    std = np.where(std > 0, std, 1.0)
+
+    def jerk(clips: Clips) -> float:
+        d3 = [np.abs(np.diff(t / std, 3, axis=0)) for t in clips.trajectories if len(t) > 3]
+        return float(np.mean(np.concatenate(d3))) if d3 else math.nan
+
+    X = np.concatenate(variants.trajectories, axis=0)
+    rng = variants.attrs["input_range"]
+    low, high = np.asarray(rng["low"]), np.asarray(rng["high"])
+    ctx.figure("variants", variants.n_clips)
+    ctx.figure("frames", int(np.mean(variants.lengths)))
+    j_in, j_out = jerk(inputs), jerk(variants)
+    if j_in > 0 and math.isfinite(j_out):
+        ctx.figure("jerk ratio", round(j_out / j_in, 3))
+    if X.size:
+        ctx.figure("out of range %", round(100.0 * float(np.mean((X < low) | (X > high))), 2))
 
 
 def _variant_length(

@@ -110,7 +110,7 @@ def search_transition(
         _search_transition_node, data=data, max_parents=max_parents, score=score,
         horizon=horizon,
     )
-    results = _map_batched(ctx, fn, items)
+    results = _map_batched(ctx, fn, items, label="transition nodes")
     return NetworkSearch(
         parents=[r["parents"] for r in results],
         scores=np.array([r["score"] for r in results]),
@@ -155,7 +155,8 @@ def search_prior(
         for v in range(n2)
     ]
     singles = _map_batched(
-        ctx, functools.partial(_prior_single_scores, data=data), list(enumerate(cands))
+        ctx, functools.partial(_prior_single_scores, data=data), list(enumerate(cands)),
+        label="prior nodes",
     )
     cache: dict = {}
     for v, sc in enumerate(singles):
@@ -168,6 +169,7 @@ def search_prior(
     runs = _map_batched(
         ctx, functools.partial(_prior_restart, data=data, cands=cands, cache=cache,
                                max_parents=max_parents), inits, per_worker=1,
+        label="prior restarts",
     )
     best = None
     for parents, sc, h, new in runs:
@@ -263,18 +265,21 @@ def _run_batch(items: list, *, fn) -> list:
     return [fn(x) for x in items]
 
 
-def _map_batched(ctx: Context, fn, items: list, *, per_worker: int = 4) -> list:
+def _map_batched(ctx: Context, fn, items: list, *, per_worker: int = 4,
+                 label: str | None = None) -> list:
     """``ctx.map(fn, items)`` over ``per_worker × workers`` round-robin batches of the items.
 
     One task per node is too small to amortise a round trip to a worker (and
     the pickled training data travels with every task); interleaving keeps
     the batches balanced when the per-node cost grows along the list.
+    ``label``: progress of the items (``ctx.progress``; per item when the map
+    is sequential, else per map).
     """
     n = min(len(items), max(1, per_worker * int(getattr(ctx, "workers", 1) or 1)))
     if n <= 1 or ctx.mapper is None:
-        return ctx.map(fn, items)
+        return ctx.map(fn, items, progress=label)
     batches = [items[b::n] for b in range(n)]
-    done = ctx.map(functools.partial(_run_batch, fn=fn), batches)
+    done = ctx.map(functools.partial(_run_batch, fn=fn), batches, progress=label)
     out: list = [None] * len(items)
     for b, res in enumerate(done):
         out[b::n] = res

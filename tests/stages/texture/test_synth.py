@@ -30,7 +30,7 @@ from mocapflow.stages.texture.root import (
     two_bone_ik,
 )
 from mocapflow.stages.texture.search import Gap, LevelSearch, SearchParams, _ahead_usage
-from mocapflow.stages.texture.stickfigure import StickStrip, stickfigure
+from mocapflow.stages.texture.stickfigure import StickStrip, cycle_period, stickfigure
 from mocapflow.stages.texture.synth import ConstraintError, UnreachableGapError, synth
 
 RATE = 30.0
@@ -508,3 +508,25 @@ def test_stickfigure_strip_and_export(tmp_path, walk):
     files = find_exporter("stickstrip")(out, tmp_path, "walk")
     assert [f.suffix for f in files] == [".png", ".mp4"]
     assert all(f.stat().st_size > 1000 for f in files)
+
+
+def test_stickfigure_panels_show_different_phases_of_the_stride():
+    # the demo's case: 600 frames at 30 fps, 10 panels; evenly spaced panels are
+    # 66.6 frames apart, about two strides (32.8 frames), so they all show one phase
+    walk = procedural_walk(600, rate=RATE, seed=0, variation=0.05)
+    strikes = np.asarray(walk.attrs["gait_events"]["left"]["heel_strike"])
+    strikes = np.r_[2 * strikes[0] - strikes[1], strikes, 2 * strikes[-1] - strikes[-2]]
+
+    def phase_spread(frames):  # (largest circular gap between phases, distinct tenths)
+        cycles = np.interp(np.asarray(frames) / RATE, strikes, np.arange(len(strikes)))
+        ph = np.sort(cycles % 1.0)
+        return np.diff(np.r_[ph, ph[0] + 1.0]).max(), len(set((ph * 10).astype(int)))
+
+    period = cycle_period(motion_positions(walk))
+    assert period == pytest.approx(np.mean(walk.attrs["cycle_periods"]) * RATE, rel=0.02)
+    even = np.linspace(0, 599, 10).round().astype(int)
+    assert phase_spread(even)[0] > 0.5  # the bug this guards against, reproduced
+    frames = stickfigure(walk, n_panels=10, ctx=Context())["strip"].frames
+    assert len(frames) == 10 and frames[-1] - frames[0] > 0.8 * 599  # spread over the motion
+    gap, tenths = phase_spread(frames)
+    assert gap < 0.2 and tenths >= 7, (frames, gap, tenths)
