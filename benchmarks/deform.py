@@ -208,12 +208,15 @@ def global_rbf(ref, x, query):
 
 _DEFAULTS = {k: v.default for k, v in inspect.signature(deform).parameters.items()}
 DEFAULT = {"sharpness": _DEFAULTS["beta_sharpness"], "damping": _DEFAULTS["quadratic_damping"],
-           "kernel": _DEFAULTS["residual_kernel"]}  # the stage's defaults
-PAPER = {"sharpness": 1.0, "damping": 0.0, "kernel": "cubic_bspline"}  # Park & Hodgins exactly
+           "kernel": _DEFAULTS["residual_kernel"], "support": _DEFAULTS["support_margin"],
+           "clamp": _DEFAULTS["clamp_margin"]}  # the stage's defaults
+PAPER = {"sharpness": 1.0, "damping": 0.0, "kernel": "cubic_bspline", "support": None,
+         "clamp": None}  # Park & Hodgins exactly (no support box, no clamp)
 OTHER_KERNEL = "thin_plate" if DEFAULT["kernel"] == "cubic_bspline" else "cubic_bspline"
 
 
-def ours(seg, x, points, mode, *, sharpness, damping, kernel):
+def ours(seg, x, points, mode, *, sharpness, damping, kernel, support=DEFAULT["support"],
+         clamp=DEFAULT["clamp"]):
     """Our prediction of rest ``points`` (mesh vertices) for one mode and settings."""
     beta = bind_mesh(points, seg, min_overlap=0.0, sharpness=sharpness).beta
     out = np.zeros((x.shape[0], len(points), 3))
@@ -221,7 +224,8 @@ def ours(seg, x, points, mode, *, sharpness, damping, kernel):
         sel = np.flatnonzero(beta[:, p] > 0)
         if sel.size == 0:
             continue
-        m = prepare_part(seg, p, vertices=points, beta=beta, residual_kernel=kernel)
+        m = prepare_part(seg, p, vertices=points, beta=beta, residual_kernel=kernel,
+                         support_margin=support, clamp_margin=clamp)
         fit = fit_part(m, x[:, m.members], mode=mode, damping=damping)
         out[:, sel] += beta[sel, p][None, :, None] * evaluate_part(m, fit)
     return out

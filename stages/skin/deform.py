@@ -29,7 +29,8 @@ Modes: ``rigid`` (1 + blend: linear blend skinning with the part transforms),
 Departures from the paper, chosen by measurement (``benchmarks/deform.py``:
 markers held out of the whole pipeline and predicted as mesh vertices on a
 dynamic trial, and the simulator's true mesh).  The paper's exact method is
-``beta_sharpness=1, quadratic_damping=0, residual_kernel="cubic_bspline"``:
+``beta_sharpness=1, quadratic_damping=0, residual_kernel="cubic_bspline",
+support_margin=None, clamp_margin=None``:
 
 * **sharpened weights** ``β ∝ β_bary^4`` (``beta_sharpness``; weights < 10⁻³
   dropped).  What dominated the held-out error was the blend, not the
@@ -66,7 +67,26 @@ dynamic trial, and the simulator's true mesh).  The paper's exact method is
   ridge toward the rigid transform on the 9 quadratic coefficients: parts
   with 10–15 markers otherwise extrapolate their quadratic by centimetres
   (held-out error 5.5 → 5.1 mm, true-mesh error 5.2 → 3.4 mm on 300 frames);
-  0.03–1 measure the same within 0.1 mm.
+  0.03–1 measure the same within 0.1 mm;
+* **no extrapolation artifacts** (``support_margin`` 0.5, ``clamp_margin`` 0.1;
+  ``None, None`` = the paper): the quadratic monomials of a vertex outside the
+  bounding box of its part's markers (part frame, grown by ``support_margin`` ×
+  the largest nearest-neighbour marker distance) are those of the nearest point
+  of the box, so the quadratic's displacement is held at its edge instead of
+  growing where no marker constrains it; and each vertex's non-rigid
+  displacement per part (quadratic + residual minus the rigid fit) is softly
+  clamped at the largest deviation of the part's visible markers from their
+  rigid prediction in that frame (unchanged up to it, at most
+  ``1 + clamp_margin`` times it, continuous slope;
+  :func:`~mocapflow.stages.skin.parts.soft_clamp`).  Markers and every vertex
+  inside the box and within the bound move exactly as in the paper.  The
+  demo's quadratic panels showed a flat fin at the left arm: a forearm part
+  that also held a shoulder marker fitted the elbow's bend with its quadratic
+  and threw the unmarked hand 26 cm off its rigid prediction, 69 mm farther
+  than any of the part's markers (192 mm); with the rule: 98 mm, never beyond
+  the markers (``tests/stages/skin/test_artifacts.py``).  Held-out error
+  (``benchmarks/deform.py --quick``) is unchanged within a few hundredths of a
+  millimetre.
 
 Implementation notes (none changes the method):
 
@@ -121,6 +141,7 @@ from mocapflow.stages.skin.parts import (
     evaluate_part,
     fit_part,
     prepare_part,
+    soft_clamp,
 )
 from mocapflow.stages.skin.segmentation import Segmentation
 
@@ -147,27 +168,38 @@ class VertexOperator:
     vertices : list of (Vp,) int ndarray
         Mesh vertices of each part (``β > 0``).
     blocks : list of (Vp, Kp) float ndarray
-        ``β_vp [v̄, q(v̄), 1, φ(v̄)]`` per part (local position, centred scaled
-        monomials, constant, residual kernel values at the part's markers).
+        ``[β v̄, β, q(v̄), 1, φ(v̄)]`` per part: the rigid columns (local
+        position, constant) weighted by ``β``, then the non-rigid ones (centred
+        scaled monomials, constant, residual kernel values at the part's
+        markers); ``β`` multiplies the non-rigid product after the clamp.
     offsets : (P + 1,) int ndarray
         Rows of each part's block in :func:`frame_coefficients`.
     n_vertices : int
+    beta : list of (Vp,) float ndarray
+        The vertices' ``β`` per part.
+    clamp_margins : list of float or None
+        Each part's :func:`~mocapflow.stages.skin.parts.soft_clamp` margin (None: no clamp).
     """
 
     vertices: list[np.ndarray]
     blocks: list[np.ndarray]
     offsets: np.ndarray
     n_vertices: int
+    beta: list[np.ndarray]
+    clamp_margins: list[float | None]
 
 
 def vertex_operator(models: list[PartModel], n_vertices: int, *, residual: bool) -> VertexOperator:
     """Operator with ``vertices(f) = H @ C(f)`` for every frame (P&H Eq. 8–9).
 
-    For part ``p`` and vertex ``v`` the row block is ``β_vp [v̄, q(v̄), 1, φ(v̄)]``
-    (local position, centred scaled monomials, constant, kernel values at the
-    part's markers); :func:`frame_coefficients` gives the matching ``C``.  The
-    blocks are dense: one BLAS product per part and frame chunk is ~2.5× faster
-    than one sparse product over all parts, even for the compact B-spline.
+    For part ``p`` and vertex ``v`` the row block is ``[β v̄, β, q(v̄), 1, φ(v̄)]``
+    (local position and constant of the rigid transform; centred scaled
+    monomials, constant and kernel values at the part's markers of the non-rigid
+    terms); :func:`frame_coefficients` gives the matching ``C``.  The non-rigid product is clamped
+    (:func:`~mocapflow.stages.skin.parts.soft_clamp`) and weighted by ``β`` in
+    :func:`deform_positions`.  The blocks are dense: one BLAS product per part
+    and frame chunk is ~2.5× faster than one sparse product over all parts, even
+    for the compact B-spline.
 
     Parameters
     ----------
@@ -183,19 +215,27 @@ def vertex_operator(models: list[PartModel], n_vertices: int, *, residual: bool)
     verts, blocks, sizes = [], [], []
     for m in models:
         n = len(m.members) if residual else 0
-        cols = [m.vertex_local, m.vertex_basis, np.ones((len(m.vertices), 1))]
+        one = np.ones((len(m.vertices), 1))
+        cols = [m.vertex_local * m.beta[:, None], m.beta[:, None], m.vertex_basis, one]
         if n:
             cols.append(m.vertex_kernel.toarray())
         verts.append(m.vertices)
-        blocks.append(np.concatenate(cols, axis=1) * m.beta[:, None])
-        sizes.append(13 + n)
-    return VertexOperator(verts, blocks, np.cumsum([0, *sizes]), n_vertices)
+        blocks.append(np.concatenate(cols, axis=1))
+        sizes.append(14 + n)
+    return VertexOperator(verts, blocks, np.cumsum([0, *sizes]), n_vertices,
+                          [m.beta for m in models], [m.clamp_margin for m in models])  # fmt: skip
 
 
 def operator_matrix(operator: VertexOperator) -> sp.csr_matrix:
-    """The operator as one sparse ``(V, K)`` matrix ``H`` (``vertices(f) = H @ C(f)``)."""
+    """The operator as one sparse ``(V, K)`` matrix ``H`` (``vertices(f) = H @ C(f)``).
+
+    The linear map without the clamp: exact where no part clamps (``clamp_margin``
+    None, or no vertex beyond its part's marker deviation).
+    """
     rows, cols, vals = [], [], []
-    for v, blk, o in zip(operator.vertices, operator.blocks, operator.offsets):
+    for v, blk, o, beta in zip(operator.vertices, operator.blocks, operator.offsets,
+                               operator.beta):  # fmt: skip
+        blk = np.concatenate([blk[:, :4], blk[:, 4:] * beta[:, None]], axis=1)
         r, c = np.nonzero(blk)
         rows.append(v[r])
         cols.append(c + o)
@@ -210,16 +250,19 @@ def frame_coefficients(
 ) -> np.ndarray:
     """Per-frame coefficients ``C (K, F, 3)`` matching :func:`vertex_operator`.
 
-    Block of part ``p``: ``[R^T; (R A)^T; d; W R^T]`` so that
-    ``[v̄, q, 1, φ] @ block = R (v̄ + A q + W^T φ) + d``.
+    Block of part ``p``: ``[R^T; d_rigid; (R A)^T; d - d_rigid; W R^T]`` so that
+    ``[v̄, 1, q, 1, φ] @ block = R (v̄ + A q + W^T φ) + d``, the rigid transform
+    ``R v̄ + d_rigid`` coming from the first four rows.
     """
     if len(models) != len(fits):
         raise ValueError("frame_coefficients: one fit per model is needed")
     out = []
     for f in fits:
+        rigid_d = f.d if f.rigid_d is None else f.rigid_d
         out.append(f.R.transpose(2, 0, 1))  # (3, F, 3): row k = R[:, :, k]
+        out.append(rigid_d[None])  # (1, F, 3)
         out.append((f.R @ f.A).transpose(2, 0, 1))  # (9, F, 3): row k = (R A)[:, :, k]
-        out.append(f.d[None])  # (1, F, 3)
+        out.append((f.d - rigid_d)[None])  # (1, F, 3): the quadratic's constant, R c
         if residual:
             out.append((f.W @ f.R.transpose(0, 2, 1)).transpose(1, 0, 2))  # (n, F, 3)
     return np.concatenate(out, axis=0)
@@ -258,12 +301,23 @@ def deform_positions(
     out = np.empty((F, n_vertices, 3))
     step = 16  # frames per product: keeps the (V, step, 3) -> (step, V, 3) copy in cache
     o = operator.offsets
+    deviation = [f.marker_deviation for f in fits]
     for a in range(0, F, step):
         b = min(F, a + step)
         X = np.zeros((n_vertices, (b - a) * 3))
         for p, (v, blk) in enumerate(zip(operator.vertices, operator.blocks)):
-            if len(v):
-                X[v] += blk @ C[o[p] : o[p + 1], a:b].reshape(o[p + 1] - o[p], (b - a) * 3)
+            if not len(v):
+                continue
+            Cp = C[o[p] : o[p + 1], a:b].reshape(o[p + 1] - o[p], (b - a) * 3)
+            X[v] += blk[:, :4] @ Cp[:4]  # the rigid transform, β-weighted
+            if not Cp[4:].any():  # rigid mode, or a part fitted rigidly
+                continue
+            U = blk[:, 4:] @ Cp[4:]  # (Vp, f*3): the non-rigid displacement R u
+            margin = operator.clamp_margins[p]
+            if margin is not None and deviation[p] is not None:
+                U = soft_clamp(U.reshape(len(v), b - a, 3), deviation[p][None, a:b],
+                               margin).reshape(len(v), -1)  # fmt: skip
+            X[v] += operator.beta[p][:, None] * U
         out[a:b] = X.reshape(n_vertices, b - a, 3).transpose(1, 0, 2)
     return out
 
@@ -271,7 +325,9 @@ def deform_positions(
 def _slice_fit(fit: PartFit, sl: slice) -> PartFit:
     return PartFit(
         fit.R[sl], fit.d[sl], fit.A[sl], fit.W[sl], fit.rigid_frames[sl],
-        fit.quadratic_frames[sl],
+        fit.quadratic_frames[sl], [],
+        None if fit.rigid_d is None else fit.rigid_d[sl],
+        None if fit.marker_deviation is None else fit.marker_deviation[sl],
     )  # fmt: skip
 
 
@@ -286,6 +342,7 @@ def _without_vertices(m: PartModel) -> PartModel:
         name=m.name, members=m.members, alpha=m.alpha, local=m.local, origin=m.origin,
         axes=m.axes, scale=m.scale, q_mean=m.q_mean, sigma=m.sigma, kernel=m.kernel,
         quadratic=m.quadratic, residual_kernel=m.residual_kernel,
+        support=m.support, clamp_margin=m.clamp_margin,
     )  # fmt: skip
 
 
@@ -324,8 +381,19 @@ def _fit_parts(models: list[PartModel], x: np.ndarray, *, mode: str,
     )
     for m, f in zip(models, fits):
         for msg in m.messages + f.messages:
-            ctx.warn(msg)
+            ctx.warn(msg, hint=_fallback_hint(msg))
     return fits
+
+
+def _fallback_hint(message: str) -> str | None:
+    """What to do about a part model's or fit's fallback message (``None``: no advice)."""
+    if "under-determined" in message or "using rigid for this part" in message:
+        return ("harmless where the part moves rigidly; for a part that bends, give it more "
+                "markers (segment.override) or lower deform.min_quadratic_markers")
+    if "interpolated" in message:
+        return ("the part's markers are hidden in those frames; if the mesh looks wrong "
+                "there, check clean's report (markers_with_holes_left) and its fill")
+    return None
 
 
 def _deform_frames(models: list[PartModel], fits: list[PartFit], n_frames: int,
@@ -395,6 +463,8 @@ def deform(
     beta_sharpness: float = 4.0,
     residual_kernel: ResidualKernel = "cubic_bspline",
     chunk_frames: int = 1024,
+    support_margin: float | None = 0.5,
+    clamp_margin: float | None = 0.1,
     ctx: Context,
 ) -> dict[str, Any]:
     """Animate a detailed mesh from markers: rigid + quadratic + RBF residual per part.
@@ -429,6 +499,17 @@ def deform(
         vertices back from worker processes costs more than the evaluation
         on a 2-core machine (see ``benchmarks/deform.py``), so the default only
         splits long captures.  The per-part fits always go through ``ctx.map``.
+    support_margin : float or None
+        The quadratic is evaluated as fitted inside the bounding box of the
+        part's markers (rest pose, the part's frame) grown by this × the part's
+        largest nearest-neighbour marker distance, and continued to first order
+        (tangentially) beyond it; ``None``: the quadratic everywhere (the paper).
+        See the module docstring (departures).
+    clamp_margin : float or None
+        A vertex's non-rigid displacement (quadratic + residual minus rigid, per
+        part) is softly clamped at the largest distance of the part's markers
+        from their rigid prediction in that frame: unchanged up to it, never more
+        than ``1 + clamp_margin`` times it; ``None``: no clamp (the paper).
 
     Returns
     -------
@@ -448,7 +529,8 @@ def deform(
     models = [
         prepare_part(segmentation, p, vertices=mesh.vertices, beta=binding.beta,
                      min_quadratic_markers=min_quadratic_markers,
-                     dilation_factor=dilation_factor, residual_kernel=residual_kernel)
+                     dilation_factor=dilation_factor, residual_kernel=residual_kernel,
+                     support_margin=support_margin, clamp_margin=clamp_margin)
         for p in range(segmentation.n_parts)
     ]  # fmt: skip
     fits = _fit_parts(models, x, mode=mode, min_quadratic_markers=min_quadratic_markers,
@@ -457,6 +539,11 @@ def deform(
     verts = _deform_frames(models, fits, x.shape[0], V, residual=mode.endswith("residual"),
                            chunk_frames=chunk_frames, ctx=ctx)
     report = _deform_report(models, fits, x, binding, V, mode=mode)
+    rms = [p["marker_rms_mm"] for p in report["parts"].values() if p["marker_rms_mm"] is not None]
+    ctx.figure("parts", len(report["parts"]))
+    if rms:
+        ctx.figure("marker RMS mm", round(float(np.mean(rms)), 3))
+    ctx.figure("rigid-only frames", sum(p["rigid_only_frames"] for p in report["parts"].values()))
     out = Mesh(
         vertices=verts,
         faces=mesh.faces,

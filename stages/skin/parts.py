@@ -16,6 +16,7 @@ from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.spatial import cKDTree
 
 from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
 from mocapflow.stages.motion.rotations import (
@@ -44,6 +45,7 @@ __all__ = [
     "evaluate_part",
     "fit_part",
     "prepare_part",
+    "soft_clamp",
 ]
 
 
@@ -95,6 +97,15 @@ class PartModel:
         Adjustments made (e.g. a reduced dilation).
     residual_kernel : {"cubic_bspline", "thin_plate"}
         Radial kernel of the residual (P&H Eq. 7 uses the cubic B-spline).
+    support : (2, 3) float ndarray or None
+        Lower and upper corners (local frame) of the box where the quadratic is
+        evaluated as fitted: the markers' bounding box grown by a margin; beyond
+        it the monomials continue to first order (:meth:`basis`).  ``None``: the
+        quadratic everywhere (the paper).
+    clamp_margin : float or None
+        Soft clamp of the non-rigid displacement at the part's largest marker
+        deviation ``b`` (:func:`soft_clamp`: unchanged up to ``b``, never beyond
+        ``(1 + clamp_margin) b``).  ``None``: no clamp (the paper).
     """
 
     name: str
@@ -115,10 +126,20 @@ class PartModel:
     vertex_kernel: sp.csr_matrix | None = None
     messages: list[str] = field(default_factory=list)
     residual_kernel: str = "cubic_bspline"
+    support: np.ndarray | None = None
+    clamp_margin: float | None = None
 
     def basis(self, local: np.ndarray) -> np.ndarray:
-        """Centred scaled monomials of local points ``(..., 3) -> (..., 9)``."""
-        return quadratic_basis(local / self.scale) - self.q_mean
+        """Centred scaled monomials of local points ``(..., 3) -> (..., 9)``.
+
+        Inside the :attr:`support` box the paper's ``q``; outside, ``q`` of the
+        nearest point of the box: the quadratic's displacement is held at its
+        value on the box instead of growing where no marker constrains it.
+        """
+        p = local / self.scale
+        if self.support is not None:
+            p = np.clip(p, self.support[0] / self.scale, self.support[1] / self.scale)
+        return quadratic_basis(p) - self.q_mean
 
     def kernel_rows(self, local: np.ndarray) -> sp.csr_matrix:
         """Residual kernel values ``(N, n)`` of local points ``(N, 3)`` at the part's markers."""
@@ -136,6 +157,8 @@ def prepare_part(
     min_quadratic_markers: int = 10,
     dilation_factor: float = 2.0,
     residual_kernel: str = "cubic_bspline",
+    support_margin: float | None = 0.5,
+    clamp_margin: float | None = 0.1,
 ) -> PartModel:
     """Frame-independent model of part ``p`` (local coordinates, bases, kernels).
 
@@ -154,6 +177,15 @@ def prepare_part(
     residual_kernel : {"cubic_bspline", "thin_plate"}
         ``"cubic_bspline"``: the paper's compactly supported kernel (sparse);
         ``"thin_plate"``: ``r² log r`` with a linear polynomial (dense, per part).
+    support_margin : float or None
+        The quadratic is evaluated as fitted within the markers' bounding box (in
+        the part's frame) grown by this × the part's largest nearest-neighbour
+        marker distance, and continued to first order beyond it
+        (:meth:`PartModel.basis`); ``None``: everywhere (the paper).
+    clamp_margin : float or None
+        Non-rigid displacements beyond the part's largest marker deviation are
+        softly clamped to at most ``1 + clamp_margin`` times it
+        (:func:`soft_clamp`); ``None``: no clamp (the paper).
 
     Returns
     -------
@@ -169,7 +201,7 @@ def prepare_part(
     local = (segmentation.reference[members] - origin) @ axes
     w = alpha / alpha.sum()
     scale = float(np.sqrt(np.sum(w * np.sum(local**2, 1)))) or 1.0
-    q_mean = w @ quadratic_basis(local / scale)
+    q_mean = w @ quadratic_basis(local / scale)  # markers are inside the support box
     sigma = dilation(local, factor=dilation_factor)
     note = ""
     if residual_kernel == "thin_plate":
@@ -189,6 +221,10 @@ def prepare_part(
         kernel=kernel,
         quadratic=len(members) >= min_quadratic_markers,
         residual_kernel=residual_kernel,
+        support=None if support_margin is None
+        else np.stack([local.min(0), local.max(0)])
+        + np.array([[-1.0], [1.0]]) * float(support_margin) * _largest_nearest_neighbour(local),
+        clamp_margin=None if clamp_margin is None else float(clamp_margin),
     )
     if note:
         model.messages.append(note)
@@ -201,6 +237,33 @@ def prepare_part(
         model.vertex_basis = model.basis(vl)
         model.vertex_kernel = model.kernel_rows(vl)
     return model
+
+
+def _largest_nearest_neighbour(local: np.ndarray) -> float:
+    """The largest distance ``(m)`` from a marker to its nearest neighbour (marker spacing)."""
+    if len(local) < 2:
+        return 0.0
+    dist, _ = cKDTree(local).query(local, k=2)
+    return float(dist[:, 1].max())
+
+
+def soft_clamp(u: np.ndarray, bound: np.ndarray, margin: float) -> np.ndarray:
+    """Shorten displacements ``u (..., 3)`` longer than ``bound (...)``, smoothly.
+
+    A length ``r ≤ b`` is kept; beyond it becomes ``b + m tanh((r - b) / m)``
+    with ``m = margin · b`` (continuous slope at ``b``, never ``≥ b + m``).
+    """
+    r = np.linalg.norm(u, axis=-1)
+    b = np.broadcast_to(bound, r.shape)
+    m = margin * b
+    over = r > b
+    if not over.any():
+        return u
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = np.where(over, r - b, 0.0)
+        new = b + np.where(m > 0, m * np.tanh(e / np.where(m > 0, m, 1.0)), 0.0)
+        factor = np.where(over, new / r, 1.0)
+    return u * factor[..., None]
 
 
 @dataclass
@@ -223,6 +286,13 @@ class PartFit:
         Frames whose quadratic was fitted (others interpolated or rigid).
     messages : list of str
         Fallbacks taken (the stage turns them into warnings).
+    rigid_d : (F, 3) float ndarray or None
+        Translation of the rigid (Horn) fit alone, ``x ≈ R p̄ + rigid_d``; ``d``
+        also carries the quadratic's constant (``None``: the same as ``d``).
+    marker_deviation : (F,) float ndarray or None
+        Largest distance of the part's visible markers from their rigid
+        prediction (interpolated in time where not fitted): the bound of
+        :func:`soft_clamp`.
     """
 
     R: np.ndarray
@@ -232,6 +302,8 @@ class PartFit:
     rigid_frames: np.ndarray
     quadratic_frames: np.ndarray
     messages: list[str] = field(default_factory=list)
+    rigid_d: np.ndarray | None = None
+    marker_deviation: np.ndarray | None = None
 
 
 def _fill_in_time(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -307,6 +379,10 @@ def fit_part(
     messages: list[str] = []
     vis = np.isfinite(x).all(-1)
     R, d, rigid_ok = _rigid_fits(model, x, vis, messages)
+    with np.errstate(invalid="ignore"):
+        dev = np.linalg.norm(x - model.local[None] @ R.transpose(0, 2, 1) - d[:, None], axis=-1)
+    deviation = _fill_in_time(np.max(np.where(vis, dev, 0.0), axis=1), rigid_ok)
+    rigid_d = _fill_in_time(d, rigid_ok)
     use_quadratic = mode.startswith("quadratic")
     if use_quadratic and not model.quadratic:
         messages.append(
@@ -332,7 +408,7 @@ def fit_part(
     d = _fill_in_time(d, rigid_ok)
     if mode.endswith("residual") and model.residual_kernel == "thin_plate":
         A, d = _fold_linear_polynomial(model, R, A, d, poly)
-    return PartFit(R, d, A, W, rigid_ok, quad_ok, messages)
+    return PartFit(R, d, A, W, rigid_ok, quad_ok, messages, rigid_d, deviation)
 
 
 def _rigid_fits(model: PartModel, x: np.ndarray, vis: np.ndarray,
@@ -481,6 +557,12 @@ def evaluate_part(model: PartModel, fit: PartFit, local: np.ndarray | None = Non
                   kernel: sp.csr_matrix | None = None) -> np.ndarray:
     """Global positions of points moved by one part's model (P&H Eq. 8).
 
+    ``R (p̄ + u) + d_rigid`` with ``u = A q(p̄) + c + Wᵀ φ(p̄)`` the non-rigid
+    terms (``q`` continued linearly outside the part's support box,
+    :meth:`PartModel.basis`), ``R u`` soft-clamped at the part's marker deviation
+    (:func:`soft_clamp`) when the model has a ``clamp_margin``; with neither,
+    exactly P&H Eq. 8.
+
     Parameters
     ----------
     model : PartModel
@@ -499,9 +581,13 @@ def evaluate_part(model: PartModel, fit: PartFit, local: np.ndarray | None = Non
     kernel = model.vertex_kernel if kernel is None else kernel
     F = fit.R.shape[0]
     N = len(local)
-    y = basis @ fit.A.transpose(0, 2, 1) + local[None]
+    rigid_d = fit.d if fit.rigid_d is None else fit.rigid_d
+    c = ((fit.d - rigid_d)[:, None, :] @ fit.R)[:, 0]  # (F, 3): R^T (d - d_rigid)
+    u = basis @ fit.A.transpose(0, 2, 1) + c[:, None, :]
     if np.any(fit.W):
         n = fit.W.shape[1]
         r = kernel @ fit.W.transpose(1, 0, 2).reshape(n, F * 3)  # (N, F*3)
-        y += r.reshape(N, F, 3).transpose(1, 0, 2)
-    return y @ fit.R.transpose(0, 2, 1) + fit.d[:, None, :]
+        u += r.reshape(N, F, 3).transpose(1, 0, 2)
+    if model.clamp_margin is not None and fit.marker_deviation is not None:
+        u = soft_clamp(u, fit.marker_deviation[:, None], model.clamp_margin)
+    return (local[None] + u) @ fit.R.transpose(0, 2, 1) + rigid_d[:, None, :]

@@ -116,7 +116,7 @@ def test_thin_plate_kernel():
     seg = one_part_segmentation(ref)
     probes = rng.normal(0, [0.08, 0.15, 0.05], (40, 3))
     m = prepare_part(seg, 0, vertices=probes, beta=np.ones((40, 1)),
-                     residual_kernel="thin_plate")
+                     residual_kernel="thin_plate", support_margin=None, clamp_margin=None)
     x = (ref + 0.01 * vals)[None]
     fit = fit_part(m, x, mode="rigid_residual")
     got = evaluate_part(m, fit)[0]
@@ -154,8 +154,9 @@ def test_quadratic_recovers_known_quadratic_deformation():
     def truth(p):
         return np.einsum("fij,nj->fni", R, quadratic_basis(p) @ A.T + offset) + t[:, None]
 
+    paper = {"support_margin": None, "clamp_margin": None}  # probes outside the markers too
     model = prepare_part(seg, 0, vertices=probes, beta=np.ones((len(probes), 1)),
-                         residual_kernel="thin_plate")  # fmt: skip
+                         residual_kernel="thin_plate", **paper)  # fmt: skip
     for mode, exact in [("quadratic", True), ("quadratic_residual", True), ("rigid", False)]:
         fit = fit_part(model, truth(ref), mode=mode)
         err = np.abs(evaluate_part(model, fit) - truth(probes)).max()
@@ -165,7 +166,7 @@ def test_quadratic_recovers_known_quadratic_deformation():
             assert err > 1e-3, mode  # rigid cannot represent it
     # the B-spline residual (paper) is exact too: nothing is left for it
     bs = prepare_part(seg, 0, vertices=probes, beta=np.ones((len(probes), 1)),
-                      residual_kernel="cubic_bspline")  # fmt: skip
+                      residual_kernel="cubic_bspline", **paper)  # fmt: skip
     fit = fit_part(bs, truth(ref), mode="quadratic_residual")
     assert np.abs(evaluate_part(bs, fit) - truth(probes)).max() < 1e-9
     # the thin-plate residual's linear polynomial makes rigid + residual exact on an affine map
@@ -439,13 +440,18 @@ def test_operator_blocks_match_sparse_matrix_and_per_part_evaluation(limb):
     fits = [fit_part(m, x[:, m.members], mode="quadratic_residual") for m in models]
     op = vertex_operator(models, len(V), residual=True)
     got = deform_positions(models, fits, len(V), op, residual=True)
-    C = frame_coefficients(models, fits, residual=True)
-    H = operator_matrix(op)
-    sparse = (H @ C.reshape(C.shape[0], -1)).reshape(len(V), -1, 3).transpose(1, 0, 2)
     manual = np.zeros_like(got)
     for m, f in zip(models, fits):
         manual[:, m.vertices] += m.beta[None, :, None] * evaluate_part(m, f)
-    assert np.abs(got - sparse).max() < 1e-12 and np.abs(got - manual).max() < 1e-12
+    assert np.abs(got - manual).max() < 1e-12
+    # the sparse matrix is the linear map: exact without the (non-linear) clamp
+    for m in models:
+        m.clamp_margin = None
+    op = vertex_operator(models, len(V), residual=True)
+    unclamped = deform_positions(models, fits, len(V), op, residual=True)
+    C = frame_coefficients(models, fits, residual=True)
+    sparse = (operator_matrix(op) @ C.reshape(C.shape[0], -1)).reshape(len(V), -1, 3)
+    assert np.abs(unclamped - sparse.transpose(1, 0, 2)).max() < 1e-12
     with pytest.raises(ValueError, match="disagree"):
         deform_positions(models, fits, len(V), vertex_operator(models, len(V), residual=False),
                          residual=True)  # fmt: skip
