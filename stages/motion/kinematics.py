@@ -24,16 +24,22 @@ from scipy.spatial.transform import Rotation, RotationSpline
 from mocapflow.stages.motion.axes import frame_basis, parse_axis
 from mocapflow.stages.motion.datatypes import Motion, Skeleton
 from mocapflow.stages.motion.rotations import (
+    heading_split,
+    quat_conjugate,
     quat_continuity,
     quat_from_matrix,
     quat_multiply,
     quat_rotate,
     quat_slerp,
+    quat_to_matrix,
+    yaw_quaternion,
 )
 
 __all__ = [
+    "LOOP_PAD",
     "end_site_positions",
     "forward_kinematics",
+    "loop_continuation",
     "motion_positions",
     "reorient_motion",
     "resample_motion",
@@ -115,7 +121,8 @@ def end_site_positions(
 
 
 def resample_motion(
-    motion: Motion, rate: float, *, method: Literal["slerp", "spline"] = "slerp"
+    motion: Motion, rate: float, *, method: Literal["slerp", "spline"] = "slerp",
+    cyclic: bool = False,
 ) -> Motion:
     """Resample a motion to another frame rate over the same duration.
 
@@ -135,6 +142,12 @@ def resample_motion(
         New frames per second (> 0).
     method : {"slerp", "spline"}
         Interpolant (``"spline"`` needs ``F >= 4``; fewer frames fall back to slerp).
+    cyclic : bool
+        The motion is a loop (its last frame is followed by its first): it is
+        resampled over ``F / motion.rate`` seconds into ``round(F * rate / motion.rate)``
+        frames, the interpolant seeing the loop go on at both ends
+        (:func:`loop_continuation`), so the last → first step of the result is an
+        ordinary step too.
 
     Returns
     -------
@@ -150,9 +163,16 @@ def resample_motion(
     F = motion.n_frames
     if rate == motion.rate or F == 0:
         return motion.replace()
-    duration = (F - 1) / motion.rate
-    n_new = int(np.floor(duration * rate + 1e-9)) + 1
-    u = np.minimum(np.arange(n_new) * (motion.rate / rate), F - 1)
+    if cyclic and F >= 2:
+        pad = min(LOOP_PAD, F)
+        n_new = max(int(round(F * rate / motion.rate)), 1)
+        u = pad + np.arange(n_new) * (motion.rate / rate)
+        motion = loop_continuation(motion, pad)
+        F = motion.n_frames
+    else:
+        duration = (F - 1) / motion.rate
+        n_new = int(np.floor(duration * rate + 1e-9)) + 1
+        u = np.minimum(np.arange(n_new) * (motion.rate / rate), F - 1)
     rot = quat_continuity(motion.rotations, axis=0)
     if method == "spline" and F >= 4:
         rotations, root, trans = _spline_samples(motion, rot, u)
@@ -163,6 +183,79 @@ def resample_motion(
     return motion.replace(
         root_position=root, rotations=rotations, rate=rate, translations=trans, attrs=attrs
     )
+
+
+#: Frames of a loop repeated at each end when it is resampled (the spline's support).
+LOOP_PAD = 3
+
+
+def loop_continuation(motion: Motion, pad: int = LOOP_PAD) -> Motion:
+    """A loop with its last ``pad`` frames before its first and its first ``pad`` after its
+    last, each copy placed where the loop goes on.
+
+    The copies after the last frame are the first frames moved by the rigid
+    continuation ``G``, a turn about the up axis ``y`` and a horizontal
+    translation.  A loop that closes in space (its last → first root step within
+    3 median steps in ground distance and heading, e.g. a lap of a closed path)
+    goes on where it is: ``G`` is the identity (up to whole turns).  Otherwise
+    ``G`` puts frame 0's root one step after the last frame, that step the mean of
+    the last and the first step (heading and ground velocity).  The copies before
+    the first frame are the last frames moved by ``G⁻¹``.  Joint rotations and
+    translations are copied as they are (a loop's pose repeats; only the root
+    travels).
+
+    Parameters
+    ----------
+    motion : Motion
+        ``F >= 2`` frames, Y up.
+    pad : int
+        Frames copied at each end (``<= F``).
+
+    Returns
+    -------
+    Motion
+        ``F + 2 pad`` frames: frame ``pad + i`` is frame ``i`` of ``motion``.
+    """
+    F = motion.n_frames
+    pad = int(min(pad, F))
+    heading, _ = heading_split(motion.rotations[:, 0])
+    p = motion.root_position
+    ground = p[:, [0, 2]]
+    step = np.median(np.linalg.norm(np.diff(ground, axis=0), axis=1))
+    step_turn = np.median(np.abs(np.diff(heading)))
+    wrap_turn = float(np.angle(np.exp(1j * (heading[0] - heading[-1]))))
+    closes = (np.linalg.norm(ground[0] - ground[-1]) <= 3.0 * step + 1e-9
+              and abs(wrap_turn) <= 3.0 * step_turn + 1e-6)
+    if closes:  # go on in place (the turn is whole turns)
+        turn = heading[-1] + wrap_turn - heading[0]
+    else:
+        turn = heading[-1] + 0.5 * (heading[-1] - heading[-2] + heading[1] - heading[0]) \
+            - heading[0]
+    q_turn = yaw_quaternion(turn)
+    R = quat_to_matrix(q_turn)
+    next_root = p[0] if closes else p[-1] + 0.5 * ((p[-1] - p[-2]) + R @ (p[1] - p[0]))
+    shift = next_root - R @ p[0]
+    shift[1] = 0.0  # the height is the loop's own
+
+    def moved(idx: np.ndarray, sign: int) -> tuple[np.ndarray, np.ndarray]:
+        rot = motion.rotations[idx].copy()
+        if sign > 0:
+            rot[:, 0] = quat_multiply(q_turn, rot[:, 0])
+            root = p[idx] @ R.T + shift
+        else:
+            rot[:, 0] = quat_multiply(quat_conjugate(q_turn), rot[:, 0])
+            root = (p[idx] - shift) @ R
+        return root, rot
+
+    before, after = np.arange(F - pad, F), np.arange(pad)
+    root_b, rot_b = moved(before, -1)
+    root_a, rot_a = moved(after, +1)
+    trans = motion.translations
+    if trans is not None:
+        trans = np.concatenate([trans[before], trans, trans[after]])
+    return motion.replace(root_position=np.concatenate([root_b, p, root_a]),
+                          rotations=np.concatenate([rot_b, motion.rotations, rot_a]),
+                          translations=trans)
 
 
 def _slerp_samples(motion: Motion, rot: np.ndarray, u: np.ndarray):

@@ -8,6 +8,18 @@ motion's smoothed travel direction is turned onto the path tangent at the
 distance travelled so far, the high-frequency sway is kept in the path frame.
 ``y`` is up; ground-plane points are ``(x, z)``.
 
+Departures from the thesis (§3.10 steers the root only):
+
+* the sway is the heading-frame velocity minus its smoothed part, integrated
+  in the new heading and high-passed again; the thesis-like split of the
+  world trajectory (minus its smoothed integral) carried the shrinkage of the
+  input's own turns as an offset of 10-20 cm across the path;
+* a loop on a closed path is paced (:func:`follow_path`, ``cyclic``): its
+  travel is scaled by one factor, spread evenly over the motion (the stride
+  advance; the cadence is kept), to a whole number of laps, and computed on
+  the loop repeated on both sides, so the wrap is an ordinary step; a stride
+  change beyond :data:`PACE_TOLERANCE` is reported by the caller.
+
 Feet: smoothing a seam blends two stances, so a toe in contact slides.  The
 root correction (:func:`plant_feet`) keeps the mean stance toe moving as in
 the input; the residual slide of each toe is then removed by two-bone leg IK
@@ -38,6 +50,7 @@ from mocapflow.stages.motion.rotations import (
 )
 
 __all__ = [
+    "PACE_TOLERANCE",
     "PathCurve",
     "PathError",
     "apply_foot_ik",
@@ -268,10 +281,24 @@ class PathCurve:
         return d, self.s[i]
 
 
+#: Largest stride change (fraction of the motion's own travel) a loop on a closed path
+#: may need to close on a whole number of laps before :func:`follow_path` reports it.
+PACE_TOLERANCE = 0.25
+
+
 def _gauss(x: np.ndarray, sigma: float) -> np.ndarray:
     if sigma <= 0:
         return x
     return gaussian_filter1d(x, sigma, axis=0, mode="nearest")
+
+
+def _smooth_angle(angle: np.ndarray, keep: np.ndarray, sigma: float) -> np.ndarray:
+    """Angles ``(n,)`` smoothed on the unit circle, frames outside ``keep`` interpolated."""
+    idx = np.arange(angle.shape[0])
+    z = np.exp(1j * angle)
+    zr = np.interp(idx, idx[keep], z.real[keep])
+    zi = np.interp(idx, idx[keep], z.imag[keep])
+    return np.unwrap(np.angle(_gauss(zr, sigma) + 1j * _gauss(zi, sigma)))
 
 
 def follow_path(
@@ -280,10 +307,23 @@ def follow_path(
     curve: PathCurve,
     rate: float,
     *,
+    cyclic: bool = False,
     travel_window: float = 0.5,
     min_speed: float = 0.1,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Root trajectory following a path by rotating velocities into its local frame.
+
+    The motion's travel (its velocity smoothed over ``travel_window``) becomes
+    progress along the path's arc length; the heading keeps its angle to the
+    travel direction; the sway (heading-frame velocity minus its smoothed part,
+    integrated in the new heading and high-passed again) is added around the
+    path, so the root stays on the path up to the gait's own sway.
+
+    A loop (``cyclic``) on a closed path is paced: the travel is scaled by one
+    factor (the stride advance, spread evenly over the motion) so that the
+    motion covers a whole number of laps, and the trajectory is computed on
+    the loop repeated on both sides, so the wrap (last frame → first) is a
+    step like any other.  The legs take up the stride change (foot IK).
 
     Parameters
     ----------
@@ -293,6 +333,8 @@ def follow_path(
     curve : PathCurve
     rate : float
         Frames per second.
+    cyclic : bool
+        The motion loops (frame ``L - 1`` is followed by frame 0).
     travel_window : float
         Gaussian sigma (seconds) separating travel from sway.
     min_speed : float
@@ -303,37 +345,50 @@ def follow_path(
     heading : (L,) float ndarray
     ground : (L, 2) float ndarray
     info : dict
-        ``distance`` travelled, ``path_length``, ``beyond_end`` (frames past an open path's end).
+        ``distance`` the motion travels (its own pace; with the wrap step when
+        ``cyclic``), ``path_length``, ``beyond_end`` (frames past an open path's
+        end), ``laps`` and ``pace`` (stride scale; 1 unless a loop on a closed path).
     """
-    heading, ground = integrate_root(yaw_rate, velocity)
-    L = heading.shape[0]
-    disp = rotate_xz(np.asarray(velocity, dtype=np.float64), heading)
+    yaw = np.asarray(yaw_rate, dtype=np.float64)
+    vel = np.asarray(velocity, dtype=np.float64)
+    L = yaw.shape[0]
     sigma = travel_window * rate
-    travel = _gauss(disp, sigma)
+    # a loop: its copies on both sides, so every filter sees the loop continue
+    m = int(np.ceil((5.0 * sigma + 2.0) / L)) if cyclic else 0
+    if m:
+        yaw, vel = np.tile(yaw, 2 * m + 1), np.tile(vel, (2 * m + 1, 1))
+    heading, _ = integrate_root(yaw, vel)
+    mid = slice(m * L, (m + 1) * L)
+    travel = _gauss(rotate_xz(vel, heading), sigma)
     speed = np.linalg.norm(travel, axis=1)
-    smooth_ground = np.vstack([np.zeros((1, 2)), np.cumsum(travel[:-1], axis=0)])
-    sway = ground - smooth_ground
     s = np.concatenate([[0.0], np.cumsum(speed[:-1])])
+    s -= s[m * L]
+    distance = float(speed[mid].sum()) if cyclic else float(s[L - 1])
+    laps, pace = 0, 1.0
+    if cyclic and curve.closed and distance > 0:
+        laps = max(1, int(round(distance / curve.length)))
+        pace = laps * curve.length / distance
+        s *= pace
     alpha = np.arctan2(travel[:, 0], travel[:, 1])
     moving = speed * rate >= min_speed
     phi = curve.tangent_angle(s)
     if moving.any():
-        psi_raw = np.angle(np.exp(1j * (phi - alpha)))
-        idx = np.arange(L)
-        z = np.exp(1j * psi_raw)
-        zr = np.interp(idx, idx[moving], z.real[moving])
-        zi = np.interp(idx, idx[moving], z.imag[moving])
-        zs = _gauss(zr, 0.5 * sigma) + 1j * _gauss(zi, 0.5 * sigma)
-        psi = np.unwrap(np.angle(zs))
+        psi = _smooth_angle(np.angle(np.exp(1j * (phi - alpha))), moving, 0.5 * sigma)
     else:
-        psi = np.full(L, phi[0] - heading[0])
+        psi = np.full(s.shape, phi[m * L] - heading[m * L])
     new_heading = heading + psi
-    new_ground = curve.point(s) + rotate_xz(sway, psi)
-    beyond = 0 if curve.closed else int(np.sum(s > curve.length))
-    return new_heading, new_ground, {
-        "distance": float(s[-1]),
+    # sway: the high-frequency velocity, integrated in the new heading, drift removed
+    sway = np.vstack([np.zeros((1, 2)), np.cumsum(
+        rotate_xz(vel - _gauss(vel, sigma), new_heading)[:-1], axis=0)])
+    sway -= _gauss(sway, sigma)
+    new_ground = curve.point(s) + sway
+    beyond = 0 if curve.closed else int(np.sum(s[mid] > curve.length))
+    return new_heading[mid], new_ground[mid], {
+        "distance": distance,
         "path_length": curve.length,
         "beyond_end": beyond,
+        "laps": laps,
+        "pace": float(pace),
     }
 
 

@@ -45,7 +45,7 @@ from typing import Any, Literal
 import numpy as np
 
 from mocapflow.pipeline import Context, stage
-from mocapflow.stages.metrics.quality import jerk_p99, seams_from_source
+from mocapflow.stages.metrics.quality import jerk_p99, longest_verbatim_run, seams_from_source
 from mocapflow.stages.motion.datatypes import Motion
 from mocapflow.stages.motion.kinematics import (
     motion_positions,
@@ -514,7 +514,9 @@ def synth(
         How ``path`` points are joined: straight segments, or a cubic spline
         through them (periodic when the path is closed).
     loop : bool
-        Cyclic output (last → first seam smoothed).
+        Cyclic output (last → first seam smoothed).  With a closed ``path`` the
+        stride is paced so the loop covers whole laps and its wrap is an ordinary
+        step (a warning when that needs more than ±25 %: resize the path or the length).
     seed : int
         Variant; randomness comes from ``ctx.rng``.
     levels : int, optional
@@ -632,11 +634,23 @@ def synth(
             jerk_tolerance=jerk_tolerance if jerk_tolerance > 0 else None,
             foot_ik=foot_ik, warn=ctx.warn,
         )
-    out, assembly = _at_output_rate(out, assembly, motion.rate, source_rate, out_rate, cons)
+    out, assembly = _at_output_rate(out, assembly, motion.rate, source_rate, out_rate, cons,
+                                    loop)
     out = reorient_motion(out, **axes)  # back in the source's axes
     shown = sorted(([int(c[0]), int(c[1])] for c in given), key=lambda c: c[1])  # as given
     report = _synth_report(L, F, levels, method, loop, shown, info, assembly, seed=seed)
+    _key_figures(report, src, ctx)
     return {"motion": out, "source_index": src, "report": report}
+
+
+def _key_figures(report: dict[str, Any], src: np.ndarray, ctx: Context) -> None:
+    """The run summary's figures of a synthesis (``ctx.figure``; never in an output)."""
+    ctx.figure("seams", int(report["n_seams"]))
+    ctx.figure("longest verbatim run", longest_verbatim_run(src))
+    if report["constraints"]:
+        ctx.figure("constraint error deg", round(float(report["constraint_max_angle_deg"]), 3))
+    if report.get("jerk_p99") is not None:
+        ctx.figure("jerk p99 m/s³", round(float(report["jerk_p99"]), 1))
 
 
 
@@ -665,12 +679,14 @@ def _constraints_at_synthesis_rate(given: list[list[int]], rate: float, source_r
 
 
 def _at_output_rate(out: Motion, assembly: dict, rate: float, source_rate: float,
-                    out_rate: float, cons: list[tuple[int, int]]) -> tuple[Motion, dict]:
-    """The synthesized motion at ``out_rate`` (C² rotation spline) and the report's rate
+                    out_rate: float, cons: list[tuple[int, int]], loop: bool = False
+                    ) -> tuple[Motion, dict]:
+    """The synthesized motion at ``out_rate`` (C² rotation spline; a loop resampled as one,
+    its last → first step an ordinary step at ``out_rate`` too) and the report's rate
     fields: ``rate`` (synthesis), ``source_rate``, ``output_rate``, ``output_frames``,
     the constraints at both rates, ``jerk_p99`` (m/s³) at the output rate."""
     if abs(out_rate - out.rate) > 1e-9 * out.rate:
-        out = resample_motion(out, out_rate, method="spline")
+        out = resample_motion(out, out_rate, method="spline", cyclic=loop)
     jerk = jerk_p99(motion_positions(out), out.rate)
     return out, {
         **assembly,

@@ -370,3 +370,36 @@ def test_resample_motion_down_and_up():
     assert odd.attrs["resampled_from_rate"] == 120.0
     with pytest.raises(ValueError, match="rate must be > 0"):
         K.resample_motion(m, 0)
+
+
+
+def _circle_walk(t: np.ndarray) -> np.ndarray:
+    """Root of a walk at 0.5 m/s along its heading 2t (yaw about y, facing +z at 0)."""
+    return np.stack([0.25 * (1 - np.cos(2 * t)), np.ones_like(t), 0.25 * np.sin(2 * t)], 1)
+
+
+def test_loop_resampled_as_one_goes_on_at_its_wrap():
+    """A loop of 0.5 s of a walk on a circle does not close in space: it goes on one step
+    after its last frame, and resampled cyclically its last -> first step is one ordinary
+    step, as many frames as the loop's duration holds."""
+    m = _constant_spin_motion()  # 121 frames at 120 Hz, heading 2 rad/s
+    t = np.arange(70) / 120
+    loop = m.replace(root_position=_circle_walk(t[:60]), rotations=m.rotations[:60])
+    padded = K.loop_continuation(loop, 3)
+    assert padded.n_frames == 66
+    # the continued frames are the next frames of the same walk
+    np.testing.assert_allclose(padded.root_position[63:], _circle_walk(t[60:63]), atol=1e-4)
+    h, _ = Q.heading_split(padded.rotations[:, 0])
+    np.testing.assert_allclose(np.diff(h), 2.0 / 120, atol=1e-9)
+    before = _circle_walk(-np.arange(3, 0, -1) / 120)
+    np.testing.assert_allclose(padded.root_position[:3], before, atol=1e-4)
+    down = K.resample_motion(loop, 30.0, method="spline", cyclic=True)
+    assert down.n_frames == 15  # 60 frames at 120 Hz = 0.5 s = 15 frames at 30 Hz
+    np.testing.assert_allclose(down.root_position, _circle_walk(np.arange(15) / 30), atol=1e-4)
+    # a loop that closes in space (a lap of a ring, the heading one whole turn) goes on in place
+    u = np.arange(120) / 120 * 2 * np.pi
+    lap = Motion(m.skeleton, _circle_walk(u / 2),
+                 np.stack([Q.yaw_quaternion(u), Q.quat_identity((120,))], 1), 120.0)
+    cont = K.loop_continuation(lap, 2)
+    np.testing.assert_allclose(cont.root_position[-2:], lap.root_position[:2], atol=1e-12)
+    np.testing.assert_allclose(cont.root_position[:2], lap.root_position[-2:], atol=1e-12)
