@@ -1,4 +1,4 @@
-"""Benchmark of the texture graph (Moradoff 2002) against a copy and a shuffle baseline.
+"""Benchmark of the texture graph (Moradoff 2002) against the GenMM baseline, copy and shuffle.
 
 Protocol (``shared/METRICS.md`` §1): inputs from ``../shared/data/bvh`` resampled
 to 30 fps; outputs of 1024 frames from the first 512 input frames (the whole
@@ -14,13 +14,29 @@ default search parameters (``variety`` 0.3: jumps drawn within the 30 %
 quantile of the input's own jump costs; ``max_run`` 0.3 of the input; foot IK)
 and with a higher ``variety``.
 
-Baselines (same root integration, no search, no smoothing): *copy* — the input
-played again and again; *shuffle* — random 30-frame chunks, no blending.
+Baselines, measured in the same run on the same inputs and seeds:
+
+* *GenMM baseline (reimplementation)* — ``benchmarks/genmm_baseline.py``, a NumPy
+  reimplementation of GenMM (Li et al., SIGGRAPH 2023: multi-scale generative patch
+  matching with patch averaging, the paper's defaults), not GenMM's code; its
+  seams and verbatim runs are read from the centre of the patch matched around each
+  frame (its frames are blends, so they are approximate).  It has no pose
+  constraints and no path control: the constrained and path cases print "n/a".
+* *copy* — the input played again and again; *shuffle* — random 30-frame chunks,
+  no blending (same root integration as ours, no search, no smoothing).
+
+``--calibrate FILE`` compares the reimplementation with GenMM itself: ``FILE`` holds
+one JSON object per line, ``{"input": "bvh/….bvh", "length": 1024, "seed": 0,
+"cpu": seconds, "path": "GenMM's output BVH"}``, written by a GenMM run outside this
+repository (GenMM is not on PyPI; its BVH writer writes ``Frame Time: 1.0``, so the
+rate is set to the input's when reading).  Both are evaluated here with the same
+functions.
 
 Run::
 
-    /work/venv/bin/python benchmarks/texture.py            # 5 seeds, all rows
-    /work/venv/bin/python benchmarks/texture.py --quick    # 2 seeds, 2× rows only
+    .venv/bin/python benchmarks/texture.py            # 5 seeds, all rows
+    .venv/bin/python benchmarks/texture.py --quick    # 2 seeds, 2× rows only
+    .venv/bin/python benchmarks/texture.py --calibrate runs.jsonl   # vs GenMM itself
 """
 
 from __future__ import annotations
@@ -44,8 +60,13 @@ from mocapflow.stages.motion.formats.bvh import read_bvh  # noqa: E402
 from mocapflow.stages.motion.kinematics import motion_positions, resample_motion  # noqa: E402
 from mocapflow.stages.texture.assemble import assemble_motion  # noqa: E402
 from mocapflow.stages.texture.pyramid import build_pyramid  # noqa: E402
+from mocapflow.stages.texture.root import PathCurve, figure_eight  # noqa: E402
 from mocapflow.stages.texture.search import SearchParams  # noqa: E402
 from mocapflow.stages.texture.synth import synth  # noqa: E402
+
+if str(Path(__file__).resolve().parent) not in sys.path:
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+from genmm_baseline import genmm_synthesize  # noqa: E402
 
 DATA = Path(os.environ.get("MOCAPFLOW_DATA", Path(__file__).parents[1] / ".." / "shared" / "data"))
 INPUTS = {
@@ -55,16 +76,15 @@ INPUTS = {
 }
 HEADING_FREE = True
 MORE_VARIED = 0.6
-PEER = [
-    "| salsa cmu_60_01 (561) | 2× | GenMM | ≈1.6 | 1.00 | 0.09–0.12 | 0.09–0.10 | 0.99–2.11 | — |",
-    "| walk cmu_131_02 (312) | 2× | GenMM | ≈0.4 | 0.97–1.00 | 0.11–0.17 | 0.09–0.14 "
-    "| 0.94–1.22 | 1.02–1.12 |",
-    "| 8-walk pymo_AV (266) | 2× | GenMM | ≈0.2 | 1.00 | 0.16–0.32 | 0.16–0.22 | 2.7–13.7 "
-    "| 1.30–1.48 |",
-    "(columns: synth s, coverage, global, local, jerk-p99 ratio, toe-skate ratio; GenMM's",
-    " features keep the root heading, ours remove it — see the copy rows for the offset)",
-]
 TARGETS = "targets: ≤3 s/1024 frames, coverage ≥0.95, jerk ratio ≤1.3, skate ratio ≤1.1"
+GENMM = "GenMM baseline (reimplementation)"
+NA = "n/a (no constraints/path in GenMM)"
+#: constrained case: [input frame at the source rate (120 fps), output frame], as in
+#: tests/stages/texture/test_constraints.py
+CONSTRAINED = ("salsa cmu_60_01", 1024, [[100, 10], [300, 512], [450, 1000]])
+#: path case: a closed figure-8 (spline, 2 m loops) followed by the walks
+PATH_INPUTS = ("walk cmu_131_02", "8-walk pymo_AV")
+PATH_LENGTH = 1024
 
 
 def load(rel: str, rate: float = 30.0):
@@ -96,12 +116,12 @@ class Reference:
         )
 
 
-def evaluate(ref: Reference, out, src: np.ndarray, seconds: float) -> dict[str, float]:
-    """All metrics of one output."""
+def evaluate(ref: Reference, out, src: np.ndarray | None, seconds: float) -> dict[str, float]:
+    """All metrics of one output (``src`` None: no source track, seam metrics NaN)."""
     rate = ref.motion.rate
     pos = motion_positions(out)
     feat = M.rotation_features(out, heading_free=HEADING_FREE)
-    seams = M.seams_from_source(src)
+    seams = M.seams_from_source(src) if src is not None else np.zeros(0, dtype=np.int64)
     mask = M.seam_mask(out.n_frames, seams, radius=5)
     pm = M.patch_metrics(feat, ref.feat)
     skate = M.foot_skate(
@@ -113,8 +133,8 @@ def evaluate(ref: Reference, out, src: np.ndarray, seconds: float) -> dict[str, 
         "jerk": M.jerk_p99(pos, rate) / ref.jerk,
         "jerk_seam": (M.jerk_p99(pos, rate, mask=mask) / ref.jerk) if seams.size else np.nan,
         "skate": skate / ref.skate,
-        "verbatim": float(M.longest_verbatim_run(src)),
-        "seams": float(seams.size),
+        "verbatim": float(M.longest_verbatim_run(src)) if src is not None else np.nan,
+        "seams": float(seams.size) if src is not None else np.nan,
     }
 
 
@@ -136,14 +156,25 @@ def seeded_context(seed: int) -> Context:
     return ctx
 
 
-def run_row(motion, length: int, seeds: list[int], levels: int, variants: dict):
-    """Metrics of our variants, copy and shuffle over the seeds; ``{method: [dict]}``.
+def run_genmm(ref: Reference, motion, length: int, seed: int) -> dict[str, float]:
+    """The GenMM baseline (reimplementation) on one seed, timed like ours."""
+    t0 = time.process_time()
+    r = genmm_synthesize(motion, length, seed)
+    seconds = time.process_time() - t0
+    return evaluate(ref, r["motion"], r["source_index"], seconds)
 
-    ``variants``: method name -> ``synth`` params.
+
+def run_row(motion, length: int, seeds: list[int], levels: int, variants: dict,
+            genmm_seeds: list[int] | None = None):
+    """Metrics of our variants, the GenMM baseline, copy and shuffle; ``{method: [dict]}``.
+
+    ``variants``: method name -> ``synth`` params; ``genmm_seeds``: the seeds the
+    baseline runs with (default ``seeds``).
     """
     ref = Reference(motion)
     res: dict[str, list[dict]] = {name: [] for name in variants}
-    res.update(copy=[], shuffle=[])
+    res.update({GENMM: [], "copy": [], "shuffle": []})
+    genmm_seeds = seeds if genmm_seeds is None else genmm_seeds
     for seed in seeds:
         for name, params in variants.items():
             t0 = time.process_time()  # CPU seconds: robust to other jobs on the machine
@@ -153,7 +184,10 @@ def run_row(motion, length: int, seeds: list[int], levels: int, variants: dict):
             r = synth(pyr, motion, length=length, seed=seed, ctx=seeded_context(seed),
                       output_rate=motion.rate, **params)
             seconds = time.process_time() - t0
-            res[name].append(evaluate(ref, r["motion"], r["source_index"], seconds))
+            res[name].append({**evaluate(ref, r["motion"], r["source_index"], seconds),
+                              "seed": seed})
+        if seed in genmm_seeds:
+            res[GENMM].append({**run_genmm(ref, motion, length, seed), "seed": seed})
         rng = np.random.default_rng(1000 + seed)
         for name, src in (
             ("copy", copy_source(motion.n_frames, length)),
@@ -189,20 +223,138 @@ def fmt(values: list[dict], key: str, spec: str) -> str:
     return f"{spec.format(mean)} ({spec.format(lo)}–{spec.format(hi)})"
 
 
+def _mean(values: list[dict], key: str) -> float:
+    v = np.array([d[key] for d in values], dtype=float)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else float("nan")
+
+
+def summary_line(name: str, n_in: int, length: int, res: dict) -> str:
+    """Ours vs the GenMM baseline on one row: time ratio and the must-show checks."""
+    ours, base = res["ours"], res[GENMM]
+    by_seed = {d["seed"]: d["time"] for d in base}
+    ratios = np.array([d["time"] / by_seed[d["seed"]] for d in ours if d["seed"] in by_seed])
+    t_ratio = _mean(ours, "time") / _mean(base, "time")
+    cover = min(d["coverage"] for d in ours)
+    g_o, g_b = _mean(ours, "global_diversity"), _mean(base, "global_diversity")
+    l_o, l_b = _mean(ours, "local_diversity"), _mean(base, "local_diversity")
+    j_o, j_b = _mean(ours, "jerk"), _mean(base, "jerk")
+    s_o, s_b = _mean(ours, "skate"), _mean(base, "skate")
+    checks = [
+        ("≥2× faster", t_ratio <= 0.5),
+        ("jerk", j_o <= j_b),
+        ("skate", s_o <= s_b),
+        ("cover≥0.95", cover >= 0.95),
+        ("global", g_o >= g_b),
+        ("local≤1.2×", l_o <= 1.2 * l_b),
+    ]
+    verdict = ", ".join(f"{k} {'ok' if ok else 'NO'}" for k, ok in checks)
+    rr = f"{t_ratio:.2f} ({ratios.min():.2f}–{ratios.max():.2f})" if ratios.size else "—"
+    return (f"| {name} ({n_in}) | {length} | {rr} | {cover:.2f} | {g_o:.3f} / {g_b:.3f} | "
+            f"{l_o:.3f} / {l_b:.3f} = {l_o / l_b:.2f} | {j_o:.2f} / {j_b:.2f} | "
+            f"{s_o:.2f} / {s_b:.2f} | {verdict} |")
+
+
+def run_cases(seeds: list[int], levels: int, only: str | None) -> list[str]:
+    """Constrained and path cases: our rows; the GenMM baseline has no answer."""
+    lines = []
+    cases = [("constrained (3 poses)", CONSTRAINED[0], CONSTRAINED[1],
+              {"constraints": CONSTRAINED[2]})]
+    curve_pts = figure_eight(2.0)
+    curve = PathCurve.from_points(curve_pts, mode="spline")
+    for name in PATH_INPUTS:
+        cases.append(("path (figure-8, 2 m)", name, PATH_LENGTH,
+                      {"path": curve_pts.tolist(), "path_mode": "spline"}))
+    for case, name, length, params in cases:
+        if only and only not in name:
+            continue
+        motion = load(INPUTS[name])
+        ref = Reference(motion)
+        rows, extra = [], []
+        for seed in seeds:
+            t0 = time.process_time()
+            pyr = build_pyramid(motion, levels=levels)
+            r = synth(pyr, motion, length=length, seed=seed, ctx=seeded_context(seed),
+                      output_rate=motion.rate, **params)
+            seconds = time.process_time() - t0
+            rows.append(evaluate(ref, r["motion"], r["source_index"], seconds))
+            if "constraints" in params:
+                extra.append(float(r["report"]["constraint_max_angle_deg"]))
+            else:
+                d, _ = curve.closest(r["motion"].root_position[:, [0, 2]])
+                extra.append(float(d.mean()))
+        cells = " | ".join(fmt(rows, k, sp) for k, _, sp in COLS)
+        what = "max constraint error °" if "constraints" in params else "mean path distance m"
+        e = np.array(extra)
+        lines.append(f"| {case} | {name} ({motion.n_frames}) | {length} | ours | {cells} | "
+                     f"{what} {e.mean():.3f} ({e.min():.3f}–{e.max():.3f}) |")
+        lines.append(f"| {case} | {name} ({motion.n_frames}) | {length} | {GENMM} | "
+                     + " | ".join([NA] + ["—"] * (len(COLS) - 1)) + f" | {NA} |")
+        for line in lines[-2:]:
+            print(line, flush=True)
+    return lines
+
+
+def calibrate(path: str) -> int:
+    """Real GenMM outputs (``path``: JSON lines) vs the reimplementation, same functions."""
+    import json
+
+    recs = [json.loads(line) for line in open(path) if line.strip().startswith("{")]
+    groups: dict[tuple[str, int], list[dict]] = {}
+    for r in recs:
+        groups.setdefault((r["input"], int(r["length"])), []).append(r)
+    print("calibration: GenMM itself (outputs read back, rate set to the input's) vs the "
+          "reimplementation, same inputs, lengths and seeds; CPU s on one thread\n")
+    keys = [("time", "CPU s", "{:.2f}"), ("coverage", "cover", "{:.3f}"),
+            ("global_diversity", "global", "{:.3f}"), ("local_diversity", "local", "{:.3f}"),
+            ("jerk", "jerk×", "{:.2f}"), ("skate", "skate×", "{:.2f}")]
+    print("| input (frames) | output | seeds | method | " + " | ".join(k[1] for k in keys) + " |")
+    print("|" + "---|" * (4 + len(keys)))
+    for (rel, length), runs in groups.items():
+        motion = load(rel)
+        ref = Reference(motion)
+        real, ours = [], []
+        for r in sorted(runs, key=lambda r: r["seed"]):
+            out = read_bvh(r["path"]).replace(rate=motion.rate)  # GenMM writes Frame Time 1.0
+            if out.skeleton.names != motion.skeleton.names:
+                raise SystemExit(f"{r['path']}: skeleton differs from {rel}")
+            real.append(evaluate(ref, out, None, float(r["cpu"])))
+            ours.append(run_genmm(ref, motion, length, int(r["seed"])))
+        seeds = ",".join(str(r["seed"]) for r in sorted(runs, key=lambda r: r["seed"]))
+        for method, vals in (("GenMM (released code)", real), (GENMM, ours)):
+            cells = " | ".join(fmt(vals, k, sp) for k, _, sp in keys)
+            print(f"| {rel} ({motion.n_frames}) | {length} | {seeds} | {method} | {cells} |")
+        ratio = " | ".join(f"{_mean(ours, k) / _mean(real, k):.2f}" for k, _, _ in keys)
+        print(f"| {rel} ({motion.n_frames}) | {length} | {seeds} | reimpl. / GenMM (means) "
+              f"| {ratio} |", flush=True)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="2 seeds, 2× rows only")
     ap.add_argument("--seeds", type=int, default=None, help="number of seeds (default 5)")
+    ap.add_argument("--genmm-seeds", type=int, default=None,
+                    help="number of seeds the GenMM baseline runs (default: all)")
     ap.add_argument("--levels", type=int, default=4)
     ap.add_argument("--only", default=None, help="substring of the input names to run")
+    ap.add_argument("--no-cases", action="store_true",
+                    help="skip the constrained and path cases")
+    ap.add_argument("--calibrate", default=None, metavar="FILE",
+                    help="compare the GenMM reimplementation with GenMM's own outputs "
+                         "(JSON lines: input, length, seed, cpu, path) and exit")
     args = ap.parse_args(argv)
     if not DATA.exists():
         print(f"data directory {DATA} not found (set MOCAPFLOW_DATA)", file=sys.stderr)
         return 1
+    if args.calibrate:
+        return calibrate(args.calibrate)
     n_seeds = args.seeds or (2 if args.quick else 5)
     seeds = list(range(n_seeds))
+    genmm_seeds = seeds[: args.genmm_seeds] if args.genmm_seeds is not None else seeds
     variants = {"ours": {}, f"ours variety={MORE_VARIED}": {"variety": MORE_VARIED}}
-    print(f"texture benchmark — {n_seeds} seeds, {args.levels} levels, 30 fps; {TARGETS}")
+    print(f"texture benchmark — {n_seeds} seeds ({len(genmm_seeds)} for the GenMM baseline), "
+          f"{args.levels} levels, 30 fps; {TARGETS}")
     print(
         "cells: mean (min–max over seeds); ratios are output/input; CPU s = pyramid + "
         "synthesis on one core; patch metrics on 6-D rotations with the root heading removed"
@@ -210,11 +362,14 @@ def main(argv: list[str] | None = None) -> int:
     d = SearchParams()
     print(f"ours = defaults (variety {d.variety}, max_run {d.max_run}, usage_weight "
           f"{d.usage_weight}, foot IK); 'ours variety={MORE_VARIED}' draws among more "
-          "alternatives\n")
+          f"alternatives; '{GENMM}' = benchmarks/genmm_baseline.py (GenMM's algorithm and "
+          "defaults reimplemented in NumPy, not GenMM's code; seams read from its patch "
+          "matches)\n")
     header = "| input (frames) | output | method | " + " | ".join(c[1] for c in COLS) + " |"
     print(header)
     print("|" + "---|" * (3 + len(COLS)))
     t_all = time.perf_counter()
+    summary = []
     for name, rel in INPUTS.items():
         if args.only and args.only not in name:
             continue
@@ -222,16 +377,28 @@ def main(argv: list[str] | None = None) -> int:
         rows = [] if args.quick else [(crop(full, min(512, full.n_frames)), 1024)]
         rows.append((full, 2 * full.n_frames))
         for motion, length in rows:
-            res = run_row(motion, length, seeds, args.levels, variants)
+            res = run_row(motion, length, seeds, args.levels, variants, genmm_seeds)
             for method in res:
                 cells = " | ".join(fmt(res[method], k, sp) for k, _, sp in COLS)
                 print(
                     f"| {name} ({motion.n_frames}) | {length} | {method} | {cells} |", flush=True
                 )
-    print(f"\n(wall time {time.perf_counter() - t_all:.0f} s)")
-    print("\nPeer (GenMM, SIGGRAPH 2023; shared/METRICS.md §1, measured there, 2× rows):")
-    for line in PEER:
+            summary.append(summary_line(name, motion.n_frames, length, res))
+    print(f"\nOurs vs the {GENMM}, same inputs and seeds (means; time ratio per seed "
+          "min–max):\n")
+    print("| input (frames) | output | CPU s ours/baseline | cover (ours, min) | global ours / "
+          "baseline | local ours / baseline | jerk× ours / baseline | skate× ours / baseline "
+          "| checks |")
+    print("|" + "---|" * 9)
+    for line in summary:
         print(line)
+    if not args.no_cases:
+        print(f"\nConstrained and path cases ({n_seeds} seeds; the {GENMM} has no answer):\n")
+        print("| case | input (frames) | output | method | " + " | ".join(c[1] for c in COLS)
+              + " | case metric |")
+        print("|" + "---|" * (5 + len(COLS)))
+        run_cases(seeds, args.levels, args.only)
+    print(f"\n(wall time {time.perf_counter() - t_all:.0f} s)")
     return 0
 
 
