@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import inspect
 import logging
 import time
 from collections.abc import Callable, Iterable, Iterator
@@ -65,6 +66,16 @@ def part_seed(seed: int, part: str | None) -> list[int]:
     return [int(seed) & 0xFFFFFFFF, int.from_bytes(h, "little")]
 
 
+def _takes_on_done(mapper: Callable[..., Any]) -> bool:
+    """Whether ``mapper`` accepts an ``on_done`` keyword (see :class:`Context`)."""
+    try:
+        params = inspect.signature(mapper).parameters
+    except (TypeError, ValueError):
+        return False
+    return "on_done" in params or any(
+        p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+
+
 @dataclass
 class Context:
     """Per-task context handed to a stage.
@@ -77,8 +88,11 @@ class Context:
     seed : int
         The ``seed`` param of the stage (0 if it has none).
     mapper : callable, optional
-        ``mapper(fn, items) -> list``; the engine passes one that fans out on
-        the run's executor.  Defaults to a sequential map.
+        ``mapper(fn, items) -> list`` (results in item order); the engine
+        passes one that fans out on the run's executor.  A mapper that also
+        takes an ``on_done`` keyword (``on_done(i)`` called as item ``i``
+        finishes) lets :meth:`map` report progress as items complete.
+        Defaults to a sequential map.
     progress_hook : callable, optional
         ``progress_hook(done, total, label)``, called by :meth:`progress`; the
         engine sets one that forwards (rate-limited) to the command's display.
@@ -100,7 +114,7 @@ class Context:
 
     part: str | None = None
     seed: int = 0
-    mapper: Callable[[Callable[[Any], Any], list[Any]], list[Any]] | None = None
+    mapper: Callable[..., list[Any]] | None = None
     progress_hook: Callable[[int, int, str], None] | None = None
     warnings: list[str] = field(default_factory=list)
     workers: int = 1
@@ -119,8 +133,9 @@ class Context:
         ``fn`` must be a picklable (module-level) function or a
         ``functools.partial`` of one; results come back in item order.  With
         ``progress`` (a label), items done are reported through
-        :meth:`progress`: after each item when the map is sequential, at the
-        end when it runs on the executor.
+        :meth:`progress`: after each item when the map is sequential, as items
+        complete when the mapper takes ``on_done`` (the engine's does), else
+        at the start and the end.
         """
         items = list(items)
         n = len(items)
@@ -131,10 +146,20 @@ class Context:
                 if progress is not None:
                     self.progress(i + 1, n, progress)
             return out
-        if progress is not None:
-            self.progress(0, n, progress)
-        out = list(self.mapper(fn, items))
-        if progress is not None:
+        if progress is None:
+            return list(self.mapper(fn, items))
+        self.progress(0, n, progress)
+        done = 0
+        if _takes_on_done(self.mapper):
+            def on_done(i: int) -> None:
+                nonlocal done
+                done += 1
+                self.progress(done, n, progress)
+
+            out = list(self.mapper(fn, items, on_done=on_done))
+        else:
+            out = list(self.mapper(fn, items))
+        if done != n:
             self.progress(n, n, progress)
         return out
 

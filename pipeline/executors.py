@@ -594,23 +594,38 @@ def progress_sink() -> Callable[[dict[str, Any]], None] | None:
 # --------------------------------------------------------------------------- ctx.map
 
 
-def _distributed_map(fn: Callable[[Any], Any], items: list[Any]) -> list[Any]:
-    from distributed import worker_client  # noqa: PLC0415 (heavy)
+def _distributed_map(fn: Callable[[Any], Any], items: list[Any], *,
+                     on_done: Callable[[int], None] | None = None) -> list[Any]:
+    """Submit ``fn`` over ``items`` to the task's cluster; results in item order.
+
+    With ``on_done``, ``on_done(i)`` is called as item ``i`` finishes (in
+    completion order), so the task can report progress while it waits; the
+    first item that fails stops the wait and its error is raised.
+    """
+    from distributed import as_completed, worker_client  # noqa: PLC0415 (heavy)
 
     with worker_client() as client:
         futs = client.map(fn, items, pure=False)
+        if on_done is not None:
+            index = {fut.key: i for i, fut in enumerate(futs)}
+            for fut in as_completed(futs):
+                if fut.status != "finished":
+                    break  # gather raises its error
+                on_done(index[fut.key])
         return client.gather(futs)
 
 
-def task_mapper() -> Callable[[Callable[[Any], Any], list[Any]], list[Any]] | None:
+def task_mapper() -> Callable[..., list[Any]] | None:
     """The ``ctx.map`` backend for the current task.
 
     Returns
     -------
     callable or None
-        Inside a ``distributed`` worker: a map that submits the items to the
-        same cluster (seceding from the worker's thread pool while it waits).
-        Elsewhere ``None``: the context maps sequentially.
+        Inside a ``distributed`` worker: ``map(fn, items, *, on_done=None)``,
+        which submits the items to the same cluster (seceding from the worker's
+        thread pool while it waits), calls ``on_done(i)`` as item ``i``
+        finishes, and returns the results in item order.  Elsewhere ``None``:
+        the context maps sequentially.
     """
     try:
         from distributed import get_worker  # noqa: PLC0415 (heavy)

@@ -20,12 +20,14 @@ Toy stages
 ``toy_flaky``      fails its first ``fail_times`` attempts (counted in ``marker_dir``).
 ``toy_map``        squares the values through ``ctx.map`` in ``chunks`` pieces.
 ``toy_sleep``      sleeps ``seconds`` then passes its input through.
+``toy_map_sleep``  ``ctx.map`` of a ``seconds`` sleep over ``items`` items, with progress.
 ``toy_warn``       passes its input through, warning ``message`` ``times`` times.
 ``toy_die``        kills its own process when the part id contains ``pattern`` (a crash).
 """
 
 from __future__ import annotations
 
+import functools
 import os
 import textwrap
 import time
@@ -228,6 +230,26 @@ def toy_sleep(values: np.ndarray, *, seconds: float = 0.5) -> dict:
     """Sleep, then pass ``values`` through."""
     time.sleep(seconds)
     return {"values": np.asarray(values)}
+
+
+def _sleep_item(i: int, *, seconds: float) -> int:
+    time.sleep(seconds)
+    return i * i
+
+
+@stage("toy_map_sleep", outputs=("values",))
+def toy_map_sleep(values: np.ndarray, *, items: int = 8, seconds: float = 0.5,
+                  ctx: Context) -> dict:
+    """``ctx.map`` a ``seconds`` sleep over ``items`` items, reporting ``"items"`` progress.
+
+    Returns
+    -------
+    values : (items,) int ndarray
+        ``i**2`` for item ``i``, in item order (``values`` is ignored).
+    """
+    res = ctx.map(functools.partial(_sleep_item, seconds=seconds), range(items),
+                  progress="items")
+    return {"values": np.asarray(res, dtype=np.int64)}
 
 
 @stage("toy_warn", outputs=("values",))

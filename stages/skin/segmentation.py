@@ -84,6 +84,13 @@ class Segmentation:
         """Number of parts ``P``."""
         return len(self.part_names)
 
+    def __repr__(self) -> str:
+        """One line: markers, parts (the first few names), surface triangles."""
+        names = ", ".join(repr(n[:24]) for n in self.part_names[:3])
+        more = ", …" if self.n_parts > 3 else ""
+        return (f"Segmentation({len(self.labels)} markers in {self.n_parts} parts"
+                f"{': ' + names + more if names else ''}; {self.faces.shape[0]} triangles)")
+
     @property
     def hard_labels(self) -> np.ndarray:
         """``(M,)`` int: the part of largest weight of each marker."""

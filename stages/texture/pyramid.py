@@ -122,6 +122,14 @@ class Pyramid:
         """Number of levels."""
         return len(self.levels)
 
+    def __repr__(self) -> str:
+        """One line: levels and their node counts, joints, rate, filter taps."""
+        nodes = [lev.n_nodes for lev in self.levels]
+        shown = "/".join(map(str, nodes[:6])) + ("/…" if len(nodes) > 6 else "")
+        J = self.levels[0].rotations.shape[1] if self.levels else 0
+        return (f"Pyramid({len(nodes)} levels of {shown} nodes × {J} joints "
+                f"@ {float(self.rate):.4g} Hz, {self.filter_size}-tap filter)")
+
     @property
     def n_frames(self) -> int:
         """Frames of level 0."""

@@ -53,6 +53,16 @@ class StickStrip:
     frames: list[int] = field(default_factory=list)
     attrs: dict[str, Any] = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        """One line: strip size, frames shown, video size and rate (never the pixels)."""
+        H, W = self.image.shape[:2]
+        if self.video is None:
+            video = "no video"
+        else:
+            N, h, w = self.video.shape[:3]
+            video = f"video {N} frames of {w}×{h} px @ {float(self.rate):.4g} Hz"
+        return f"StickStrip({W}×{H} px strip of {len(self.frames)} frames, {video})"
+
 
 def _encode(s: StickStrip) -> Encoded:
     arrays = {"image": (s.image, ("image_y", "image_x", "rgb"))}  # (strip and video sizes differ)

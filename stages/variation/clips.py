@@ -149,6 +149,13 @@ class Clips:
         """Number of clips ``C``."""
         return len(self.trajectories)
 
+    def __repr__(self) -> str:
+        """One line: clips, frames, varying of all DOFs, rate, cyclic (never the data)."""
+        frames = sum(t.shape[0] for t in self.trajectories)
+        cyc = ", cyclic" if self.cyclic else ""
+        return (f"Clips({self.n_clips} {self.kind} clips, {frames} frames, {self.n_dofs} of "
+                f"{len(self.dof_names)} DOFs varying @ {self.rate:.4g} Hz{cyc})")
+
     @property
     def n_dofs(self) -> int:
         """Number of varying DOFs ``D``."""

@@ -86,6 +86,12 @@ class VariationModel:
         """``D``."""
         return self.clips.n_dofs
 
+    def __repr__(self) -> str:
+        """One line: DOFs, edge counts and the training clips' one-line repr."""
+        e = self.edges()
+        return (f"VariationModel({self.n_dofs} DOFs, {e['prior']} prior + {e['transition']} "
+                f"transition edges, trained on {self.clips!r})")
+
     def edges(self) -> dict[str, int]:
         """Edge counts (prior; transition extra parents, self edges excluded)."""
         return {

@@ -48,6 +48,13 @@ class Figures:
     images: dict[str, np.ndarray]
     attrs: dict[str, Any] = field(default_factory=dict)
 
+    def __repr__(self) -> str:
+        """One line: image count, the first few names and sizes (never the pixels)."""
+        shown = ", ".join(f"{k[:24]!r} {np.shape(v)[1]}×{np.shape(v)[0]}"
+                          for k, v in list(self.images.items())[:3])
+        more = ", …" if len(self.images) > 3 else ""
+        return f"Figures({len(self.images)} images{': ' + shown + more if shown else ''})"
+
 
 def _encode_figures(f: Figures) -> Encoded:
     # per-figure y / x dims: the figures differ in size

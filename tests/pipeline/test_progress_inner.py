@@ -7,9 +7,11 @@ import io
 import re
 import time
 
+import numpy as np
 import pytest
 
 from mocapflow.pipeline import cli as cli_module
+from mocapflow.pipeline import codecs
 from mocapflow.pipeline.config import load_config
 from mocapflow.pipeline.context import HINT_SEP, Context
 from mocapflow.pipeline.executors import SyncExecutor
@@ -188,3 +190,49 @@ def test_terminal_shows_a_row_per_running_task_until_it_ends():
     assert re.search(r"\] 2/3 hit 1 computed 1 failed 0", last), last
     assert re.search(r"\n?2 tasks: 1 hit, 1 computed, 0 failed, 0 skipped in \S+\n\Z",
                      buf.getvalue())
+
+
+MAP_SLEEP = """\
+parts: ["{data}/*.txt"]
+nodes:
+  read: {{stage: toy_read_file, inputs: {{path: part}}}}
+  msl: {{stage: toy_map_sleep, inputs: {{values: read.values}},
+        params: {{items: 8, seconds: 0.4}}}}
+"""
+
+
+def test_local_cluster_ctx_map_reports_items_as_they_complete(cli, recording, tmp_path):
+    write_number_files(tmp_path / "data", 1)
+    cfg = write_config(tmp_path / "m.yaml", MAP_SLEEP, data=tmp_path / "data")
+    code, out, err = cli("run", cfg, "--store", tmp_path / "s", "--executor", "local",
+                         "--workers", "2")
+    assert code == 0, err
+    (progress,) = recording
+    ((key, updates),) = [(k, v) for k, v in progress.received.items() if k[0] == "msl"]
+    done = [d for d, _, _ in updates]
+    assert {t for _, t, _ in updates} == {8} and {lb for _, _, lb in updates} == {"items"}
+    assert any(0 < d < 8 for d in done), updates  # not only 0/8 then 8/8
+    assert done == sorted(done) and updates[-1] == (8, 8, "items"), updates
+    store = Store(tmp_path / "s")
+    (entry,) = [k for s, k in store.entries() if s == "toy_map_sleep"]
+    values = codecs.decode(store.load("toy_map_sleep", entry, "values"))
+    np.testing.assert_array_equal(values, np.arange(8) ** 2)  # item order
+
+
+def test_context_map_passes_on_done_to_a_mapper_that_takes_it():
+    got = []
+
+    def mapper(fn, items, *, on_done=None):
+        out = [fn(x) for x in items]
+        for i in reversed(range(len(items))):  # completion order differs from item order
+            on_done(i)
+        return out
+
+    ctx = Context(mapper=mapper, progress_hook=lambda d, t, lb: got.append((d, t)))
+    assert ctx.map(abs, [-1, -2, -3], progress="x") == [1, 2, 3]
+    assert got == [(0, 3), (1, 3), (2, 3), (3, 3)]
+    got.clear()
+    plain = Context(mapper=lambda fn, items: [fn(x) for x in items],
+                    progress_hook=lambda d, t, lb: got.append((d, t)))
+    assert plain.map(abs, [-1, -2], progress="x") == [1, 2]
+    assert got == [(0, 2), (2, 2)]  # a two-argument mapper: start and end only
