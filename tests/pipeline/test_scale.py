@@ -28,8 +28,8 @@ def _toy(tmp_path, parts: int):
 def test_graph_builds_each_upstream_matcher_once(tmp_path, monkeypatch):
     built = []
     real = graph_mod._matcher
-    monkeypatch.setattr(graph_mod, "_matcher", lambda parts: built.append(len(parts))
-                        or real(parts))
+    monkeypatch.setattr(graph_mod, "_matcher", lambda parts, *a, **k: built.append(len(parts))
+                        or real(parts, *a, **k))
     counts = {}
     for parts in (40, 160):
         built.clear()

@@ -237,10 +237,24 @@ def test_importing_the_exporter_does_not_import_pxr():
     assert usd_mod.__name__.endswith("formats.usd")
 
 
+def demo_deformed_mesh(demo_run):
+    """The demo's deformed body, read from its store (the demo exports OBJ + PC2 only)."""
+    from mocapflow.pipeline import registry
+    from mocapflow.pipeline.api import _decode
+    from mocapflow.pipeline.show import find_node_entry
+    from mocapflow.pipeline.store import Store
+
+    registry.discover()
+    store = Store(demo_run.out / "store")
+    stage, key = find_node_entry(store, "deform")
+    return _decode(store.load_outputs(stage, key)["mesh"])
+
+
 @pytest.mark.slow
-def test_demo_deformed_mesh_usd(demo_run):
+def test_demo_deformed_mesh_usd(demo_run, tmp_path):
     assert demo_run.proc.returncode == 0, demo_run.proc.stderr[-3000:]
-    (usdc,) = (demo_run.out / "skin" / "deform").glob("*/mesh.usdc")
+    paths = export_mesh(demo_deformed_mesh(demo_run), tmp_path, "mesh", formats=("usd", "pc2"))
+    (usdc,) = [p for p in paths if p.suffix == ".usdc"]
     back = read_usd(usdc)
     cache, _ = read_pc2(usdc.with_suffix(".pc2"))
     assert back.vertices.shape == cache.shape and back.vertices.shape[1] > 10_000

@@ -18,9 +18,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.stages.motion.test_mesh_export_usd import demo_deformed_mesh
+
 SCRIPT = Path(__file__).with_name("blender_meshcache.py")
 FRAME = 100
-
 
 @pytest.fixture(scope="session")
 def blender() -> str:
@@ -48,11 +49,10 @@ def blender() -> str:
 
 @pytest.mark.slow
 def test_demo_mesh_imports_into_blender_as_one_animation(demo_run, blender, tmp_path):
-    pv = pytest.importorskip("pyvista")
     assert demo_run.proc.returncode == 0, demo_run.proc.stderr[-3000:]
     folder = next((demo_run.out / "skin" / "deform").glob("*/mesh.pc2")).parent
-    frame_vtp = folder / "mesh" / f"mesh_{FRAME:05d}.vtp"  # the same frame, as ParaView has it
-    ours = pv.read(str(frame_vtp)).points
+    mesh = demo_deformed_mesh(demo_run)  # the same frame, from the store
+    ours = mesh.vertices[FRAME]
     out = tmp_path / "blender.json"
     p = subprocess.run([blender, "-b", "--factory-startup", "--python-exit-code", "1",
                         "--python", str(SCRIPT), "--", str(folder / "mesh.obj"),
@@ -64,5 +64,5 @@ def test_demo_mesh_imports_into_blender_as_one_animation(demo_run, blender, tmp_
     err = np.abs(np.asarray(got["positions"]) - ours).max()
     assert err < 1e-5, err  # metres (float32 cache)
     # a neighbouring frame differs (the comparison is not trivially true)
-    other = pv.read(str(folder / "mesh" / f"mesh_{FRAME + 1:05d}.vtp")).points
+    other = mesh.vertices[FRAME + 1]
     assert np.abs(np.asarray(got["positions"]) - other).max() > 1e-4
