@@ -59,7 +59,9 @@ Departures the module docstrings state (each can be switched off):
 
 * per-node bandwidth chosen by held-out likelihood when ``kernel_width=None``
   (``kernel.bandwidth2``, ``kernel.KERNEL_GRID``);
-* offset retention ``λ`` of the transition mean, ``half_life`` (``training.retention_of``);
+* offset retention ``λ`` of the transition mean, ``half_life`` (``training.retention_of``),
+  lowered per DOF to the value calibrated on the held-out clips' offsets,
+  ``calibrate_retention`` (``scores.transition_node_retention``, ``learn.learn``);
 * the phase DOFs (``training.with_phase``): normalised time ``_phase`` for
   non-cyclic clips, which also ends variants; the cycle phase
   ``(cos φ, sin φ)`` for cyclic clips, a parent of every transition node
@@ -71,8 +73,8 @@ Departures the module docstrings state (each can be switched off):
 * single-precision neighbour search, and the optional phase-window search of
   crowds (``sample.Sampler``, ``window``);
 * IK over whole clips instead of frame by frame, joint limits as bounds
-  (``range_margin``) and corrections that ease in and out (``ease``; 0 is Eq. 7
-  alone) (``ik``).
+  (``range_margin``, at most ``range_fraction`` of a DOF's own range) and
+  corrections that ease in and out (``ease``; 0 is Eq. 7 alone) (``ik``).
 """
 
 #: The modules of this family that register stages, codecs or exporters, each with

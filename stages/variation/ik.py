@@ -22,8 +22,9 @@ Departures from the paper, stated
     eases in and out without ringing (frame by frame, IK doubled the sample's
     jerk).  Joint limits are added as bounds: each Euler channel of a non-root
     joint stays within the inputs' range (``attrs["input_range"]``, set by
-    the ``sample`` stage) widened by ``range_margin``, which keeps a knee from
-    bending backwards.  ``w₂`` weighs second differences of frames at 60 fps
+    the ``sample`` stage) widened by ``range_margin`` (at most ``range_fraction``
+    of the DOF's own range, so a channel the inputs hold still stays still),
+    which keeps a knee from bending backwards.  ``w₂`` weighs second differences of frames at 60 fps
     (the paper's rate) and is scaled to the model's rate (:data:`W2_RATE`).
 Limbs and targets
     The limb of an effector joint is the chain of its ancestors up to (not
@@ -100,6 +101,7 @@ __all__ = [
     "DETECTED_WARN",
     "GIVEN_WEIGHT",
     "IKError",
+    "RANGE_FRACTION",
     "Limb",
     "W2_RATE",
     "ik",
@@ -107,6 +109,11 @@ __all__ = [
     "limb_of",
     "stance_runs",
 ]
+
+RANGE_FRACTION = 0.5
+"""The shipped configs' ``range_fraction`` (``configs/variation.yaml``): a joint limit widens the
+inputs' range of a DOF by at most this fraction of that range (:func:`joint_limits`)."""
+
 
 class IKError(ValueError):
     """Bad IK request (unknown effector joint, malformed targets)."""
@@ -203,8 +210,16 @@ class _Solver:
     max_iter: int
 
 
-def joint_limits(clips: Clips, margin: float) -> tuple[np.ndarray, np.ndarray]:
+def joint_limits(
+    clips: Clips, margin: float, *, fraction: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Bounds of each varying DOF: the inputs' range widened by ``margin``.
+
+    The widening of a DOF is at most ``fraction`` of its own range: a channel
+    the inputs hold (nearly) still stays so (the hip twist of the procedural
+    walk spans 0.001 rad, ~10 of its standard deviations; widened by 0.025 rad
+    the IK turned it 25 ranges out to place the feet, PC1 of the variants' Fig. 6
+    at ±45 for inputs within ±6).
 
     Parameters
     ----------
@@ -213,6 +228,9 @@ def joint_limits(clips: Clips, margin: float) -> tuple[np.ndarray, np.ndarray]:
         gives the inputs' range; without it (clips not sampled) nothing is bounded.
     margin : float
         Radians added on both sides.
+    fraction : float or None
+        At most this fraction of the DOF's range is added (``None``: ``margin``
+        for every DOF).
 
     Returns
     -------
@@ -229,7 +247,8 @@ def joint_limits(clips: Clips, margin: float) -> tuple[np.ndarray, np.ndarray]:
     for i, n in enumerate(labels):
         joint = n.partition(":")[0]
         if n.endswith("rotation") and joint != root and n in lo_of:
-            low[i], high[i] = lo_of[n] - margin, hi_of[n] + margin
+            m = margin if fraction is None else min(margin, fraction * (hi_of[n] - lo_of[n]))
+            low[i], high[i] = lo_of[n] - m, hi_of[n] + m
     return low, high
 
 
@@ -307,6 +326,7 @@ def ik(
     contact_gap: float = 0.05,
     ease: float = 0.25,
     range_margin: float = 0.025,
+    range_fraction: float | None = None,
     stiffness: float = 1e6,
     tolerance: float = 1e-3,
     max_iter: int = 50,
@@ -367,6 +387,11 @@ def ik(
         exported channels within 0.05 of the inputs' range also for a joint
         near gimbal lock, whose file channels are the other Euler triple of its
         DOFs (``RThumb`` of ``cmu_131_02.bvh``: 0.046 rad; at 0.03: 0.051).
+    range_fraction : float or None
+        The widening of a DOF is at most this fraction of the inputs' range of
+        it (:func:`joint_limits`): a channel the inputs hold still is not used
+        to reach the targets; ``None`` (default): ``range_margin`` for every DOF.
+        The shipped config sets :data:`RANGE_FRACTION`.
     stiffness : float
         Weight of a detected contact's squared target distance (per m²) against
         Eq. 7's terms: the default 1e6 makes 1 mm off cost as much as 1 rad off
@@ -413,7 +438,8 @@ def ik(
         variants = variants.replace(attrs={**variants.attrs, "output_rate": float(output_rate)})
     if mode == "off":
         return {"variants": variants, "report": {"skipped": "off"}}
-    _check_weights(w1=w1, stiffness=stiffness, w2=w2, ease=ease, range_margin=range_margin)
+    _check_weights(w1=w1, stiffness=stiffness, w2=w2, ease=ease, range_margin=range_margin,
+                   **({} if range_fraction is None else {"range_fraction": range_fraction}))
     if predicted is not None:
         _check_predicted(variants, predicted)
     sk = variants.skeleton
@@ -427,7 +453,7 @@ def ik(
     frames = _Frames(rate=float(variants.rate), output_rate=export_rate(variants))
     rate = float(variants.rate)
     report: dict[str, Any] = {"clips": [], "limbs": [[sk.names[e] for e in g] for g in groups]}
-    low, high = joint_limits(variants, range_margin)
+    low, high = joint_limits(variants, range_margin, fraction=range_fraction)
     solved = _played_in_order(variants)
     means = solved if predicted is None else _played_in_order(predicted)
     # Eq. 7 without constraints: every DOF, within its limits
@@ -464,6 +490,7 @@ def ik(
         {"w1": w1, "w2": w2, "w2_per_model_frame": w2_model, "height_threshold": height_threshold,
          "speed_threshold": speed_threshold, "min_contact": min_contact,
          "contact_gap": contact_gap, "ease": ease, "range_margin": range_margin,
+         "range_fraction": range_fraction,
          "stiffness": stiffness,
          "tolerance": tolerance, "rate": frames.rate, "output_rate": frames.output_rate,
          "qbar": "sample" if predicted is None else "predicted",

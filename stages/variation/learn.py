@@ -39,8 +39,18 @@ Additions to the paper (each can be switched off)
     ``λ`` per frame of the state's offset from its neighbours
     (:func:`~mocapflow.stages.variation.training.retention_of`); pure delta
     regression (``None``) lets a state that has left the data run away under
-    sampling noise.  ``phase`` (default for non-cyclic clips): a normalised-time
-    DOF (:func:`~mocapflow.stages.variation.training.with_phase`) that
+    sampling noise.  ``calibrate_retention`` (on in ``configs/variation.yaml``;
+    default off, the ``half_life`` retention for every DOF): each DOF's retention
+    is lowered from that of ``half_life`` to the one at which the offset the
+    sampling noise accumulates has the held-out clips' spread about their
+    neighbours (:func:`~mocapflow.stages.variation.scores.transition_node_retention`),
+    computed once the structure is found (the search scores with the
+    ``half_life`` retention): near-identical examples (the demo's procedural
+    walk, 6 cycles of 5 % variation) otherwise give variants whose knee runs
+    1.2 rad past the inputs' range, once noise carries it past a sharp turn and
+    neighbours of other phases with the same velocity keep it going.
+    ``phase`` (default for non-cyclic clips): a normalised-time DOF
+    (:func:`~mocapflow.stages.variation.training.with_phase`) that
     disambiguates look-alike states and ends variants.
     ``kernel_width=None``: per-node bandwidth by held-out likelihood.
     ``horizon`` (default ``None``, the paper's unbounded propagation): the
@@ -62,6 +72,7 @@ import numpy as np
 from mocapflow.pipeline import Context, stage
 from mocapflow.stages.variation.clips import ClipError, Clips, flatten_clips
 from mocapflow.stages.variation.model import VariationModel
+from mocapflow.stages.variation.scores import transition_node_retention
 from mocapflow.stages.variation.search import search_prior, search_transition
 from mocapflow.stages.variation.training import (
     CYCLE_PHASE,
@@ -93,6 +104,7 @@ def learn(
     prior_window: int | None = None,
     score: Literal["propagated", "one_step"] = "propagated",
     half_life: float | None = 0.5,
+    calibrate_retention: bool = False,
     horizon: float | None = None,
     phase: bool | None = None,
     cyclic: bool | None = None,
@@ -129,6 +141,11 @@ def learn(
         Seconds; offset retention of the transition mean
         (:func:`~mocapflow.stages.variation.training.retention_of`; ``None``: pure
         delta regression, which can run away from the data under noise).
+    calibrate_retention : bool
+        Lower each DOF's retention to the one calibrated on the held-out clips
+        (:func:`~mocapflow.stages.variation.scores.transition_node_retention`;
+        at most that of ``half_life``), stored as ``params["retention_dof"]``;
+        ``False`` (default): the ``half_life`` retention for every DOF.
     horizon : float or None
         Seconds; ``score="propagated"`` only: the re-synthesised state is
         re-anchored to the held-out clip's true frames every ``horizon``
@@ -155,7 +172,8 @@ def learn(
     dict
         ``model`` (:class:`VariationModel`) and ``report`` (JSON: sizes, k used,
         edge counts, parents per node, scores, evaluations; the times of the steps
-        ``training_data``, ``transition`` and ``prior`` go to ``ctx.timer``).
+        ``training_data``, ``transition``, ``prior`` and ``retention`` go to
+        ``ctx.timer``).
     """
     try:
         data = flatten_clips(clips)
@@ -183,6 +201,14 @@ def learn(
             pdata, candidates=candidates, max_parents=max_parents, restarts=restarts,
             seed=seed, ctx=ctx,
         )
+    retention = retention_of(half_life, train.rate)
+    retention_dof = [retention] * train.n_dofs
+    if calibrate_retention:
+        with ctx.timer("retention"):
+            retention_dof = [
+                transition_node_retention(tdata, i, ps, h * h, cap=retention)
+                for i, (ps, h) in enumerate(zip(transition.parents, transition.bandwidth))
+            ]
     model = VariationModel(
         clips=train.replace(cyclic=cyclic),
         prior_parents=prior.parents,
@@ -199,7 +225,9 @@ def learn(
             "cyclic": cyclic,
             "half_life": half_life,
             "horizon": None if horizon is None else float(horizon),
-            "retention": retention_of(half_life, train.rate),
+            "retention": retention,
+            "retention_dof": [float(x) for x in retention_dof],
+            "calibrate_retention": bool(calibrate_retention),
             "phase": bool(phase),
         },
         prior_scores=prior.scores,

@@ -165,7 +165,11 @@ class Sampler:
             [Ut, Ac[:, None, :], np.ones_like(Ac)[:, None, :]], axis=1), dtype=np.float32)
         Y = td.Y.T  # (D, N)
         Zc = td.F[:, D:].T  # (D, N) standardised x[t+1]
-        self.retention = float(p.get("retention", 1.0))
+        #: (D,) offset retention per DOF: the calibrated ``retention_dof`` of the model
+        #: (:func:`~.scores.transition_node_retention`), else the ``half_life`` one
+        self.retention = np.broadcast_to(
+            np.asarray(p.get("retention_dof", p.get("retention", 1.0)), dtype=np.float64),
+            (D,)).copy()
         # Σw·Δ, Σw·Δ², Σw·z[t+1], Σw in one product
         self.YYZ = np.ascontiguousarray(
             np.stack([Y, Y**2, Zc, np.ones_like(Y)], axis=-1).astype(np.float32))  # (D, N, 4)
@@ -297,7 +301,7 @@ class Sampler:
         var = np.maximum(s[..., 1] / sw - mu * mu, 0.0) + self.ms * self.ms
         mean = zc + mu.T * self.ratio
         lam = self.retention
-        if lam < 1.0:
+        if np.any(lam < 1.0):
             mean += (lam - 1.0) * (zc - (s[..., 2] / sw).T)
         std = np.sqrt(var).T * self.ratio
         if self.window is not None:  # back to the callers' order

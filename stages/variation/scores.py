@@ -31,6 +31,7 @@ Transition network (:func:`transition_node_fits`)
 
 from __future__ import annotations
 
+import math
 from typing import Any, Literal
 
 import numpy as np
@@ -50,6 +51,7 @@ __all__ = [
     "prior_node_score",
     "transition_node_fit",
     "transition_node_fits",
+    "transition_node_retention",
     "transition_node_score",
 ]
 
@@ -261,6 +263,50 @@ def _transition_kr(data: TransitionData, i: int, d2: np.ndarray, zc: np.ndarray,
         zbar, _ = kernel_regression(d2k, data.F[idx, data.n_dofs + i], h2=h2, min_std=0.0)
         mu = mu + (data.retention - 1.0) * (zc - zbar) / data.ratio[i]
     return mu, var
+
+
+def transition_node_retention(
+    data: TransitionData, i: int, parents, h2: float, *, cap: float = 1.0
+) -> float:
+    """Offset retention ``λ_i`` of transition node ``i`` calibrated on held-out clips.
+
+    Under the sampler the offset ``o = x[t+1] − x̄[t+1]`` of a DOF from its
+    kernel-weighted neighbours follows ``o' = λ o + e`` with ``e`` the sampling
+    noise of variance ``s²`` (the node's predictive variance), so its spread
+    settles at ``s² / (1 − λ²)``.  Matching that to the held-out clips' offsets
+    (each instance's offset from its neighbours in the other clips, the
+    leave-one-out masks of ``data``) gives ``λ² = 1 − mean s² / mean o²``
+    (0 when the noise alone reaches the held-out spread: value regression,
+    ``x̄[t+2]``), at most ``cap``.  Near-identical examples (offsets as small as
+    the noise) get a strong pull back to the data; varied ones keep ``cap``.
+
+    Parameters
+    ----------
+    data : TransitionData
+    i : int
+        DOF index.
+    parents : iterable of int
+        Extra parents of the node (as in :func:`transition_node_fit`).
+    h2 : float
+        The node's squared bandwidth.
+    cap : float
+        Upper bound (the ``half_life`` retention).
+
+    Returns
+    -------
+    float
+    """
+    penalty = np.where(data.valid, 0.0, np.inf)
+    d2 = _pair_d2(data.F, list(parents)) + _self_d2(data, i) + penalty
+    idx = k_nearest(d2, data.k)
+    d2k = np.take_along_axis(d2, idx, axis=-1)
+    _, var = kernel_regression(d2k, data.Y[idx, i], h2=h2, min_std=data.min_std)
+    zc = data.F[:, data.n_dofs + i]
+    zbar, _ = kernel_regression(d2k, zc[idx], h2=h2, min_std=0.0)
+    o2 = float(np.mean((zc - zbar) ** 2))
+    s2 = float(np.mean(var)) * data.ratio[i] ** 2  # delta units -> standardised position
+    lam2 = 1.0 - s2 / o2 if o2 > 0.0 else 0.0
+    return float(min(math.sqrt(max(lam2, 0.0)), cap))
 
 
 def transition_node_score(data: TransitionData, i: int, parents, **kw: Any) -> float:
