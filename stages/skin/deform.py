@@ -380,7 +380,8 @@ def _fit_parts(models: list[PartModel], x: np.ndarray, *, mode: str,
         [(_without_vertices(m), x[:, m.members]) for m in models],
     )
     for m, f in zip(models, fits):
-        for msg in m.messages + f.messages:
+        notes = m.messages if mode.endswith("residual") else []  # the kernel's notes
+        for msg in notes + f.messages:
             ctx.warn(msg, hint=_fallback_hint(msg))
     return fits
 
@@ -518,12 +519,19 @@ def deform(
         (``attrs``: ``vertex_part``, ``V`` ints indexing ``part_names``);
         ``report``: per-part markers, mode used, fallback frames, and the RMS
         distance (mm) between the observed markers and the model's prediction.
+        A segmentation below Park & Hodgins' density (``attrs["density"]["suited"]``
+        false, :mod:`~mocapflow.stages.skin.density`) is skinned rigidly whatever
+        ``mode`` says, every vertex bound to its nearest marker triangle (no
+        overlap error).
     """
     if mesh.animated:
         raise DeformError("deform: the detailed mesh must be a single rest pose (V, 3)")
     x = align_markers(markers, segmentation)
+    sparse = (segmentation.attrs.get("density") or {}).get("suited") is False
+    if sparse:  # below Park & Hodgins' density (segment warned once): rigid skinning
+        mode = "rigid"
     binding = bind_mesh(mesh.vertices, segmentation, sharpness=beta_sharpness,
-                        name="detailed mesh")
+                        name="detailed mesh", min_overlap=0.0 if sparse else 0.9)
     # frame-independent set-up in-process (cheap; per-vertex arrays stay here), the
     # per-part fits over all frames on the executor (small inputs and outputs)
     models = [
@@ -539,6 +547,7 @@ def deform(
     verts = _deform_frames(models, fits, x.shape[0], V, residual=mode.endswith("residual"),
                            chunk_frames=chunk_frames, ctx=ctx)
     report = _deform_report(models, fits, x, binding, V, mode=mode)
+    report["density"] = segmentation.attrs.get("density")
     rms = [p["marker_rms_mm"] for p in report["parts"].values() if p["marker_rms_mm"] is not None]
     ctx.figure("parts", len(report["parts"]))
     if rms:

@@ -39,6 +39,7 @@ __all__ = [
     "mesh_laplacian",
     "similarity_transform",
     "template_mesh",
+    "upright_fit",
 ]
 
 
@@ -333,6 +334,138 @@ def _nonrigid_fit(X: np.ndarray, Y: np.ndarray, faces: np.ndarray, lm_m: np.ndar
     return X + U
 
 
+def _upright_step(src: np.ndarray, Y: np.ndarray, w: np.ndarray, up: np.ndarray,
+                  scale_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted ``Y ≈ s R src + t`` with ``R`` a turn about ``up`` and ``s`` clipped to
+    ``scale_range``: returns ``A = s R (3, 3)`` and ``t (3,)``."""
+    w = w / w.sum()
+    ms, mt = w @ src, w @ Y
+    S, T = src - ms, Y - mt
+    Sh, Th = S - np.outer(S @ up, up), T - np.outer(T @ up, up)  # horizontal parts
+    e1 = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    a = np.sum(w * ((Sh @ e1) * (Th @ e1) + (Sh @ e2) * (Th @ e2)))
+    b = np.sum(w * ((Sh @ e1) * (Th @ e2) - (Sh @ e2) * (Th @ e1)))
+    theta = np.arctan2(b, a)
+    K = np.array([[0, -up[2], up[1]], [up[2], 0, -up[0]], [-up[1], up[0], 0]])
+    R = np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K  # Rodrigues about up
+    RS = S @ R.T
+    var = float(np.sum(w * np.sum(S**2, 1)))
+    s = float(np.sum(w * np.sum(RS * T, 1)) / var) if var > 0 else 1.0
+    s = float(np.clip(s, *scale_range))
+    return s * R, mt - s * R @ ms
+
+
+def upright_fit(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    targets: np.ndarray,
+    up: np.ndarray,
+    *,
+    marker_offset: float = 0.0,
+    trim: float = 0.25,
+    iterations: int = 15,
+    scale_range: tuple[float, float] | None = None,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Fit a body template to sparse markers keeping it upright: scale, turn, shift.
+
+    Sparse or partial marker sets (a clinical set, one arm and the trunk) cannot
+    constrain an affine map or a non-rigid fit (the template shears, tips over or
+    swells to the markers' bounding box); a body stands along the capture's up
+    axis, so only a uniform scale (within ``scale_range`` of the template's,
+    which is in metres), a turn about ``up`` and a shift are fitted, by trimmed
+    iterated closest points from 12 starts (4 headings x the markers' top, middle
+    or bottom at the template's), the best kept.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float ndarray
+        Template in the capture's axes (its long axis along ``up``), metres.
+    faces : (T, 3) int ndarray
+    targets : (M, 3) float ndarray
+        Marker reference positions (metres).
+    up : (3,) float ndarray
+        Unit up vector of the capture.
+    marker_offset : float
+        Markers sit this far (m) outside the skin.
+    trim : float
+        Fraction of the worst correspondences ignored (markers off the template's
+        pose, e.g. arms down against a T-pose).
+    iterations : int
+        Closest-point iterations per start.
+    scale_range : tuple of float, optional
+        Allowed uniform scale; default from the markers' extent ``h`` along ``up``
+        and the template's height ``H``: ``[max(0.8, h/H), max(1.05, 1.1 h/H)]``
+        (the body holds the markers; a partial set -- trunk and arm -- keeps about
+        the template's adult size: sparse markers inside a T-pose otherwise pull
+        the scale up, measured 1.4 on the Qualisys capture).
+
+    Returns
+    -------
+    vertices : (V, 3) float ndarray
+        The fitted template.
+    info : dict
+        As :func:`fit_detailed_mesh`'s (``scale``, ``rotation_deg``, ``aligned``,
+        ``fitted``), plus ``method="upright"``.
+    """
+    V0 = np.asarray(vertices, dtype=np.float64)
+    Y = np.asarray(targets, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    offset = marker_offset * (1.0 if _signed_volume(V0, faces) >= 0 else -1.0)
+    hv, hy = V0 @ up, Y @ up
+    if scale_range is None:
+        r = float(np.ptp(hy) / max(np.ptp(hv), 1e-12))
+        scale_range = (min(max(0.8, r), 1.3), min(max(1.05, 1.1 * r), 1.4))
+    best = None
+    for heading in range(4):
+        K = np.array([[0, -up[2], up[1]], [up[2], 0, -up[0]], [-up[1], up[0], 0]])
+        ang = heading * np.pi / 2
+        R0 = np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * K @ K
+        for where in ("top", "middle", "bottom"):
+            c_v = {"top": hv.max(), "middle": (hv.max() + hv.min()) / 2, "bottom": hv.min()}[where]
+            c_y = {"top": hy.max(), "middle": (hy.max() + hy.min()) / 2, "bottom": hy.min()}[where]
+            mv, my = V0.mean(0) - (V0.mean(0) @ up) * up, Y.mean(0) - (Y.mean(0) @ up) * up
+            A, t = R0, my - R0 @ mv + (c_y - c_v) * up
+            for _ in range(iterations):
+                X = V0 @ A.T + t
+                _, _, src, dist = _marker_correspondences(Y, X, faces, offset)
+                w = (dist <= np.quantile(dist, 1 - trim)).astype(float)
+                A_s, t_s = _upright_step(src, Y, w, up, (0.5, 2.0))
+                A_new, t_new = A_s @ A, A_s @ t + t_s
+                s_new = float(np.cbrt(abs(np.linalg.det(A_new))))
+                if not scale_range[0] <= s_new <= scale_range[1]:  # hold the scale in range
+                    A_new = A_new * (np.clip(s_new, *scale_range) / s_new)
+                step = float(np.abs((V0 @ A_new.T + t_new) - X).max())
+                A, t = A_new, t_new
+                if step < 1e-6:
+                    break
+            dist = _marker_correspondences(Y, V0 @ A.T + t, faces, offset)[3]
+            score = float(np.mean(np.sort(dist)[: max(1, int(len(dist) * (1 - trim)))] ** 2))
+            if best is None or score < best[0]:
+                best = (score, A, t)
+    _, A, t = best
+    out = V0 @ A.T + t
+    dist = _marker_correspondences(Y, out, faces, offset)[3]
+    s = float(np.cbrt(abs(np.linalg.det(A))))
+    R = A / s
+    stats = {"rms_mm": float(np.sqrt(np.mean(dist**2)) * 1000),
+             "median_mm": float(np.median(dist) * 1000),
+             "p90_mm": float(np.percentile(dist, 90) * 1000),
+             "max_mm": float(dist.max() * 1000)}  # fmt: skip
+    info = {
+        "method": "upright",
+        "scale": s,
+        "axis_scales": [s, s, s],
+        "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))),
+        "translation_m": [float(v) for v in t],
+        "aligned": stats,
+        "fitted": stats,
+    }
+    return out, info
+
+
 def _closest_frame(vertices: np.ndarray, faces: np.ndarray, targets: np.ndarray) -> int:
     """Frame of an animated mesh ``(F, V, 3)`` whose surface is nearest the targets."""
     F = vertices.shape[0]
@@ -398,7 +531,10 @@ def fit_mesh(
     ------
     DeformError
         Unknown landmark labels, or a template that stays far from the markers
-        after alignment (90th percentile distance > one marker spacing).
+        after alignment (90th percentile distance > one marker spacing).  A
+        segmentation below Park & Hodgins' density (``attrs["density"]["suited"]`` false, see
+        :mod:`~mocapflow.stages.skin.density`) gets :func:`upright_fit` instead
+        (no non-rigid fit, no such error).
     """
     if template.animated and template_frame is None:
         template_frame = _closest_frame(template.vertices, template.faces, segmentation.reference)
@@ -418,6 +554,15 @@ def fit_mesh(
     if unknown:
         raise DeformError(f"fit_mesh: landmarks name unknown markers {unknown[:10]}")
     lm = {index[k]: int(v) for k, v in (landmarks or {}).items()}
+    if (segmentation.attrs.get("density") or {}).get("suited") is False:
+        # below Park & Hodgins' density (segment warned once): the upright fit
+        fitted, info = upright_fit(V, template.faces, segmentation.reference,
+                                   frame_basis(axes["up"], axes["forward"])[:, 1],
+                                   marker_offset=marker_offset)  # fmt: skip
+        report = {**info, "vertices": int(len(V)), "template_frame": template_frame}
+        ctx.figure("fit", f"upright x{info['scale']:.2f}")
+        mesh = Mesh(vertices=fitted, faces=template.faces, attrs={**template.attrs, **axes})
+        return {"mesh": mesh, "report": report}
     fitted, info = fit_detailed_mesh(
         V, template.faces, segmentation.reference, landmarks=lm,
         stiffness=tuple(stiffness) if stiffness else (30.0, 10.0, 3.0, 1.0),

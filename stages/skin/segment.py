@@ -41,6 +41,11 @@ from scipy.spatial import cKDTree
 from mocapflow.pipeline import Context, FilePath, stage
 from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
 from mocapflow.stages.motion.datatypes import Markers, Mesh
+from mocapflow.stages.skin.density import (
+    density_warning,
+    marker_density,
+    object_markers,
+)
 from mocapflow.stages.skin.segmentation import Segmentation, SegmentationError
 
 __all__ = [
@@ -623,6 +628,38 @@ def _surface_markers(markers: Markers, surface: Mesh,
     return markers, reference, faces
 
 
+def _body_markers(markers: Markers, reference: np.ndarray, faces: np.ndarray,
+                  ctx: Context) -> tuple[Markers, np.ndarray, np.ndarray]:
+    """The capture without the markers on objects (:func:`~mocapflow.stages.skin.density.
+    object_markers`; one warning names them): markers ``(F, M', 3)``, their reference
+    positions ``(M', 3)`` and the faces ``(T', 3)`` among them."""
+    obj = object_markers(markers.labels, reference)
+    if not obj.any():
+        return markers, reference, faces
+    if obj.all():
+        raise SegmentationError(
+            f"{_source(markers)}: every marker looks like an object marker (names or place): "
+            f"{markers.labels[:10]}; nothing is left for the body"
+        )
+    keep = np.flatnonzero(~obj)
+    remap = np.full(len(obj), -1)
+    remap[keep] = np.arange(len(keep))
+    faces = remap[faces[~obj[faces].any(1)]]
+    names = [lb for lb, o in zip(markers.labels, obj) if o]
+    ctx.warn(
+        f"{_source(markers)}: {len(names)} markers on objects are kept apart from the body "
+        f"(a second subject, not segmented, fitted or deformed): {names[:12]}"
+    )
+    markers = markers.replace(positions=markers.positions[:, keep],
+                              labels=[markers.labels[i] for i in keep])  # fmt: skip
+    return markers, reference[keep], faces
+
+
+def _source(markers: Markers) -> str:
+    """The capture's file name for messages."""
+    return Path(str(markers.attrs.get("source") or "capture")).name
+
+
 def _cluster_triangles(positions: np.ndarray, reference: np.ndarray, faces: np.ndarray,
                        n_markers: int, *, bandwidth: float,
                        max_frames: int) -> tuple[np.ndarray, np.ndarray]:
@@ -735,6 +772,7 @@ def segment(
         their markers, rigid-fit RMS in mm, merges, boundary markers).
     """
     markers, reference, faces = _surface_markers(markers, surface, ctx)
+    markers, reference, faces = _body_markers(markers, reference, faces, ctx)
     M = markers.n_markers
     pos = markers.positions
     F = pos.shape[0]
@@ -764,10 +802,17 @@ def segment(
         labels, adjacency, reference, pos_s, threshold=threshold, sigma=sigma
     )
     origins, axes = part_frames(reference, alpha)
-    _warn_small_parts(names, alpha, ctx)
+    density = marker_density(reference, labels)
+    if density["suited"]:
+        _warn_small_parts(names, alpha, ctx)
+    else:  # one warning for the capture instead of one per small part
+        ctx.warn(density_warning(density, _source(markers)),
+                 hint="a dense capture (~350 markers, e.g. the one `mocapflow demo` "
+                      "simulates) is what the method is for")  # fmt: skip
     report = _segment_report(markers.labels, names, labels, alpha, fit_rms, merges,
                              n_clusters=int(tri_labels.max() + 1), frames_used=len(fidx),
                              override=bool(manual))
+    report["density"] = density
     seg = Segmentation(
         labels=markers.labels,
         part_names=names,
@@ -784,6 +829,9 @@ def segment(
             "sigma": sigma,
             "n_parts": n_parts,
             "min_part_markers": min_part_markers,
+            # Park & Hodgins' density rule (density.marker_density): fit_mesh and deform
+            # fall back to an upright fit and rigid skinning when it is not met
+            "density": density,
             # the capture's axes (ingest), read by fit_mesh and the renderer
             **{k: markers.attrs[k] for k in ("up", "forward") if k in markers.attrs},
         },
