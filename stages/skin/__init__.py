@@ -18,6 +18,10 @@ the paper lives in one function (modules of this package):
   trajectory merging                     merge.merge_fragments (rounds: merge._merge_rounds)
   ε₁ = α₁·d̄, ε₂ = α₂·d̄                   merge._tolerances
   entry / tube / ambiguity tests         merge._judge_fragment
+  fragments left, against the final      merge.assign_fragments (exact gaps:
+  filling, jointly (beyond the paper)    merge._exact_gap_jumps; one assignment per
+                                         frame window: merge._decide); rounds:
+                                         clean._fill_merge_rounds
 §4.3 hole filling (dispatcher)           fill.fill_holes
   local PCA of marker + one-ring,        local_pca.train_local_pca
   training frames aligned (P&H Eq. 5)
@@ -56,7 +60,11 @@ Departures from the paper (each module docstring says why, with measurements):
   fragment must stay within ε₁ on average, rivals within AMBIGUITY_RATIO make it
   ambiguous, d̄ is capped by the nearest-marker distance, and fragments left
   are judged again against the PCA fill (clean._pca_merge_rounds, param
-  ``pca_merge_rounds``);
+  ``pca_merge_rounds``), then against the final filling, jointly: a fragment
+  that continues an exact gap, else one assignment problem per frame window
+  (linear_sum_assignment, ε₁ the cost cap, refused within
+  merge.ASSIGNMENT_RATIO; param ``fill_merge_rounds``; the paper merged the
+  rest by hand);
 * hole filling: the default is a wider regression (``fill_model="regression"``:
   fill.fill_by_regression, regress.regression_estimates), the paper's local PCA
   fills what it cannot reach (``"pca"``: the paper alone); a neighbour's model
