@@ -257,7 +257,7 @@ def test_demo_deformed_mesh_usd(demo_run, tmp_path):
     (usdc,) = [p for p in paths if p.suffix == ".usdc"]
     back = read_usd(usdc)
     cache, _ = read_pc2(usdc.with_suffix(".pc2"))
-    assert back.vertices.shape == cache.shape and back.vertices.shape[1] > 10_000
+    assert back.vertices.shape == cache.shape and back.vertices.shape[1] > 4_000  # 5,000 (quick)
     assert np.array_equal(back.vertices, cache)
     assert back.time_codes_per_second == back.frames_per_second > 0
     part = back.primvars["vertex_part"]
