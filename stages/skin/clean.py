@@ -674,7 +674,7 @@ def clean(
         (``fill_model``), jointly: exact gaps, then one assignment problem per
         frame window (:func:`~mocapflow.stages.skin.merge.assign_fragments`);
         until a round merges nothing (0: off, the default; none without ``fill``).
-        ``configs/skin.yaml`` sets 5 for the trials: on simulated dynamic and walk
+        5 (``--set clean.fill_merge_rounds=5``): on simulated dynamic and walk
         captures it keeps 99-100 % of real samples with no wrong merge, but on a
         range-of-motion capture, whose fill is off by more than ε₁, it made 1-2
         wrong merges (seeds 2, 3), so it is off by default.
