@@ -353,7 +353,7 @@ def _pixel_box(ax, height: int) -> list[int]:
             int(round(height - b.y0))]
 
 
-def _render_strip(
+def render_strip(
     motion: Motion,
     *,
     n_panels: int = 8,
@@ -363,9 +363,46 @@ def _render_strip(
     highlight: list[int] | None = None,
     marks: dict[str, Any] | None = None,
     path: np.ndarray | None = None,
-) -> tuple[np.ndarray, list[int], dict[str, list[list[int]]]]:
-    """:func:`render_strip` and the pixel boxes of its panels (``view -> [[x0, y0, x1, y1]]``,
-    and ``"timeline"``)."""
+    return_boxes: bool = False,
+) -> tuple[np.ndarray, list[int]] | tuple[np.ndarray, list[int], dict[str, list[list[int]]]]:
+    """Poses spread over the motion side by side, at different phases (:func:`panel_frames`).
+
+    One row of panels per view: ``side`` / ``front`` in the root's heading frame
+    (the figure faces right / the camera, the floor as a line), scaled by the
+    figure's height; ``top`` seen from above in world axes, each centred on its pose,
+    all at one scale from the horizontal extent of the poses shown (the largest fills
+    86 % of its panel), with the root trace and ``path``.  With a ``top`` row, the whole
+    root trace from above (path, seams, constraints, panel frames) on the right.
+    Under the panels a timeline of the output frames: seams, lettered constraints and
+    the panel frames, each panel joined to its frame.  Constrained frames are panels too.
+
+    Parameters
+    ----------
+    motion : Motion
+    n_panels : int
+        Panels at different stride phases (constrained frames come on top).
+    view : str or sequence of {"side", "front", "top"}
+        The rows.
+    panel_size : float
+        Inches per panel (width).
+    dpi : int
+    highlight : list of int, optional
+        Frames drawn in red (e.g. constrained frames) when shown.
+    marks : dict, optional
+        :func:`preview_marks` (seams and lettered constraints).
+    path : (M, 2) float ndarray, optional
+        Ground path ``(x, z)`` (Y up), drawn in the top views.
+
+    return_boxes : bool
+        Also return the pixel boxes of the panels.
+
+    Returns
+    -------
+    image : (H, W, 3) uint8 ndarray
+    frames : list of int
+    boxes : dict of str to list of [x0, y0, x1, y1]
+        Only with ``return_boxes``: the panels' pixel boxes per view, and ``"timeline"``.
+    """
     from matplotlib.collections import LineCollection  # noqa: PLC0415 (heavy)
     from matplotlib.lines import Line2D  # noqa: PLC0415 (heavy)
 
@@ -492,57 +529,9 @@ def _render_strip(
     for v, row in zip(views, axes_rows):
         boxes.setdefault(v, [_pixel_box(ax, img.shape[0]) for ax in row])
     boxes["timeline"] = [_pixel_box(tax, img.shape[0])]  # x: output frames -0.5 … F - 0.5
-    return img, [int(f) for f in frames], boxes
-
-
-def render_strip(
-    motion: Motion,
-    *,
-    n_panels: int = 8,
-    view: str | list[str] | tuple[str, ...] = ("side", "top"),
-    panel_size: float = 1.6,
-    dpi: int = 100,
-    highlight: list[int] | None = None,
-    marks: dict[str, Any] | None = None,
-    path: np.ndarray | None = None,
-) -> tuple[np.ndarray, list[int]]:
-    """Poses spread over the motion side by side, at different phases (:func:`panel_frames`).
-
-    One row of panels per view: ``side`` / ``front`` in the root's heading frame
-    (the figure faces right / the camera, the floor as a line), scaled by the
-    figure's height; ``top`` seen from above in world axes, each centred on its pose,
-    all at one scale from the horizontal extent of the poses shown (the largest fills
-    86 % of its panel), with the root trace and ``path``.  With a ``top`` row, the whole
-    root trace from above (path, seams, constraints, panel frames) on the right.
-    Under the panels a timeline of the output frames: seams, lettered constraints and
-    the panel frames, each panel joined to its frame.  Constrained frames are panels too.
-
-    Parameters
-    ----------
-    motion : Motion
-    n_panels : int
-        Panels at different stride phases (constrained frames come on top).
-    view : str or sequence of {"side", "front", "top"}
-        The rows.
-    panel_size : float
-        Inches per panel (width).
-    dpi : int
-    highlight : list of int, optional
-        Frames drawn in red (e.g. constrained frames) when shown.
-    marks : dict, optional
-        :func:`preview_marks` (seams and lettered constraints).
-    path : (M, 2) float ndarray, optional
-        Ground path ``(x, z)`` (Y up), drawn in the top views.
-
-    Returns
-    -------
-    image : (H, W, 3) uint8 ndarray
-    frames : list of int
-    """
-    img, frames, _ = _render_strip(motion, n_panels=n_panels, view=view,
-                                   panel_size=panel_size, dpi=dpi, highlight=highlight,
-                                   marks=marks, path=path)
-    return img, frames
+    if return_boxes:
+        return img, [int(f) for f in frames], boxes
+    return img, [int(f) for f in frames]
 
 
 def _nice(x: float) -> float:
@@ -878,9 +867,9 @@ def stickfigure(
         ``constraints`` as output frames).
     """
     marks = preview_marks(motion, report, source_index, source)
-    img, frames, boxes = _render_strip(motion, n_panels=n_panels, view=list(views),
-                                       highlight=highlight, marks=marks,
-                                       path=_path_points(path, path_mode))
+    img, frames, boxes = render_strip(motion, n_panels=n_panels, view=list(views),
+                                      highlight=highlight, marks=marks,
+                                      path=_path_points(path, path_mode), return_boxes=True)
     step = max(1, int(video_step or round(motion.rate / VIDEO_RATE)))
     vid = None
     if video:
