@@ -8,6 +8,11 @@ near-rigid parts on a range-of-motion trial (§5, stages ``ingest_rom``,
 the paper lives in one function (modules of this package):
 
 §4 cleaning (the stage)                  clean.clean
+§4.1 labels of an unlabelled take:       labelling.reference_labelling (reference frame's
+  the marker-surface vertices            trajectories), labelling.template_labelling (an
+                                         earlier session's layout: labelling.match_template)
+  several subjects in one take           labelling.subject_groups, labelling.fragment_subjects
+  (beyond the paper)                     (each cleaned apart: clean._clean_subjects)
   reference pose                         predict.reference_pose, predict.choose_reference_frame
 §4.1 marker surface                      surface.build_marker_surface (automatic: triangulate,
                                          manifold), surface.read_surface_file (manual)

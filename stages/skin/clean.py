@@ -105,6 +105,12 @@ from mocapflow.stages.motion.absolute_orientation import absolute_orientation_ba
 from mocapflow.stages.motion.contacts import true_runs
 from mocapflow.stages.motion.datatypes import Markers
 from mocapflow.stages.skin.fill import fill_holes
+from mocapflow.stages.skin.labelling import (
+    LabellingError,
+    fragment_subjects,
+    label_markers,
+    subject_groups,
+)
 from mocapflow.stages.skin.merge import assign_fragments, merge_fragments
 from mocapflow.stages.skin.predict import (
     MIN_NEIGHBOURS,
@@ -631,6 +637,9 @@ def clean(
     fill_predictors: int = REGRESSION_PREDICTORS,
     pca_merge_rounds: int = 3,
     fill_merge_rounds: int = 0,
+    subjects: Literal["auto", "none"] = "auto",
+    subject_gap: float = 0.3,
+    label_template: FilePath | None = None,
     ctx: Context,
 ) -> dict[str, Any]:
     """Merge fragments, fill holes and smooth a dense marker capture (Park & Hodgins 2006 §4).
@@ -678,12 +687,30 @@ def clean(
         captures it keeps 99-100 % of real samples with no wrong merge, but on a
         range-of-motion capture, whose fill is off by more than ε₁, it made 1-2
         wrong merges (seeds 2, 3), so it is off by default.
+    subjects : {"auto", "none"}
+        Several subjects in one take (:func:`~mocapflow.stages.skin.labelling.subject_groups`):
+        ``"auto"`` finds them by the C3D's ``SUBJECTS:LABEL_PREFIXES``, ``Name:``
+        label prefixes, or groups of markers more than ``subject_gap`` apart in the
+        reference pose (each of >= 10 markers), and cleans each subject on its own
+        (one reference frame), so no neighbourhood, surface triangle or fill
+        predictor spans two subjects; fragments go to the nearest subject.
+        ``"none"``: one subject.
+    subject_gap : float
+        Metres between subjects standing apart (0.3).
+    label_template : FilePath, optional
+        For a take with no labelled markers: a labelled C3D or a JSON layout
+        (``labels``, ``positions``, ``unit``) of the same marker set from an earlier
+        session; the take's reference-frame trajectories are matched to it (rigid +
+        non-rigid ICP) and get its labels.  Without it an unlabelled take is
+        labelled ``L001 …`` by its reference frame (§4.1).
 
     Returns
     -------
     dict
         ``markers``: the cleaned :class:`Markers` (unmerged fragments kept);
-        ``report``: record with ``status (F, M)`` int8 (-1 missing, 0 observed,
+        ``report``: record with ``labelling`` (how an unlabelled take got its
+        labels, when it had none), ``subjects`` (names and labels, with two or
+        more), ``status (F, M)`` int8 (-1 missing, 0 observed,
         1 merged, 2 filled) and JSON: reference frame, surface, ``table1``
         (fragments before/after, merges, holes, filled, left), ``merges`` /
         ``rejections`` / ``conflicts`` (fragment, label, reason), fill passes and
@@ -694,40 +721,188 @@ def clean(
         of the markers, ``attrs["labels"]``; :meth:`MarkerSurface.from_mesh` gives
         the :class:`MarkerSurface` back).
     """
+    opts = {"alpha1": alpha1, "alpha2": alpha2, "variance": variance,
+            "smooth_lambda": smooth_lambda, "smooth_iterations": smooth_iterations,
+            "surface": surface, "merge": merge, "fill": fill, "fill_model": fill_model,
+            "fill_predictors": fill_predictors, "pca_merge_rounds": pca_merge_rounds,
+            "fill_merge_rounds": fill_merge_rounds}
+    with ctx.timer("labelling"):
+        try:
+            markers, labelling = label_markers(markers, template=label_template,
+                                               reference_frame=reference_frame)
+        except LabellingError as e:
+            raise CleanError(str(e)) from None
+        if labelling:
+            reference_frame = labelling["reference_frame"]
+            ctx.warn(f"clean: unlabelled take labelled by {labelling['method']}: "
+                     f"{len(markers.labels)} markers, {markers.fragments.shape[1]} fragments "
+                     "left to merge")
     P = markers.positions
     _check_params(P, alpha1=alpha1, alpha2=alpha2, variance=variance, fill_model=fill_model,
                   fill_predictors=fill_predictors)
+    groups = [("all", np.arange(P.shape[1]))]
+    if subjects != "none" and surface is None:
+        frame = choose_reference_frame(P) if reference_frame is None else reference_frame
+        groups = subject_groups(markers, _nearest_visible_pose(P, _check_frame(frame, len(P))),
+                                mode=subjects, gap=subject_gap)
+        reference_frame = frame if len(groups) > 1 else reference_frame
+    if len(groups) == 1:
+        res = _clean_subject(markers, reference_frame=reference_frame, opts=opts, ctx=ctx)
+    else:
+        res = _clean_subjects(markers, groups, reference_frame=reference_frame, opts=opts,
+                              ctx=ctx)
+    if labelling:
+        res["report"]["labelling"] = labelling
+    _key_figures(res["report"], res["report"]["status"], ctx)
+    return res
+
+
+def _nearest_visible_pose(positions: np.ndarray, frame: int) -> np.ndarray:
+    """``(M, 3)``: each marker where it is seen nearest in time to ``frame`` (NaN if never)."""
+    vis = np.isfinite(positions).all(-1)
+    dist = np.where(vis, np.abs(np.arange(len(positions)) - frame)[:, None], np.iinfo(np.int64).max)
+    g = np.argmin(dist, axis=0)
+    return positions[g, np.arange(positions.shape[1])]
+
+
+def _check_frame(frame: int, F: int) -> int:
+    if not -F <= frame < F:
+        raise CleanError(f"clean: reference_frame {frame} out of range (capture has {F} frames)")
+    return int(frame) % F
+
+
+def _clean_subject(markers: Markers, *, reference_frame: int | None, opts: dict[str, Any],
+                   ctx: Context, parts: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Steps 0-4 on one subject (:func:`clean`'s outputs); ``parts``, when given, also
+    receives the intermediate arrays the multi-subject assembly needs."""
+    P = markers.positions
     labels = markers.labels
+    o = opts
     with ctx.timer("reference"):
         ref_frame, reference, carried, unrecoverable = _reference(P, labels, reference_frame,
                                                                   ctx)
     with ctx.timer("surface"):
-        surf, few = _marker_surface(reference, P, labels, surface, ref_frame, ctx)
+        surf, few = _marker_surface(reference, P, labels, o["surface"], ref_frame, ctx)
+    fill = o["fill"]
     with ctx.timer("merge"):
-        X, assigned, mrep = _merge(markers, surf, merge=merge, alpha1=alpha1, alpha2=alpha2,
-                                   variance=variance, pca_rounds=pca_merge_rounds if fill else 0,
-                                   fill_rounds=fill_merge_rounds if fill else 0,
-                                   fill_model=fill_model, fill_predictors=fill_predictors,
-                                   ctx=ctx)
+        X, assigned, mrep = _merge(markers, surf, merge=o["merge"], alpha1=o["alpha1"],
+                                   alpha2=o["alpha2"], variance=o["variance"],
+                                   pca_rounds=o["pca_merge_rounds"] if fill else 0,
+                                   fill_rounds=o["fill_merge_rounds"] if fill else 0,
+                                   fill_model=o["fill_model"],
+                                   fill_predictors=o["fill_predictors"], ctx=ctx)
     vis1 = np.isfinite(X).all(-1)
     with ctx.timer("fill"):
-        Xf, finfo = _fill(X, surf, fill=fill, variance=variance, fill_model=fill_model,
-                          fill_predictors=fill_predictors, ctx=ctx)
+        Xf, finfo = _fill(X, surf, fill=fill, variance=o["variance"],
+                          fill_model=o["fill_model"], fill_predictors=o["fill_predictors"],
+                          ctx=ctx)
     vis2 = np.isfinite(Xf).all(-1)
     status = _status(markers.visible, vis1, vis2)
     with ctx.timer("smooth"):
-        Xs = smooth_local(Xf, surf, smooth_lambda=smooth_lambda,
-                          smooth_iterations=smooth_iterations, measured=vis1, ctx=ctx)
-
+        Xs = smooth_local(Xf, surf, smooth_lambda=o["smooth_lambda"],
+                          smooth_iterations=o["smooth_iterations"], measured=vis1, ctx=ctx)
+    if parts is not None:
+        parts.update(Xs=Xs, status=status, vis1=vis1, vis2=vis2, assigned=assigned,
+                     surf=surf, reference=reference, carried=carried,
+                     unrecoverable=unrecoverable, few=few, mrep=mrep, finfo=finfo,
+                     ref_frame=ref_frame)
     report = _report(markers, surf, reference, status, assigned, vis1, vis2, ref_frame=ref_frame,
                      carried=carried, unrecoverable=unrecoverable, few=few, mrep=mrep,
-                     finfo=finfo,
-                     params={"alpha1": alpha1, "alpha2": alpha2, "variance": variance,
-                             "smooth_lambda": smooth_lambda,
-                             "smooth_iterations": smooth_iterations, "fill_model": fill_model,
-                             "fill_predictors": fill_predictors})
+                     finfo=finfo, params=_report_params(o))
     out = _cleaned_markers(markers, Xs, status, vis2, assigned, ref_frame)
-    _key_figures(report, status, ctx)
+    return {"markers": out, "report": report, "surface": surf.to_mesh()}
+
+
+def _report_params(opts: dict[str, Any]) -> dict[str, Any]:
+    keys = ("alpha1", "alpha2", "variance", "smooth_lambda", "smooth_iterations", "fill_model",
+            "fill_predictors")
+    return {k: opts[k] for k in keys}
+
+
+def _union_surface(surfs: list[MarkerSurface], groups: list[tuple[str, np.ndarray]],
+                   labels: list[str], ref_frame: int) -> MarkerSurface:
+    """One :class:`MarkerSurface` over every subject's markers (no edge between subjects)."""
+    M = len(labels)
+    K = max(s.neighbours.shape[1] for s in surfs)
+    reference = np.full((M, 3), np.nan)
+    neighbours = np.full((M, K), -1, dtype=np.int64)
+    rigidity = np.zeros((M, K))
+    frames = np.full((M, 3, 3), np.nan)
+    n_ring = np.zeros(M, dtype=np.int64)
+    faces = []
+    for s, (_, idx) in zip(surfs, groups):
+        reference[idx] = s.reference
+        nb = s.neighbours
+        neighbours[idx, : nb.shape[1]] = np.where(nb >= 0, idx[np.maximum(nb, 0)], -1)
+        rigidity[idx, : nb.shape[1]] = s.rigidity
+        frames[idx] = s.frames
+        n_ring[idx] = s.n_ring
+        faces.append(idx[s.faces.reshape(-1, 3)])
+    return MarkerSurface(reference, np.concatenate(faces).astype(np.int64), neighbours, frames,
+                         list(labels), surfs[0].source, rigidity, n_ring, ref_frame)
+
+
+def _combine_merge_reports(mreps: list[dict[str, Any]]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for rep in mreps:
+        for k, v in rep.items():
+            if isinstance(v, list):
+                out.setdefault(k, []).extend(v)
+            elif isinstance(v, dict):
+                d = out.setdefault(k, {})
+                for kk, vv in v.items():
+                    d[kk] = d.get(kk, 0) + vv if isinstance(vv, (int, float)) else vv
+            else:
+                out.setdefault(k, v)
+    return out
+
+
+def _clean_subjects(markers: Markers, groups: list[tuple[str, np.ndarray]], *,
+                    reference_frame: int, opts: dict[str, Any], ctx: Context) -> dict[str, Any]:
+    """:func:`_clean_subject` on each subject (its markers and nearest fragments), the
+    results assembled in the take's marker order."""
+    F, M, _ = markers.positions.shape
+    U = markers.fragments.shape[1]
+    owner = fragment_subjects(markers, groups)
+    Xs = np.full((F, M, 3), np.nan)
+    status = np.full((F, M), STATUS["missing"], dtype=np.int8)
+    vis1 = np.zeros((F, M), dtype=bool)
+    vis2 = np.zeros((F, M), dtype=bool)
+    reference = np.full((M, 3), np.nan)
+    assigned = np.full(U, -1, dtype=np.int64)
+    carried: dict[int, int] = {}
+    unrec, few, surfs, mreps, finfos = [], [], [], [], {}
+    for g, (name, idx) in enumerate(groups):
+        fr = np.flatnonzero(owner == g)
+        sub = markers.replace(
+            positions=markers.positions[:, idx], labels=[markers.labels[i] for i in idx],
+            residuals=None if markers.residuals is None else markers.residuals[:, idx],
+            fragments=markers.fragments[:, fr],
+            fragment_labels=[markers.fragment_labels[u] for u in fr], status=None)
+        parts: dict[str, Any] = {}
+        _clean_subject(sub, reference_frame=reference_frame, opts=opts, ctx=ctx, parts=parts)
+        Xs[:, idx], status[:, idx] = parts["Xs"], parts["status"]
+        vis1[:, idx], vis2[:, idx] = parts["vis1"], parts["vis2"]
+        reference[idx] = parts["reference"]
+        a = parts["assigned"]
+        assigned[fr[a >= 0]] = idx[a[a >= 0]]
+        carried.update({int(idx[m]): v for m, v in parts["carried"].items()})
+        unrec.append(idx[np.asarray(parts["unrecoverable"], dtype=np.int64)])
+        few.append(idx[np.asarray(parts["few"], dtype=np.int64)])
+        surfs.append(parts["surf"])
+        mreps.append(parts["mrep"])
+        finfos[name] = parts["finfo"]
+    ref_frame = _check_frame(reference_frame, F)
+    surf = _union_surface(surfs, groups, markers.labels, ref_frame)
+    report = _report(markers, surf, reference, status, assigned, vis1, vis2, ref_frame=ref_frame,
+                     carried=carried, unrecoverable=np.concatenate(unrec),
+                     few=np.concatenate(few), mrep=_combine_merge_reports(mreps),
+                     finfo={"subjects": finfos}, params=_report_params(opts))
+    report["subjects"] = {name: [markers.labels[i] for i in idx] for name, idx in groups}
+    ctx.warn(f"clean: {len(groups)} subjects cleaned apart: " + ", ".join(
+        f"{name} ({len(idx)} markers, {int((owner == g).sum())} fragments)"
+        for g, (name, idx) in enumerate(groups)))
+    out = _cleaned_markers(markers, Xs, status, vis2, assigned, ref_frame)
     return {"markers": out, "report": report, "surface": surf.to_mesh()}
 
 
