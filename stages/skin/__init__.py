@@ -33,6 +33,10 @@ the paper lives in one function (modules of this package):
   coefficients from visible members      local_pca.model_estimates_batch
   average of the models with the marker  fill._average_estimates
   passes re-using estimates              fill.fill_by_local_pca
+  sparse captures (beyond the paper):    fill.fill_by_validated_blend (each run of holes
+  local fill, whole-body PCA without     scored on copies of it moved nearby:
+  complete frames, spline, rigid body,   fill._shifted_runs), lowrank.whole_body_pca,
+  blended by validation on the take      fill._rigid_body_fill
 §4.4 smoothing x ← x − λ Δ⁴x in the      clean.smooth_local (the iteration: clean._smooth_run)
   local frames
 §5.1–5.2 near-rigid segmentation         segment.segment
@@ -72,7 +76,12 @@ Departures from the paper (each module docstring says why, with measurements):
   rest by hand);
 * hole filling: the default is a wider regression (``fill_model="regression"``:
   fill.fill_by_regression, regress.regression_estimates), the paper's local PCA
-  fills what it cannot reach (``"pca"``: the paper alone); a neighbour's model
+  fills what it cannot reach (``"pca"``: the paper alone); on captures of at
+  most fill.WHOLE_BODY_MAX_MARKERS (120) markers the fill is then blended with a
+  whole-body PCA (Gløersen & Federolf R2 trained on the filled take, no complete
+  frame needed), a spline in time and a rigid-body fill, weighted per run of
+  holes by their errors on copies of it knocked out nearby
+  (fill.fill_by_validated_blend); a neighbour's model
   weighs fill.NEIGHBOUR_MODEL_WEIGHT (0.1) in the §4.3 average; interior holes no
   model reaches are interpolated in time, then rigidly predicted
   (fill.fill_by_rigid_fit);
