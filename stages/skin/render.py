@@ -35,7 +35,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from mocapflow.pipeline import Context, ParamError, stage
+from mocapflow.pipeline import Context, FilePath, ParamError, stage
 from mocapflow.pipeline.codecs import Encoded, codec, component_coords, exporter, frame_coords
 from mocapflow.pipeline.context import split_hint
 from mocapflow.stages.motion.axes import AxisError, frame_basis
@@ -50,6 +50,7 @@ __all__ = [
     "Video",
     "export_video",
     "offscreen_available",
+    "read_truth",
     "render",
     "render_error",
     "render_frames",
@@ -246,21 +247,56 @@ def _camera_track(seqs: list[np.ndarray], *, follow: bool, smooth: int = 15):
     return np.repeat(((lo.min(0) + hi.max(0)) / 2)[None], len(centre), axis=0)
 
 
-def _camera_distance(seqs, focal, d, up, width, height, margin=1.12) -> float:
-    """Distance at which every point of every frame fits the 30-degree view."""
-    right = np.cross(d, up)
+def _frame_body(seq: np.ndarray, focal: np.ndarray, d: np.ndarray, up: np.ndarray,
+                width: int, height: int, *, top: float = 0.0,
+                bottom: float = 0.0) -> tuple[np.ndarray, float]:
+    """Focal points ``(F, 3)`` and distance that frame the body's bounding box tightly.
+
+    The points of every shown frame, relative to the (smoothed) track ``focal``,
+    are put in the camera's axes; the focal track is shifted so that their
+    extent is centred in the picture, and the distance is the smallest at
+    which every point lies inside the 30-degree view (perspective: a point
+    nearer the camera needs more room) with ``top`` / ``bottom`` fractions of
+    the picture's height left free for a title and a colour bar.
+
+    Parameters
+    ----------
+    seq : (F, V, 3) float ndarray
+        Vertices of the shown frames (NaN ignored).
+    focal : (F, 3) float ndarray
+    d : (3,) float ndarray
+        Unit direction from the focal point to the camera.
+    up : (3,) float ndarray
+    width, height : int
+    top, bottom : float
+        Fractions of the height kept free above and below the body.
+
+    Returns
+    -------
+    focal : (F, 3) float ndarray
+    distance : float
+    """
+    right = np.cross(up, d)
     right /= np.linalg.norm(right)
-    true_up = np.cross(right, d)
-    t = np.tan(np.radians(15.0))
-    need = 0.0
-    for s in seqs:
-        rel = s - focal[:, None, :]
-        rel = np.where(np.isfinite(rel), rel, 0.0)
-        depth = rel @ -d  # towards the camera: nearer points need more room
-        h = np.abs(rel @ true_up) / t
-        w = np.abs(rel @ right) / (t * width / height)
-        need = max(need, float(np.max(np.maximum(h, w) + depth)))
-    return margin * need
+    true_up = np.cross(d, right)
+    rel = seq - focal[:, None, :]
+    ok = np.isfinite(rel).all(-1)
+    x, y, z = (np.where(ok, rel @ a, np.nan) for a in (right, true_up, d))
+    # centre the extent on the screen's axes (z: towards the camera)
+    cx = (np.nanmin(x) + np.nanmax(x)) / 2
+    cy = (np.nanmin(y) + np.nanmax(y)) / 2
+    x, y = x - cx, y - cy
+    t = np.tan(np.radians(15.0))  # half of the 30-degree vertical view angle
+    usable = max(0.2, 1.0 - top - bottom)  # picture height left for the body
+    shift = bottom - top  # half-heights the body's centre sits above the picture's
+    # |y| / (D - z) <= usable·t and |x| / (D - z) <= t·W/H
+    ty = usable * t
+    tx = t * width / height
+    need = np.nanmax(np.maximum(np.abs(y) / ty, np.abs(x) / tx) + z)
+    dist = float(need) * 1.04  # a small border
+    # moving the focal point down by shift·t·dist puts the body's centre that far up
+    centre = cx * right + cy * true_up - shift * t * dist * true_up
+    return focal + centre, dist
 
 
 def render_frames(
@@ -294,7 +330,10 @@ def render_frames(
         e.g. ``+z`` and ``-y`` for a Vicon lab; ``attrs["up"]`` / ``["forward"]`` of
         the markers): the image's vertical is ``up``.
     follow : bool
-        Camera follows the body (smoothed bounding-box centre).
+        Camera follows the body (smoothed bounding-box centre).  Each panel is
+        framed on its own body: the bounding box of its vertices over the shown
+        frames, seen from the camera, fills the picture (less room for a title
+        and a colour bar).
     background : str
     marker_size : float, optional
         Marker sphere size in pixels (default ``height / 70``).
@@ -329,10 +368,10 @@ def render_frames(
     for f in range(F):
         for k, p in enumerate(panels):
             pl.subplot(0, k)
-            _update_panel(pv, p, f, meshes[k], marker_polys[k], focal[f])
+            _update_panel(pv, p, f, meshes[k], marker_polys[k], focal[k, f])
             cam = pl.camera
-            cam.focal_point = focal[f]
-            cam.position = focal[f] + dist * d
+            cam.focal_point = focal[k, f]
+            cam.position = focal[k, f] + dist[k] * d
             cam.up = upv
             cam.view_angle = 30.0
             pl.renderer.ResetCameraClippingRange()
@@ -346,11 +385,10 @@ def render_frames(
 
 
 def _camera(panels: list[dict[str, Any]], *, view: str, up: str, forward: str, follow: bool,
-            width: int, height: int) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
-    """Camera of every frame: focal points ``(F, 3)``, distance, direction from the focal
-    point ``(3,)`` and up vector ``(3,)`` (room left for titles and colour bars)."""
-    seqs = [p["vertices"] for p in panels]
-    focal = _camera_track(seqs, follow=follow)
+            width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Camera of every panel and frame, each panel framed on its own body: focal points
+    ``(P, F, 3)``, distances ``(P,)``, direction from the focal point ``(3,)`` and up
+    vector ``(3,)`` (room left for a title and a colour bar)."""
     try:
         basis = frame_basis(up, forward)  # the Y-up, +Z-facing view directions -> data axes
     except AxisError as e:
@@ -358,10 +396,18 @@ def _camera(panels: list[dict[str, Any]], *, view: str, up: str, forward: str, f
     d = basis @ np.asarray(_VIEW_DIRS[view], dtype=float)
     upv = basis[:, 1]
     d /= np.linalg.norm(d)
-    overlays = any(p.get("title") or p.get("scalars") is not None for p in panels)
-    dist = _camera_distance(seqs, focal, -d, upv, width, height,
-                            margin=1.35 if overlays else 1.12)  # fmt: skip
-    return focal, dist, d, upv
+    focals, dists = [], []
+    for p in panels:
+        seq = np.asarray(p["vertices"], dtype=np.float64)
+        if not np.isfinite(seq).all(-1).any():
+            raise RenderError("render: a panel has no finite vertex to frame")
+        track = _camera_track([seq], follow=follow)
+        top = 0.07 if p.get("title") else 0.0
+        bottom = 0.12 if p.get("scalars") is not None else 0.0
+        f, dist = _frame_body(seq, track, d, upv, width, height, top=top, bottom=bottom)
+        focals.append(f)
+        dists.append(dist)
+    return np.stack(focals), np.asarray(dists), d, upv
 
 
 def _add_panels(pv, pl, panels: list[dict[str, Any]], marker_size: float) -> tuple[list, list]:
@@ -439,9 +485,14 @@ def render(
     view: View = "front",
     follow: bool = True,
     show_markers: bool = True,
+    truth: FilePath | None = None,
+    clim_mm: float = 20.0,
     ctx: Context,
 ) -> dict[str, Any]:
     """Render an animated mesh with the markers overlaid, off-screen.
+
+    Where the capture's true body is known (a simulated capture), ``truth`` colours
+    the mesh by each vertex's distance to it, a heat map like :func:`render_error`'s.
 
     Parameters
     ----------
@@ -461,6 +512,15 @@ def render(
         Camera follows the body.
     show_markers : bool
         Draw the markers as spheres over the mesh.
+    truth : FilePath, optional
+        The capture's true body as a PC2 point cache ``(F, V', 3)`` in the
+        capture's coordinates, its faces in the OBJ of the same name beside it
+        (what ``simulate_capture``'s ``mesh`` export writes; the demo passes it).
+        The mesh is then coloured by each vertex's distance to the true surface
+        in the same frame (mm, ``0``-``clim_mm``), and the mean / p95 over the
+        rendered frames go to the run summary.  ``None``: plain skin colour.
+    clim_mm : float
+        Upper end of the heat map's colour scale (mm), with ``truth``.
 
     Returns
     -------
@@ -477,10 +537,61 @@ def render(
              "title": f"{mesh.attrs.get('mode', '')}".replace("_", " + ")}  # fmt: skip
     if show_markers:
         panel["markers"] = markers.positions[idx]
+    attrs: dict[str, Any] = {"source_frames": idx.tolist(), "kind": "mesh"}
+    if truth is not None:
+        true_v, true_f = read_truth(truth)
+        if true_v.shape[0] != verts.shape[0]:
+            raise RenderError(f"render: truth {truth} has {true_v.shape[0]} frames but the mesh "
+                              f"has {verts.shape[0]}")  # fmt: skip
+        err = vertex_errors(verts[idx], true_v[idx], true_f) * 1000
+        panel.update(scalars=err, clim=(0.0, clim_mm), cmap="inferno",
+                     scalar_title="distance to the true body (mm)",
+                     title=f"{panel['title']}: mean {err.mean():.1f} mm")  # fmt: skip
+        attrs.update(kind="error", clim_mm=clim_mm, mean_mm=float(err.mean()),
+                     p95_mm=float(np.percentile(err, 95)))  # fmt: skip
+        ctx.figure("error mean mm", round(attrs["mean_mm"], 2))
+        ctx.figure("error p95 mm", round(attrs["p95_mm"], 2))
     frames = render_frames([panel], width=width, height=height, view=view, follow=follow,
                            **_axes(markers), progress=ctx.progress)
     rate = (mesh.rate or markers.rate) / max(1, stride)
-    return {"video": Video(frames, rate, {"source_frames": idx.tolist(), "kind": "mesh"})}
+    return {"video": Video(frames, rate, attrs)}
+
+
+def read_truth(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """A true body animation: a PC2 point cache and the faces of the OBJ beside it.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``<stem>.pc2``; the faces come from ``<stem>.obj``.
+
+    Returns
+    -------
+    vertices : (F, V, 3) float ndarray
+    faces : (T, 3) int ndarray
+
+    Raises
+    ------
+    RenderError
+        No OBJ beside the PC2, no triangles in it, or a vertex count that differs.
+    """
+    from mocapflow.stages.motion.formats.meshcache import MeshCacheError, read_pc2  # noqa: PLC0415
+
+    path = Path(path)
+    obj = path.with_suffix(".obj")
+    try:
+        verts = read_pc2(path)[0].astype(np.float64)
+        lines = obj.read_text().splitlines()
+    except (OSError, MeshCacheError) as e:
+        raise RenderError(f"render: truth {path}: {e}") from None
+    tris = [[int(w.split("/")[0]) - 1 for w in ln.split()[1:4]]
+            for ln in lines if ln.startswith("f ")]  # fmt: skip
+    faces = np.array(tris, dtype=np.int64).reshape(-1, 3)
+    n_v = sum(ln.startswith("v ") for ln in lines)
+    if not len(faces) or n_v != verts.shape[1]:
+        raise RenderError(f"render: truth {path}: {obj.name} has {len(faces)} triangles and "
+                          f"{n_v} vertices, the point cache {verts.shape[1]} vertices")  # fmt: skip
+    return verts, faces
 
 
 @stage("render_modes", outputs=("video", "report"))

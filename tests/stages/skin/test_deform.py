@@ -457,6 +457,36 @@ def test_operator_blocks_match_sparse_matrix_and_per_part_evaluation(limb):
                          residual=True)  # fmt: skip
 
 
+def test_fast_path_matches_per_part_reference_with_clamp_and_chunks(limb):
+    """deform_positions (β folded into the blocks, clamp on few entries, frame chunks,
+    pair-to-vertex sum) against the plain per-part Eq. 8-9 sum, with the clamp acting."""
+    seg, x = limb["seg"], limb["markers"].positions  # 90 frames: 3 chunks, the last partial
+    V = limb["mesh"].vertices
+    beta = bind_mesh(V, seg).beta
+    models = [prepare_part(seg, p, vertices=V, beta=beta, clamp_margin=0.1)
+              for p in range(seg.n_parts)]  # fmt: skip
+    assert seg.n_parts >= 2 and (np.count_nonzero(beta, axis=1) > 1).any()  # blended vertices
+    for mode in ("quadratic_residual", "rigid"):
+        fits = [fit_part(m, x[:, m.members], mode=mode) for m in models]
+        for f in fits:  # a tight bound: the clamp acts on many vertices and frames
+            f.marker_deviation = 0.2 * f.marker_deviation
+        residual = mode.endswith("residual")
+        got = deform_positions(models, fits, len(V), vertex_operator(models, len(V),
+                               residual=residual), residual=residual)  # fmt: skip
+        ref = np.zeros_like(got)
+        for m, f in zip(models, fits):
+            ref[:, m.vertices] += m.beta[None, :, None] * evaluate_part(m, f)
+        assert got.shape == (90, len(V), 3)
+        assert np.abs(got - ref).max() < 1e-12
+        if residual:  # the clamp changed the result (else this test could not fail on it)
+            for m in models:
+                m.clamp_margin = None
+            free = deform_positions(models, fits, len(V), residual=True)
+            assert np.abs(free - got).max() > 1e-3
+            for m in models:
+                m.clamp_margin = 0.1
+
+
 def test_held_out_points_on_a_bending_bulging_limb():
     # sparse markers (8 x 8) on a limb that bends, twists and bulges; the mesh vertices
     # are points the pipeline never saw, predicted from the markers and compared to truth

@@ -11,9 +11,15 @@ import pytest
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import ExportFormatError, decode, encode, find_exporter
 from mocapflow.stages.motion.datatypes import Mesh
-from mocapflow.stages.motion.formats.meshcache import MeshCacheError, read_pc2, write_pc2
+from mocapflow.stages.motion.formats.meshcache import (
+    MeshCacheError,
+    read_pc2,
+    write_obj,
+    write_pc2,
+)
 from mocapflow.stages.motion.mesh_export import export_mesh, write_ply
 from mocapflow.stages.skin.deform import deform
+from mocapflow.stages.skin.mesh_fit import template_mesh
 from mocapflow.stages.skin.render import (
     RenderError,
     Video,
@@ -21,6 +27,7 @@ from mocapflow.stages.skin.render import (
     offscreen_available,
     render,
     render_error,
+    render_frames,
     render_modes,
 )
 from mocapflow.stages.skin.segment import segment
@@ -183,3 +190,58 @@ def test_pc2_reader_refuses_what_is_not_a_full_cache(tmp_path):
     (tmp_path / "x.pc2").write_bytes(b"POINTCACHE1\0" + bytes(20))
     with pytest.raises(MeshCacheError, match="not a PC2 file"):
         read_pc2(tmp_path / "x.pc2")
+
+
+def _silhouette(img: np.ndarray) -> tuple[float, float]:
+    """Height and width of the non-white pixels' bounding box, as fractions of the image."""
+    body = (img.astype(int) < 235).any(-1)
+    rows, cols = np.flatnonzero(body.any(1)), np.flatnonzero(body.any(0))
+    if not len(rows):
+        return 0.0, 0.0
+    return (rows[-1] - rows[0] + 1) / img.shape[0], (cols[-1] - cols[0] + 1) / img.shape[1]
+
+
+@needs_gl
+def test_each_panel_frames_its_own_body():
+    """A standing body fills most of the picture's height, in every panel, whatever its
+    size and place (the demo's 640x480 render showed it in about a third)."""
+    body = template_mesh(n_vertices=800, ctx=Context())["mesh"]
+    walk = body.vertices[None] + np.array([0.0, 0.0, 1.0]) * np.linspace(0, 0.4, 3)[:, None, None]
+    small = 0.5 * walk + np.array([3.0, 1.0, 0.0])  # a child-sized body, 3 m to the side
+    frames = render_frames([{"vertices": walk, "faces": body.faces},
+                            {"vertices": small, "faces": body.faces}],
+                           width=160, height=120)  # fmt: skip
+    for img in (frames[0], frames[-1]):
+        for panel in np.split(img, 2, axis=1):
+            h, w = _silhouette(panel)
+            assert 0.6 <= h < 1.0 and w < 1.0  # most of the height, never cut off
+    # a title and a colour bar get room: the body stays clear of the top and bottom rows
+    scalars = np.repeat(body.vertices[None, :, 1], 3, axis=0)
+    (img, *_) = render_frames([{"vertices": walk, "faces": body.faces, "title": "T",
+                                "scalars": scalars, "clim": (-1.0, 1.0)}],
+                              width=160, height=120)  # fmt: skip
+    h, _ = _silhouette(img[12:-16])
+    assert h >= 0.6
+
+
+@needs_gl
+def test_render_colours_by_distance_to_the_true_body(tmp_path, limb):
+    """``render(truth=PC2)``: the heat map of each vertex's distance to the true body."""
+    mesh = limb["deformed"]
+    shifted = mesh.vertices + np.array([0.005, 0.0, 0.0])  # the truth 5 mm to the side
+    write_pc2(shifted, tmp_path / "truth.pc2")
+    write_obj(shifted[0], mesh.faces, tmp_path / "truth.obj")
+    out = render(mesh, limb["markers"], width=96, height=96, stride=12,
+                 truth=str(tmp_path / "truth.pc2"), clim_mm=10.0, ctx=Context())  # fmt: skip
+    v = out["video"]
+    assert v.attrs["kind"] == "error" and v.attrs["mean_mm"] == pytest.approx(5.0, abs=0.01)
+    plain = render(mesh, limb["markers"], width=96, height=96, stride=12, ctx=Context())
+    assert "mean_mm" not in plain["video"].attrs
+    assert np.abs(v.frames.astype(int) - plain["video"].frames).max() > 60  # recoloured
+    write_pc2(shifted[:5], tmp_path / "short.pc2")
+    write_obj(shifted[0], mesh.faces, tmp_path / "short.obj")
+    with pytest.raises(RenderError, match="5 frames but the mesh has 24"):
+        render(mesh, limb["markers"], truth=str(tmp_path / "short.pc2"), ctx=Context())
+    write_pc2(shifted, tmp_path / "alone.pc2")
+    with pytest.raises(RenderError, match="alone"):
+        render(mesh, limb["markers"], truth=str(tmp_path / "alone.pc2"), ctx=Context())
