@@ -36,6 +36,7 @@ Run::
 
     .venv/bin/python benchmarks/texture.py            # 5 seeds, all rows
     .venv/bin/python benchmarks/texture.py --quick    # 2 seeds, 2× rows only
+    .venv/bin/python benchmarks/texture.py --quick --level-weights 2/1/0.5   # + weighted rows
     .venv/bin/python benchmarks/texture.py --calibrate runs.jsonl   # vs GenMM itself
 """
 
@@ -255,6 +256,34 @@ def summary_line(name: str, n_in: int, length: int, res: dict) -> str:
             f"{s_o:.2f} / {s_b:.2f} | {verdict} |")
 
 
+#: (rate, output frames) of the speed table: the same 34 s of output at 30 and 120 fps
+SPEED = ((30.0, 1024), (120.0, 4096))
+
+
+def speed_table(seeds: list[int], levels: int, only: str | None) -> None:
+    """CPU seconds of ours (pyramid + synthesis, default params) per output, at 30 fps and
+    at 120 fps; the pyramid gets one level more per doubling of the rate (its coarsest
+    level stays at the same duration per node)."""
+    print("\nSpeed: CPU s of ours (pyramid + synth stage, one core) per output; levels "
+          f"{levels} at 30 fps, + log2(rate / 30) above\n")
+    print("| input | rate | levels | output frames | CPU s (mean, min–max over seeds) |")
+    print("|---|---|---|---|---|")
+    for name, rel in INPUTS.items():
+        if only and only not in name:
+            continue
+        for rate, length in SPEED:
+            motion = load(rel, rate)
+            lv = levels + int(round(np.log2(rate / 30.0)))
+            times = []
+            for seed in seeds:
+                t0 = time.process_time()
+                synth(build_pyramid(motion, levels=lv), motion, length=length, seed=seed,
+                      ctx=seeded_context(seed), output_rate=motion.rate)
+                times.append({"time": time.process_time() - t0})
+            print(f"| {name} | {rate:g} | {lv} | {length} | {fmt(times, 'time', '{:.2f}')} |",
+                  flush=True)
+
+
 def run_cases(seeds: list[int], levels: int, only: str | None) -> list[str]:
     """Constrained and path cases: our rows; the GenMM baseline has no answer."""
     lines = []
@@ -340,6 +369,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", default=None, help="substring of the input names to run")
     ap.add_argument("--no-cases", action="store_true",
                     help="skip the constrained and path cases")
+    ap.add_argument("--level-weights", action="append", default=[], metavar="A/C/F",
+                    help="extra rows of ours with these (ancestor/current/finer) level "
+                         "weights, e.g. 2/1/0.5 (the thesis weights the coarser level higher)")
+    ap.add_argument("--no-speed", action="store_true",
+                    help="skip the speed table (1,024 frames at 30 fps, 4,096 at 120 fps)")
     ap.add_argument("--calibrate", default=None, metavar="FILE",
                     help="compare the GenMM reimplementation with GenMM's own outputs "
                          "(JSON lines: input, length, seed, cpu, path) and exit")
@@ -353,6 +387,10 @@ def main(argv: list[str] | None = None) -> int:
     seeds = list(range(n_seeds))
     genmm_seeds = seeds[: args.genmm_seeds] if args.genmm_seeds is not None else seeds
     variants = {"ours": {}, f"ours variety={MORE_VARIED}": {"variety": MORE_VARIED}}
+    for w in args.level_weights:
+        a, c, f = (float(x) for x in w.split("/"))
+        variants[f"ours weights {w}"] = {"ancestor_weight": a, "current_weight": c,
+                                        "finer_weight": f}
     print(f"texture benchmark — {n_seeds} seeds ({len(genmm_seeds)} for the GenMM baseline), "
           f"{args.levels} levels, 30 fps; {TARGETS}")
     print(
@@ -392,6 +430,8 @@ def main(argv: list[str] | None = None) -> int:
     print("|" + "---|" * 9)
     for line in summary:
         print(line)
+    if not args.no_speed:
+        speed_table(seeds, args.levels, args.only)
     if not args.no_cases:
         print(f"\nConstrained and path cases ({n_seeds} seeds; the {GENMM} has no answer):\n")
         print("| case | input (frames) | output | method | " + " | ".join(c[1] for c in COLS)

@@ -30,6 +30,8 @@ __all__ = [
     "level_view",
     "slot_pair_weights",
     "slot_distance",
+    "PairTables",
+    "pair_tables",
     "window_cost",
 ]
 
@@ -118,6 +120,7 @@ def window_cost(
     iv: np.ndarray,
     block: np.ndarray,
     pair_weights: np.ndarray,
+    tables: PairTables | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Weighted velocity distance between output windows and input windows.
 
@@ -133,6 +136,10 @@ def window_cost(
         Slots holding the candidate itself.
     pair_weights : (W - 1,) float ndarray
         Weight of each slot pair.
+    tables : PairTables, optional
+        :func:`pair_tables` of ``view``: pairs that play the input forwards, or jump
+        into or out of the input pair, are looked up instead of computed (same
+        values; worth it where a level is searched over all its nodes).
 
     Returns
     -------
@@ -152,16 +159,102 @@ def window_cost(
     valid = both_out & in_ok[:, 1:] & in_ok[:, :-1]
     touch = block[1:] | block[:-1]
     reject = np.any(both_out & ~valid & touch[None, :], axis=1)
-    P, R, V = view.P, view.R, view.V
-    dv = (P[o[:, 1:]] - P[o[:, :-1]]) - V[np.minimum(i[:, :-1], n - 2)]
-    d = np.sqrt(np.einsum("...k,...k->...", dv, dv)) / view.spacing
-    ra = R[o[:, :-1]] - R[i[:, :-1]]
-    rb = R[o[:, 1:]] - R[i[:, 1:]]
-    ra = np.sqrt(np.einsum("...k,...k->...", ra, ra))
-    rb = np.sqrt(np.einsum("...k,...k->...", rb, rb))
-    dist = slot_distance(np.concatenate([d, ra, rb], axis=-1))
+    o0, o1, i0, i1 = o[:, :-1], o[:, 1:], i[:, :-1], i[:, 1:]
+    # computed only where it counts: valid pairs that are not the input pair itself
+    # (distance exactly 0); with tables, the pairs they hold are looked up
+    dist = np.zeros(o0.shape)
+    need = valid & ((o0 != i0) | (o1 != i1))
+    if tables is not None:  # valid pairs have i1 = i0 + 1, both inside the input
+        for sel, T, x, y in (
+            (o1 == o0 + 1, tables.verbatim, o0, i0),
+            (o1 == i1, tables.into, o0, i1),
+            (o0 == i0, tables.out_of, o0, o1),
+        ):
+            sel = need & sel
+            dist[sel] = T[x[sel], y[sel]]
+            need &= ~sel
+    if need.any():
+        dist[need] = pair_distance(view, o0[need], o1[need], i0[need], i1[need])
     w = pair_weights[None, :] * valid
     return np.sum(w * dist, axis=1), np.sum(w, axis=1), reject
+
+
+def pair_distance(view: LevelView, o0, o1, i0, i1) -> np.ndarray:
+    """Per-slot distance of output pairs ``(o0, o1)`` to input pairs ``(i0, i1)``.
+
+    Parameters
+    ----------
+    view : LevelView
+    o0, o1, i0, i1 : int ndarrays
+        Input nodes in ``[0, n)``, broadcastable to one shape.
+
+    Returns
+    -------
+    float ndarray
+        :func:`slot_distance` of the joint velocity errors ``‖(P[o1] - P[o0]) -
+        V[i0]‖ / spacing`` and the rate-feature errors at both nodes.
+    """
+    P, R, V = view.P, view.R, view.V
+    dv = (P[o1] - P[o0]) - V[np.minimum(i0, view.n - 2)]
+    d = np.sqrt(np.einsum("...k,...k->...", dv, dv)) / view.spacing
+    ra = R[o0] - R[i0]
+    rb = R[o1] - R[i1]
+    ra = np.sqrt(np.einsum("...k,...k->...", ra, ra))
+    rb = np.sqrt(np.einsum("...k,...k->...", rb, rb))
+    return slot_distance(np.concatenate([d, ra, rb], axis=-1))
+
+
+@dataclass
+class PairTables:
+    """:func:`pair_distance` tabulated for the pairs a search mostly compares.
+
+    Attributes
+    ----------
+    verbatim : (n - 1, n - 1) float ndarray
+        Output pair ``(x, x + 1)`` against input pair ``(y, y + 1)``.
+    into : (n, n) float ndarray
+        Output pair ``(x, y)`` against input pair ``(y - 1, y)`` (a jump into ``y``;
+        column 0 unused).
+    out_of : (n, n) float ndarray
+        Output pair ``(x, y)`` against input pair ``(x, x + 1)`` (a jump out of ``x``;
+        row ``n - 1`` unused).
+    """
+
+    verbatim: np.ndarray
+    into: np.ndarray
+    out_of: np.ndarray
+
+
+def _tabulate(f, n: int) -> np.ndarray:
+    """``T[x, y] = f(x[:, None], y[None, :])`` for ``x, y < n``, in row blocks."""
+    T = np.empty((n, n))
+    x = np.arange(n)
+    rows = max(1, 40_000 // max(n, 1))
+    for a in range(0, n, rows):
+        xs, ys = np.broadcast_arrays(x[a : a + rows, None], x[None, :])
+        T[a : a + rows] = f(xs, ys)
+    return T
+
+
+def pair_tables(view: LevelView) -> PairTables:
+    """The :class:`PairTables` of a level (``3 n²`` distances), for :func:`window_cost`.
+
+    Parameters
+    ----------
+    view : LevelView
+
+    Returns
+    -------
+    PairTables
+    """
+    n = view.n
+    top = n - 1  # clamp: entries of pairs outside the input are never read
+    return PairTables(
+        verbatim=_tabulate(lambda x, y: pair_distance(view, x, x + 1, y, y + 1), n - 1),
+        into=_tabulate(lambda x, y: pair_distance(view, x, y, np.maximum(y - 1, 0), y), n),
+        out_of=_tabulate(
+            lambda x, y: pair_distance(view, x, y, x, np.minimum(x + 1, top)), n),
+    )
 
 
 def slot_pair_weights(offsets: np.ndarray, centre: float, sigma: float) -> np.ndarray:

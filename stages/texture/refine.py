@@ -377,27 +377,28 @@ class LevelRefinement(LevelSearch):
         """
         n_in = self.view.n
         a1, b1, a2, b2, L_end = tr.a1, tr.b1, tr.a2, tr.b2, tr.left_end
-        rows, keys, ms = [], [], []
-        for m in range(lo, hi + 1):
-            last = min(b2, m + min_run - 1) - a2
-            ss = starts[(starts + (m - a2) >= 0) & (starts + last < n_in)]
-            if ss.size == 0:
-                continue
-            u = m + self.off
-            ov = np.broadcast_to(self._out_values(val, u), (ss.size, u.size)).copy()
-            left = (u < m) & (u >= a1)
-            right = (u >= m) & (u <= b2)
-            ov[:, left] = (L_end + (u[left] - b1))[None, :]
-            ov[:, right] = ss[:, None] + (u[right] - a2)[None, :]
-            ov[(ov < 0) | (ov >= n_in)] = -1
-            c = self.cost_rows(ov, m, coherence=False, strict=strict)
-            c = np.where(np.isnan(c), 0.0, c)
-            for s_, v in zip(ss, c):
-                if np.isfinite(v):
-                    rows.append(float(v))
-                    keys.append(int(s_) * 1_000_000 + m)
-                    ms.append((m, int(s_)))
-        return rows, keys, ms
+        # every (m, s) at once, m ascending then s as in `starts`
+        M = np.arange(lo, hi + 1)
+        last = np.minimum(b2, M + min_run - 1) - a2
+        fits = (starts[None, :] + (M - a2)[:, None] >= 0) & (
+            starts[None, :] + last[:, None] < n_in)
+        mi, si = np.nonzero(fits)
+        if mi.size == 0:
+            return [], [], []
+        m, ss = M[mi], starts[si]
+        u = m[:, None] + self.off[None, :]
+        ov = self._out_values(val, u)
+        left = (u < m[:, None]) & (u >= a1)
+        right = (u >= m[:, None]) & (u <= b2)
+        ov = np.where(left, L_end + (u - b1), ov)
+        ov = np.where(right, ss[:, None] + (u - a2), ov)
+        ov[(ov < 0) | (ov >= n_in)] = -1
+        c = self.cost_rows(ov, m, coherence=False, strict=strict)
+        c = np.where(np.isnan(c), 0.0, c)
+        ok = np.isfinite(c)
+        m, ss = m[ok].tolist(), ss[ok].tolist()
+        keys = [s_ * 1_000_000 + mm for mm, s_ in zip(m, ss)]
+        return c[ok].tolist(), keys, list(zip(m, ss))
 
     def _draw_join(self, rows: list[float], keys: list[int]) -> tuple[int, np.ndarray]:
         """Index of the chosen join and the joins' order (cheapest first, ties random)."""

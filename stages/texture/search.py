@@ -21,10 +21,19 @@ neighbour).
 
 Coarsest level (:class:`LevelSearch`): gaps between anchors (constraints) are
 grown from both sides (:meth:`LevelSearch.fill_gap`), alternating one node of
-the left front and one of the right front, each node searched exhaustively over
-the input (:meth:`LevelSearch.fill`); the two sequences are joined at the
-*meeting point* (:meth:`LevelSearch._meet`), searched exhaustively over every
-position of the gap and every input node.  Gaps with one anchor grow from it.
+the left front and one of the right front in ONE output, so that the last nodes
+of each front are searched with the other front's nodes in their neighbourhood
+(``alternate=False``: the left half first, then the right half), each node
+searched exhaustively over the input (:meth:`LevelSearch.fill`).  Where the
+fronts meet, the *meeting point* (:meth:`LevelSearch._meet`) is moved within
+``meeting_window`` nodes (the front that gives up positions is replaced there by
+the other one played on verbatim), the node at the join searched over the input,
+and the arrangement with the lowest *summed sequence cost* wins
+(:meth:`LevelSearch.sequence_costs`: the neighbourhood costs of the gap's nodes
+in the finished track; only nodes within ``slots`` of a changed one differ, so
+only those are summed), not the meeting node's own cost; a join that would
+lengthen a verbatim run past ``max_run`` is refused.  Gaps with one anchor
+grow from it.
 
 Finer levels (:class:`~mocapflow.stages.texture.refine.LevelRefinement`, a
 ``LevelSearch``): son selection, then every transition of the parent level is
@@ -56,7 +65,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mocapflow.stages.texture.neighbourhood import slot_pair_weights, window_cost
+from mocapflow.stages.texture.neighbourhood import (
+    pair_tables,
+    slot_pair_weights,
+    window_cost,
+)
 
 __all__ = [
     "Gap",
@@ -113,6 +126,9 @@ class SearchParams:
     relocate : int
         Positions, back into the run, where a forced jump (end of the input,
         ``max_run``) is searched.
+    alternate : bool
+        Grow the two fronts of a gap alternately, one node each (the thesis);
+        False: the left front fills its half first, then the right front.
     """
 
     slots: int = 3
@@ -127,6 +143,7 @@ class SearchParams:
     max_run: float = 0.3
     usage_weight: float = 0.5
     relocate: int = 6
+    alternate: bool = True
 
 
 def _ahead_usage(counts: np.ndarray, span: int, side: int) -> np.ndarray:
@@ -150,6 +167,26 @@ def _ahead_usage(counts: np.ndarray, span: int, side: int) -> np.ndarray:
     lo = b if side > 0 else np.maximum(b - span + 1, 0)
     hi = np.minimum(b + span, n) if side > 0 else b + 1
     return (c[hi] - c[lo]) / (hi - lo)
+
+
+def _longest_runs(vals: np.ndarray) -> np.ndarray:
+    """Longest verbatim run (nodes playing the input forwards) of each row.
+
+    Parameters
+    ----------
+    vals : (r, w) int ndarray
+        Input node per position (-1: empty).
+
+    Returns
+    -------
+    (r,) int ndarray
+    """
+    cont = (vals[:, 1:] == vals[:, :-1] + 1) & (vals[:, :-1] >= 0)
+    out = np.zeros(vals.shape[0], dtype=np.int64)
+    for k, row in enumerate(cont):
+        edges = np.flatnonzero(np.diff(np.r_[0, row.astype(np.int8), 0]))
+        out[k] = 1 + (int((edges[1::2] - edges[::2]).max()) if edges.size else 0)
+    return out
 
 
 # --------------------------------------------------------------------------- gaps
@@ -240,7 +277,8 @@ class LevelSearch:
     seeded draw (:meth:`choose`, :meth:`_draw`, :meth:`jump_threshold`),
     node-by-node growth (:meth:`fill`, with the forced jumps of
     :meth:`_jump_earlier` at the coarsest level) and the gaps and meeting
-    points of the coarsest level (:meth:`fill_gap`, :meth:`_meet`).  Finer
+    points of the coarsest level (:meth:`fill_gap`, :meth:`_meet`,
+    :meth:`sequence_costs`).  Finer
     levels are refined by the subclass
     :class:`~mocapflow.stages.texture.refine.LevelRefinement`.
 
@@ -270,6 +308,7 @@ class LevelSearch:
         self.view = views[level]
         self._usage: np.ndarray | None = None
         self._tau: float | None = None
+        self._tables: tuple | None = None
         #: cost unit of every level: natural frame-to-frame velocity change of the input
         self.unit = views[0].unit
         self.coarsest = level == len(views) - 1
@@ -318,10 +357,21 @@ class LevelSearch:
         m = cands.shape[0]
         ov = np.broadcast_to(self._out_values(src, t + self.off), (m, self.off.size)).copy()
         ov[:, self.blk] = cands[:, None]
-        return self.cost_rows(ov, t)
+        return self.cost_rows(ov, t, tables=self._coarse_tables())
+
+    def _coarse_tables(self) -> tuple | None:
+        """Pair distances of this level and the finer one, tabulated at the coarsest
+        level only (small levels searched over every input node; built once)."""
+        if not self.coarsest:
+            return None
+        if self._tables is None:
+            self._tables = (pair_tables(self.view),
+                            pair_tables(self.views[self.l - 1]) if self.l > 0 else None)
+        return self._tables
 
     def cost_rows(
-        self, ov: np.ndarray, t: int, *, coherence: bool = True, strict: bool = True
+        self, ov: np.ndarray, t, *, coherence: bool = True, strict: bool = True,
+        tables: tuple | None = None,
     ) -> np.ndarray:
         """Neighbourhood cost of output windows around node ``t``, one context per row.
 
@@ -330,13 +380,16 @@ class LevelSearch:
         ov : (m, 2 slots + 1) int ndarray
             Input node at output positions ``t - slots … t + slots`` (-1: empty);
             the centre column is the candidate.
-        t : int
-            Output position (unwrapped in loop mode).
+        t : int or (m,) int ndarray
+            Output position (unwrapped in loop mode), one for all rows or one per row.
         coherence : bool
             Apply the coherence bonus.
         strict : bool
             Reject candidates whose input lacks a slot next to them that the
             output has (False: just leave that slot out).
+        tables : (PairTables, PairTables or None), optional
+            :func:`~mocapflow.stages.texture.neighbourhood.pair_tables` of this
+            level and the finer one (same costs, faster).
 
         Returns
         -------
@@ -346,13 +399,14 @@ class LevelSearch:
         S = self.p.slots
         cands = ov[:, S]
         iv = cands[:, None] + self.off[None, :]
-        num, den, reject = window_cost(self.view, ov, iv, self.blk, self.pw)
+        tab, tab_f = tables if tables is not None else (None, None)
+        num, den, reject = window_cost(self.view, ov, iv, self.blk, self.pw, tab)
         num, den = lc * num, lc * den
         if self.upper is not None and la > 0:
             a_num, a_den = self._ancestor_cost(t, cands)
             num, den = num + la * a_num, den + la * a_den
         if self.l > 0 and lf > 0:
-            f_num, f_den = self._finer_cost(ov, t)
+            f_num, f_den = self._finer_cost(ov, t, tab_f)
             num, den = num + lf * f_num, den + lf * f_den
         with np.errstate(invalid="ignore", divide="ignore"):
             total = num / den
@@ -366,18 +420,28 @@ class LevelSearch:
             total = np.where(coherent, total - self.p.coherence * self.unit, total)
         return total
 
-    def _ancestor_cost(self, t: int, cands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _ancestor_cost(self, t, cands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Ancestor level: the parent window around ``t // 2`` with the candidate's parent
+        at its centre (``t``: one position, or one per candidate)."""
         view = self.views[self.l + 1]
         up = self.upper.src
         T = t // 2 if not self.cyclic else (t % self.n) // 2
-        C, inv = np.unique(cands // 2, return_inverse=True)
-        ov = np.broadcast_to(self._out_values(up, T + self.off), (C.size, self.off.size)).copy()
+        if np.ndim(T):  # one parent window per row: each distinct (T, parent) once
+            key = np.stack([np.asarray(T), cands // 2], axis=1)
+            K, inv = np.unique(key, axis=0, return_inverse=True)
+            inv = inv.ravel()
+            ov = self._out_values(up, K[:, :1] + self.off[None, :])
+            C = K[:, 1]
+        else:
+            C, inv = np.unique(cands // 2, return_inverse=True)
+            ov = np.broadcast_to(self._out_values(up, T + self.off), (C.size, self.off.size))
+            ov = ov.copy()
         ov[:, self.blk] = C[:, None]
         iv = C[:, None] + self.off[None, :]
         num, den, _ = window_cost(view, ov, iv, self.blk, self.pw)
         return num[inv], den[inv]
 
-    def _finer_cost(self, ov: np.ndarray, t: int) -> tuple[np.ndarray, np.ndarray]:
+    def _finer_cost(self, ov: np.ndarray, t, tables=None) -> tuple[np.ndarray, np.ndarray]:
         """Finer level: every filled node brings the children of its source."""
         view = self.views[self.l - 1]
         nf = self.n_out[self.l - 1]
@@ -387,11 +451,11 @@ class LevelSearch:
         pv = ov[:, S + rel]
         prov = np.where(pv >= 0, 2 * pv + parity[None, :], -1)
         if not self.cyclic:
-            u = 2 * t + self.off_f
-            prov[:, (u < 0) | (u >= nf)] = -1
+            u = 2 * np.reshape(t, (-1, 1)) + self.off_f[None, :]
+            prov[np.broadcast_to((u < 0) | (u >= nf), prov.shape)] = -1
         prov[prov >= view.n] = -1
         iv = 2 * ov[:, S : S + 1] + self.off_f[None, :]
-        num, den, _ = window_cost(view, prov, iv, self.blk_f, self.pw_f)
+        num, den, _ = window_cost(view, prov, iv, self.blk_f, self.pw_f, tables)
         return num, den
 
     # ----------------------------------------------------------- candidates
@@ -472,7 +536,11 @@ class LevelSearch:
         base = np.full(2 * S + 1, -1, dtype=np.int64)
         best = np.full(n, np.inf)
         b = np.arange(n)
-        chunk = max(1, 20_000 // max(n, 1))
+        chunk = max(1, 60_000 // max(n, 1))
+        # slot pair distances looked up (same costs)
+        tables = self._coarse_tables() or (
+            pair_tables(self.view),
+            pair_tables(self.views[self.l - 1]) if self.l > 0 else None)
         for a0 in range(0, n, chunk):
             a = np.arange(a0, min(n, a0 + chunk))
             ov = np.tile(base, (a.size * n, 1))
@@ -481,7 +549,7 @@ class LevelSearch:
             ov[:, :S] = aa[:, None] + np.arange(-S + 1, 1)[None, :]
             ov[:, :S][ov[:, :S] < 0] = -1
             ov[:, S] = bb
-            c = self.cost_rows(ov, t, coherence=False).reshape(a.size, n)
+            c = self.cost_rows(ov, t, coherence=False, tables=tables).reshape(a.size, n)
             far = np.abs(b[None, :] - (a[:, None] + 1)) >= S
             c = np.where(far & np.isfinite(c), c, np.inf)
             best[a] = c.min(axis=1)
@@ -634,7 +702,7 @@ class LevelSearch:
         else:
             return
         every = np.arange(n_in)
-        found: list[tuple[float, int, int]] = []
+        rows, ts, bads = [], [], []
         for d in range(0, self.p.relocate + 1):
             m = t + side * d  # candidate jump position; m+side .. t-side must stay verbatim
             if d:
@@ -643,12 +711,22 @@ class LevelSearch:
                     break
             trial = src.copy()
             trial[self._positions(min(m, t), max(m, t))] = -1
-            c = self.cost(trial, m, every)
+            ov = np.broadcast_to(self._out_values(trial, m + self.off), (n_in, self.off.size))
+            ov = ov.copy()
+            ov[:, self.blk] = every[:, None]
             prev = self._out_values(trial, np.array([m + side]))[0]
             bad = np.abs(every - (prev - side)) < S  # continuing the run is what ends here
             bad |= (every - side * d < 0) | (every - side * d >= n_in)  # run must fit to t
-            c = np.where(bad | np.isnan(c), np.inf, c)
-            found += [(float(c[i]), m, int(i)) for i in np.flatnonzero(np.isfinite(c))]
+            rows.append(ov)
+            ts.append(np.full(n_in, m))
+            bads.append(bad)
+        # every position d at once (one cost evaluation)
+        c = self.cost_rows(np.concatenate(rows), np.concatenate(ts),
+                           tables=self._coarse_tables()).reshape(len(rows), n_in)
+        c = np.where(np.stack(bads) | np.isnan(c), np.inf, c)
+        found: list[tuple[float, int, int]] = [
+            (float(c[d, i]), t + side * d, int(i)) for d, i in zip(*np.nonzero(np.isfinite(c)))
+        ]
         if not found:
             return
         found.sort(key=lambda f: f[0])
@@ -694,84 +772,133 @@ class LevelSearch:
         ws, we = max(ws, lo + 1), min(we, hi - 1)
         if ws > we:
             ws, we = lo + 1, hi - 1
-        L_src, L_rk = src.copy(), ranked.copy()
-        R_src, R_rk = src.copy(), ranked.copy()
-        left = iter(range(lo + 1, we + 1))
-        right = iter(range(hi - 1, ws - 1, -1))
-        done_l = done_r = False
-        while not (done_l and done_r):  # alternate sides
-            t = next(left, None)
-            if t is None:
-                done_l = True
-            else:
-                self.fill(L_src, L_rk, t, f"{name}, node {t} (left front)")
-            t = next(right, None)
-            if t is None:
-                done_r = True
-            else:
-                self.fill(R_src, R_rk, t, f"{name}, node {t} (right front)")
-        return self._meet(src, ranked, L_src, L_rk, R_src, R_rk, gap, ws, we)
+        # both fronts grow in this one output, so each sees the other once they are near
+        nl, nr, last = lo + 1, hi - 1, lo + 1
+        while nl <= nr:
+            if self.p.alternate or nl <= (lo + hi) // 2:
+                self.fill(src, ranked, nl, f"{name}, node {nl} (left front)")
+                last, nl = nl, nl + 1
+                if not self.p.alternate:
+                    continue
+            if nl <= nr:
+                self.fill(src, ranked, nr, f"{name}, node {nr} (right front)")
+                last, nr = nr, nr - 1
+        return self._meet(src, ranked, gap, last, ws, we)
 
     def _positions(self, a: int, b: int) -> np.ndarray:
         """Wrapped array positions of unwrapped ``a … b`` (inclusive)."""
         pos = np.arange(a, b + 1)
         return np.mod(pos, self.n) if self.cyclic else pos
 
-    def _meet(self, src, ranked, L_src, L_rk, R_src, R_rk, gap, ws, we) -> int:
-        """Exhaustive meeting-point search over ``[ws, we]`` and the candidates."""
-        best: list[tuple[float, int, int]] = []
-        states = {}
-        for m in range(ws, we + 1):
-            joined = src.copy()
-            lp = self._positions(gap.lo + 1, m - 1)
-            rp = self._positions(m + 1, gap.hi - 1)
-            joined[lp] = L_src[lp]
-            joined[rp] = R_src[rp]
-            joined[self._positions(m, m)] = -1
-            here = self._positions(m, m)
-            if self.coarsest:
-                cands = np.arange(self.view.n)
-            else:
-                # continue one side: a single seam, never a bridge of a few frames
-                nb = self._out_values(joined, np.array([m - 1, m + 1]))
-                cont = np.array([nb[0] + 1, nb[1] - 1, L_src[here][0], R_src[here][0]])
-                cands = np.unique(cont[(cont >= 0) & (cont < self.view.n)])
-            if cands.size == 0:
-                continue
-            cost = self.cost(joined, m, cands)
-            cost = np.where(np.isnan(cost), 0.0, cost)
-            for c, v in zip(cands, cost):
-                if np.isfinite(v):
-                    best.append((float(v), m, int(c)))
-            states[m] = joined
-        if not best:
+    def sequence_costs(self, tracks: np.ndarray, band: np.ndarray) -> np.ndarray:
+        """Summed neighbourhood cost of the nodes at ``band`` in each candidate track.
+
+        The cost of a node is :meth:`cost_rows` of its window in the finished track
+        (every neighbour filled; no coherence bonus, missing input slots left out).
+
+        Parameters
+        ----------
+        tracks : (r, n_out) int ndarray
+            Candidate source tracks of this level.
+        band : (b,) int ndarray
+            Output positions (unwrapped) summed over.
+
+        Returns
+        -------
+        (r,) float ndarray
+            ``inf`` for a track with a rejected node in ``band``.
+        """
+        r = tracks.shape[0]
+        u = band[:, None] + self.off[None, :]  # (b, W)
+        p, ok = self._wrap(u, self.n)
+        ov = np.where(ok[None], tracks[:, p], -1).reshape(-1, self.off.size)
+        t = np.tile(band, r)
+        c = self.cost_rows(ov, t, coherence=False, strict=False,
+                           tables=self._coarse_tables())
+        return np.where(np.isnan(c), 0.0, c).reshape(r, band.size).sum(axis=1)
+
+    def _meet(self, src, ranked, gap: Gap, m0: int, ws: int, we: int) -> int:
+        """The meeting point of a gap whose two fronts met at ``m0`` (in place).
+
+        The join is moved to every position ``m`` of ``[ws, we]`` within
+        ``meeting_window`` nodes of ``m0`` (the front that loses positions is
+        replaced there by the other front played on verbatim), the node at ``m``
+        is searched over the input (its ``k_best`` best), and each arrangement is
+        scored by its *summed sequence cost*: the neighbourhood costs of every
+        node of the gap in the finished track (:meth:`sequence_costs`; nodes
+        farther than ``slots`` from the changed ones are the same in every
+        arrangement, so only those are summed).  The cheapest wins (drawn among
+        the ``k_best`` distinct at randomised levels); an arrangement whose
+        verbatim run would exceed ``max_run`` is refused while another exists.
+
+        Returns
+        -------
+        int
+            The meeting position (unwrapped).
+        """
+        n_in, S, w = self.view.n, self.p.slots, self.p.meeting_window
+        at = self._positions
+        a, b = self._out_values(src, np.array([m0 - 1, m0 + 1]))
+        tracks, keys, nodes, ms = [], [], [], []
+        for m in range(max(ws, m0 - w), min(we, m0 + w) + 1):
+            trial = src.copy()
+            if m > m0:  # the left front plays on through m0 … m-1
+                vals = a + np.arange(1, m - m0 + 1)
+                if a < 0 or vals[-1] >= n_in:
+                    continue
+                trial[at(m0, m - 1)] = vals
+            elif m < m0:  # the right front plays back through m+1 … m0
+                vals = b - np.arange(m0 - m, 0, -1)
+                if b < 0 or vals[0] < 0:
+                    continue
+                trial[at(m + 1, m0)] = vals
+            trial[at(m, m)] = -1
+            cands = np.arange(n_in)  # exhaustive (gaps are filled at the coarsest level)
+            c = self.cost(trial, m, cands)
+            c = np.where(np.isnan(c), 0.0, c)
+            ok = np.flatnonzero(np.isfinite(c))
+            for i in ok[np.argsort(c[ok], kind="stable")][: max(self.p.k_best, 1)]:
+                t2 = trial.copy()
+                t2[at(m, m)] = cands[i]
+                tracks.append(t2)
+                keys.append(m * 1_000_000 + int(cands[i]))
+                nodes.append(int(cands[i]))
+                ms.append(m)
+        if not tracks:
             raise SynthesisError(
-                f"gap {gap.key}: no input node joins the two sides anywhere in nodes {ws}-{we}"
+                f"gap {gap.key}: no input node joins the two sides anywhere in nodes "
+                f"{max(ws, m0 - w)}-{min(we, m0 + w)}"
             )
-        costs = np.array([b[0] for b in best])
-        perm = self.rng.permutation(costs.size)
-        order = perm[np.argsort(costs[perm], kind="stable")]
+        # the nodes whose neighbourhood differs between the arrangements (anchors included)
+        lo_b = max(gap.lo, min(min(ms), m0) - S)
+        hi_b = min(gap.hi, max(max(ms), m0) + S)
+        tracks = np.array(tracks)
+        total = self.sequence_costs(tracks, np.arange(lo_b, hi_b + 1))
+        if self.max_run_nodes is not None:  # a join must not make a run longer than max_run
+            R = self.max_run_nodes
+            span = np.arange(lo_b - R, hi_b + R + 1)
+            if not self.cyclic:
+                span = span[(span >= 0) & (span < self.n)]
+            elif span.size > self.n:
+                span = np.arange(lo_b, lo_b + self.n)
+            too_long = _longest_runs(tracks[:, at(span[0], span[-1])]) > R
+            if not too_long.all():
+                total = np.where(too_long, np.inf, total)
+        if not np.isfinite(total).any():  # pragma: no cover - the fronts' own nodes fit
+            raise SynthesisError(f"gap {gap.key}: every meeting point was rejected")
+        perm = self.rng.permutation(total.size)
+        order = perm[np.argsort(total[perm], kind="stable")]
+        order = order[np.isfinite(total[order])]
         pick = order[0]
         if self.randomize and self.p.k_best > 1:
-            # distinct joins: other meeting positions, or other nodes at one position
-            key = np.array([best[i][1] * 1_000_000 + best[i][2] for i in order])
-            nodes = np.array([best[i][2] for i in order])
-            pick = order[self._draw(key, costs[order], nodes)]
-        _, m, node = best[pick]
-        joined = states[m]
-        lp = self._positions(gap.lo + 1, m - 1)
-        rp = self._positions(m + 1, gap.hi - 1)
-        here = self._positions(m, m)
-        src[:] = joined
-        src[here] = node
-        ranked[lp] = L_rk[lp]
-        ranked[rp] = R_rk[rp]
-        same_m = [b for b in (best[i] for i in order) if b[1] == m]
-        top = np.full(3, -1, dtype=np.int64)
-        seen: list[int] = [node]
-        for b in same_m:
-            if b[2] not in seen:
-                seen.append(b[2])
-        top[: min(3, len(seen))] = seen[:3]
-        ranked[here] = top
+            pick = order[self._draw(np.array(keys)[order], total[order],
+                                    np.array(nodes)[order])]
+        m = ms[pick]
+        changed = at(min(m, m0), max(m, m0))
+        src[:] = tracks[pick]
+        ranked[changed] = -1
+        ranked[changed, 0] = src[changed]
+        same_m = [nodes[i] for i in order if ms[i] == m]
+        top = list(dict.fromkeys([nodes[pick]] + same_m))[:3]
+        ranked[at(m, m), : len(top)] = top
         return m

@@ -94,12 +94,13 @@ def gaussian_taps(width: int = 5, scale: float = 1.0) -> np.ndarray:
     return w / w.sum()
 
 
-def _shift_index(L: int, m: int, cyclic: bool) -> np.ndarray:
-    idx = np.arange(L) + m
+def _shift_index(L: int, m: int, cyclic: bool, frames: np.ndarray | None = None) -> np.ndarray:
+    idx = (np.arange(L) if frames is None else frames) + m
     return np.mod(idx, L) if cyclic else np.clip(idx, 0, L - 1)
 
 
-def filter_quaternions(q: np.ndarray, taps: np.ndarray, *, cyclic: bool = False) -> np.ndarray:
+def filter_quaternions(q: np.ndarray, taps: np.ndarray, *, cyclic: bool = False,
+                       frames: np.ndarray | None = None) -> np.ndarray:
     """Gaussian filter of quaternion tracks along frames.
 
     Parameters
@@ -109,27 +110,31 @@ def filter_quaternions(q: np.ndarray, taps: np.ndarray, *, cyclic: bool = False)
         Odd number of weights centred on the frame.
     cyclic : bool
         Wrap at the ends (loops); else clamp.
+    frames : (F,) int ndarray, optional
+        Only these frames filtered (default all ``L``).
 
     Returns
     -------
-    (L, ..., 4) float ndarray
+    (L, ..., 4) or (F, ..., 4) float ndarray
     """
     L = q.shape[0]
     h = taps.size // 2
-    acc = np.zeros_like(q)
+    q0 = q if frames is None else q[frames]
+    acc = np.zeros_like(q0)
     for m, w in zip(range(-h, h + 1), taps):
-        s = q[_shift_index(L, m, cyclic)]
-        sign = np.where(np.sum(s * q, axis=-1, keepdims=True) < 0, -1.0, 1.0)
+        s = q[_shift_index(L, m, cyclic, frames)]
+        sign = np.where(np.sum(s * q0, axis=-1, keepdims=True) < 0, -1.0, 1.0)
         acc += w * sign * s
     return acc / np.linalg.norm(acc, axis=-1, keepdims=True)
 
 
-def _filter_linear(x: np.ndarray, taps: np.ndarray, *, cyclic: bool) -> np.ndarray:
+def _filter_linear(x: np.ndarray, taps: np.ndarray, *, cyclic: bool,
+                   frames: np.ndarray | None = None) -> np.ndarray:
     L = x.shape[0]
     h = taps.size // 2
-    acc = np.zeros_like(x)
+    acc = np.zeros_like(x if frames is None else x[frames])
     for m, w in zip(range(-h, h + 1), taps):
-        acc += w * x[_shift_index(L, m, cyclic)]
+        acc += w * x[_shift_index(L, m, cyclic, frames)]
     return acc
 
 
@@ -371,8 +376,11 @@ def adaptive_smoothing(
         w = np.zeros(L)
         for t, kk in zip(seams[fail], k[fail]):
             w = np.maximum(w, _window(L, t - 0.5, kk * r, cyclic, taper))
-        rot = _blend_quaternions(rot, filter_quaternions(rot, taps, cyclic=cyclic), w)
-        feat = feat + w[:, None] * (_filter_linear(feat, taps, cyclic=cyclic) - feat)
+        act = np.flatnonzero(w > 0)  # frames inside a smoothing window (the rest keep theirs)
+        rot[act] = _blend_quaternions(
+            rot[act], filter_quaternions(rot, taps, cyclic=cyclic, frames=act), w[act])
+        feat[act] += w[act, None] * (
+            _filter_linear(feat, taps, cyclic=cyclic, frames=act) - feat[act])
         if len(constrained):
             _pin(rot, feat, rot0, feat0, constrained, int(k.max() * r + taper) + 2, cyclic)
         passed, sa, _ = seam_test(

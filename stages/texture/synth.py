@@ -528,7 +528,10 @@ def synth(
     slots : int
         Neighbourhood half width (±3).
     ancestor_weight, current_weight, finer_weight : float
-        Relative weights of the three neighbourhood levels.
+        Relative weights of the three neighbourhood levels (only their ratios
+        count).  Equal by default: the thesis' heavier coarser level (e.g. 2 / 1 /
+        0.5) measured worse on local diversity (``benchmarks/texture.py
+        --level-weights 2/1/0.5``).
     candidate_range : int
         ± nodes around the children of the parent's 3 best matches (±4).
     k_best : int
@@ -552,7 +555,8 @@ def synth(
         Cost units within which the k best joins are drawn below the coarsest level.
     meeting_window : int
         ± nodes searched around each transition of the previous level (meeting
-        points and jumps).
+        points and jumps); at the coarsest level, ± nodes around where the two
+        fronts of a gap met (the lowest summed sequence cost wins).
     graph_threshold : float
         Quantile of jump costs kept as transition-graph edges.
     graph_slack : float
