@@ -37,7 +37,10 @@ Lau Eq. 5–6 conditional densities
 temporal variation
     → ``sample.Sampler.run``: the second-order transition network regresses the
     delta on position and velocity (``training.transition_data``), so timing
-    varies with the draws; there is no separate time-warp model
+    varies with the draws; cyclic variants are whole cycles (``one_cycle``), so
+    their lengths vary as the inputs'; the inputs' time warps onto a reference
+    cycle → ``warp.time_warps`` (in ``learn.learn``), one drawn per variant →
+    ``warp.sample_time_warp``, played → ``warp.apply_time_warp`` (in ``sample.sample``)
 §7 IK clean-up, Lau Eq. 7 with w₁ = 1, w₂ = 5 and q̄ = the predicted mean
     Eq. 7 without constraints over a clip, within joint limits →
     ``ik_solver.eq7_track``; one limb over a clip with its targets →
@@ -68,6 +71,9 @@ Departures the module docstrings state (each can be switched off):
   (``learn._phase_parents``; without it the walk's mean dynamics come to rest),
   where cyclic variants start and loops are cut;
 * sparse candidate parents, ``candidates`` (Friedman et al. 1999; ``search``);
+* the time warp as a Gaussian over the inputs' warps drawn once per variant, not a
+  DOF of the network (``warp``; ``learn(time_warp=False)`` or
+  ``sample(time_warp=False)`` leave it out);
 * AR(1)-correlated sampling noise, ``noise_time``, with the long-run variance
   of white noise (``sample.Sampler.stream``; ``None`` is the paper's white noise);
 * single-precision neighbour search, and the optional phase-window search of

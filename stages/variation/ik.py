@@ -111,8 +111,8 @@ __all__ = [
 ]
 
 RANGE_FRACTION = 0.5
-"""The shipped configs' ``range_fraction`` (``configs/variation.yaml``): a joint limit widens the
-inputs' range of a DOF by at most this fraction of that range (:func:`joint_limits`)."""
+"""The default ``range_fraction`` of :func:`ik`: a joint limit widens the inputs' range of a DOF
+by at most this fraction of that range (:func:`joint_limits`)."""
 
 
 class IKError(ValueError):
@@ -326,7 +326,7 @@ def ik(
     contact_gap: float = 0.05,
     ease: float = 0.25,
     range_margin: float = 0.025,
-    range_fraction: float | None = None,
+    range_fraction: float | None = RANGE_FRACTION,
     stiffness: float = 1e6,
     tolerance: float = 1e-3,
     max_iter: int = 50,
@@ -390,8 +390,8 @@ def ik(
     range_fraction : float or None
         The widening of a DOF is at most this fraction of the inputs' range of
         it (:func:`joint_limits`): a channel the inputs hold still is not used
-        to reach the targets; ``None`` (default): ``range_margin`` for every DOF.
-        The shipped config sets :data:`RANGE_FRACTION`.
+        to reach the targets (default :data:`RANGE_FRACTION`); ``None``:
+        ``range_margin`` for every DOF.
     stiffness : float
         Weight of a detected contact's squared target distance (per m²) against
         Eq. 7's terms: the default 1e6 makes 1 mm off cost as much as 1 rad off

@@ -39,8 +39,8 @@ Additions to the paper (each can be switched off)
     ``λ`` per frame of the state's offset from its neighbours
     (:func:`~mocapflow.stages.variation.training.retention_of`); pure delta
     regression (``None``) lets a state that has left the data run away under
-    sampling noise.  ``calibrate_retention`` (on in ``configs/variation.yaml``;
-    default off, the ``half_life`` retention for every DOF): each DOF's retention
+    sampling noise.  ``calibrate_retention`` (default on; off: the ``half_life``
+    retention for every DOF): each DOF's retention
     is lowered from that of ``half_life`` to the one at which the offset the
     sampling noise accumulates has the held-out clips' spread about their
     neighbours (:func:`~mocapflow.stages.variation.scores.transition_node_retention`),
@@ -52,6 +52,9 @@ Additions to the paper (each can be switched off)
     ``phase`` (default for non-cyclic clips): a normalised-time DOF
     (:func:`~mocapflow.stages.variation.training.with_phase`) that
     disambiguates look-alike states and ends variants.
+    ``time_warp`` (default on, cyclic clips): the cycles' time warps onto a
+    reference cycle (:func:`~mocapflow.stages.variation.warp.time_warps`),
+    from which the ``sample`` stage draws one warp per variant.
     ``kernel_width=None``: per-node bandwidth by held-out likelihood.
     ``horizon`` (default ``None``, the paper's unbounded propagation): the
     propagated transition score re-anchors to the held-out clip's true
@@ -86,6 +89,7 @@ from mocapflow.stages.variation.training import (
     transition_data,
     with_phase,
 )
+from mocapflow.stages.variation.warp import time_warps
 
 __all__ = ["LearnError", "learn"]
 
@@ -104,9 +108,10 @@ def learn(
     prior_window: int | None = None,
     score: Literal["propagated", "one_step"] = "propagated",
     half_life: float | None = 0.5,
-    calibrate_retention: bool = False,
+    calibrate_retention: bool = True,
     horizon: float | None = None,
     phase: bool | None = None,
+    time_warp: bool = True,
     cyclic: bool | None = None,
     seed: int = 0,
     ctx: Context,
@@ -144,8 +149,8 @@ def learn(
     calibrate_retention : bool
         Lower each DOF's retention to the one calibrated on the held-out clips
         (:func:`~mocapflow.stages.variation.scores.transition_node_retention`;
-        at most that of ``half_life``), stored as ``params["retention_dof"]``;
-        ``False`` (default): the ``half_life`` retention for every DOF.
+        at most that of ``half_life``), stored as ``params["retention_dof"]``
+        (default); ``False``: the ``half_life`` retention for every DOF.
     horizon : float or None
         Seconds; ``score="propagated"`` only: the re-synthesised state is
         re-anchored to the held-out clip's true frames every ``horizon``
@@ -160,6 +165,13 @@ def learn(
         the cycle phase ``(cos φ, sin φ)`` for cyclic clips, a parent of every
         transition node (without it the mean dynamics of a walk can come to
         rest: streams stall).
+    time_warp : bool
+        Cyclic clips: learn the inputs' time warps onto a reference cycle
+        (:func:`~mocapflow.stages.variation.warp.time_warps`), stored as
+        ``params["time_warp"]``, from which the ``sample`` stage draws one warp
+        per variant (the paper's temporal variation: whole-cycle variants of
+        the figure-8 walk have 0.64 x the inputs' warp-slope std without it,
+        0.70-0.92 with it; cmu_131_02's ~0.5 either way); ``False``: none.
     cyclic : bool, optional
         Override ``clips.cyclic``.
     seed : int
@@ -202,6 +214,11 @@ def learn(
             seed=seed, ctx=ctx,
         )
     retention = retention_of(half_life, train.rate)
+    warps = None
+    if time_warp and cyclic:
+        with ctx.timer("time_warp"):
+            w = time_warps(data.trajectories, rate=float(data.rate))
+        warps = None if w is None else w.round(6).tolist()
     retention_dof = [retention] * train.n_dofs
     if calibrate_retention:
         with ctx.timer("retention"):
@@ -229,6 +246,7 @@ def learn(
             "retention_dof": [float(x) for x in retention_dof],
             "calibrate_retention": bool(calibrate_retention),
             "phase": bool(phase),
+            "time_warp": warps,
         },
         prior_scores=prior.scores,
         transition_scores=transition.scores,

@@ -9,8 +9,10 @@ Sampling (the ``sample`` stage, :class:`Sampler`)
     deviation: ``sigma = 0`` gives the mean motion.  Spatial and temporal
     variation come out of the same draws: the transition network is second
     order (it regresses the delta on position and velocity), so a variant's
-    speed varies as its poses do; there is no separate time-warp model.
-    Streams have any length;
+    speed varies as its poses do; the ``sample`` stage also plays each variant
+    at a time warp drawn from the inputs' warps (:mod:`~.warp`, learned by
+    ``learn(time_warp=True)``), and cyclic variants are whole cycles by default
+    (lengths varying as the inputs').  Streams have any length;
     for cyclic inputs they continue through cycle after cycle.  Several
     variants are sampled together (vectorised over variants and DOFs; the
     nearest-instance search is a batched matrix product + ``argpartition``).
@@ -64,6 +66,7 @@ from mocapflow.stages.variation.training import (
     standardization,
     transition_data,
 )
+from mocapflow.stages.variation.warp import apply_time_warp, sample_time_warp
 
 __all__ = [
     "SampleError",
@@ -473,6 +476,7 @@ class Sampler:
         noise_time: float | None = None,
         predicted: bool = False,
         start_at_phase: bool = False,
+        one_cycle: bool = False,
     ) -> Any:
         """Sample ``count`` variants of ``length`` frames (:meth:`stream`, cut).
 
@@ -491,10 +495,15 @@ class Sampler:
             Cyclic models: each variant starts at the first frame where its cycle
             phase passes 0, the phase every input cycle starts at (the stream's
             frames before it are dropped).
+        one_cycle : bool
+            With ``start_at_phase``: each variant is one whole cycle, ending at
+            the frame before its cycle phase passes 0 again (its length is its
+            own, as the input cycles' are; ``length`` is ignored).
 
         Returns
         -------
         (count, length, D) float ndarray, or list of (T_b, D) with ``stop_at_end``
+        or ``one_cycle``
             DOF values (varying DOFs incl. phase DOFs, original units); with
             ``predicted`` a pair ``(variants, means)`` of the same form.
         """
@@ -502,6 +511,8 @@ class Sampler:
             raise SampleError("stop_at_end needs a model with the _phase DOF")
         if start_at_phase and not self.cycle_phase:
             raise SampleError("start_at_phase needs a model with the cycle phase DOFs")
+        if one_cycle and not start_at_phase:
+            raise SampleError("one_cycle needs start_at_phase")
         gen = self.stream(rng, count=count, sigma=sigma, noise_time=noise_time, predicted=True)
         xs, ms = [], []
         start = np.zeros(count, dtype=np.int64)
@@ -526,6 +537,8 @@ class Sampler:
                     f"the cycle phase of {int((start < 0).sum())} stream(s) did not pass 0 "
                     f"within {limit} frames: the model does not cycle")
             end = start + length
+            if one_cycle:
+                end = self._cycle_ends(gen, xs, ms, start, limit)
         ip = self.model.clips.labels.index(PHASE) if stop_at_end else 0
         done_at = 1.0 - 0.5 / max(float(np.median(self.model.clips.lengths)), 2.0)
         while len(xs) < int(end.max()):
@@ -540,12 +553,44 @@ class Sampler:
         X, M = np.stack(xs, axis=1), np.stack(ms, axis=1)  # (count, T, D)
         if stop_at_end:
             out = [X[b, : end[b]] for b in range(count)], [M[b, : end[b]] for b in range(count)]
+        elif one_cycle:
+            out = ([X[b, start[b] : end[b]] for b in range(count)],
+                   [M[b, start[b] : end[b]] for b in range(count)])
         elif start_at_phase:
             out = (np.stack([X[b, start[b] : end[b]] for b in range(count)]),
                    np.stack([M[b, start[b] : end[b]] for b in range(count)]))
         else:
             out = X[:, :length], M[:, :length]
         return out if predicted else out[0]
+
+    def _cycle_ends(
+        self, gen: Iterator, xs: list, ms: list, start: np.ndarray, limit: int
+    ) -> np.ndarray:
+        """The frame where each agent's cycle phase passes 0 again after its ``start``,
+        advancing ``gen`` (appending to ``xs``, ``ms``) as long as needed."""
+        ph = self.cycle_phase_of(np.stack(xs, axis=1))  # (count, T) frames so far
+        end = np.full(len(start), -1)
+        for b, p in enumerate(ph):
+            hits = np.flatnonzero(self.passes_zero(p[:-1], p[1:])) + 1
+            hits = hits[hits > start[b] + 1]
+            if hits.size:
+                end[b] = hits[0]
+        prev = ph[:, -1]
+        while np.any(end < 0):
+            x, mu = next(gen)
+            t = len(xs)
+            xs.append(x)
+            ms.append(mu)
+            ph = self.cycle_phase_of(x)
+            hit = (end < 0) & (t > start + 1) & self.passes_zero(prev, ph)
+            end[hit] = t
+            prev = ph
+            late = (end < 0) & (t - start > limit)
+            if late.any():
+                raise SampleError(
+                    f"the cycle phase of {int(late.sum())} stream(s) did not pass 0 again "
+                    f"within {limit} frames: the model does not cycle")
+        return end
 
     def cycles(
         self,
@@ -603,6 +648,7 @@ def sample(
     sigma: float = 1.0,
     noise_time: float | None = None,
     loop: bool = False,
+    time_warp: bool = True,
     seed: int = 0,
     ctx: Context,
 ) -> dict:
@@ -615,7 +661,12 @@ def sample(
         Variants per task (fan out with ``seeds:`` for more tasks); with
         ``loop``, consecutive cycles of one stream.
     length : int, optional
-        Frames per variant.  Default: cyclic inputs the median input clip
+        Frames per variant.  Default: cyclic inputs (with the cycle phase) one
+        whole cycle each, from where the cycle phase passes 0 to the frame
+        before it passes 0 again, so lengths vary as the input cycles' do
+        (:meth:`Sampler.run` ``one_cycle``; at the median length every variant
+        of the walks aligned to its nearest input on the diagonal: warp-slope std
+        0.3 x the inputs'), cyclic inputs without it the median input clip
         length; other inputs (with the ``_phase`` DOF) each variant ends where
         its phase reaches 1 (at most 1.5 × the longest input).  Any length for
         cyclic inputs.  Not with ``loop`` (each cycle ends where it ends).
@@ -630,6 +681,15 @@ def sample(
         phase passes 0 (where every input cycle starts) to the frame before
         the next; played in order they are seamless (they are the stream), and
         each variant's origin is where the previous one ends.
+    time_warp : bool
+        Play each variant at a time warp drawn from the model's learned warps
+        (``params["time_warp"]`` of the ``learn`` stage, scaled by ``sigma``;
+        :func:`~mocapflow.stages.variation.warp.sample_time_warp`), the same
+        warp for its ``predicted`` means: a whole-cycle variant (the default
+        ``length``) gets the drawn overall pace too (its length changes), a
+        variant of a given ``length`` keeps its length; not with ``loop`` (the
+        cycles keep the stream's timing, seamless at the joins); ``False``, or a
+        model without warps: the network's own timing.
     seed : int
         Seeds ``ctx.rng`` (with the part id).
     ctx : Context
@@ -646,7 +706,7 @@ def sample(
         inputs' phase.
         ``predicted``: the same layout holding the network's conditional mean
         of every frame given the sampled frames before it (the ``q̄`` of Lau
-        Eq. 7 for the ``ik`` stage).
+        Eq. 7 for the ``ik`` stage), played at the variant's time warp.
     """
     clips = model.clips
     if length is not None and not clips.cyclic and length > 1.5 * clips.lengths.max():
@@ -656,6 +716,7 @@ def sample(
         )
     if loop and length is not None:
         raise SampleError("loop: each variant is one cycle, length cannot be given")
+    whole = length is None
     length, stop = _variant_length(clips, count=count, length=length, sigma=sigma,
                                    noise_time=noise_time)
     sampler = Sampler(model)
@@ -666,13 +727,33 @@ def sample(
     else:
         x, mu = sampler.run(ctx.rng, count=count, length=length, sigma=sigma, stop_at_end=stop,
                             noise_time=noise_time, predicted=True,
-                            start_at_phase=sampler.cycle_phase)
-    attrs = {"sigma": sigma, "noise_time": noise_time, "loop": bool(loop)}
+                            start_at_phase=sampler.cycle_phase,
+                            one_cycle=sampler.cycle_phase and whole)
+    warps = model.params.get("time_warp")
+    warped = bool(time_warp and warps is not None and sigma > 0 and not loop)
+    if warped:
+        x, mu = _warped(np.asarray(warps, dtype=np.float64), x, mu, rng=ctx.rng, sigma=sigma,
+                        keep_length=not whole)
+    attrs = {"sigma": sigma, "noise_time": noise_time, "loop": bool(loop), "time_warp": warped}
     variants = _variant_clips(clips, x, attrs=attrs, origins=origins)
     _key_figures(_strip_internal(clips), variants, ctx)
     return {"variants": variants,
             "predicted": _variant_clips(clips, mu, attrs={**attrs, "predicted_mean": True},
                                         origins=origins)}
+
+
+def _warped(
+    warps: np.ndarray, x: Any, mu: Any, *, rng: np.random.Generator, sigma: float,
+    keep_length: bool,
+) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """Variants ``x`` and their means ``mu`` (each ``(T_b, D)``) at one sampled warp each
+    (:func:`~.warp.sample_time_warp`)."""
+    xs, ms = [], []
+    for a, b in zip(x, mu):
+        tau = sample_time_warp(warps, rng, length=len(a), sigma=sigma, keep_length=keep_length)
+        xs.append(apply_time_warp(a, tau))
+        ms.append(apply_time_warp(b, tau))
+    return xs, ms
 
 
 def _key_figures(inputs: Clips, variants: Clips, ctx: Context) -> None:

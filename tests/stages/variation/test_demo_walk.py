@@ -3,9 +3,9 @@
 The walk (``configs/demo_data.yaml``: 300 frames at 30 fps, variation 0.05, seed 0)
 is read back at 60 fps and cut into 6 near-identical cycles, learned and sampled
 with the demo's settings (``configs/variation.yaml`` with the ``configs/demo.yaml``
-overrides: restarts 1, candidates 10, max_parents 4; ``calibrate_retention`` and the IK's
-``range_fraction`` as the config sets them).  A model of near-identical
-examples must give near-identical variants: before the calibrated retention the
+overrides: restarts 1, candidates 10, max_parents 4; ``learn``'s ``calibrate_retention``
+and ``ik``'s ``range_fraction`` at their defaults, which the config used to set).  A model
+of near-identical examples must give near-identical variants: before the calibrated retention the
 sampled knee ran 1.2 rad (0.81 of its range) past the inputs' range, and the IK
 turned the hip twist (a channel spanning 0.001 rad) 25 ranges out.
 """
@@ -21,7 +21,7 @@ from mocapflow.pipeline import Context
 from mocapflow.stages.motion.export import export_motion_bvh
 from mocapflow.stages.motion.ingest import ingest_bvh
 from mocapflow.stages.motion.simulate.motion import simulate_walk
-from mocapflow.stages.variation.ik import RANGE_FRACTION, ik
+from mocapflow.stages.variation.ik import ik
 from mocapflow.stages.variation.inputs import clips
 from mocapflow.stages.variation.learn import learn
 from mocapflow.stages.variation.sample import sample
@@ -43,8 +43,7 @@ def demo(tmp_path_factory):
     train = clips([motion], cut="auto", root="heading", up="auto", max_clips=6,
                   ctx=Context())["clips"]
     model = learn(train, k=30, kernel_width=2.0, max_parents=4, candidates=10, restarts=1,
-                  score="propagated", half_life=0.5, calibrate_retention=True,
-                  ctx=Context())["model"]
+                  score="propagated", half_life=0.5, ctx=Context())["model"]
     return train, model
 
 
@@ -108,8 +107,7 @@ def test_demo_walk_ik_keeps_the_still_channels_still(demo):
     for seed in SEEDS:
         out = _sampled(model, seed)
         v = ik(out["variants"], out["predicted"], range_margin=0.025,
-               range_fraction=RANGE_FRACTION, ctx=Context(part=f"seed={seed}", seed=seed)
-               )["variants"]
+               ctx=Context(part=f"seed={seed}", seed=seed))["variants"]
         assert _excess(train, v) <= MARGIN + 1e-6, seed
         V = np.concatenate(v.trajectories)
         assert np.abs((V - mean) / std @ Vt[0]).max() <= 1.3 * pc1, seed

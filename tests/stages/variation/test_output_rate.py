@@ -38,8 +38,11 @@ def variation_run(shared_data):
     path = shared_data / "bvh" / TAKE
     motion = ingest_bvh(str(path), rate=30, ctx=Context())["motion"]
     train = clips(motion, max_clips=3, ctx=Context())["clips"]
+    # calibrate_retention off: the manual toe contact of the constraint-frame test is placed
+    # on this variant's right leg (with the calibrated retention the variant differs and
+    # the toe's mean position over those frames is 3.9 mm beyond the leg's reach)
     model = learn(train, k=15, kernel_width=2.0, max_parents=2, candidates=3, restarts=0,
-                  score="one_step", ctx=Context())["model"]
+                  score="one_step", calibrate_retention=False, ctx=Context())["model"]
     model = decode(encode(model))  # through the store's codecs, as the graph does
     variants = sample(model, count=2, sigma=0.15, noise_time=0.2,
                       ctx=Context(rng=np.random.default_rng(0)))["variants"]
@@ -114,8 +117,9 @@ def test_ik_targets_count_and_report_in_exported_frames(variation_run, tmp_path)
     target = p30[N // 4, left] + [0.0, 0.03, 0.02]  # 3.6 cm from the sampled hand
     far = p30[N // 4, right] + [0.0, 5.0, 0.0]  # out of reach
     ctx = Context()
-    # range_margin 1 rad: the contact asks the swinging leg for poses beyond the
-    # inputs' joint ranges (within the default 0.03 rad the toe stays 5.7 mm off)
+    # range_margin 1 rad (at most half a DOF's range, the default range_fraction): the
+    # contact asks the swinging leg for poses beyond the inputs' joint ranges (within the
+    # default 0.025 rad the toe stays 5.7 mm off)
     r = ik(one, targets={"LeftHand": [[N, *target]], "RightHand": [[N + 1, *far]]},
            contacts={"RightToeBase": [[33, 47]]}, range_margin=1.0, ctx=ctx)
     rep = r["report"]

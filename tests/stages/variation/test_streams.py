@@ -24,6 +24,7 @@ from mocapflow.stages.metrics.gait import (
     join_jerk_p99,
     swing_hysteresis,
 )
+from mocapflow.stages.metrics.novelty import novelty_report
 from mocapflow.stages.metrics.quality import jerk_p99
 from mocapflow.stages.motion.formats.bvh import read_bvh
 from mocapflow.stages.motion.kinematics import motion_positions, resample_motion
@@ -131,6 +132,39 @@ def test_variants_start_at_the_inputs_phase_and_loops_chain(walk_model):
     assert join_jerk_p99(chain, lens, c.rate) <= 1.2 * jerk_p99(chain, c.rate)
     with pytest.raises(SampleError, match="length"):
         sample(model, count=2, loop=True, length=50, ctx=Context())
+
+
+def test_default_variants_are_whole_cycles_with_the_inputs_timing(walk_model):
+    """Cyclic variants are one whole cycle each, played at a pace drawn from the inputs'
+    time warps, so their lengths vary as the inputs' do.
+
+    At a fixed length (the median cycle's, as before) the walk's variants DTW-align to
+    their nearest input on the diagonal: warp-slope std 0.3 x the inputs' in the
+    benchmark (target 0.5-2)."""
+    c, model = walk_model
+    s = Sampler(model)
+    x = s.run(np.random.default_rng(2), count=6, length=10, sigma=1.0, noise_time=0.1,
+              start_at_phase=True, one_cycle=True)
+    step = 2 * np.pi / np.median(c.lengths)
+    for xb in x:
+        ph = s.cycle_phase_of(xb)
+        assert 0 <= ph[0] < 2 * step and -2 * step <= ph[-1] < 0  # from 0 to just before 0
+        assert not np.any(s.passes_zero(ph[:-1], ph[1:]))  # no pass inside the cycle
+    with pytest.raises(SampleError, match="one_cycle"):
+        s.run(np.random.default_rng(2), count=1, length=10, one_cycle=True)
+    kw = dict(count=10, sigma=1.0, noise_time=0.1)
+    v = sample(model, **kw, ctx=Context(rng=np.random.default_rng(5)))["variants"]
+    assert len(set(v.lengths.tolist())) > 1 and v.attrs["time_warp"]
+    assert np.all(np.abs(v.lengths / np.median(c.lengths) - 1) < 0.3)
+    fixed = sample(model, **kw, length=int(np.median(c.lengths)),
+                   ctx=Context(rng=np.random.default_rng(5)))["variants"]
+
+    def ratio(clips):
+        rep = novelty_report(clips.trajectories, c.trajectories, cyclic=True)
+        return np.mean(rep["warp_slope_std"]) / rep["input_warp_slope_std"]
+
+    # measured 0.92 (whole cycles at their drawn pace) against 0.44 (the median length)
+    assert 0.5 <= ratio(v) <= 2.0 and ratio(fixed) < ratio(v)
 
 
 def test_ik_cleans_loop_variants_as_one_chain(walk_model):
