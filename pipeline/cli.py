@@ -37,6 +37,7 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
+from mocapflow.blender import write_addon
 from mocapflow.pipeline import registry
 from mocapflow.pipeline.config import ConfigError, load_stage_modules, shipped_configs
 from mocapflow.pipeline.config_yaml import close_match
@@ -318,6 +319,15 @@ def build_parser() -> argparse.ArgumentParser:
     _exec_args(p)
     _common(p)
     _json_flag(p, "each step's files and counts")
+
+    p = sub.add_parser("blender-addon", help="write the Blender add-on (zip, or its folder)",
+                       description="Write mocapflow's Blender add-on (Blender >= 3.4): a zip "
+                                   "to install in Blender (Edit > Preferences > Add-ons > "
+                                   "Install...), or, for an --out not ending in .zip, the "
+                                   "folder OUT/mocapflow_blender to copy into Blender's "
+                                   "scripts/addons. The add-on runs this mocapflow command.")
+    p.add_argument("--out", default="mocapflow_blender.zip", metavar="PATH",
+                   help="zip file, or folder (default ./mocapflow_blender.zip)")
     return parser
 
 
@@ -886,6 +896,11 @@ def cmd_lock(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_blender_addon(args: argparse.Namespace) -> int:
+    print(write_addon(args.out))
+    return 0
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     spec = load_demo_spec(args.spec)
     out = Path(args.out).resolve()
@@ -948,7 +963,7 @@ VERBS = {
     "run": cmd_run, "plan": cmd_plan, "status": cmd_status, "explain": cmd_explain,
     "dag": cmd_dag, "stages": cmd_stages, "schema": cmd_schema, "show": cmd_show,
     "export": cmd_export, "report": cmd_report, "verify": cmd_verify, "gc": cmd_gc,
-    "lock": cmd_lock, "demo": cmd_demo,
+    "lock": cmd_lock, "demo": cmd_demo, "blender-addon": cmd_blender_addon,
 }
 
 

@@ -242,7 +242,8 @@ def test_verbs_and_flags_keep_their_names():
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "verb")
     assert set(sub.choices) == {"run", "plan", "status", "explain", "dag", "stages", "show",
-                                "export", "verify", "gc", "lock", "demo", "schema", "report"}
+                                "export", "verify", "gc", "lock", "demo", "schema", "report",
+                                "blender-addon"}
     run_flags = {o for a in sub.choices["run"]._actions for o in a.option_strings}
     assert run_flags >= {"--store", "--parts", "--set", "--target", "--force", "--fail-fast",
                          "--json", "--executor", "--workers", "--address", "--scheduler-file",
