@@ -233,11 +233,11 @@ def _output_motion(
 
 
 def _foot_ik(motion: Motion, out: Motion, src: np.ndarray, constrained, blended,
-             retargeted: bool = False):
+             retargeted: bool = False, loop: bool = False):
     """Leg IK keeping every stance toe moving as in the input (see ``foot_corrections``).
 
     ``retargeted``: the root follows a path (turned, stride paced), so the legs use
-    the :data:`PATH_IK` weights.
+    the :data:`PATH_IK` weights; ``loop``: the corrections are periodic.
 
     Returns the new local rotations and the largest correction (metres), or
     ``None`` when the skeleton has no usable toes or legs.
@@ -265,7 +265,7 @@ def _foot_ik(motion: Motion, out: Motion, src: np.ndarray, constrained, blended,
     fixed[[int(j) for j in constrained]] = True
     weights = PATH_IK if retargeted else {}
     corr = foot_corrections(pos_out[:, toes][..., [0, 2]], toe_step, contact_in[src], fixed=fixed,
-                            **weights)
+                            cyclic=loop, **weights)
     rot = apply_foot_ik(
         out.skeleton, out.rotations, out.root_position, chains, corr,
         translations=out.translations,
@@ -374,7 +374,8 @@ def assemble_motion(
     ik_max = 0.0
     if foot_ik and L > 2:
         blended = np.abs(rot - rot_in[src]).max(axis=(1, 2)) > 1e-9
-        res = _foot_ik(motion, out, src, [j for _, j in cons], blended, curve is not None)
+        res = _foot_ik(motion, out, src, [j for _, j in cons], blended, curve is not None,
+                       loop)
         if res is not None:
             rotations, ik_max = res
             rot[:, 1:] = rotations[:, 1:]

@@ -586,6 +586,7 @@ def foot_corrections(
     decay: float = 0.01,
     min_span: int = 3,
     fixed: np.ndarray | None = None,
+    cyclic: bool = False,
 ) -> np.ndarray:
     """Smooth ground-plane toe corrections that stop the slide of stance toes.
 
@@ -615,6 +616,10 @@ def foot_corrections(
         Shorter contact spans are left alone.
     fixed : (L,) bool ndarray, optional
         Frames whose pose must not change (e.g. constrained frames): ``e = 0``.
+    cyclic : bool
+        The motion loops (frame ``L - 1`` is followed by frame 0): the differences
+        and the contact spans wrap, so the corrections are periodic and the loop's
+        wrap stays an ordinary step (``toe_step[L - 1]`` is the wanted wrap step).
 
     Returns
     -------
@@ -624,6 +629,9 @@ def foot_corrections(
     corr = np.zeros((L, T, 2))
     if L < 3:
         return corr
+    if cyclic:
+        return _cyclic_foot_corrections(toe_ground, toe_step, contact, stiffness=stiffness,
+                                        decay=decay, min_span=min_span, fixed=fixed)
     # second-difference operator D2 (L-2, L): D2ᵀD2 is pentadiagonal
     d2 = np.zeros((3, L))  # upper banded form (u = 2) of stiffness * D2ᵀD2 + decay * I
     c = np.zeros(L)
@@ -658,6 +666,49 @@ def foot_corrections(
             rhs[1:] += r
             rhs[:-1] -= r
             corr[:, k, ax] = solveh_banded(ab, rhs)
+    return corr
+
+
+def _cyclic_pairs(contact: np.ndarray, min_span: int) -> np.ndarray:
+    """``(L,)`` weight of each step ``t → (t + 1) mod L`` inside one cyclic contact span
+    of at least ``min_span`` frames."""
+    L = contact.size
+    pair = np.zeros(L)
+    if contact.all():
+        pair[:] = 1.0
+        return pair
+    r = int(np.argmin(contact))  # a frame out of contact: no span crosses it
+    rolled = np.roll(contact, -r)
+    for a, stop in true_runs(rolled, min_length=min_span):
+        pair[(np.arange(a, stop - 1) + r) % L] = 1.0
+    return pair
+
+
+def _cyclic_foot_corrections(toe_ground, toe_step, contact, *, stiffness, decay, min_span,
+                             fixed) -> np.ndarray:
+    """:func:`foot_corrections` on a loop: the same least squares with wrapping
+    first and second differences (a sparse periodic system)."""
+    import scipy.sparse as sp  # noqa: PLC0415
+    from scipy.sparse.linalg import spsolve  # noqa: PLC0415
+
+    L, T = contact.shape
+    corr = np.zeros((L, T, 2))
+    eye = sp.identity(L, format="csr")
+    nxt = sp.csr_matrix((np.ones(L), (np.arange(L), (np.arange(L) + 1) % L)), shape=(L, L))
+    D1 = nxt - eye  # (D1 e)_t = e_{t+1} - e_t, wrapping
+    D2 = nxt - 2 * eye + nxt.T  # (D2 e)_t = e_{t-1} - 2 e_t + e_{t+1}, wrapping
+    pen = np.zeros(L) if fixed is None else np.where(np.asarray(fixed, bool), 1e6, 0.0)
+    base = stiffness * (D2.T @ D2) + decay * eye + sp.diags(pen)
+    for k in range(T):
+        pair = _cyclic_pairs(contact[:, k], min_span)
+        if not pair.any():
+            continue
+        W = sp.diags(pair)
+        A = (base + D1.T @ W @ D1).tocsc()
+        for ax in range(2):
+            x = toe_ground[:, k, ax]
+            r = pair * (toe_step[:, k, ax] - D1 @ x)
+            corr[:, k, ax] = spsolve(A, D1.T @ r)
     return corr
 
 
