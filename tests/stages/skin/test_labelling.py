@@ -16,10 +16,15 @@ from scipy.spatial.transform import Rotation
 
 from mocapflow.pipeline import Context
 from mocapflow.stages.metrics.cleaning import gap_mask
-from mocapflow.stages.motion.formats.c3d import read_c3d
+from mocapflow.stages.motion.formats.c3d import read_c3d, write_c3d
 from mocapflow.stages.motion.simulate.capture import simulate_capture
 from mocapflow.stages.skin.clean import CleanError, clean
-from mocapflow.stages.skin.labelling import match_template, subject_groups
+from mocapflow.stages.skin.labelling import (
+    match_template,
+    read_label_template,
+    subject_groups,
+    template_labelling,
+)
 from mocapflow.stages.skin.predict import choose_reference_frame, reference_pose
 
 QUALISYS = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "c3d" / \
@@ -123,6 +128,13 @@ def test_label_template_from_an_earlier_session(dynamic, tmp_path):
     assert res["markers"].labels == [lb for lb, k in zip(rom.labels, ok) if k]
     wrong, ghosts, _ = _merge_score(res, take, true)
     assert wrong == 0 and ghosts == 0
+    # the same from the earlier session's own C3D (its reference pose, exact layout)
+    c3d = write_c3d(rom.replace(fragments=rom.fragments[:, :0], fragment_labels=[]),
+                    tmp_path / "rom.c3d")
+    lab, info = template_labelling(take, read_label_template(c3d))
+    came = lab.attrs["labelled_from"]
+    assert info["matched"] >= 0.97 * N_MARKERS
+    assert all(m.labels[true[idx[f]]] == lb for lb, f in came.items())
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"labels": ["a", "b"], "positions": [[0, 0, 0]]}))
     with pytest.raises(CleanError, match="bad.json: 2 labels for 1 positions"):
@@ -224,3 +236,18 @@ def test_subjects_by_prefix_and_none():
     assert sorted(np.concatenate([g[1] for g in groups]).tolist()) == list(range(63))
     assert set(range(60, 63)) <= set(groups[1][1].tolist())
     assert len(subject_groups(mk, ref, mode="none")) == 1
+
+
+def test_subjects_from_c3d_subjects_parameter():
+    """``SUBJECTS:LABEL_PREFIXES`` names the subjects even without ``:`` in the labels."""
+    from mocapflow.stages.motion.datatypes import Markers  # noqa: PLC0415
+    rng = np.random.default_rng(1)
+    ref = rng.normal(0, 0.2, (40, 3))
+    labels = [f"S1_m{i}" for i in range(20)] + [f"S2_m{i}" for i in range(20)]
+    params = {"SUBJECTS": {"parameters": {"LABEL_PREFIXES": {"value": ["S1_", "S2_"]}}}}
+    mk = Markers(np.repeat(ref[None], 2, 0), labels, 100.0,
+                 attrs={"c3d_parameters": params})
+    groups = subject_groups(mk, ref)
+    assert [g[0] for g in groups] == ["S1_", "S2_"]
+    assert groups[0][1].tolist() == list(range(20))
+    assert len(subject_groups(Markers(mk.positions, labels, 100.0), ref)) == 1  # overlapping
