@@ -97,7 +97,13 @@ from clean_gaps import (
 )
 
 from mocapflow.pipeline import Context
-from mocapflow.stages.metrics.cleaning import gap_mask, region_errors, score_merges
+from mocapflow.stages.metrics.cleaning import (
+    gap_mask,
+    region_errors,
+    score_merges,
+    score_unlabelled,
+    strip_labels,
+)
 from mocapflow.stages.motion.formats.c3d import read_c3d
 from mocapflow.stages.motion.simulate.capture import simulate_capture
 from mocapflow.stages.skin.clean import clean
@@ -145,7 +151,36 @@ def table1(sims: dict) -> dict:
         if sc["wrong_list"]:
             print(f"  wrong merges: {sc['wrong_list'][:10]}")
         cleaned[motion] = (out, rep, surf)
+    table1_unlabelled(sims, cleaned)
     return cleaned
+
+
+def table1_unlabelled(sims: dict, cleaned: dict) -> None:
+    """Table 1 again with every label stripped (issue 15 item 2): the clean stage
+    labels the take by its reference frame, then merges; real samples kept counts
+    a label's own trajectory and merged fragments, beside the labelled run's share
+    by the same count."""
+    print("\n### 1b. The same captures with every label stripped (clean labels them)")
+    print("| motion | labels made | wrong labels | merged | wrong merges | ghosts merged | "
+          "real samples kept % (stripped) | (labelled input) | s |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for motion, sim in sims.items():
+        m, tr = sim.markers, sim.truth
+        take, true = strip_labels(m, tr["fragment_marker"])
+        t0 = time.perf_counter()
+        res = clean(take, ctx=Context())
+        dt = time.perf_counter() - t0
+        sc = score_unlabelled(take, true, res["markers"], res["report"]["merges"])
+        fm = np.asarray(tr["fragment_marker"])
+        idx = {f: u for u, f in enumerate(m.fragment_labels)}
+        merged = np.zeros(len(fm), dtype=bool)
+        merged[[idx[g["fragment"]] for g in cleaned[motion][1]["merges"]]] = True
+        n = np.isfinite(m.fragments).all(-1).sum(0)
+        lab = np.isfinite(m.positions).all(-1).sum()
+        share = (lab + n[(fm >= 0) & merged].sum()) / (lab + n[fm >= 0].sum())
+        print(f"| {motion} | {sc['labels']} | {sc['wrong_labels']} | {sc['merged']} | "
+              f"{sc['wrong']} | {sc['ghosts_merged']} | {100 * sc['kept_share']:.2f} | "
+              f"{100 * share:.2f} | {dt:.1f} |")
 
 
 def _kept_samples(m, tr, rep, out) -> tuple[float, tuple[float, float]]:

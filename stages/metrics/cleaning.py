@@ -6,7 +6,10 @@
 * :func:`score_merges` — right and wrong merges of the clean stage against the
   true fragment -> marker map (P&H Table 1's "wrong labels");
 * :func:`region_errors` — mean and max error per body region, normalised by
-  each marker's mean neighbour distance (P&H Table 2).
+  each marker's mean neighbour distance (P&H Table 2);
+* :func:`strip_labels` / :func:`score_unlabelled` — the same capture with every
+  label stripped (all trajectories unlabelled fragments), and the merges and the
+  real samples kept when the clean stage labels it itself.
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import numpy as np
 
 from mocapflow.stages.motion.simulate.markers import REGIONS
 
-__all__ = ["gap_mask", "region_errors", "score_merges"]
+__all__ = ["gap_mask", "region_errors", "score_merges", "score_unlabelled", "strip_labels"]
 
 
 def gap_mask(
@@ -178,3 +181,68 @@ def region_errors(
             "max_mm": float(e[ok].max() * 1000) if ok.any() else float("nan"),
         }
     return out
+
+
+def strip_labels(markers: Any, fragment_marker: np.ndarray, *, seed: int = 7,
+                 move: Any = None) -> tuple[Any, np.ndarray]:
+    """The capture with every label stripped: labelled runs and fragments all become
+    fragments ``*1 …`` in a shuffled order.
+
+    Parameters
+    ----------
+    markers : Markers
+        ``positions (F, M, 3)`` labelled, ``fragments (F, U, 3)``.
+    fragment_marker : (U,) int ndarray
+        True marker of each fragment (-1 ghost).
+    seed : int
+        Seed of the shuffle.
+    move : callable, optional
+        Applied to the ``(F, M + U, 3)`` trajectories (e.g. a rigid motion).
+
+    Returns
+    -------
+    take : Markers
+        No labelled markers, ``M + U`` fragments.
+    true : (M + U,) int ndarray
+        True marker of each new fragment (-1 ghost).
+    """
+    frags = np.concatenate([markers.positions, markers.fragments], axis=1)
+    if move is not None:
+        frags = move(frags)
+    true = np.concatenate([np.arange(markers.positions.shape[1]),
+                           np.asarray(fragment_marker, dtype=np.int64)])
+    perm = np.random.default_rng(seed).permutation(frags.shape[1])
+    take = markers.replace(positions=np.zeros((markers.n_frames, 0, 3)), labels=[],
+                           residuals=None, status=None, fragments=frags[:, perm],
+                           fragment_labels=[f"*{u + 1}" for u in range(frags.shape[1])])
+    return take, true[perm]
+
+
+def score_unlabelled(take: Any, true: np.ndarray, cleaned: Any,
+                     merges: list[dict[str, Any]]) -> dict[str, Any]:
+    """Merges of a clean of a stripped take (:func:`strip_labels`): a label's true
+    marker is that of the trajectory it was made from
+    (``cleaned.attrs["labelled_from"]``).
+
+    Returns
+    -------
+    dict
+        ``labels``, ``wrong_labels`` (two labels made from one true marker, or from
+        a ghost), ``merged``, ``wrong``, ``ghosts_merged`` and ``kept_share``: share
+        of the real trajectories' samples that are a label's or merged.
+    """
+    idx = {n: u for u, n in enumerate(take.fragment_labels)}
+    came = cleaned.attrs["labelled_from"]
+    label_true = {lb: int(true[idx[f]]) for lb, f in came.items()}
+    made = list(label_true.values())
+    wrong_labels = sum(t < 0 for t in made) + len(made) - len(set(made))
+    wrong = sum(int(true[idx[g["fragment"]]]) != label_true[g["label"]] for g in merges)
+    ghosts = sum(int(true[idx[g["fragment"]]]) < 0 for g in merges)
+    kept = np.zeros(len(true), dtype=bool)
+    kept[[idx[f] for f in came.values()]] = True
+    kept[[idx[g["fragment"]] for g in merges]] = True
+    n = np.isfinite(take.fragments).all(-1).sum(0)
+    real = true >= 0
+    return {"labels": len(came), "wrong_labels": int(wrong_labels), "merged": len(merges),
+            "wrong": int(wrong), "ghosts_merged": int(ghosts),
+            "kept_share": float(n[real & kept].sum() / max(n[real].sum(), 1))}

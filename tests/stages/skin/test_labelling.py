@@ -15,7 +15,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mocapflow.pipeline import Context
-from mocapflow.stages.metrics.cleaning import gap_mask
+from mocapflow.stages.metrics.cleaning import gap_mask, score_unlabelled, strip_labels
 from mocapflow.stages.motion.formats.c3d import read_c3d, write_c3d
 from mocapflow.stages.motion.simulate.capture import simulate_capture
 from mocapflow.stages.skin.clean import CleanError, clean
@@ -45,34 +45,13 @@ def dynamic():
 
 
 def _strip(m, truth, move=None):
-    """All labels stripped: every trajectory a fragment ``*N`` in shuffled order;
-    returns the take and the true marker of each fragment (-1 ghost)."""
-    frags = np.concatenate([m.positions, m.fragments], axis=1)
-    if move is not None:
-        frags = move(frags)
-    true = np.concatenate([np.arange(m.positions.shape[1]), truth["fragment_marker"]])
-    perm = np.random.default_rng(7).permutation(frags.shape[1])
-    take = m.replace(positions=np.zeros((m.n_frames, 0, 3)), labels=[], residuals=None,
-                     status=None, fragments=frags[:, perm],
-                     fragment_labels=[f"*{u + 1}" for u in range(frags.shape[1])])
-    return take, true[perm]
+    return strip_labels(m, truth["fragment_marker"], move=move)
 
 
 def _merge_score(res, take, true):
-    """(wrong merges, ghosts merged, share of real samples kept) of a clean of a
-    stripped take: a label's true marker is that of the fragment it came from."""
-    idx = {n: u for u, n in enumerate(take.fragment_labels)}
-    came = res["markers"].attrs["labelled_from"]
-    label_true = {lb: true[idx[f]] for lb, f in came.items()}
-    merges = res["report"]["merges"]
-    wrong = sum(true[idx[g["fragment"]]] != label_true[g["label"]] for g in merges)
-    ghosts = sum(true[idx[g["fragment"]]] < 0 for g in merges)
-    kept = np.zeros(len(true), dtype=bool)
-    kept[[idx[f] for f in came.values()]] = True
-    kept[[idx[g["fragment"]] for g in merges]] = True
-    n = np.isfinite(take.fragments).all(-1).sum(0)
-    real = true >= 0
-    return wrong, ghosts, n[real & kept].sum() / n[real].sum()
+    sc = score_unlabelled(take, true, res["markers"], res["report"]["merges"])
+    assert sc["wrong_labels"] == 0
+    return sc["wrong"], sc["ghosts_merged"], sc["kept_share"]
 
 
 def _labelled_share(res, m, truth):
