@@ -328,6 +328,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "scripts/addons. The add-on runs this mocapflow command.")
     p.add_argument("--out", default="mocapflow_blender.zip", metavar="PATH",
                    help="zip file, or folder (default ./mocapflow_blender.zip)")
+    _json_flag(p, "the written path")
     return parser
 
 
@@ -897,7 +898,8 @@ def cmd_lock(args: argparse.Namespace) -> int:
 
 
 def cmd_blender_addon(args: argparse.Namespace) -> int:
-    print(write_addon(args.out))
+    path = write_addon(args.out)
+    print(json.dumps({"path": str(path)}) if args.json else path)
     return 0
 
 

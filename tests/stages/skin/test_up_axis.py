@@ -106,7 +106,7 @@ def test_projected_bounding_box_is_upright_in_the_camera(both):
                                    forward=markers.attrs["forward"], follow=True,
                                    width=160, height=120)
         right = np.cross(-d, upv)
-        rel = mesh.vertices[0] - focal[0]
+        rel = mesh.vertices[0] - focal[0, 0]  # panel 0, frame 0
         h, w = np.ptp(rel @ upv), np.ptp(rel @ right)
         assert np.allclose(upv, axis_vector(markers.attrs["up"]))
         # T-pose: the arm span is about the height; lying flat the image height would
