@@ -237,7 +237,8 @@ def _foot_ik(motion: Motion, out: Motion, src: np.ndarray, constrained, blended,
     """Leg IK keeping every stance toe moving as in the input (see ``foot_corrections``).
 
     ``retargeted``: the root follows a path (turned, stride paced), so the legs use
-    the :data:`PATH_IK` weights; ``loop``: the corrections are periodic.
+    the :data:`PATH_IK` weights; ``loop``: the corrections are periodic (the toes'
+    ground positions wrap: a loop on a closed path).
 
     Returns the new local rotations and the largest correction (metres), or
     ``None`` when the skeleton has no usable toes or legs.
@@ -374,8 +375,10 @@ def assemble_motion(
     ik_max = 0.0
     if foot_ik and L > 2:
         blended = np.abs(rot - rot_in[src]).max(axis=(1, 2)) > 1e-9
+        # periodic corrections only where the ground positions wrap too (a loop on a
+        # closed path); a loop in place of a path ends a lap away from its start
         res = _foot_ik(motion, out, src, [j for _, j in cons], blended, curve is not None,
-                       loop)
+                       loop and curve is not None and curve.closed)
         if res is not None:
             rotations, ik_max = res
             rot[:, 1:] = rotations[:, 1:]
