@@ -568,8 +568,7 @@ class MOCAPFLOW_OT_synthesize(_Reporting, bpy.types.Operator):
     levels: IntProperty(name="Levels", default=0, min=0,
                         description="pyramid levels (0: 4 at 30 fps, one more per doubling)")
     foot_ik: BoolProperty(name="Foot IK", default=True,
-                          description="pin stance toes with leg IK (synth.foot_ik; on a "
-                                      "loop it does not yet wrap: the toes may jump there)")
+                          description="pin stance toes with leg IK (synth.foot_ik)")
 
     def run(self, context):
         arm = context.active_object

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.interpolate import RBFInterpolator
 from scipy.optimize import linear_sum_assignment
 from scipy.sparse.csgraph import connected_components
@@ -430,7 +431,6 @@ def subject_groups(
         if len(ok) < 2:
             return everyone
         pairs = cKDTree(reference[ok]).query_pairs(gap, output_type="ndarray")
-        import scipy.sparse as sp  # noqa: PLC0415
         adj = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])),
                             shape=(len(ok), len(ok)))
         n, lab = connected_components(adj, directed=False)

@@ -135,35 +135,3 @@ def whole_body_pca(
         rec = (q @ Vz) @ (Vz.T @ V) @ V[g].T
         out[h, i] = centroid[h] + mean[g] + rec / scale[g]
     return out
-    Y = filled[:, cols]
-    rows = np.isfinite(Y).all((1, 2))
-    Y = Y - Y.mean(1, keepdims=True)  # moving origin: the frame's centroid
-    sub = np.flatnonzero(rows)[np.unique(np.linspace(0, rows.sum() - 1,
-                                                     min(int(rows.sum()), 300)).astype(int))]
-    for ki, i in enumerate(cols):
-        h = holes[:, i] & rows
-        train = np.flatnonzero(observed[:, i] & rows)
-        if not h.any() or len(train) < 10:
-            continue
-        train = train[np.unique(np.linspace(0, len(train) - 1, min(len(train), max_train))
-                                .round().astype(int))]
-        d = np.linalg.norm(Y[sub] - Y[sub, ki:ki + 1], axis=-1).mean(0)  # (K,)
-        w = np.exp(-(d**2) / (2 * sigma**2))
-        w[ki] = marker_weight
-        Z = Y[train].reshape(len(train), -1)
-        mean, sd = Z.mean(0), Z.std(0)
-        sd[sd == 0] = 1.0
-        scale = np.repeat(w, 3) / sd
-        A = (Z - mean) * scale
-        g = np.arange(3 * ki, 3 * ki + 3)
-        Az = A.copy()
-        Az[:, g] = 0.0
-        _, s, vt = np.linalg.svd(A, full_matrices=False)
-        _, sz, vtz = np.linalg.svd(Az, full_matrices=False)
-        n = max(_n_components(s, variance), _n_components(sz, variance))
-        V, Vz = vt[:n].T, vtz[:n].T
-        q = (Y[h].reshape(int(h.sum()), -1) - mean) * scale
-        q[:, g] = 0.0
-        rec = (q @ Vz) @ (Vz.T @ V) @ V[g].T
-        out[h, i] = filled[h].mean(1) + mean[g] + rec / scale[g]
-    return out

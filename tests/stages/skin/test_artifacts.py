@@ -39,10 +39,9 @@ def bent_limb():
     return {"seg": seg, "markers": markers, "mesh": mesh, "deviation": deviation}
 
 
-def _artifacts(d, **params):
-    """Per mode: max edge stretch vs the rest mesh, flipped triangles vs the rigid mode's
-    normals, and the largest vertex displacement from rigid / the markers' deviation."""
-    faces, rest = d["mesh"].faces, d["mesh"].vertices
+def _triangle_measures(faces):
+    """``edges(X) (..., T, 3)`` edge lengths and ``normals(X) (..., T, 3)`` (unnormalised)
+    of the triangles ``faces`` for vertices ``X (..., V, 3)``."""
 
     def edges(X):
         return np.stack([np.linalg.norm(X[..., faces[:, (k + 1) % 3], :] - X[..., faces[:, k], :],
@@ -51,6 +50,15 @@ def _artifacts(d, **params):
     def normals(X):
         return np.cross(X[..., faces[:, 1], :] - X[..., faces[:, 0], :],
                         X[..., faces[:, 2], :] - X[..., faces[:, 0], :])  # fmt: skip
+
+    return edges, normals
+
+
+def _artifacts(d, **params):
+    """Per mode: max edge stretch vs the rest mesh, flipped triangles vs the rigid mode's
+    normals, and the largest vertex displacement from rigid / the markers' deviation."""
+    faces, rest = d["mesh"].faces, d["mesh"].vertices
+    edges, normals = _triangle_measures(faces)
 
     rigid = deform(d["markers"], d["seg"], d["mesh"], mode="rigid", ctx=Context(),
                    **params)["mesh"].vertices  # fmt: skip
@@ -124,15 +132,7 @@ def test_demo_mesh_has_no_stretched_or_flipped_triangles(demo_run):
     (fitted) mesh, none flipped against the rigid mode's (the rest pose moved rigidly)."""
     assert demo_run.proc.returncode == 0, demo_run.proc.stderr[-3000:]
     markers, seg, rest, deformed = _demo_inputs(demo_run)
-    faces = rest.faces
-
-    def edges(X):
-        return np.stack([np.linalg.norm(X[..., faces[:, (k + 1) % 3], :] - X[..., faces[:, k], :],
-                                        axis=-1) for k in range(3)], -1)  # fmt: skip
-
-    def normals(X):
-        return np.cross(X[..., faces[:, 1], :] - X[..., faces[:, 0], :],
-                        X[..., faces[:, 2], :] - X[..., faces[:, 0], :])  # fmt: skip
+    edges, normals = _triangle_measures(rest.faces)
 
     v = deformed.vertices
     assert v.shape[1:] == rest.vertices.shape and v.shape[0] == markers.n_frames
