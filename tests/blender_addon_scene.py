@@ -13,8 +13,9 @@ would, and write what the scene holds to JSON.
 * ``motions BVH1,BVH2,...`` (files of one folder): import them on a grid; their files,
   locations, scales, frame ranges and the scene's rate.
 
-Exits 1 on any error (``--python-exit-code 1``).  Blender's modules only (Debian's
-Blender runs on the system Python, which may have no NumPy).
+Exits 1 on any error (``--python-exit-code 1``), its traceback in OUT's ``error``.
+Blender's modules only (Debian's Blender runs on the system Python, which may have
+no NumPy).
 """
 
 import json
@@ -238,6 +239,12 @@ def motions(paths: str) -> None:
         "fps": scene.render.fps / scene.render.fps_base}
 
 
-{"texture": texture, "markers": markers, "mesh": mesh, "motions": motions}[mode](*args)
-with open(out, "w") as fh:
-    json.dump(result, fh)
+try:
+    {"texture": texture, "markers": markers, "mesh": mesh, "motions": motions}[mode](*args)
+except Exception:  # the traceback in the JSON too: the test shows it in short lines
+    import traceback
+    result["error"] = traceback.format_exc()
+    raise
+finally:
+    with open(out, "w") as fh:
+        json.dump(result, fh)

@@ -17,6 +17,7 @@ import os
 import shlex
 import subprocess
 import sys
+import textwrap
 import zipfile
 from pathlib import Path
 
@@ -65,7 +66,12 @@ def _scene(blender: str, tmp: Path, mode: str, *args: str) -> dict:  # noqa: F81
                         "--python", str(SCENE), "--", str(_addon(tmp)), cmd,
                         str(tmp / "work"), str(out), mode, *args],
                        capture_output=True, text=True, timeout=600, env=env)
-    assert p.returncode == 0, (p.stdout[-3000:], p.stderr[-3000:])
+    if p.returncode != 0:  # short lines: a CI log folds long ones
+        said = json.loads(out.read_text()).get("error", "") if out.is_file() else ""
+        lines = [w for ln in (said or p.stdout + p.stderr).strip().splitlines()[-25:]
+                 for w in textwrap.wrap(ln, 200) or [""]]
+        pytest.fail(f"Blender scene {mode!r} failed (exit {p.returncode}):\n"
+                    + "\n".join(lines), pytrace=False)
     return json.loads(out.read_text())
 
 

@@ -24,7 +24,8 @@ Below the coarsest level the output of a level is derived from the level above
   matches ``±candidate_range`` nodes (candidate acceleration), lines that merely
   continue the left run only when nothing else fits; a new line must stay in
   the input for ``2 slots + 1`` nodes.  So the coarse plan's transitions — and
-  its randomisation — survive refinement.  Joins are drawn within
+  its randomisation — survive refinement; as a last resort a join may replay a
+  few nodes (a stall), rather than fail.  Joins are drawn within
   ``tolerance`` cost units (:meth:`LevelRefinement._draw_join`).
 * **gap growing** — ends the runs leave outside the input (open outputs) are
   grown node by node with the ordinary search
@@ -256,10 +257,11 @@ class LevelRefinement(LevelSearch):
         last_run = k + 1 == len(runs) - 1 and not self.cyclic
         window, fallback = self._join_windows(tr, prev_join, last_run=last_run)
         starts = self._candidate_lines(tr)
-        for lines, (m_lo, m_hi), strict, min_run in self._join_attempts(
+        for lines, (m_lo, m_hi), strict, min_run, stall in self._join_attempts(
             tr, starts, window, fallback
         ):
-            rows, keys, ms = self.join_costs(val, tr, lines, m_lo, m_hi, strict, min_run)
+            rows, keys, ms = self.join_costs(val, tr, lines, m_lo, m_hi, strict, min_run,
+                                             allow_stall=stall)
             if rows:
                 break
         if not rows:
@@ -329,10 +331,16 @@ class LevelRefinement(LevelSearch):
         return np.unique(np.concatenate([starts, [tr.right_start]]))
 
     def _join_attempts(self, tr: _Transition, starts: np.ndarray, window, fallback) -> tuple:
-        """``(lines, window, strict, min_run)`` to try in order until a join fits.
+        """``(lines, window, strict, min_run, allow_stall)`` to try in order until a join
+        fits.
 
         Right lines ``R_s(u) = s + (u - a2)``; where one runs past the input's
-        end the run is cut short and the next join covers the rest.
+        end the run is cut short and the next join covers the rest.  The last
+        resort lets the right line replay a few nodes the left one just played
+        (a stall): when a constrained right run's line is at most ``slots``
+        nodes behind the left line — e.g. a loop's wrap into a constraint near
+        the output's start — nothing else joins them, and a short replay is
+        better than no motion (finer levels search the join again).
         """
         S = self.p.slots
         novel = starts[np.abs(starts - (tr.left_end + (tr.a2 - tr.b1))) >= S]
@@ -342,12 +350,13 @@ class LevelRefinement(LevelSearch):
         if tr.right_anchors:  # a constrained run keeps its line
             any_line = starts
         return (
-            (own, window, True, span),
-            (novel, window, True, span),
-            (starts, window, True, span),
-            (starts, fallback, True, 1),
-            (starts, fallback, False, 1),
-            (any_line, fallback, False, 1),
+            (own, window, True, span, False),
+            (novel, window, True, span, False),
+            (starts, window, True, span, False),
+            (starts, fallback, True, 1, False),
+            (starts, fallback, False, 1, False),
+            (any_line, fallback, False, 1, False),
+            (any_line, fallback, False, 1, True),
         )
 
     # ----------------------------------------------------------- join cost, draw, write
@@ -360,11 +369,14 @@ class LevelRefinement(LevelSearch):
         hi: int,
         strict: bool = True,
         min_run: int = 1,
+        *,
+        allow_stall: bool = False,
     ) -> tuple[list[float], list[int], list[tuple[int, int]]]:
         """Costs of joining the left line to right lines ``starts`` at ``m`` in ``[lo, hi]``.
 
         A right line must stay inside the input for ``min_run`` nodes from ``m``
         (or up to ``b2``): no bridge of a few nodes into the input's end.
+        ``strict`` and ``allow_stall`` as in :meth:`cost_rows`.
 
         Returns
         -------
@@ -393,7 +405,7 @@ class LevelRefinement(LevelSearch):
         ov = np.where(left, L_end + (u - b1), ov)
         ov = np.where(right, ss[:, None] + (u - a2), ov)
         ov[(ov < 0) | (ov >= n_in)] = -1
-        c = self.cost_rows(ov, m, coherence=False, strict=strict)
+        c = self.cost_rows(ov, m, coherence=False, strict=strict, allow_stall=allow_stall)
         c = np.where(np.isnan(c), 0.0, c)
         ok = np.isfinite(c)
         m, ss = m[ok].tolist(), ss[ok].tolist()

@@ -371,7 +371,7 @@ class LevelSearch:
 
     def cost_rows(
         self, ov: np.ndarray, t, *, coherence: bool = True, strict: bool = True,
-        tables: tuple | None = None,
+        tables: tuple | None = None, allow_stall: bool = False,
     ) -> np.ndarray:
         """Neighbourhood cost of output windows around node ``t``, one context per row.
 
@@ -390,6 +390,9 @@ class LevelSearch:
         tables : (PairTables, PairTables or None), optional
             :func:`~mocapflow.stages.texture.neighbourhood.pair_tables` of this
             level and the finer one (same costs, faster).
+        allow_stall : bool
+            Keep candidates that replay one of the ``slots`` input nodes just
+            played beside them (a stall; rejected by default).
 
         Returns
         -------
@@ -414,7 +417,7 @@ class LevelSearch:
         stall = ((a >= 0) & (cands <= a) & (cands >= a - S)) | (
             (b >= 0) & (cands >= b) & (cands <= b + S)
         )
-        total[(reject & strict) | stall] = np.inf
+        total[(reject & strict) | (stall & (not allow_stall))] = np.inf
         if coherence and self.p.coherence > 0 and not self.coarsest:
             coherent = ((cands == a + 1) & (a >= 0)) | ((cands == b - 1) & (b >= 0))
             total = np.where(coherent, total - self.p.coherence * self.unit, total)
