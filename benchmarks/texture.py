@@ -37,6 +37,7 @@ Run::
     .venv/bin/python benchmarks/texture.py            # 5 seeds, all rows
     .venv/bin/python benchmarks/texture.py --quick    # 2 seeds, 2× rows only
     .venv/bin/python benchmarks/texture.py --quick --level-weights 2/1/0.5   # + weighted rows
+    .venv/bin/python benchmarks/texture.py --quick --graph-path   # + graph-path rows
     .venv/bin/python benchmarks/texture.py --calibrate runs.jsonl   # vs GenMM itself
 """
 
@@ -60,7 +61,7 @@ from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices  # 
 from mocapflow.stages.motion.formats.bvh import read_bvh  # noqa: E402
 from mocapflow.stages.motion.kinematics import motion_positions, resample_motion  # noqa: E402
 from mocapflow.stages.texture.assemble import assemble_motion  # noqa: E402
-from mocapflow.stages.texture.pyramid import build_pyramid  # noqa: E402
+from mocapflow.stages.texture.pyramid import build_pyramid, levels_for_rate  # noqa: E402
 from mocapflow.stages.texture.root import PathCurve, figure_eight  # noqa: E402
 from mocapflow.stages.texture.search import SearchParams  # noqa: E402
 from mocapflow.stages.texture.synth import synth  # noqa: E402
@@ -260,28 +261,40 @@ def summary_line(name: str, n_in: int, length: int, res: dict) -> str:
 SPEED = ((30.0, 1024), (120.0, 4096))
 
 
-def speed_table(seeds: list[int], levels: int, only: str | None) -> None:
+def speed_table(seeds: list[int], levels: int | None, only: str | None) -> None:
     """CPU seconds of ours (pyramid + synthesis, default params) per output, at 30 fps and
-    at 120 fps; the pyramid gets one level more per doubling of the rate (its coarsest
-    level stays at the same duration per node)."""
-    print("\nSpeed: CPU s of ours (pyramid + synth stage, one core) per output; levels "
-          f"{levels} at 30 fps, + log2(rate / 30) above\n")
-    print("| input | rate | levels | output frames | CPU s (mean, min–max over seeds) |")
-    print("|---|---|---|---|---|")
+    at 120 fps.  ``levels`` ``None``: the pyramid's default, by rate (one level more per
+    doubling, :func:`~mocapflow.stages.texture.pyramid.levels_for_rate`: its coarsest
+    level keeps its duration per node); at 120 fps the 30 fps level count is timed
+    beside it, in the same run (the default before levels went by rate)."""
+    rule = "by rate (4 at 30 fps, + log2(rate / 30))" if levels is None else f"{levels}"
+    print(f"\nSpeed: CPU s of ours (pyramid + synth stage, one core) per output; levels "
+          f"{rule}; at 120 fps also with the 30 fps level count, paired per seed\n")
+    print("| input | rate | levels | output frames | CPU s (mean, min–max over seeds) | "
+          "CPU vs 30 fps levels |")
+    print("|---|---|---|---|---|---|")
     for name, rel in INPUTS.items():
         if only and only not in name:
             continue
         for rate, length in SPEED:
             motion = load(rel, rate)
-            lv = levels + int(round(np.log2(rate / 30.0)))
-            times = []
+            lv = levels_for_rate(rate, motion.n_frames) if levels is None else levels
+            lv30 = levels_for_rate(30.0) if levels is None else levels
+            runs = [lv] if lv == lv30 else [lv, lv30]
+            times: dict[int, list] = {k: [] for k in runs}
             for seed in seeds:
-                t0 = time.process_time()
-                synth(build_pyramid(motion, levels=lv), motion, length=length, seed=seed,
-                      ctx=seeded_context(seed), output_rate=motion.rate)
-                times.append({"time": time.process_time() - t0})
-            print(f"| {name} | {rate:g} | {lv} | {length} | {fmt(times, 'time', '{:.2f}')} |",
-                  flush=True)
+                for k in runs:
+                    t0 = time.process_time()
+                    synth(build_pyramid(motion, levels=k), motion, length=length, seed=seed,
+                          ctx=seeded_context(seed), output_rate=motion.rate)
+                    times[k].append({"time": time.process_time() - t0})
+            for k in runs:
+                ratio = "—"
+                if k != lv30:
+                    r = [a["time"] / b["time"] for a, b in zip(times[k], times[lv30])]
+                    ratio = f"{np.mean(r):.2f} ({min(r):.2f}–{max(r):.2f})"
+                print(f"| {name} | {rate:g} | {k} | {length} | "
+                      f"{fmt(times[k], 'time', '{:.2f}')} | {ratio} |", flush=True)
 
 
 def run_cases(seeds: list[int], levels: int, only: str | None) -> list[str]:
@@ -365,13 +378,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seeds", type=int, default=None, help="number of seeds (default 5)")
     ap.add_argument("--genmm-seeds", type=int, default=None,
                     help="number of seeds the GenMM baseline runs (default: all)")
-    ap.add_argument("--levels", type=int, default=4)
+    ap.add_argument("--levels", type=int, default=None,
+                    help="pyramid levels (default: by rate, 4 at 30 fps)")
     ap.add_argument("--only", default=None, help="substring of the input names to run")
     ap.add_argument("--no-cases", action="store_true",
                     help="skip the constrained and path cases")
     ap.add_argument("--level-weights", action="append", default=[], metavar="A/C/F",
                     help="extra rows of ours with these (ancestor/current/finer) level "
                          "weights, e.g. 2/1/0.5 (the thesis weights the coarser level higher)")
+    ap.add_argument("--graph-path", action="store_true",
+                    help="extra rows of ours with method=graph_path (the transition-graph "
+                         "gap filler, same variety / max_run / usage_weight)")
     ap.add_argument("--no-speed", action="store_true",
                     help="skip the speed table (1,024 frames at 30 fps, 4,096 at 120 fps)")
     ap.add_argument("--calibrate", default=None, metavar="FILE",
@@ -387,12 +404,14 @@ def main(argv: list[str] | None = None) -> int:
     seeds = list(range(n_seeds))
     genmm_seeds = seeds[: args.genmm_seeds] if args.genmm_seeds is not None else seeds
     variants = {"ours": {}, f"ours variety={MORE_VARIED}": {"variety": MORE_VARIED}}
+    if args.graph_path:
+        variants["ours graph_path"] = {"method": "graph_path"}
     for w in args.level_weights:
         a, c, f = (float(x) for x in w.split("/"))
         variants[f"ours weights {w}"] = {"ancestor_weight": a, "current_weight": c,
                                         "finer_weight": f}
     print(f"texture benchmark — {n_seeds} seeds ({len(genmm_seeds)} for the GenMM baseline), "
-          f"{args.levels} levels, 30 fps; {TARGETS}")
+          f"{args.levels or levels_for_rate(30.0)} levels, 30 fps; {TARGETS}")
     print(
         "cells: mean (min–max over seeds); ratios are output/input; CPU s = pyramid + "
         "synthesis on one core; patch metrics on 6-D rotations with the root heading removed"

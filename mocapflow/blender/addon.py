@@ -78,8 +78,6 @@ bl_info = {
 CONSTRAINT_PREFIX = "c:"
 #: Names of the markers a synthesis puts on the timeline (replaced by the next one).
 SEAM_MARKER, HELD_PREFIX = "seam", "held c:"
-#: The texture graph's pyramid levels at 30 fps; more at higher rates (same time span).
-LEVELS_AT_30 = 4
 
 
 class MocapflowError(RuntimeError):
@@ -432,11 +430,6 @@ def path_from_curve(curve_ob, armature) -> tuple[list[list[float]], bool]:
     return path, closed
 
 
-def synthesis_levels(rate: float) -> int:
-    """Pyramid levels at ``rate`` spanning what :data:`LEVELS_AT_30` span at 30 fps."""
-    return max(2, LEVELS_AT_30 + int(round(math.log2(max(rate, 1.0) / 30.0))))
-
-
 def synthesize_texture(context, armature, *, seed: int = 0, path_object=None,
                        levels: int = 0, extra: list[str] | None = None):
     """Run the texture graph on the armature's source take as authored on the timeline
@@ -461,7 +454,7 @@ def synthesize_texture(context, armature, *, seed: int = 0, path_object=None,
                   else (None, False))
     sets = {
         "params.rate": rate, "params.output_rate": rate, "params.length": length,
-        "params.levels": levels or synthesis_levels(rate), "synth.seeds": [int(seed)],
+        "params.levels": levels or None, "synth.seeds": [int(seed)],
         "synth.constraints": cons, "synth.loop": loop, "synth.path": path,
     }
     args = ["texture", "--parts", source, "--target", "synth"]

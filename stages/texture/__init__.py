@@ -9,7 +9,7 @@ meeting points and son selection together as Moradoff §3.5–3.7, and so does
 this table:
 
 Moradoff §3.4 Gaussian multi-resolution   pyramid.build_pyramid (the stage: pyramid.pyramid)
-  tree over the joint angles
+  tree over the joint angles              levels by rate: pyramid.levels_for_rate
   binomial filter, filter size 4          pyramid.binomial_filter, pyramid.downsample
   quaternion-aware filtering              pyramid.downsample_quaternions
   root as heading-frame velocities        pyramid.root_features
@@ -48,8 +48,11 @@ Moradoff §3.5–3.7 neighbourhood distance  neighbourhood.window_cost (per slot
   the parent's 3 best ±candidate_range)   search.LevelSearch.candidates
 Moradoff §3.7.2 graph path                graph.transition_costs, graph.transition_graph,
                                           graph.graph_path (DFS under a cost bound, keeping
-                                          max_run: graph._min_cost_to_end);
-                                          per gap: synth._graph_level
+                                          max_run: graph._min_cost_to_end, graph._run_limit_kept;
+                                          variety / usage_weight draw: graph.jump_window,
+                                          graph._drawn_order); per gap: synth._graph_level
+                                          (run limit less refinement's reach:
+                                          synth._graph_run_limit)
 Moradoff §3.8 adaptive local smoothing    smoothing.adaptive_smoothing (with the input's floor
                                           and jerk limit: assemble._smooth_seams)
   acceleration test                       smoothing.seam_test
@@ -82,7 +85,11 @@ Departures from the thesis (the module docstrings say why):
   the input they would play next (coverage), a new draw only once the last
   transition has ``slots`` verbatim nodes behind it
   (search.LevelSearch._settled), and a run reaching ``max_run`` of the input
-  must jump where the jump fits best (search.LevelSearch._jump_earlier);
+  must jump where the jump fits best (search.LevelSearch._jump_earlier); the
+  graph path draws its successors the same way (graph.graph_path), its cost
+  bound widened by one ``variety`` window per jump ``max_run`` forces;
+* levels: 4 at 30 fps and one more per doubling of the rate by default
+  (pyramid.levels_for_rate; the thesis used 3-5 at 30 fps);
 * paths: the sway kept around the path is high-passed again, a loop on a
   closed path is paced to whole laps and the legs take up the paced root
   (root, assemble.PATH_IK);

@@ -12,7 +12,17 @@ every seed gives another path.  The exact remaining-cost table makes the DFS
 prune every branch that cannot meet the bound.  It carries the length of the
 verbatim run each node ends, so the path keeps ``max_run`` (no run of natural
 successors longer than the synthesis' limit, counting the run that enters the
-gap); a gap too short to keep it is searched without it.  The ``slots`` edges
+gap); a gap whose graph cannot keep it keeps the shortest limit it can.  The
+walk draws like the neighbourhood search (:mod:`~mocapflow.stages.texture.search`):
+among the ``k_best`` allowed successors whose *key* — edge cost plus
+``usage_weight`` windows per time the input nodes they would play next are
+already in the output — lies within the ``variety`` window of the cheapest
+(:func:`jump_window`), and only once the last jump has ``slots`` verbatim nodes
+behind it, so the path neither circles through one well-connected block nor
+jumps at every node; the cost bound grows by one such window per jump the run
+limit forces (else only the cheapest jumps fit and the path circles), and a jump
+of fewer than ``slots`` nodes is no edge (``min_jump``: refinement could turn it
+back into the natural successor, merging two runs past the limit).  The ``slots`` edges
 beside each constraint are natural successors (a constrained node is copied
 with its neighbourhood), and the input's last nodes never jump into its first
 (:func:`mocapflow.stages.texture.synth._graph_level`: the finer levels could not
@@ -30,11 +40,12 @@ from __future__ import annotations
 import numpy as np
 
 from mocapflow.stages.texture.neighbourhood import LevelView, slot_pair_weights, window_cost
-from mocapflow.stages.texture.search import SynthesisError
+from mocapflow.stages.texture.search import SynthesisError, _ahead_usage
 
 __all__ = [
     "UnreachableGapError",
     "graph_path",
+    "jump_window",
     "transition_costs",
     "transition_graph",
 ]
@@ -87,7 +98,9 @@ def transition_costs(view: LevelView, *, slots: int = 3) -> np.ndarray:
     return T
 
 
-def transition_graph(costs: np.ndarray, *, threshold: float = 0.1) -> np.ndarray:
+def transition_graph(
+    costs: np.ndarray, *, threshold: float = 0.1, min_jump: int = 2
+) -> np.ndarray:
     """Thresholded transition graph.
 
     Parameters
@@ -95,7 +108,11 @@ def transition_graph(costs: np.ndarray, *, threshold: float = 0.1) -> np.ndarray
     costs : (n, n) float ndarray
         From :func:`transition_costs`.
     threshold : float
-        Quantile (0–1) of the jump costs (``|b - (a+1)| >= 2``) kept as edges.
+        Quantile (0–1) of the jump costs (``|b - (a+1)| >= min_jump``) kept as edges.
+    min_jump : int
+        Shortest jump (nodes skipped or replayed) that is an edge; a shorter one is
+        the natural successor shifted in time, which refinement may turn back into
+        it (merging the runs on either side past ``max_run``).
 
     Returns
     -------
@@ -104,13 +121,39 @@ def transition_graph(costs: np.ndarray, *, threshold: float = 0.1) -> np.ndarray
     """
     n = costs.shape[0]
     a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-    jump = np.abs(b - (a + 1)) >= 2
+    jump = np.abs(b - (a + 1)) >= max(int(min_jump), 2)
     vals = costs[jump & np.isfinite(costs)]
     cut = np.quantile(vals, threshold) if vals.size else -np.inf
     E = np.where(jump & (costs <= cut), costs, np.inf)
     nat = np.arange(n - 1)
     E[nat, nat + 1] = 0.0
     return E
+
+
+def jump_window(costs: np.ndarray, variety: float) -> float:
+    """Draw window of the graph walk: the ``variety`` quantile of the input's own
+    best-jump costs.
+
+    Parameters
+    ----------
+    costs : (n, n) float ndarray
+        From :func:`transition_costs`.
+    variety : float
+        0–1 (clipped): roughly the share of the input's nodes whose best jump lies
+        in the window; 0 gives a zero window (only the cheapest successor is drawn).
+
+    Returns
+    -------
+    float
+        ``min_b costs[a, b]`` over jumps (``|b - (a+1)| >= 2``) per node ``a``, its
+        ``variety`` quantile over the nodes (0 when no node has a finite jump).
+    """
+    n = costs.shape[0]
+    a, b = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    best = np.where(np.abs(b - (a + 1)) >= 2, costs, np.inf).min(axis=1)
+    best = best[np.isfinite(best)]
+    q = float(np.clip(variety, 0.0, 1.0))
+    return float(np.quantile(best, q)) if best.size and q > 0 else 0.0
 
 
 def _natural_and_jumps(E: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -164,9 +207,26 @@ def graph_path(
     run_before: int = 1,
     keep: int = 0,
     end_run: int = 0,
+    window: float = np.inf,
+    k_best: int | None = None,
+    usage: np.ndarray | None = None,
+    usage_weight: float = 0.0,
+    settle: int = 0,
     where: str = "gap",
 ) -> np.ndarray:
     """A random path of exactly ``steps`` edges under a cost bound (DFS).
+
+    The exact remaining-cost table prunes every successor that cannot finish
+    within the bound, so the search is a forward walk; at each node the next one
+    is drawn (seeded) among the allowed successors ``v`` ranked by their *key*
+    ``E[u, v] + usage_weight · max(window, unit) · U(v)``, where ``U(v)`` is the
+    mean number of times the input nodes ``v … v + 2·settle`` (the material ``v``
+    plays next) are already in the output (``usage`` plus the path so far): the
+    draw is uniform among the ``k_best`` lowest keys within ``window`` of the
+    lowest.  While the current verbatim run has fewer than ``settle`` nodes the
+    natural successor is taken when allowed (a jump is not followed by another
+    inside its neighbourhood).  The defaults draw uniformly among all allowed
+    successors (the thesis' random DFS).
 
     Parameters
     ----------
@@ -178,12 +238,15 @@ def graph_path(
     start, end : int or None
         Anchor nodes (``None``: free).
     slack : float
-        Cost bound ``(1 + slack) × cheapest + slack × unit``.
+        Cost bound ``(1 + slack) × cheapest + slack × unit`` (plus, with a run limit
+        and a finite ``window``, one ``window`` per jump the limit forces,
+        ``steps // max_run``: those jumps are drawn too, not all the cheapest).
     unit : float
         Cost unit of the level.
     max_run : int, optional
-        Most nodes a verbatim run (natural successors) may have; a path that
-        cannot keep to it (too few edges) is searched without it.  ``None``: no limit.
+        Most nodes a verbatim run (natural successors) may have.  Where no path
+        keeps it (too few edges or steps), the smallest limit some path keeps is
+        used instead.  ``None``: no limit.
     run_before : int
         Nodes of the verbatim run that ends at ``start`` (``start`` included).
     keep : int
@@ -193,6 +256,19 @@ def graph_path(
     end_run : int
         Nodes the verbatim run reaching ``end`` goes on for after it (counted
         against ``max_run``).
+    window : float
+        Draw window in edge-cost units (e.g. :func:`jump_window`); ``inf``: every
+        allowed successor, 0: only the lowest key.
+    k_best : int, optional
+        Most successors drawn among (``None``: all within ``window``).
+    usage : (n,) float ndarray, optional
+        Times each input node is already in the output outside this path.
+    usage_weight : float
+        Windows (``max(window, unit)``) added to a key per use of the material it
+        plays next; 0 disables.
+    settle : int
+        Verbatim nodes a run needs before the next drawn jump, and the half width
+        of the material ``U`` measures (0: no rule, ``U`` of ``v`` alone).
     where : str
         Gap description for error messages.
 
@@ -206,6 +282,8 @@ def graph_path(
     UnreachableGapError
         No path of that length joins the anchors.
     """
+    draw = {"window": window, "k_best": k_best, "usage": usage,
+            "usage_weight": usage_weight, "settle": settle}
     n = E.shape[0]
     head = keep if start is not None and start + keep < n else 0
     tail = keep if end is not None and end - keep >= 0 else 0
@@ -216,7 +294,7 @@ def graph_path(
                 start=None if start is None else start + head,
                 end=None if end is None else end - tail, slack=slack, unit=unit,
                 max_run=max_run, run_before=run_before + head, keep=0,
-                end_run=tail, where=where)
+                end_run=tail, where=where, **draw)
             none = np.zeros(0, np.int64)
             return np.concatenate([
                 np.arange(start, start + head, dtype=np.int64) if head else none, inner,
@@ -225,12 +303,7 @@ def graph_path(
             pass  # the gap cannot keep the neighbourhoods: search without them
     end_set = np.arange(n) if end is None else np.array([end])
     starts = np.arange(n) if start is None else np.array([start])
-    R = None if max_run is None else max(int(max_run), 1)
-    i0 = 0 if R is None or start is None else min(max(int(run_before), 1), R) - 1
-    D = _min_cost_to_end(E, end_set, steps, R, end_run)
-    if R is not None and not np.isfinite(D[steps, starts, i0]).any():
-        R, i0 = None, 0  # the run limit cannot be kept on this gap
-        D = _min_cost_to_end(E, end_set, steps, R)
+    R, i0, D = _run_limit_kept(E, end_set, starts, steps, max_run, start, run_before, end_run)
     feasible = starts[np.isfinite(D[steps, starts, i0])]
     if feasible.size == 0:
         raise UnreachableGapError(
@@ -240,25 +313,73 @@ def graph_path(
         )
     best = float(np.min(D[steps, feasible, i0]))
     bound = best * (1.0 + slack) + slack * unit
+    if R is not None and np.isfinite(window):
+        bound += window * (steps // R)  # each jump the run limit forces: a drawn one
     nat, J = _natural_and_jumps(E)
+    base = np.zeros(n) if usage is None else np.asarray(usage, dtype=np.float64)
+    weigh = usage_weight > 0
+    scale = usage_weight * max(window if np.isfinite(window) else 0.0, unit)
+    plain = not weigh and not np.isfinite(window) and k_best is None and settle <= 0
+    run0 = max(int(run_before), 1) if start is not None else 1
     # depth-first search with the exact remaining-cost table as pruning bound;
-    # a stack entry: (path, cost so far, run index of its last node)
+    # a stack entry: (path, cost so far, run index of its last node, nodes in its run)
     first = rng.permutation(feasible)
     first = first[D[steps, first, i0] <= bound]
-    stack: list[tuple[list[int], float, int]] = [([int(v)], 0.0, i0) for v in first[::-1]]
+    stack: list[tuple[list[int], float, int, int]] = [
+        ([int(v)], 0.0, i0, run0) for v in first[::-1]]
     while stack:
-        path, acc, i = stack.pop()
+        path, acc, i, run = stack.pop()
         k = steps - (len(path) - 1)
         if k == 0:
             return np.asarray(path, dtype=np.int64)
         u = path[-1]
-        nxt = [(int(v), acc + float(J[u, v]), 0) for v in np.flatnonzero(
+        nxt = [(int(v), acc + float(J[u, v]), 0, 1) for v in np.flatnonzero(
             np.isfinite(J[u]) & (acc + J[u] + D[k - 1, :, 0] <= bound + 1e-12))]
         inext = 0 if R is None else i + 1  # (no limit: one run index)
-        if (u + 1 < n and (R is None or inext < R)
-                and acc + nat[u] + D[k - 1, u + 1, inext] <= bound + 1e-12):
-            nxt.append((u + 1, acc + float(nat[u]), inext))
-        for j in rng.permutation(len(nxt))[::-1]:
-            v, c, iv = nxt[j]
-            stack.append((path + [v], c, iv))
+        natural = (u + 1 < n and (R is None or inext < R)
+                   and acc + nat[u] + D[k - 1, u + 1, inext] <= bound + 1e-12)
+        if natural:
+            nxt.append((u + 1, acc + float(nat[u]), inext, run + 1))
+        if plain:
+            order = rng.permutation(len(nxt))
+        else:
+            order = _drawn_order(nxt, acc, run, natural, settle, window, k_best,
+                                 (base + np.bincount(path, minlength=n)) if weigh else None,
+                                 scale, rng)
+        for j in order[::-1]:
+            stack.append((path + [nxt[j][0]], *nxt[j][1:]))
     raise UnreachableGapError(f"{where}: no path within the cost bound {bound:.3g}")
+
+
+def _run_limit_kept(E, end_set, starts, steps, max_run, start, run_before, end_run):
+    """``(R, i0, D)``: the run limit a path can keep (``max_run`` or, where no path keeps
+    it, the smallest larger one some path keeps; ``None`` without a limit), the start's
+    run index and the remaining-cost table (:func:`_min_cost_to_end`)."""
+    n = E.shape[0]
+    R = None if max_run is None else max(int(max_run), 1)
+    while True:
+        i0 = 0 if R is None or start is None else min(max(int(run_before), 1), R) - 1
+        D = _min_cost_to_end(E, end_set, steps, R, end_run if R is not None else 0)
+        if R is None or np.isfinite(D[steps, starts, i0]).any():
+            return R, i0, D
+        R = None if R > n + steps else R + max(1, R // 4)  # relax the limit by a quarter
+
+
+def _drawn_order(nxt, acc, run, natural, settle, window, k_best, counts, scale, rng):
+    """Order in which the DFS tries the successors ``nxt``: the drawn one first, then the
+    rest of the drawable ones, then the others (see :func:`graph_path`)."""
+    m = len(nxt)
+    if m == 0:  # a dead end (only through rounding: the table is exact): backtrack
+        return np.zeros(0, dtype=np.int64)
+    if natural and run < settle:  # the last jump is not settled yet: play on
+        return np.r_[m - 1, rng.permutation(m - 1)]
+    v = np.array([e[0] for e in nxt], dtype=np.int64)
+    key = np.array([e[1] for e in nxt]) - acc
+    if counts is not None:
+        key = key + scale * _ahead_usage(counts, 2 * max(settle, 0) + 1, 1)[v]
+    order = np.argsort(key, kind="stable")
+    ok = key[order] <= key[order[0]] + window
+    if k_best is not None:
+        ok &= np.arange(m) < k_best
+    chosen, rest = order[ok], order[~ok]
+    return np.r_[rng.permutation(chosen), rng.permutation(rest)].astype(np.int64)

@@ -229,7 +229,7 @@ def _tabulate(f, n: int) -> np.ndarray:
     """``T[x, y] = f(x[:, None], y[None, :])`` for ``x, y < n``, in row blocks."""
     T = np.empty((n, n))
     x = np.arange(n)
-    rows = max(1, 40_000 // max(n, 1))
+    rows = max(1, 1_000 // max(n, 1))  # small blocks: (rows, n, J, 3) temporaries stay in cache
     for a in range(0, n, rows):
         xs, ys = np.broadcast_arrays(x[a : a + rows, None], x[None, :])
         T[a : a + rows] = f(xs, ys)

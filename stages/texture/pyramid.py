@@ -39,6 +39,7 @@ from mocapflow.stages.motion.rotations import (
 )
 
 __all__ = [
+    "LEVELS_AT_30",
     "MIN_COARSE_NODES",
     "Pyramid",
     "PyramidError",
@@ -48,12 +49,16 @@ __all__ = [
     "downsample",
     "downsample_quaternions",
     "level_positions",
+    "levels_for_rate",
     "pyramid",
     "root_features",
 ]
 
 #: The coarsest level must keep at least this many nodes (room for ±3 slots).
 MIN_COARSE_NODES = 8
+
+#: Levels of the default pyramid at 30 fps (the thesis used 3–5); one more per doubling.
+LEVELS_AT_30 = 4
 
 
 class PyramidError(ValueError):
@@ -310,15 +315,47 @@ def level_positions(
 # --------------------------------------------------------------------------- building
 
 
-def build_pyramid(motion: Motion, *, levels: int = 4, filter_size: int = 4) -> Pyramid:
+def levels_for_rate(rate: float, n_frames: int | None = None) -> int:
+    """Pyramid levels by frame rate: the coarsest node spans the same time at any rate.
+
+    :data:`LEVELS_AT_30` at 30 fps and one more per doubling of the rate (rounded:
+    6 at 120 fps, 3 at 15 fps; at least 2), so a 120 fps take is synthesized with
+    the 30 fps take's coarse plan instead of four times as many coarsest nodes.
+
+    Parameters
+    ----------
+    rate : float
+        Frames per second of the motion (> 0).
+    n_frames : int, optional
+        Frames of the motion: the levels are capped so the coarsest level keeps
+        :data:`MIN_COARSE_NODES` nodes (at least 1 level).
+
+    Returns
+    -------
+    int
+    """
+    if not (np.isfinite(rate) and rate > 0):
+        raise PyramidError(f"rate must be a positive number of frames per second, got {rate}")
+    levels = max(2, LEVELS_AT_30 + int(round(np.log2(rate / 30.0))))
+    if n_frames is not None:
+        while levels > 1 and -(-n_frames // 2 ** (levels - 1)) < MIN_COARSE_NODES:
+            levels -= 1
+    return levels
+
+
+def build_pyramid(
+    motion: Motion, *, levels: int | None = None, filter_size: int = 4
+) -> Pyramid:
     """Gaussian multi-resolution tree of a motion.
 
     Parameters
     ----------
     motion : Motion
         ``F`` frames; ``y`` is up.
-    levels : int
-        Number of levels including the input (the thesis used 3–5).
+    levels : int, optional
+        Number of levels including the input (the thesis used 3–5).  ``None``
+        (default): by the motion's rate, :func:`levels_for_rate` (4 at 30 fps, 6 at
+        120 fps; fewer when the motion is too short for them).
     filter_size : int
         Binomial filter taps (4).
 
@@ -332,10 +369,12 @@ def build_pyramid(motion: Motion, *, levels: int = 4, filter_size: int = 4) -> P
         Fewer than 1 level, a bad filter size, or a coarsest level with fewer
         than :data:`MIN_COARSE_NODES` nodes.
     """
+    F = motion.n_frames
+    if levels is None:
+        levels = levels_for_rate(motion.rate, F)
     if levels < 1:
         raise PyramidError(f"levels must be >= 1, got {levels}")
     binomial_filter(filter_size)
-    F = motion.n_frames
     coarse = -(-F // 2 ** (levels - 1))
     if coarse < MIN_COARSE_NODES:
         raise PyramidError(
@@ -361,7 +400,7 @@ def build_pyramid(motion: Motion, *, levels: int = 4, filter_size: int = 4) -> P
 
 @stage("pyramid", outputs=("pyramid",))
 def pyramid(
-    motion: Motion, *, levels: int = 4, filter_size: int = 4, ctx: Context
+    motion: Motion, *, levels: int | None = None, filter_size: int = 4, ctx: Context
 ) -> dict[str, Pyramid]:
     """Gaussian multi-resolution tree over the joint angles (Moradoff §3.4).
 
@@ -372,8 +411,11 @@ def pyramid(
         ``["forward"]``) is first turned to Y up, facing +Z
         (:func:`~mocapflow.stages.motion.kinematics.reorient_motion`), the axes
         the synthesis works in.
-    levels : int
-        Levels including the input (the thesis used 3–5; default 4).
+    levels : int, optional
+        Levels including the input (the thesis used 3–5).  ``None`` (default): by
+        the motion's rate — 4 at 30 fps, one more per doubling (6 at 120 fps), fewer
+        when the motion is too short (:func:`levels_for_rate`); the synthesis then
+        plans at the same time scale at any rate.
     filter_size : int
         Binomial filter taps between levels (4).
     ctx : Context

@@ -56,6 +56,7 @@ from mocapflow.stages.texture.assemble import assemble_motion
 from mocapflow.stages.texture.graph import (
     UnreachableGapError,
     graph_path,
+    jump_window,
     transition_costs,
     transition_graph,
 )
@@ -174,7 +175,12 @@ def _graph_level(
     when the path has none).
     """
     view = search.view
-    E = transition_graph(transition_costs(view, slots=params.slots), threshold=threshold)
+    T = transition_costs(view, slots=params.slots)
+    E = transition_graph(T, threshold=threshold, min_jump=params.slots)
+    # the walk draws as the search does: variety window, k best, usage, settled jumps
+    draw = {"window": jump_window(T, params.variety) if params.variety > 0 else 0.0,
+            "k_best": params.k_best, "usage_weight": params.usage_weight,
+            "settle": params.slots}
     # no jump from the input's last nodes into its first: the finer levels could extend
     # neither line to join them (the left one ends the input, the right one starts it)
     S = params.slots
@@ -192,8 +198,10 @@ def _graph_level(
         where = _gap_name(g, search)
         path = graph_path(
             E, steps, rng, start=start, end=end, slack=slack, unit=view.unit,
-            max_run=search.max_run_nodes, run_before=_run_into(src, g.lo, search.cyclic),
+            max_run=_graph_run_limit(search, params),
+            run_before=_run_into(src, g.lo, search.cyclic),
             keep=params.slots, where=where,
+            usage=np.bincount(src[src >= 0], minlength=view.n).astype(np.float64), **draw,
         )
         if g.left and g.right:
             nodes, pos = path[1:-1], np.arange(g.lo + 1, g.hi)
@@ -214,6 +222,16 @@ def _graph_level(
             else:
                 meetings[g.key] = (g.lo + g.hi) // 2
     return meetings
+
+
+def _graph_run_limit(search: LevelSearch, params: SearchParams) -> int | None:
+    """``max_run`` of the graph walk (coarsest nodes): the search's limit less what
+    refinement may add to a run — a join moves at most ``meeting_window`` nodes at each
+    finer level, ``meeting_window · (1 - 2^-l)`` coarsest nodes in all (one end)."""
+    if search.max_run_nodes is None:
+        return None
+    grow = math.ceil(params.meeting_window * (1.0 - 2.0 ** -search.l))
+    return max(2 * params.slots, search.max_run_nodes - grow)
 
 
 def _run_into(src: np.ndarray, t: int, cyclic: bool) -> int:
@@ -520,7 +538,10 @@ def synth(
     seed : int
         Variant; randomness comes from ``ctx.rng``.
     levels : int, optional
-        Pyramid levels used (default all of the pyramid's).
+        Pyramid levels used (default all of the pyramid's, which by default are
+        chosen by the rate: 4 at 30 fps, one more per doubling, 6 at 120 fps,
+        :func:`~mocapflow.stages.texture.pyramid.levels_for_rate`; so the coarse
+        plan spans the same time at any rate and a 120 fps synthesis is as fast).
     filter_size : int, optional
         Checked against the pyramid's.
     method : {"meeting_point", "graph_path"}
@@ -543,14 +564,20 @@ def synth(
         share of moments a drawn jump may leave): 0 keeps only the jumps the
         input's end forces (near-verbatim copies), 1 draws among the k best at
         every node as in the thesis.  Raise for more novelty, lower for longer
-        verbatim stretches.
+        verbatim stretches.  ``method="graph_path"`` draws each path step the same
+        way (window: the quantile of the transition graph's own best-jump costs,
+        :func:`~mocapflow.stages.texture.graph.jump_window`).
     max_run : float
         Longest verbatim run as a fraction of the input (0.3): a run that long
         must jump, where the jump fits best among its last positions.  0 (or
-        >= 1) disables.
+        >= 1) disables.  graph_path keeps it in its search (less the few nodes
+        refinement may add; where the graph has too few edges for it, the shortest
+        limit it can keep: raise ``graph_threshold``).
     usage_weight : float
-        Preference for input material not used yet (coverage of the input); 0
-        disables.
+        Preference for input material not used yet (coverage of the input): a
+        candidate's rank rises by ``usage_weight`` draw windows per time the input
+        it would play next (``2 slots + 1`` nodes, mean) is already in the output;
+        the same in graph_path's draw.  0 disables.
     tolerance : float
         Cost units within which the k best joins are drawn below the coarsest level.
     meeting_window : int
