@@ -54,13 +54,14 @@ def test_planted_feet_within_millimetres_and_less_skate(skating):
     out, rep = r["variants"], r["report"]
     r = rep["clips"][0]
     assert sum(r["constrained_frames"].values()) > 60
-    # detected contacts weigh `stiffness` (1e6) against the eased correction: a few mm
-    assert max(r["max_error"].values()) <= 3e-3  # measured 2.6 mm
+    # detected contacts weigh `stiffness` (1e6) against the eased correction: a few mm (the
+    # default ease 0.5 s smooths the correction 16x more than 0.25 s, which met them in 2.6 mm)
+    assert max(r["max_error"].values()) <= 7e-3  # measured 6.0 mm
     # misses beyond `tolerance` are reported; a detected contact's under 1 cm is not warned
     assert r["unreachable"] and not any(u["given"] for u in r["unreachable"])
     assert not ctx.warnings
     before, after = _skate(bad, toes, thr), _skate(out, toes, thr)
-    assert after < 0.5 * before  # measured: 0.092 -> 0.024 m/s
+    assert after < 0.5 * before  # measured: 0.092 -> 0.030 m/s (0.024 at ease 0.25)
     # stiffer contacts are met within a millimetre, with no warning
     ctx = Context()
     stiff = ik(bad, stiffness=1e8, ctx=ctx)["report"]["clips"][0]
