@@ -14,10 +14,11 @@ learn, sample and ik params; the walk model is learned once from the files):
    (at the model's rate, as the inputs): jerk p99 and toe skate over the
    input's (targets <= 1.5, <= 1.2), the largest excess of a BVH rotation
    channel beyond the inputs' range (target <= 0.05 rad) and the novelty
-   criteria;
+   criteria; jerk and skate after IK also for the draws of :data:`OTHER_DRAWS`;
 3. chaining: 5 consecutive cycles of one variant stream (the ``sample``
    stage's ``loop``, else a long stream cut where the hip passes the inputs'
-   start phase): jerk p99 at the joins over the inputs' p99 (target <= 1.5);
+   start phase): jerk p99 at the joins over the inputs' p99 (target <= 1.5), after
+   IK also for three other chains;
 4. speed, BLAS pinned to one thread per process (env vars set before NumPy is
    imported, threadpoolctl when installed): learning the shipped walk on 1 and
    2 workers (targets <= 30 s on 2, >= 1.6x), streaming 1,000 agents of the walk
@@ -32,10 +33,11 @@ learn, sample and ik params; the walk model is learned once from the files):
 6. quality of the walk variants against the noise baselines at matched
    amplitude (jerk, skate, DTW distance; before and after IK).
 
-Run: ``.venv/bin/python benchmarks/variation.py [--quick] [--baseline DIR]``
+Run: ``.venv/bin/python benchmarks/variation.py [--quick] [--baseline DIR] [--sections 2,3]``
 from the repository root (needs ``../shared/data`` or ``MOCAPFLOW_DATA``).
 ``--quick``: 5 streams, 5 variants, 4 cmu clips of 20 DOFs, the speed run on
-4 clips of 20 DOFs; it checks the run end to end, not the targets.
+4 clips of 20 DOFs; it checks the run end to end, not the targets.  ``--sections 2,3``:
+only those sections (numbered as above).
 """
 
 from __future__ import annotations
@@ -73,6 +75,9 @@ STROKES_CONFIG = REPO / "configs" / "variation_strokes.yaml"
 SECOND_LETTER = "b"
 #: stream length, frames (10 s at 60 fps)
 STREAM_FRAMES = 600
+#: the other ``sample`` seeds of sections 2 and 3 (section 2 draws seed 1, section 3 seed 3;
+#: the other chains are seeds 4-6), each after IK, so a target met is not one draw's luck
+OTHER_DRAWS = (2, 3, 4)
 CROWD_WINDOW = 64
 """``Sampler(model, window=...)`` of the crowd-mode rows: each agent searches its k nearest
 among the 64 instances nearest to it in cycle phase (of ~360 on the walk)."""
@@ -406,6 +411,16 @@ def section_variants(label: str, model, clips, nodes: dict, n_var: int) -> None:
     rep = novelty_report(cleaned["variants"].trajectories, clips.trajectories,
                          cyclic=bool(clips.cyclic))
     print("novelty after IK:", _novelty_row(rep))
+    cells = []
+    for seed in OTHER_DRAWS:  # the same after IK on other draws: not one seed's luck
+        o = sample(model, count=n_var, sigma=float(sp["sigma"]), noise_time=sp["noise_time"],
+                   ctx=Context(rng=np.random.default_rng(seed)))
+        ps = _positions(clips_to_motions(_ik(o["variants"], o.get("predicted"), nodes,
+                                             clips.rate)["variants"]))
+        cells.append(f"seed {seed}: {_pooled_jerk_p99(ps, clips.rate) / j_in:.2f}, "
+                     f"{skate(ps) / s_in:.2f}")
+    print("other draws after IK (jerk p99 / input's, toe skate / input's; targets <= 1.5, "
+          "<= 1.2):", "; ".join(cells))
 
 
 def section_chaining(model, clips, nodes: dict, count: int = 5) -> None:
@@ -441,6 +456,19 @@ def section_chaining(model, clips, nodes: dict, count: int = 5) -> None:
     else:
         print("| chained cycles after IK | not measured (no loop variants) | - | <= 1.5 |")
     print(f"inputs' jerk p99 {j_in:.0f} m/s^3")
+    cells = []
+    for seed in OTHER_DRAWS:  # other chains, through the config's IK (sample(loop=True) only)
+        ms, _, o = chained_cycles(model, np.random.default_rng(seed + 2), count=count,
+                                  sigma=float(sp["sigma"]), noise_time=sp["noise_time"])
+        if o is None:
+            break
+        ps = _positions(clips_to_motions(
+            _ik(o["variants"], o.get("predicted"), nodes, rate)["variants"]))
+        cells.append(f"seed {seed + 2}: "
+                     f"{join_jerk_p99(np.concatenate(ps), [len(p) for p in ps], rate) / j_in:.2f}")
+    if cells:
+        print("other chains after IK (joins jerk p99 / inputs' p99; target <= 1.5):",
+              "; ".join(cells))
 
 
 def _speed_worker(config: str, quick: bool) -> dict:
@@ -452,10 +480,12 @@ def _speed_worker(config: str, quick: bool) -> dict:
     _, clips = _walk_clips(nodes)
     if quick:
         clips = _subset(clips, 4, 20)
+    c0 = time.process_time()
     model, t1 = _learn(clips, nodes, 1)
     sp = nodes["sample"]
     sigma, nt = float(sp["sigma"]), sp["noise_time"]
     res = {"code": str(Path(mocapflow.__file__).resolve().parent), "learn_1": t1,
+           "cpu_learn_1": time.process_time() - c0,
            "dofs": int(model.n_dofs), "clips": int(clips.n_clips)}
     # sampling is timed before the 2-worker learning (whose processes may linger)
     frames = 5 if quick else 40
@@ -479,8 +509,19 @@ def _speed_worker(config: str, quick: bool) -> dict:
     w0 = time.perf_counter()
     s.run(rng, count=15, length=n, sigma=sigma, noise_time=nt)
     res["us_15"] = 1e6 * (time.perf_counter() - w0) / (15 * n)
+    # CPU of the 2-worker learning: this process and its (reaped) worker processes
+    c0, k0 = time.process_time(), _children_cpu()
     _, res["learn_2"] = _learn(clips, nodes, 2)
+    res["cpu_learn_2"] = time.process_time() - c0 + _children_cpu() - k0
     return res
+
+
+def _children_cpu() -> float:
+    """User + system seconds of this process's finished child processes."""
+    import resource
+
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
 
 
 def _run_worker(layout: Path | None, config: Path, quick: bool) -> dict:
@@ -509,6 +550,8 @@ def section_speed(quick: bool, baseline: Path | None) -> None:
           + (f"; baseline {base['code']}, {base['dofs']} DOFs" if base else
              "; no --baseline: ratio columns skipped") + ")")
     rows = [("learn, 1 worker (s)", "learn_1", "-"), ("learn, 2 workers (s)", "learn_2", "<= 30"),
+            ("learn, 1 worker (CPU s)", "cpu_learn_1", "-"),
+            ("learn, 2 workers (CPU s, workers included)", "cpu_learn_2", "-"),
             ("stream 1,000 agents, exact search (us / agent-frame, wall)", "us_1000", "-"),
             ("stream 1,000 agents, exact search (CPU us / agent-frame)", "cpu_us_1000", "-"),
             (f"stream 1,000 agents, crowd mode window {CROWD_WINDOW} (us / agent-frame, wall)",
@@ -519,8 +562,10 @@ def section_speed(quick: bool, baseline: Path | None) -> None:
     print("|---|---|" + ("---|---|" if base else "") + "---|")
     for name, key, target in rows:
         cell = f"| {name} | {ours[key]:.2f} |"
-        if base:
+        if base and key in base:  # an older checkout's worker may lack a measure
             cell += f" {base[key]:.2f} | {ours[key] / base[key]:.2f} |"
+        elif base:
+            cell += " - | - |"
         print(cell + f" {target} |")
     su = ours["learn_1"] / ours["learn_2"]
     line = f"speed-up 2 vs 1 worker: ours {su:.2f}x (target >= 1.6x)"
@@ -606,31 +651,43 @@ def section_quality(model, walk, nodes: dict, n_var: int, quick: bool) -> None:
         print(f"| {name} | {j:.0f} | {s:.3f} | {dd.mean():.2f} +- {dd.std():.2f} |")
 
 
-def main(quick: bool = False, baseline: Path | None = None) -> None:
+def main(quick: bool = False, baseline: Path | None = None,
+         sections: set[int] | None = None) -> None:
+    """Run the sections numbered in ``sections`` (``None``: all six)."""
+    def want(k: int) -> bool:
+        return sections is None or k in sections
+
     n_var = 5 if quick else 15
     t_all = time.perf_counter()
-    print(f"# variation benchmark ({'quick' if quick else 'full'}); data {DATA}")
+    print(f"# variation benchmark ({'quick' if quick else 'full'}); data {DATA}"
+          + ("" if sections is None else f"; sections {sorted(sections)}"))
     print(f"# machine: {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}; BLAS threads "
           f"pinned to 1 per process")
     nodes = _nodes(WALK_CONFIG)
-    _, walk = _walk_clips(nodes)
-    model, t_learn = _learn(walk, nodes, 1)
-    print(f"# walk model ({WALK_CONFIG.name}): {walk.n_clips} cycles, {model.n_dofs} DOFs, "
-          f"learned in {t_learn:.1f} s")
-    section_streams(model, nodes, 5 if quick else 20)
-
-    print("\n## 2. exported variants after IK")
-    _, cmu = _walk_clips(nodes, DATA / "bvh" / "cmu_131_02.bvh")
-    if quick:
-        cmu = _subset(cmu, 4, 20)
-    cmu_model, t_cmu = _learn(cmu, nodes, 1)
-    print(f"(cmu_131_02 learned in {t_cmu:.1f} s)")
-    section_variants("cmu_131_02.bvh", cmu_model, cmu, nodes, n_var)
-    section_variants("figure-8 walk (pymo_AV_8Walk)", model, walk, nodes, n_var)
-    section_chaining(model, walk, nodes)
-    section_speed(quick, baseline)
-    section_strokes(n_var)
-    section_quality(model, walk, nodes, n_var, quick)
+    if any(want(k) for k in (1, 2, 3, 6)):
+        _, walk = _walk_clips(nodes)
+        model, t_learn = _learn(walk, nodes, 1)
+        print(f"# walk model ({WALK_CONFIG.name}): {walk.n_clips} cycles, {model.n_dofs} DOFs, "
+              f"learned in {t_learn:.1f} s")
+    if want(1):
+        section_streams(model, nodes, 5 if quick else 20)
+    if want(2):
+        print("\n## 2. exported variants after IK")
+        _, cmu = _walk_clips(nodes, DATA / "bvh" / "cmu_131_02.bvh")
+        if quick:
+            cmu = _subset(cmu, 4, 20)
+        cmu_model, t_cmu = _learn(cmu, nodes, 1)
+        print(f"(cmu_131_02 learned in {t_cmu:.1f} s)")
+        section_variants("cmu_131_02.bvh", cmu_model, cmu, nodes, n_var)
+        section_variants("figure-8 walk (pymo_AV_8Walk)", model, walk, nodes, n_var)
+    if want(3):
+        section_chaining(model, walk, nodes)
+    if want(4):
+        section_speed(quick, baseline)
+    if want(5):
+        section_strokes(n_var)
+    if want(6):
+        section_quality(model, walk, nodes, n_var, quick)
     print(f"\n# total {time.perf_counter() - t_all:.0f} s")
 
 
@@ -640,10 +697,20 @@ if __name__ == "__main__":
                     help="small run (5 streams, 5 variants, 20-DOF cmu and speed models)")
     ap.add_argument("--baseline", type=Path, default=None,
                     help="layout dir of today's code (PYTHONPATH for the speed subprocess)")
+    ap.add_argument("--sections", default=None,
+                    help="comma-separated section numbers to run, e.g. 2,3 (default: all)")
     ap.add_argument("--speed-worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--config", default=str(WALK_CONFIG), help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.speed_worker:
         print(json.dumps(_speed_worker(a.config, a.quick)))
     else:
-        main(a.quick, a.baseline)
+        picked = None
+        if a.sections:
+            try:
+                picked = {int(k) for k in a.sections.split(",") if k.strip()}
+            except ValueError:
+                ap.error(f"--sections: comma-separated numbers 1-6, got {a.sections!r}")
+            if not picked <= set(range(1, 7)):
+                ap.error(f"--sections: numbers 1-6, got {a.sections!r}")
+        main(a.quick, a.baseline, picked)

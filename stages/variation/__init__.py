@@ -20,7 +20,8 @@ Lau Eq. 5–6 conditional densities
     kernel regression on the k nearest instances → ``kernel.kernel_regression``;
     bandwidth → ``kernel.bandwidth2``
 §5 leave-one-out kernel-regression score
-    → ``scores.prior_node_fit``, ``scores.transition_node_fits`` (one-step or propagated)
+    → ``scores.prior_node_fit`` (many parent sets at once: ``scores.prior_node_fits``),
+    ``scores.transition_node_fits`` (one-step or propagated)
 §5 greedy structure search
     prior: add / delete / reverse with restarts → ``search.search_prior``;
     transition: add / delete per node → ``search.search_transition``;

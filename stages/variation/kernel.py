@@ -19,14 +19,50 @@ import numpy as np
 __all__ = [
     "KERNEL_GRID",
     "bandwidth2",
+    "bandwidth2_of_nearest",
+    "bandwidth2_sets",
     "bandwidth_rows",
     "gauss_log_density",
     "k_nearest",
     "kernel_regression",
+    "kernel_weights",
     "nearest_kernel_regression",
+    "weighted_mean_var",
 ]
 
 _LOG2PI = math.log(2.0 * math.pi)
+
+
+def kernel_weights(d2: np.ndarray, h2: float | np.ndarray) -> np.ndarray:
+    """Normalised Gaussian kernel weights ``w_j ∝ exp(−d_j² / 2h²)`` (Lau Eq. 5).
+
+    Parameters
+    ----------
+    d2 : (..., k) float ndarray
+        Squared distances to the ``k`` nearest training instances.
+    h2 : float or (...) float ndarray
+        Squared kernel bandwidth.
+
+    Returns
+    -------
+    (..., k) float ndarray
+        Weights summing to 1 along the last axis (shifted by the nearest
+        distance, so they never underflow to NaN).
+    """
+    d2 = np.maximum(d2, 0.0)
+    h2 = np.asarray(h2, dtype=np.float64)
+    if h2.ndim:
+        h2 = h2[..., None]
+    w = np.exp(-0.5 * (d2 - d2.min(axis=-1, keepdims=True)) / np.maximum(h2, 1e-300))
+    w /= w.sum(axis=-1, keepdims=True)
+    return w
+
+
+def weighted_mean_var(w: np.ndarray, y: np.ndarray, min_std: float):
+    """Kernel-weighted mean and variance + ``min_std²`` of ``y (..., k)`` (Lau Eq. 6)."""
+    mean = (w * y).sum(axis=-1)
+    var = (w * (y - mean[..., None]) ** 2).sum(axis=-1) + min_std * min_std
+    return mean, var
 
 
 def kernel_regression(
@@ -52,15 +88,7 @@ def kernel_regression(
     var : (...) float ndarray
         Kernel-weighted variance of ``y`` + ``min_std²``.
     """
-    d2 = np.maximum(d2, 0.0)
-    h2 = np.asarray(h2, dtype=np.float64)
-    if h2.ndim:
-        h2 = h2[..., None]
-    w = np.exp(-0.5 * (d2 - d2.min(axis=-1, keepdims=True)) / np.maximum(h2, 1e-300))
-    w /= w.sum(axis=-1, keepdims=True)
-    mean = (w * y).sum(axis=-1)
-    var = (w * (y - mean[..., None]) ** 2).sum(axis=-1) + min_std * min_std
-    return mean, var
+    return weighted_mean_var(kernel_weights(d2, h2), y, min_std)
 
 
 #: Bandwidths tried per node, as multiples of the median k-th-neighbour distance.
@@ -107,6 +135,66 @@ def bandwidth2(
     """
     idx = k_nearest(d2, k)
     d2k = np.take_along_axis(d2, idx, axis=-1)
+    return bandwidth2_of_nearest(d2k, idx, kernel_width, y_query=y_query, y_train=y_train,
+                                 min_std=min_std)
+
+
+def bandwidth2_sets(
+    d2: np.ndarray,
+    k: int,
+    kernel_width: float | None,
+    *,
+    y_query: np.ndarray | None = None,
+    y_train: np.ndarray | None = None,
+    min_std: float = 0.01,
+) -> np.ndarray:
+    """:func:`bandwidth2` of ``M`` parent sets at once (one nearest-neighbour pass).
+
+    Parameters
+    ----------
+    d2 : (M, R, N) float ndarray
+        Squared distances over each parent set (``inf`` where not allowed).
+    k, kernel_width, y_query, y_train, min_std
+        As in :func:`bandwidth2`.
+
+    Returns
+    -------
+    (M,) float ndarray
+        Squared bandwidth of each set.
+    """
+    idx = k_nearest(d2, k)
+    d2k = np.take_along_axis(d2, idx, axis=-1)
+    return np.array([
+        bandwidth2_of_nearest(d2k[m], idx[m], kernel_width, y_query=y_query,
+                              y_train=y_train, min_std=min_std)
+        for m in range(d2.shape[0])
+    ])
+
+
+def bandwidth2_of_nearest(
+    d2k: np.ndarray,
+    idx: np.ndarray,
+    kernel_width: float | None,
+    *,
+    y_query: np.ndarray | None = None,
+    y_train: np.ndarray | None = None,
+    min_std: float = 0.01,
+) -> float:
+    """:func:`bandwidth2` from the held-out instances' ``k`` nearest (already found).
+
+    Parameters
+    ----------
+    d2k : (R, k) float ndarray
+        Squared distances to the ``k`` nearest training instances.
+    idx : (R, k) int ndarray
+        Their indices.
+    kernel_width, y_query, y_train, min_std
+        As in :func:`bandwidth2`.
+
+    Returns
+    -------
+    float
+    """
     dk = d2k.max(axis=-1)
     dk = dk[np.isfinite(dk)]
     med = max(float(np.median(dk)) if dk.size else 0.0, 1e-12)
@@ -129,10 +217,28 @@ def gauss_log_density(y: np.ndarray, mean: np.ndarray, var: np.ndarray) -> np.nd
 
 
 def k_nearest(d2: np.ndarray, k: int) -> np.ndarray:
-    """Indices of the ``k`` smallest entries along the last axis (unordered)."""
-    if k >= d2.shape[-1]:
-        return np.broadcast_to(np.arange(d2.shape[-1]), d2.shape).copy()
-    return np.argpartition(d2, k - 1, axis=-1)[..., :k]
+    """Indices of the ``k`` smallest entries along the last axis (ascending index order).
+
+    The selection runs in float32 (a SIMD partition, several times faster than
+    a float64 ``argpartition``): rounding is monotone, so the entries at or
+    below the float32 k-th smallest include the k smallest; a row where
+    rounding ties make them more than ``k`` is selected again in float64.
+    """
+    n = d2.shape[-1]
+    if k >= n:
+        return np.broadcast_to(np.arange(n), d2.shape).copy()
+    flat = d2.reshape(-1, n)
+    with np.errstate(over="ignore"):
+        q = flat.astype(np.float32)
+    mask = q <= np.partition(q, k - 1, axis=-1)[:, k - 1 : k]
+    ok = np.count_nonzero(mask, axis=-1) == k
+    if ok.all():
+        idx = (np.flatnonzero(mask) % n).reshape(-1, k)
+    else:
+        idx = np.empty((flat.shape[0], k), dtype=np.intp)
+        idx[ok] = (np.flatnonzero(mask[ok]) % n).reshape(-1, k)
+        idx[~ok] = np.argpartition(flat[~ok], k - 1, axis=-1)[:, :k]
+    return idx.reshape(d2.shape[:-1] + (k,))
 
 
 def nearest_kernel_regression(d2: np.ndarray, y: np.ndarray, k: int, h2: float, ms: float):

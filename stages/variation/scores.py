@@ -27,6 +27,15 @@ Transition network (:func:`transition_node_fits`)
     one-step score.  ``score="one_step"``
     uses the true previous frames (faster).  The transition mean includes the
     retention term of :func:`~mocapflow.stages.variation.training.retention_of`.
+Speed (the structure search scores thousands of parent sets)
+    A node's parent sets are scored together (:func:`transition_node_fits`,
+    :func:`prior_node_fits`); the propagated score picks each step's k nearest
+    on ``d² − |query|²`` (one product per step;
+    :func:`~mocapflow.stages.variation.kernel.k_nearest` selects in float32 and
+    falls back to float64 on rounding ties) and sums the k chosen distances
+    exactly; the delta and the retention's ``z̄`` share one set of kernel
+    weights.  The scores equal the plain per-set computation to rounding
+    (``tests/stages/variation/test_scores.py``).
 """
 
 from __future__ import annotations
@@ -37,17 +46,20 @@ from typing import Any, Literal
 import numpy as np
 
 from mocapflow.stages.variation.kernel import (
-    bandwidth2,
+    bandwidth2_of_nearest,
+    bandwidth2_sets,
     bandwidth_rows,
     gauss_log_density,
     k_nearest,
     kernel_regression,
-    nearest_kernel_regression,
+    kernel_weights,
+    weighted_mean_var,
 )
 from mocapflow.stages.variation.training import PriorData, TransitionData
 
 __all__ = [
     "prior_node_fit",
+    "prior_node_fits",
     "prior_node_score",
     "transition_node_fit",
     "transition_node_fits",
@@ -84,20 +96,69 @@ def prior_node_fit(data: PriorData, v: int, parents) -> tuple[float, float]:
     h2 : float
         Squared kernel bandwidth (:func:`bandwidth2`; 0 without parents).
     """
+    sc, h2 = prior_node_fits(data, v, [parents])
+    return float(sc[0]), float(h2[0])
+
+
+def prior_node_fits(data: PriorData, v: int, parent_sets, *,
+                    pair_d2: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`prior_node_fit` of ``M`` parent sets of node ``v`` at once.
+
+    Parameters
+    ----------
+    data : PriorData
+    v : int
+    parent_sets : sequence of iterables of int
+        ``M`` parent sets (the distances sum the parents in the order given).
+    pair_d2 : dict, optional
+        Cache of each node's ``(N, N)`` squared distances (and a scratch
+        buffer), filled as needed (shared across calls by the search).
+
+    Returns
+    -------
+    scores : (M,) float ndarray
+    h2 : (M,) float ndarray
+        0 for an empty set.
+    """
     y = data.Z[:, v]
-    parents = list(parents)
-    if not parents:
-        W = data.valid.astype(np.float64)
-        n = W.sum(axis=1)
-        mu = W @ y / n
-        var = np.maximum(W @ (y * y) / n - mu * mu, 0.0) + data.min_std**2
-        return float(gauss_log_density(y, mu, var).sum()), 0.0
-    d2 = np.where(data.valid, _pair_d2(data.Z, parents), np.inf)
-    sub = bandwidth_rows(len(y))
-    h2 = bandwidth2(d2[sub], data.k, data.kernel_width, y_query=y[sub], y_train=y,
-                    min_std=data.min_std)
-    mu, var = nearest_kernel_regression(d2, y, data.k, h2, data.min_std)
-    return float(gauss_log_density(y, mu, var).sum()), h2
+    sets = [list(P) for P in parent_sets]
+    scores = np.empty(len(sets))
+    h2 = np.zeros(len(sets))
+    full = [m for m, P in enumerate(sets) if P]
+    for m, P in enumerate(sets):
+        if not P:
+            W = data.valid.astype(np.float64)
+            n = W.sum(axis=1)
+            mu = W @ y / n
+            var = np.maximum(W @ (y * y) / n - mu * mu, 0.0) + data.min_std**2
+            scores[m] = gauss_log_density(y, mu, var).sum()
+    if not full:
+        return scores, h2
+    cache = {} if pair_d2 is None else pair_d2
+    N = len(y)
+    buf = cache.get("scratch")  # reused: fresh (M, N, N) arrays cost page faults
+    if buf is None or buf.shape[0] < len(full) or buf.shape[1] != N:
+        buf = cache["scratch"] = np.empty((len(full), N, N))
+    d2 = buf[: len(full)]
+    d2[...] = 0.0
+    for j, m in enumerate(full):
+        for c in sets[m]:
+            if c not in cache:
+                cache[c] = _pair_d2(data.Z, [c])
+            d2[j] += cache[c]
+    d2[:, ~data.valid] = np.inf
+    idx = k_nearest(d2, data.k)
+    d2k = np.take_along_axis(d2, idx, axis=-1)
+    sub = bandwidth_rows(N)  # the bandwidth's held-out rows (their k nearest found above)
+    hs = np.array([
+        bandwidth2_of_nearest(d2k[j, sub], idx[j, sub], data.kernel_width, y_query=y[sub],
+                              y_train=y, min_std=data.min_std)
+        for j in range(len(full))
+    ])
+    mu, var = kernel_regression(d2k, y[idx], h2=hs[:, None], min_std=data.min_std)
+    scores[full] = gauss_log_density(y, mu, var).sum(axis=-1)
+    h2[full] = hs
+    return scores, h2
 
 
 def prior_node_score(data: PriorData, v: int, parents) -> float:
@@ -191,33 +252,32 @@ def transition_node_fits(
     M, N, _ = other_d2.shape
     k, kw = data.k, data.kernel_width
     penalty = np.where(data.valid, 0.0, np.inf)
+    y = data.Y[:, i]
+    sub = bandwidth_rows(N)
     if score == "one_step":
         d2 = other_d2 + (_self_d2(data, i) + penalty)
-        sub = bandwidth_rows(N)
-        y = data.Y[:, i]
-        h2 = np.array([
-            bandwidth2(d2[m, sub], k, kw, y_query=y[sub], y_train=y, min_std=data.min_std)
-            for m in range(M)
-        ])
+        h2 = bandwidth2_sets(d2[:, sub], k, kw, y_query=y[sub], y_train=y,
+                             min_std=data.min_std)
         zc = np.broadcast_to(data.F[:, D + i], (M, N))
         mu, var = _transition_kr(data, i, d2, zc, h2[:, None])
-        lp = gauss_log_density(data.Y[:, i], mu, var)
+        lp = gauss_log_density(y, mu, var)
         return (lp if per_frame else lp.sum(axis=-1)), h2
-    sub = bandwidth_rows(N)
     base = _self_d2(data, i, sub) + penalty[sub]
-    y = data.Y[:, i]
-    h2 = np.array([
-        bandwidth2(other_d2[m, sub] + base, k, kw, y_query=y[sub], y_train=y,
-                   min_std=data.min_std)
-        for m in range(M)
-    ])
-    # propagated: re-synthesise node i along every held-out clip at once
+    h2 = bandwidth2_sets(other_d2[:, sub] + base, k, kw, y_query=y[sub], y_train=y,
+                         min_std=data.min_std)
+    # propagated: re-synthesise node i along every held-out clip at once,
+    # all clips' frame t per step
     a_tr = data.F[:, D + i]
     b_tr = data.V[:, i]
     r_i = data.ratio[i]
     vw = data.velocity_weight
     rows = data.rows
     L = np.array([len(r) for r in rows])
+    # the neighbours are chosen on d2 less the query's own squared norm
+    # (constant per row): other + penalty + a² + b² − 2 (z a + b_q b), one
+    # product per step; the k chosen distances are then summed exactly
+    norm2 = a_tr * a_tr + b_tr * b_tr
+    ab2 = np.stack([2.0 * a_tr, 2.0 * b_tr])  # (2, N)
     first = np.array([r[0] for r in rows])
     zprev = np.tile(data.F[first, i], (M, 1))  # (M, C)
     zcur = np.tile(data.F[first, D + i], (M, 1))
@@ -225,6 +285,7 @@ def transition_node_fits(
     hh = h2[:, None]
     vacc = np.zeros_like(zprev)  # variance accumulated since the last anchor
     floor = (data.min_std / r_i) ** 2  # min_std of the position, in delta units
+    y2 = data.Z2[:, i]
     for t in range(int(L.max())):
         act = np.flatnonzero(L > t)
         R = np.array([rows[c][t] for c in act])
@@ -234,11 +295,18 @@ def transition_node_fits(
             vacc[:, act] = 0.0
         zp, zc = zprev[:, act], zcur[:, act]  # (M, A)
         bq = (zc - zp) * (vw / r_i)
-        d2 = other_d2[:, R] + penalty[R]  # (M, A, N)
-        d2 += (zc[..., None] - a_tr) ** 2
-        d2 += (bq[..., None] - b_tr) ** 2
-        mu, var = _transition_kr(data, i, d2, zc, hh)
-        y_true = (data.Z2[R, i] - zc) / r_i
+        block = other_d2[:, R]  # (M, A, N)
+        block += penalty[R]
+        q = np.stack([zc, bq], axis=-1) @ ab2
+        np.subtract(norm2, q, out=q)
+        q += block
+        idx = k_nearest(q, data.k)
+        # the k nearest distances as (other + penalty) + (z − a)² + (b_q − b)²
+        d2k = block.reshape(-1)[(np.arange(M * len(R)) * N).reshape(M, -1, 1) + idx]
+        d2k += (zc[..., None] - a_tr[idx]) ** 2
+        d2k += (bq[..., None] - b_tr[idx]) ** 2
+        mu, var = _transition_kr_nearest(data, i, d2k, idx, zc, hh)
+        y_true = (y2[R] - zc) / r_i
         if horizon is not None:  # the re-synthesised state's own uncertainty
             var = var + vacc[:, act]
             vacc[:, act] = var
@@ -254,13 +322,20 @@ def _transition_kr(data: TransitionData, i: int, d2: np.ndarray, zc: np.ndarray,
 
     ``zc (...)`` is the node's current standardised value, ``h2`` broadcasts to
     ``zc``.  The mean includes the retention term ``(λ − 1)(z − z̄)`` of
-    :func:`~mocapflow.stages.variation.training.retention_of`.
+    :func:`~mocapflow.stages.variation.training.retention_of` (``z̄`` with the
+    same kernel weights as the delta).
     """
     idx = k_nearest(d2, data.k)
-    d2k = np.take_along_axis(d2, idx, axis=-1)
-    mu, var = kernel_regression(d2k, data.Y[idx, i], h2=h2, min_std=data.min_std)
+    return _transition_kr_nearest(data, i, np.take_along_axis(d2, idx, axis=-1), idx, zc, h2)
+
+
+def _transition_kr_nearest(data: TransitionData, i: int, d2k: np.ndarray, idx: np.ndarray,
+                           zc: np.ndarray, h2):
+    """:func:`_transition_kr` from the k nearest distances ``d2k (..., k)`` and indices."""
+    w = kernel_weights(d2k, h2)
+    mu, var = weighted_mean_var(w, data.Y[:, i][idx], data.min_std)
     if data.retention < 1.0:
-        zbar, _ = kernel_regression(d2k, data.F[idx, data.n_dofs + i], h2=h2, min_std=0.0)
+        zbar = (w * data.F[:, data.n_dofs + i][idx]).sum(axis=-1)
         mu = mu + (data.retention - 1.0) * (zc - zbar) / data.ratio[i]
     return mu, var
 

@@ -32,7 +32,7 @@ from typing import Any, Literal
 import numpy as np
 
 from mocapflow.pipeline import Context
-from mocapflow.stages.variation.scores import prior_node_fit, transition_node_fits
+from mocapflow.stages.variation.scores import prior_node_fits, transition_node_fits
 from mocapflow.stages.variation.training import PriorData, TransitionData
 
 __all__ = ["DAG", "NetworkSearch", "search_prior", "search_transition"]
@@ -200,31 +200,36 @@ def _search_transition_node(
     max_parents: int,
     score: str,
     horizon: int | None = None,
-    batch: int = 16,
+    batch_bytes: int = 48 << 20,
 ) -> dict[str, Any]:
     """Greedy add/delete search of one transition node's parents (module level for ``ctx.map``).
 
-    Each step scores every uncached neighbouring parent set in batches of
-    ``batch`` (:func:`transition_node_fits`) and moves to the best while it improves.
+    Each step scores every uncached neighbouring parent set at once
+    (:func:`transition_node_fits`; in chunks of at most ``batch_bytes`` of
+    distance matrices) and moves to the best while it improves.
     """
     i, cands, req = item
     cache: dict[frozenset, tuple[float, float]] = {}
-    feats = {c: (data.F[:, c][:, None] - data.F[:, c][None, :]) ** 2 for c in [*cands, *req]}
+    F = data.F
+    feats = {c: (F[:, c][:, None] - F[:, c][None, :]) ** 2 for c in [*cands, *req]}
 
-    def d2_of(P: frozenset) -> np.ndarray:
-        d2 = np.zeros((data.F.shape[0],) * 2)
+    def d2_of(P: frozenset, out: np.ndarray) -> np.ndarray:
+        out[...] = 0.0
         for c in P:
-            d2 += feats[c]
-        return d2
+            out += feats[c]
+        return out
 
-    N = data.F.shape[0]
+    N = F.shape[0]
+    # a step has at most len(cands) moves (adds and deletes of candidates);
+    # one buffer for the node, so its pages are touched once
+    batch = max(1, min(batch_bytes // (8 * N * N), len(cands)))
     buf = np.empty((batch, N, N))
 
     def evaluate(sets: list[frozenset], base: frozenset | None = None) -> None:
         # an addition P | {c} is the current set's distances plus column c's
         # (computed once per step), the rest are summed from scratch
         todo = [Q for Q in dict.fromkeys(sets) if Q not in cache]
-        d2_base = d2_of(base) if base is not None and len(todo) else None
+        d2_base = d2_of(base, np.empty((N, N))) if base is not None and len(todo) else None
         for a in range(0, len(todo), batch):
             chunk = todo[a : a + batch]
             out = buf[: len(chunk)]
@@ -233,7 +238,7 @@ def _search_transition_node(
                 if extra is not None and len(extra) == 1:
                     np.add(d2_base, feats[next(iter(extra))], out=out[j])
                 else:
-                    out[j] = d2_of(Q)
+                    d2_of(Q, out[j])
             sc, h2 = transition_node_fits(data, i, out, score=score, horizon=horizon)
             for Q, v, h in zip(chunk, sc, h2):
                 cache[Q] = (float(v), float(h))
@@ -289,10 +294,9 @@ def _map_batched(ctx: Context, fn, items: list, *, per_worker: int = 4,
 def _prior_single_scores(v_cands: tuple[int, list[int]], *, data: PriorData) -> dict:
     """Scores of node ``v`` with no parent and with each single candidate parent."""
     v, cands = v_cands
-    out = {(): prior_node_fit(data, v, [])}
-    for u in cands:
-        out[(u,)] = prior_node_fit(data, v, [u])
-    return out
+    keys = [(), *[(u,) for u in cands]]
+    sc, h2 = prior_node_fits(data, v, keys)
+    return {P: (float(a), float(b)) for P, a, b in zip(keys, sc, h2)}
 
 
 class DAG:
@@ -316,6 +320,16 @@ class DAG:
                     seen.add(b)
                     stack.append(b)
         return False
+
+    def descendants(self, src: int) -> set[int]:
+        """The nodes reachable from ``src`` (``src`` included)."""
+        stack, seen = [src], {src}
+        while stack:
+            for b in self.children[stack.pop()]:
+                if b not in seen:
+                    seen.add(b)
+                    stack.append(b)
+        return seen
 
     def add(self, u: int, v: int) -> None:
         self.parents[v].add(u)
@@ -362,7 +376,8 @@ def _prior_greedy(
     Each step applies the best-improving legal move (acyclic, at most
     ``max_parents`` parents); ``cache`` maps ``(node, sorted parents)`` to
     :func:`~mocapflow.stages.variation.scores.prior_node_fit` results and is
-    filled as the search goes.
+    filled as the search goes (the sets a step needs, a node's at once:
+    :func:`~mocapflow.stages.variation.scores.prior_node_fits`).
 
     Returns
     -------
@@ -377,17 +392,35 @@ def _prior_greedy(
             for u in ps:
                 dag.add(u, v)
 
+    pair_d2: dict = {}  # each node's pairwise squared distances, shared by the fits
+
+    def fetch(keys) -> None:
+        """Score the uncached ``(node, sorted parents)`` keys, all sets of a node at once."""
+        by_node: dict[int, list[tuple]] = {}
+        for key in dict.fromkeys(keys):
+            if key not in cache:
+                by_node.setdefault(key[0], []).append(key[1])
+        for v, sets in by_node.items():
+            sc, h2 = prior_node_fits(data, v, sets, pair_d2=pair_d2)
+            for P, a, b in zip(sets, sc, h2):
+                cache[(v, P)] = (float(a), float(b))
+
     def S(v: int, P) -> float:
         key = (v, tuple(sorted(P)))
         if key not in cache:
-            cache[key] = prior_node_fit(data, v, key[1])
+            fetch([key])
         return cache[key][0]
 
+    fetch([(v, tuple(sorted(dag.parents[v]))) for v in range(n)])
     cur = np.array([S(v, dag.parents[v]) for v in range(n)])
     node_moves: dict[int, list[tuple[float, str, int]]] = {}
 
     def refresh(v: int) -> None:
         P = dag.parents[v]
+        keys = [(v, tuple(sorted(P - {u}))) for u in P]
+        if len(P) < max_parents:
+            keys += [(v, tuple(sorted(P | {u}))) for u in cands[v] if u not in P]
+        fetch(keys)
         moves = []
         if len(P) < max_parents:
             for u in cands[v]:
@@ -402,6 +435,8 @@ def _prior_greedy(
     for _ in range(100 * n):
         ops = [(d, kind, u, v) for v in range(n) for d, kind, u in node_moves[v] if d > 1e-9]
         # reversals u→v  ⇒  v→u
+        fetch([(u, tuple(sorted(dag.parents[u] | {v}))) for v in range(n)
+               for u in dag.parents[v] if len(dag.parents[u]) < max_parents])
         for v in range(n):
             for u in dag.parents[v]:
                 if len(dag.parents[u]) >= max_parents:
@@ -413,9 +448,12 @@ def _prior_greedy(
             break
         ops.sort(key=lambda o: -o[0])
         applied = False
+        desc: dict[int, set[int]] = {}  # the DAG is unchanged until a move applies
         for _, kind, u, v in ops:
             if kind == "add":
-                if dag.reaches(v, u):
+                if v not in desc:
+                    desc[v] = dag.descendants(v)
+                if u in desc[v]:
                     continue
                 dag.add(u, v)
                 touched = [v]

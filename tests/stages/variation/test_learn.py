@@ -166,3 +166,60 @@ def test_heldout_likelihood_ranks_an_outlier_last():
     odd = np.sin(4 * np.pi * u[:, None] + np.linspace(0, np.pi, 3, endpoint=False))  # 2x faster
     ll = heldout_log_likelihood(trajs[:5], [trajs[5], odd], cyclic=True, k=8)
     assert ll[0] > ll[1] + 1.0
+
+
+# the structure search on the shipped walk config (configs/variation.yaml, its first part):
+# parents and scores of four transition nodes and the prior network's greedy search from
+# the empty DAG, as the search found them before it batched its scores (commit 87e3b9e)
+WALK_TRANSITION = {
+    0: ([2, 5, 23, 38, 56, 68, 93, 96, 106, 107], -2676.974430056219),
+    13: ([7, 57, 61, 101, 106, 107], -23852.748416736104),
+    26: ([27, 36, 44, 57, 68, 79, 81, 90, 106, 107], -3448.456340869235),
+    40: ([3, 5, 42, 93, 106, 107], -3792.010140116809),
+}
+WALK_PRIOR = {"score": -6081.014937253519, "edges": 185, "evaluations": 6220,
+              "some": {4: [36, 67], 14: [24, 64, 78, 99], 51: [44, 53, 105, 106, 107], 73: []}}
+
+
+def test_walk_config_structure_is_unchanged():
+    from mocapflow.pipeline.config import load_config
+    from mocapflow.stages.motion.ingest import ingest_bvh
+    from mocapflow.stages.variation import learn as learn_mod
+    from mocapflow.stages.variation.inputs import clips as clips_stage
+    from mocapflow.stages.variation.search import (
+        _search_transition_node,
+        _top_candidates,
+        search_prior,
+    )
+    from tests.stages.variation.conftest import CONFIGS, DATA
+
+    path = DATA / "bvh" / "pymo_AV_8Walk_Meredith_HVHA_Rep1.bvh"
+    if not path.exists():
+        pytest.skip("shared walk data absent")
+    nodes = {n: dict(v.params) for n, v in load_config(CONFIGS / "variation.yaml").nodes.items()}
+    motion = ingest_bvh(str(path), rate=nodes["ingest"]["rate"], ctx=Context())["motion"]
+    clips = clips_stage(motion, **nodes["clips"], ctx=Context())["clips"]
+    lp = nodes["learn"]
+    train = learn_mod._training_clips(learn_mod.flatten_clips(clips), phase=True, ctx=Context())
+    td, pd = learn_mod._training_data(
+        train, cyclic=True, k=lp["k"], kernel_width=lp["kernel_width"], min_std=lp["min_std"],
+        velocity_weight=lp["velocity_weight"], half_life=lp["half_life"], prior_window=None,
+        ctx=Context())
+    req = learn_mod._phase_parents(train, cyclic=True)
+    D = td.n_dofs
+    assert (clips.n_clips, D, td.F.shape[0], pd.Z.shape[0]) == (6, 54, 358, 78)
+    for i, (parents, score) in WALK_TRANSITION.items():
+        idx = [p for p in range(2 * D) if p not in (i, D + i, *req)]
+        target = np.stack([td.Y[:, i], td.Z2[:, i]], axis=1)
+        cands = _top_candidates(target, td.F, idx, lp["candidates"])
+        r = _search_transition_node((i, cands, list(req)), data=td,
+                                    max_parents=lp["max_parents"], score=lp["score"])
+        assert r["parents"] == parents
+        assert r["score"] == pytest.approx(score, rel=1e-9, abs=0)
+    p = search_prior(pd, candidates=lp["candidates"], max_parents=lp["max_parents"],
+                     restarts=0, seed=0, ctx=Context())
+    assert p.scores.sum() == pytest.approx(WALK_PRIOR["score"], rel=1e-9, abs=0)
+    assert sum(map(len, p.parents)) == WALK_PRIOR["edges"]
+    assert p.evaluations == WALK_PRIOR["evaluations"]
+    for v, ps in WALK_PRIOR["some"].items():
+        assert p.parents[v] == ps
