@@ -18,7 +18,10 @@ One run prints five tables:
    distance to its marker-surface triangle);
 3. detailed mesh against the simulator's true mesh, per vertex over the trial:
    the true reference-pose mesh bound directly, and a perturbed template fitted
-   with ``fit_mesh``;
+   with ``fit_mesh``; with the artifacts of each mode on the true mesh (triangles
+   stretched > 3x, flipped against the rigid mode) and the stage without its blend
+   widening (``max_blend_stretch=None``; table 2 cannot show it: held-out points
+   have no triangles);
 4. throughput: frames per second deforming a ~13k-vertex mesh from 350 markers,
    in one process, with 2 worker processes and with 2 threads (the stage's
    ``ctx.map``), with a plain NumPy linear-blend skinning of the same mesh as
@@ -212,15 +215,19 @@ def global_rbf(ref, x, query):
 _DEFAULTS = {k: v.default for k, v in inspect.signature(deform).parameters.items()}
 DEFAULT = {"sharpness": _DEFAULTS["beta_sharpness"], "damping": _DEFAULTS["quadratic_damping"],
            "kernel": _DEFAULTS["residual_kernel"], "support": _DEFAULTS["support_margin"],
-           "clamp": _DEFAULTS["clamp_margin"]}  # the stage's defaults
+           "clamp": _DEFAULTS["clamp_margin"],
+           "widen": _DEFAULTS["max_blend_stretch"]}  # the stage's defaults
 PAPER = {"sharpness": 1.0, "damping": 0.0, "kernel": "cubic_bspline", "support": None,
-         "clamp": None}  # Park & Hodgins exactly (no support box, no clamp)
+         "clamp": None, "widen": None}  # Park & Hodgins exactly (no support box, clamp, widening)
 OTHER_KERNEL = "thin_plate" if DEFAULT["kernel"] == "cubic_bspline" else "cubic_bspline"
 
 
 def ours(seg, x, points, mode, *, sharpness, damping, kernel, support=DEFAULT["support"],
-         clamp=DEFAULT["clamp"]):
-    """Our prediction of rest ``points`` (mesh vertices) for one mode and settings."""
+         clamp=DEFAULT["clamp"], widen=None):
+    """Our prediction of rest ``points`` (mesh vertices) for one mode and settings.
+
+    ``widen`` (the stage's ``max_blend_stretch``) is ignored: widening a blend needs the
+    mesh's triangles and held-out points have none (table 3 measures it)."""
     beta = bind_mesh(points, seg, min_overlap=0.0, sharpness=sharpness).beta
     out = np.zeros((x.shape[0], len(points), 3))
     for p in range(seg.n_parts):
@@ -388,29 +395,42 @@ def true_mesh_table(sim, seg, mk_test):
     faces = sim["body"].faces
     true_mesh = sim["test"]["mesh"]
     rows = []
+    rigid = deform(mk_test, seg, Mesh(rest_true, faces), mode="rigid", ctx=Context())
+    artifacts = partial(mesh_artifacts, faces, rest_true, rigid["mesh"].vertices)
     for mode in MODES:
         t = time.perf_counter()
-        out = deform(mk_test, seg, Mesh(rest_true, faces), mode=mode, ctx=Context())
+        out = rigid if mode == "rigid" else deform(mk_test, seg, Mesh(rest_true, faces),
+                                                   mode=mode, ctx=Context())  # fmt: skip
         dt = time.perf_counter() - t
         rows.append([f"true rest mesh, {mode}", *(f"{v:.2f}" for v in
-                     err_stats(out["mesh"].vertices, true_mesh)), f"{dt:.1f}"])  # fmt: skip
+                     err_stats(out["mesh"].vertices, true_mesh)),
+                     *artifacts(out["mesh"].vertices), "" if mode == "rigid" else f"{dt:.1f}"])
     for label, st in (("paper (barycentric beta, Eq. 6 pinv, B-spline)", PAPER),
                       ("beta sharpness 1", {**DEFAULT, "sharpness": 1.0}),
-                      (f"{OTHER_KERNEL} kernel", {**DEFAULT, "kernel": OTHER_KERNEL})):
+                      (f"{OTHER_KERNEL} kernel", {**DEFAULT, "kernel": OTHER_KERNEL}),
+                      ("no blend widening", {**DEFAULT, "widen": None})):
         out = deform(mk_test, seg, Mesh(rest_true, faces), beta_sharpness=st["sharpness"],
                      quadratic_damping=st["damping"], residual_kernel=st["kernel"],
-                     ctx=Context())  # fmt: skip
+                     support_margin=st["support"], clamp_margin=st["clamp"],
+                     max_blend_stretch=st["widen"], ctx=Context())  # fmt: skip
         rows.append([f"true rest mesh, quadratic_residual, {label}",
-                     *(f"{v:.2f}" for v in err_stats(out["mesh"].vertices, true_mesh)), ""])
+                     *(f"{v:.2f}" for v in err_stats(out["mesh"].vertices, true_mesh)),
+                     *artifacts(out["mesh"].vertices), ""])
+    out = deform(mk_test, seg, Mesh(rest_true, faces), mode="rigid", max_blend_stretch=None,
+                 ctx=Context())  # fmt: skip
+    rows.append(["true rest mesh, rigid, no blend widening",
+                 *(f"{v:.2f}" for v in err_stats(out["mesh"].vertices, true_mesh)),
+                 *artifacts(out["mesh"].vertices), ""])
     beta = bind_mesh(rest_true, seg).beta
     M, b = part_world_transforms(seg, x_test_all)
     rows.append(["true rest mesh, DQS (same parts; LBS = the rigid mode)",
-                 *(f"{v:.2f}" for v in err_stats(dqs(rest_true, beta, M, b), true_mesh)), ""])
+                 *(f"{v:.2f}" for v in err_stats(dqs(rest_true, beta, M, b), true_mesh)),
+                 "", "", ""])
     t = time.perf_counter()
     tps = np.concatenate([global_rbf(seg.reference, x_test_all[a : a + 100], rest_true)
                           for a in range(0, x_test_all.shape[0], 100)])  # fmt: skip
     rows.append(["true rest mesh, global thin-plate RBF",
-                 *(f"{v:.2f}" for v in err_stats(tps, true_mesh)),
+                 *(f"{v:.2f}" for v in err_stats(tps, true_mesh)), "", "",
                  f"{time.perf_counter() - t:.1f}"])  # fmt: skip
     del tps
     # a scan-like template in the reference pose: 6 % wider, with smooth 4 mm bumps, shifted
@@ -426,16 +446,33 @@ def true_mesh_table(sim, seg, mk_test):
     rest_err = np.linalg.norm(fitted["mesh"].vertices - rest_true, axis=1) * 1000
     out = deform(mk_test, seg, fitted["mesh"], ctx=Context())
     rows.append(["fitted template (reference pose only)", f"{rest_err.mean():.2f}",
-                 f"{np.percentile(rest_err, 95):.2f}", f"{t_fit:.1f}"])  # fmt: skip
+                 f"{np.percentile(rest_err, 95):.2f}", "", "", f"{t_fit:.1f}"])  # fmt: skip
     rows.append(["fitted template, quadratic_residual",
-                 *(f"{v:.2f}" for v in err_stats(out["mesh"].vertices, true_mesh)), ""])
+                 *(f"{v:.2f}" for v in err_stats(out["mesh"].vertices, true_mesh)), "", "", ""])
     rows.append(["(template before fitting, reference pose)",
-                 *(f"{v:.2f}" for v in err_stats(tmpl, rest_true)), ""])
+                 *(f"{v:.2f}" for v in err_stats(tmpl, rest_true)), "", "", ""])
     print_table(
         f"Detailed mesh ({len(rest_true)} vertices) vs the simulator's true mesh, per vertex "
         f"over {true_mesh.shape[0]} frames (fit_mesh: markers-to-surface RMS "
         f"{rep['aligned']['rms_mm']:.1f} mm aligned -> {rep['fitted']['rms_mm']:.1f} mm fitted)",
-        ["mesh / mode", "mean mm", "p95 mm", "s"], rows)
+        ["mesh / mode", "mean mm", "p95 mm", "stretched > 3x", "flipped vs rigid", "s"], rows)
+
+
+def mesh_artifacts(faces, rest, rigid, verts):
+    """Triangles of ``verts (F, V, 3)`` with an edge stretched > 3x its rest length in some
+    frame, and triangles whose normal opposes the ``rigid`` mode's in some frame (the
+    check of ``tests/stages/skin/test_artifacts.py``), as two strings."""
+    def edge_lengths(X):
+        return np.stack([np.linalg.norm(X[..., faces[:, (k + 1) % 3], :] - X[..., faces[:, k], :],
+                                        axis=-1) for k in range(3)], -1)  # fmt: skip
+
+    def normals(X):
+        return np.cross(X[..., faces[:, 1], :] - X[..., faces[:, 0], :],
+                        X[..., faces[:, 2], :] - X[..., faces[:, 0], :])  # fmt: skip
+
+    stretched = ((edge_lengths(verts) / edge_lengths(rest)[None]).max(-1) > 3.0).any(0)
+    flipped = (np.sum(normals(verts) * normals(rigid), -1) < 0).any(0)
+    return str(int(stretched.sum())), str(int(flipped.sum()))
 
 
 def throughput_table(sim, seg, mk_test, *, frames):

@@ -12,11 +12,18 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from mocapflow.stages.skin.segmentation import Segmentation
 
-__all__ = ["DeformError", "MeshBinding", "bind_mesh", "closest_points_on_triangles"]
+__all__ = [
+    "DeformError",
+    "MeshBinding",
+    "bind_mesh",
+    "blend_smoothing_operator",
+    "closest_points_on_triangles",
+]
 
 
 class DeformError(ValueError):
@@ -202,3 +209,35 @@ def bind_mesh(
         beta[beta < min_weight] = 0.0
         beta /= beta.sum(1, keepdims=True)
     return MeshBinding(beta=beta, triangle=tri, barycentric=bary, distance=dist)
+
+
+def blend_smoothing_operator(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
+    """One step of weight diffusion over a triangle mesh: ``β ← S β`` (rows sum to 1).
+
+    Each vertex keeps half its weight and takes the other half from its mesh
+    neighbours in proportion to ``1 / edge length``, so the two ends of a short edge
+    (a sliver's) are pulled together hardest and the blend widens over surface
+    distance rather than over triangle counts.
+
+    Parameters
+    ----------
+    vertices : (V, 3) float ndarray
+        Rest positions.
+    faces : (T, 3) int ndarray
+
+    Returns
+    -------
+    (V, V) scipy.sparse.csr_matrix
+    """
+    V = len(vertices)
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    e = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]),
+                          axis=1), axis=0)  # fmt: skip
+    length = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
+    w = 1.0 / np.maximum(length, 1e-9 * max(float(length.max(initial=0.0)), 1e-12))
+    W = sp.csr_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
+                      shape=(V, V))  # fmt: skip
+    deg = np.asarray(W.sum(1)).ravel()
+    alone = deg == 0  # a vertex on no edge keeps its weights
+    deg[alone] = 1.0
+    return (sp.diags(0.5 / deg) @ W + sp.diags(np.where(alone, 1.0, 0.5))).tocsr()
