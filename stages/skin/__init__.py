@@ -98,8 +98,8 @@ Departures from the paper (each module docstring says why, with measurements):
   the quadratic held at the edge of its markers' box (``support_margin``,
   parts.PartModel.basis) and each vertex's non-rigid displacement softly clamped
   at the part markers' deviation from rigid (``clamp_margin``, parts.soft_clamp);
-  β diffused over the mesh where a blend between parts would stretch an edge
-  beyond ``max_blend_stretch`` (deform._widen_blends,
+  opt in: β diffused over the mesh where a blend between parts would stretch an
+  edge beyond ``max_blend_stretch`` (deform._widen_blends,
   binding.blend_smoothing_operator); the paper exactly: ``beta_sharpness=1,
   quadratic_damping=0, residual_kernel="cubic_bspline", support_margin=None,
   clamp_margin=None, max_blend_stretch=None``.
