@@ -20,7 +20,6 @@ __all__ = [
     "KERNEL_GRID",
     "bandwidth2",
     "bandwidth2_of_nearest",
-    "bandwidth2_sets",
     "bandwidth_rows",
     "gauss_log_density",
     "k_nearest",
@@ -108,8 +107,8 @@ def bandwidth2(
     y_query: np.ndarray | None = None,
     y_train: np.ndarray | None = None,
     min_std: float = 0.01,
-) -> float:
-    """Squared kernel bandwidth of a node.
+) -> float | np.ndarray:
+    """Squared kernel bandwidth of a node, or of ``M`` parent sets at once.
 
     ``h = kernel_width · m`` with ``m`` the median distance of the held-out
     instances to their k-th neighbour; with ``kernel_width=None`` the factor
@@ -118,9 +117,10 @@ def bandwidth2(
 
     Parameters
     ----------
-    d2 : (R, N) float ndarray
+    d2 : (R, N) or (M, R, N) float ndarray
         Squared distances of held-out instances to the training instances
-        (``inf`` where not allowed); a subset of rows is enough.
+        (``inf`` where not allowed; a subset of rows is enough), or the same
+        over each of ``M`` parent sets (one nearest-neighbour pass for all).
     k : int
     kernel_width : float or None
     y_query : (R,) float ndarray, optional
@@ -131,44 +131,15 @@ def bandwidth2(
 
     Returns
     -------
-    float
+    float, or (M,) float ndarray for ``(M, R, N)`` distances
     """
     idx = k_nearest(d2, k)
     d2k = np.take_along_axis(d2, idx, axis=-1)
-    return bandwidth2_of_nearest(d2k, idx, kernel_width, y_query=y_query, y_train=y_train,
-                                 min_std=min_std)
-
-
-def bandwidth2_sets(
-    d2: np.ndarray,
-    k: int,
-    kernel_width: float | None,
-    *,
-    y_query: np.ndarray | None = None,
-    y_train: np.ndarray | None = None,
-    min_std: float = 0.01,
-) -> np.ndarray:
-    """:func:`bandwidth2` of ``M`` parent sets at once (one nearest-neighbour pass).
-
-    Parameters
-    ----------
-    d2 : (M, R, N) float ndarray
-        Squared distances over each parent set (``inf`` where not allowed).
-    k, kernel_width, y_query, y_train, min_std
-        As in :func:`bandwidth2`.
-
-    Returns
-    -------
-    (M,) float ndarray
-        Squared bandwidth of each set.
-    """
-    idx = k_nearest(d2, k)
-    d2k = np.take_along_axis(d2, idx, axis=-1)
-    return np.array([
-        bandwidth2_of_nearest(d2k[m], idx[m], kernel_width, y_query=y_query,
-                              y_train=y_train, min_std=min_std)
-        for m in range(d2.shape[0])
-    ])
+    kw = {"y_query": y_query, "y_train": y_train, "min_std": min_std}
+    if d2.ndim == 2:
+        return bandwidth2_of_nearest(d2k, idx, kernel_width, **kw)
+    return np.array([bandwidth2_of_nearest(d2k[m], idx[m], kernel_width, **kw)
+                     for m in range(d2.shape[0])])
 
 
 def bandwidth2_of_nearest(

@@ -46,8 +46,8 @@ from typing import Any, Literal
 import numpy as np
 
 from mocapflow.stages.variation.kernel import (
+    bandwidth2,
     bandwidth2_of_nearest,
-    bandwidth2_sets,
     bandwidth_rows,
     gauss_log_density,
     k_nearest,
@@ -256,15 +256,14 @@ def transition_node_fits(
     sub = bandwidth_rows(N)
     if score == "one_step":
         d2 = other_d2 + (_self_d2(data, i) + penalty)
-        h2 = bandwidth2_sets(d2[:, sub], k, kw, y_query=y[sub], y_train=y,
-                             min_std=data.min_std)
+        h2 = bandwidth2(d2[:, sub], k, kw, y_query=y[sub], y_train=y, min_std=data.min_std)
         zc = np.broadcast_to(data.F[:, D + i], (M, N))
         mu, var = _transition_kr(data, i, d2, zc, h2[:, None])
         lp = gauss_log_density(y, mu, var)
         return (lp if per_frame else lp.sum(axis=-1)), h2
     base = _self_d2(data, i, sub) + penalty[sub]
-    h2 = bandwidth2_sets(other_d2[:, sub] + base, k, kw, y_query=y[sub], y_train=y,
-                         min_std=data.min_std)
+    h2 = bandwidth2(other_d2[:, sub] + base, k, kw, y_query=y[sub], y_train=y,
+                    min_std=data.min_std)
     # propagated: re-synthesise node i along every held-out clip at once,
     # all clips' frame t per step
     a_tr = data.F[:, D + i]
