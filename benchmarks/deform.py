@@ -47,6 +47,7 @@ from scipy.interpolate import RBFInterpolator
 
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.execute import single_threaded_blas
+from mocapflow.stages.metrics.mesh import flipped_triangles, stretched_triangles
 from mocapflow.stages.motion.datatypes import Markers, Mesh
 from mocapflow.stages.motion.rotations import quat_from_matrix, quat_multiply, quat_rotate
 from mocapflow.stages.motion.simulate.body import skin, skinning_transforms
@@ -459,20 +460,11 @@ def true_mesh_table(sim, seg, mk_test):
 
 
 def mesh_artifacts(faces, rest, rigid, verts):
-    """Triangles of ``verts (F, V, 3)`` with an edge stretched > 3x its rest length in some
-    frame, and triangles whose normal opposes the ``rigid`` mode's in some frame (the
-    check of ``tests/stages/skin/test_artifacts.py``), as two strings."""
-    def edge_lengths(X):
-        return np.stack([np.linalg.norm(X[..., faces[:, (k + 1) % 3], :] - X[..., faces[:, k], :],
-                                        axis=-1) for k in range(3)], -1)  # fmt: skip
-
-    def normals(X):
-        return np.cross(X[..., faces[:, 1], :] - X[..., faces[:, 0], :],
-                        X[..., faces[:, 2], :] - X[..., faces[:, 0], :])  # fmt: skip
-
-    stretched = ((edge_lengths(verts) / edge_lengths(rest)[None]).max(-1) > 3.0).any(0)
-    flipped = (np.sum(normals(verts) * normals(rigid), -1) < 0).any(0)
-    return str(int(stretched.sum())), str(int(flipped.sum()))
+    """Triangles of ``verts (F, V, 3)`` stretched > 3x against ``rest`` and flipped against
+    the ``rigid`` mode in some frame (:mod:`mocapflow.stages.metrics.mesh`, the check of
+    ``tests/stages/skin/test_artifacts.py``), as two strings."""
+    return (str(int(stretched_triangles(verts, rest, faces).sum())),
+            str(int(flipped_triangles(verts, rigid, faces).sum())))
 
 
 def throughput_table(sim, seg, mk_test, *, frames):

@@ -39,4 +39,12 @@ Imports only :mod:`mocapflow.stages.motion`; registers nothing.
 * wrong labels (P&H Table 1) against the true fragment map → :func:`~.cleaning.score_merges`;
 * error over mean neighbour distance per body region (P&H Table 2)
   → :func:`~.cleaning.region_errors`.
+
+§4 Skin deformation artifacts — :mod:`.mesh`
+
+* triangles stretched beyond a factor of their rest edge lengths in some frame
+  → :func:`~.mesh.stretched_triangles`; turned over against a reference
+  deformation (the rigid mode) → :func:`~.mesh.flipped_triangles`; the
+  measures themselves → :func:`~.mesh.triangle_edge_lengths`,
+  :func:`~.mesh.triangle_normals`.
 """

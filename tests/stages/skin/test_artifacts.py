@@ -8,6 +8,12 @@ import numpy as np
 import pytest
 
 from mocapflow.pipeline import Context
+from mocapflow.stages.metrics.mesh import (
+    flipped_triangles,
+    stretched_triangles,
+    triangle_edge_lengths,
+    triangle_normals,
+)
 from mocapflow.stages.motion.datatypes import Markers, Mesh
 from mocapflow.stages.skin.binding import DeformError, blend_smoothing_operator
 from mocapflow.stages.skin.deform import deform
@@ -40,26 +46,10 @@ def bent_limb():
     return {"seg": seg, "markers": markers, "mesh": mesh, "deviation": deviation}
 
 
-def _triangle_measures(faces):
-    """``edges(X) (..., T, 3)`` edge lengths and ``normals(X) (..., T, 3)`` (unnormalised)
-    of the triangles ``faces`` for vertices ``X (..., V, 3)``."""
-
-    def edges(X):
-        return np.stack([np.linalg.norm(X[..., faces[:, (k + 1) % 3], :] - X[..., faces[:, k], :],
-                                        axis=-1) for k in range(3)], -1)  # fmt: skip
-
-    def normals(X):
-        return np.cross(X[..., faces[:, 1], :] - X[..., faces[:, 0], :],
-                        X[..., faces[:, 2], :] - X[..., faces[:, 0], :])  # fmt: skip
-
-    return edges, normals
-
-
 def _artifacts(d, **params):
     """Per mode: max edge stretch vs the rest mesh, flipped triangles vs the rigid mode's
     normals, and the largest vertex displacement from rigid / the markers' deviation."""
     faces, rest = d["mesh"].faces, d["mesh"].vertices
-    edges, normals = _triangle_measures(faces)
 
     rigid = deform(d["markers"], d["seg"], d["mesh"], mode="rigid", ctx=Context(),
                    **params)["mesh"].vertices  # fmt: skip
@@ -67,8 +57,9 @@ def _artifacts(d, **params):
     for mode in ("quadratic", "quadratic_residual"):
         v = deform(d["markers"], d["seg"], d["mesh"], mode=mode, ctx=Context(),
                    **params)["mesh"].vertices  # fmt: skip
-        stretch = (edges(v) / edges(rest)[None]).max()
-        flipped = int((np.sum(normals(v) * normals(rigid), -1) < 0).sum())
+        stretch = (triangle_edge_lengths(v, faces) / triangle_edge_lengths(rest, faces)).max()
+        flipped = int((np.sum(triangle_normals(v, faces) * triangle_normals(rigid, faces), -1)
+                       < 0).sum())
         ratio = np.linalg.norm(v - rigid, axis=-1) / d["deviation"][:, None]
         out[mode] = (stretch, flipped, ratio.max())
     return out
@@ -123,12 +114,11 @@ def sliding_parts():
 def test_blend_is_widened_where_parts_disagree(sliding_parts, mode):
     d = sliding_parts
     rest, faces = d["mesh"].vertices, d["mesh"].faces
-    edges, _ = _triangle_measures(faces)
 
     def run(**kw):
         out = deform(d["markers"], d["seg"], d["mesh"], mode=mode, ctx=Context(), **kw)
         v = out["mesh"].vertices
-        return v, (edges(v) / edges(rest)[None]).max(), out
+        return v, (triangle_edge_lengths(v, faces) / triangle_edge_lengths(rest, faces)).max(), out
 
     _, paper_stretch, _ = run()  # the default: the paper's beta
     v, stretch, out = run(max_blend_stretch=2.5)
@@ -181,13 +171,11 @@ def _demo_artifacts(demo_run):
     frame."""
     assert demo_run.proc.returncode == 0, demo_run.proc.stderr[-3000:]
     markers, seg, rest, deformed = _demo_inputs(demo_run)
-    edges, normals = _triangle_measures(rest.faces)
     v = deformed.vertices
     assert v.shape[1:] == rest.vertices.shape and v.shape[0] == markers.n_frames
     rigid = deform(markers, seg, rest, mode="rigid", ctx=Context())["mesh"].vertices
-    stretched = ((edges(v) / edges(rest.vertices)[None]).max(-1) > 3.0).any(0)
-    flipped = (np.sum(normals(v) * normals(rigid), -1) < 0).any(0)
-    return stretched, flipped
+    return (stretched_triangles(v, rest.vertices, rest.faces),
+            flipped_triangles(v, rigid, rest.faces))
 
 
 @pytest.mark.slow
