@@ -40,7 +40,7 @@ from __future__ import annotations
 import numpy as np
 
 from mocapflow.stages.texture.neighbourhood import LevelView, slot_pair_weights, window_cost
-from mocapflow.stages.texture.search import SynthesisError, _ahead_usage
+from mocapflow.stages.texture.search import SynthesisError, ahead_usage
 
 __all__ = [
     "UnreachableGapError",
@@ -376,7 +376,7 @@ def _drawn_order(nxt, acc, run, natural, settle, window, k_best, counts, scale, 
     v = np.array([e[0] for e in nxt], dtype=np.int64)
     key = np.array([e[1] for e in nxt]) - acc
     if counts is not None:
-        key = key + scale * _ahead_usage(counts, 2 * max(settle, 0) + 1, 1)[v]
+        key = key + scale * ahead_usage(counts, 2 * max(settle, 0) + 1, 1)[v]
     order = np.argsort(key, kind="stable")
     ok = key[order] <= key[order[0]] + window
     if k_best is not None:

@@ -77,6 +77,7 @@ __all__ = [
     "LevelSearch",
     "SearchParams",
     "SynthesisError",
+    "ahead_usage",
     "gaps_of",
 ]
 
@@ -146,7 +147,7 @@ class SearchParams:
     alternate: bool = True
 
 
-def _ahead_usage(counts: np.ndarray, span: int, side: int) -> np.ndarray:
+def ahead_usage(counts: np.ndarray, span: int, side: int) -> np.ndarray:
     """Mean use of the ``span`` input nodes a candidate would play next.
 
     Parameters
@@ -639,7 +640,7 @@ class LevelSearch:
             used = src[src >= 0]
             counts = np.bincount(used, minlength=self.view.n).astype(np.float64)
             a, b = self._out_values(src, np.array([t - 1, t + 1]))
-            self._usage = _ahead_usage(counts, 2 * self.p.slots + 1, -1 if b >= 0 > a else 1)
+            self._usage = ahead_usage(counts, 2 * self.p.slots + 1, -1 if b >= 0 > a else 1)
         cands = self.candidates(src, t)
         cost = self.cost(src, t, cands)
         if not np.isfinite(cost).any():  # accelerated set exhausted: search everything

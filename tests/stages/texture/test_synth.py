@@ -29,7 +29,7 @@ from mocapflow.stages.texture.root import (
     leg_chains,
     two_bone_ik,
 )
-from mocapflow.stages.texture.search import Gap, LevelSearch, SearchParams, _ahead_usage
+from mocapflow.stages.texture.search import Gap, LevelSearch, SearchParams, ahead_usage
 from mocapflow.stages.texture.stickfigure import StickStrip, cycle_period, stickfigure
 from mocapflow.stages.texture.synth import ConstraintError, UnreachableGapError, synth
 
@@ -245,9 +245,9 @@ def test_right_front_forced_jumps_keep_the_output_playing_forwards(pyr):
 
 def test_ahead_usage_counts_the_material_a_candidate_plays_next():
     counts = np.array([0, 0, 3, 3, 0, 0, 0, 1], dtype=float)
-    fw = _ahead_usage(counts, 3, 1)
+    fw = ahead_usage(counts, 3, 1)
     np.testing.assert_allclose(fw[[0, 1, 4, 6, 7]], [1.0, 2.0, 0.0, 0.5, 1.0])
-    bw = _ahead_usage(counts, 3, -1)
+    bw = ahead_usage(counts, 3, -1)
     np.testing.assert_allclose(bw[[0, 2, 4, 7]], [0.0, 1.0, 2.0, 1 / 3])
 
 
