@@ -29,7 +29,9 @@ from mocapflow.stages.motion.rotations import (
     quat_continuity,
     quat_from_matrix,
     quat_multiply,
+    quat_multiply_parts,
     quat_rotate,
+    quat_rotate_parts,
     quat_slerp,
     quat_to_matrix,
     yaw_quaternion,
@@ -84,20 +86,39 @@ def forward_kinematics(
             f"forward_kinematics: rotations must be (F, {J}, 4), got {rotations.shape}"
         )
     lead = rotations.shape[:-2]
-    offsets = np.broadcast_to(skeleton.offsets, lead + (J, 3))
-    if translations is not None:
+    N = int(np.prod(lead, dtype=np.int64))
+    # component-major working arrays (component, joint, frame): every joint of one depth
+    # is done at once on contiguous rows (the same arithmetic as quat_multiply/rotate)
+    rot = np.ascontiguousarray(rotations.reshape(N, J, 4).transpose(2, 1, 0))
+    if translations is None:
+        off = np.broadcast_to(np.asarray(skeleton.offsets, dtype=np.float64).T[:, :, None],
+                              (3, J, N))
+    else:
         translations = np.asarray(translations, dtype=np.float64)
+        offsets = np.broadcast_to(skeleton.offsets, lead + (J, 3))
         offsets = np.where(np.isfinite(translations), translations, offsets)
-    pos = np.empty(lead + (J, 3))
-    grot = np.empty(lead + (J, 4))
-    pos[..., 0, :] = np.broadcast_to(root_position, lead + (3,))
-    grot[..., 0, :] = rotations[..., 0, :]
-    parents = skeleton.parents
-    for j in range(1, J):
-        p = parents[j]
-        grot[..., j, :] = quat_multiply(grot[..., p, :], rotations[..., j, :])
-        pos[..., j, :] = pos[..., p, :] + quat_rotate(grot[..., p, :], offsets[..., j, :])
-    return pos, grot
+        off = offsets.reshape(N, J, 3).transpose(2, 1, 0)
+    grot = np.empty((4, J, N))
+    pos = np.empty((3, J, N))
+    grot[:, 0] = rot[:, 0]
+    pos[:, 0] = np.broadcast_to(root_position, lead + (3,)).reshape(N, 3).T
+    parents = np.asarray(skeleton.parents)
+    for js in _depth_groups(parents):
+        ps = parents[js]
+        gp = grot[:, ps]
+        grot[:, js] = quat_multiply_parts(gp, rot[:, js])
+        pos[:, js] = pos[:, ps] + quat_rotate_parts(gp, off[:, js])
+    return (np.ascontiguousarray(pos.transpose(2, 1, 0)).reshape(lead + (J, 3)),
+            np.ascontiguousarray(grot.transpose(2, 1, 0)).reshape(lead + (J, 4)))
+
+
+def _depth_groups(parents: np.ndarray) -> list[np.ndarray]:
+    """Non-root joints grouped by depth in the tree (depth 1 first; parents before children)."""
+    depth = [0] * len(parents)
+    for j in range(1, len(parents)):
+        depth[j] = depth[int(parents[j])] + 1
+    d = np.asarray(depth)
+    return [np.flatnonzero(d == k) for k in range(1, int(d.max(initial=0)) + 1)]
 
 
 def end_site_positions(

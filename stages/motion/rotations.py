@@ -13,7 +13,8 @@ Conventions
   (except :func:`euler_continuity`, which is sequential by nature).
 
 Sections: quaternion algebra (``quat_*``, with :func:`quat_continuity` for sign
-continuity along frames); Euler angles (:func:`euler_to_quat`,
+continuity along frames; :func:`quat_multiply_parts` / :func:`quat_rotate_parts`, the
+same products on component arrays); Euler angles (:func:`euler_to_quat`,
 :func:`quat_to_euler`, :func:`padded_order`); tracks over frames
 (:func:`euler_continuity`, :func:`heading_split` / :func:`yaw_quaternion`: the
 root's heading about the up axis ``y`` and the rest).
@@ -45,8 +46,10 @@ __all__ = [
     "quat_inverse",
     "quat_log",
     "quat_multiply",
+    "quat_multiply_parts",
     "quat_normalize",
     "quat_rotate",
+    "quat_rotate_parts",
     "quat_slerp",
     "quat_to_6d",
     "quat_to_euler",
@@ -98,16 +101,38 @@ def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
+    # components written out (no moveaxis / stack: this is called per joint and per node)
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    parts = quat_multiply_parts([a[..., c] for c in range(4)], [b[..., c] for c in range(4)])
+    for c, part in enumerate(parts):
+        out[..., c] = part
+    return out
+
+
+def quat_multiply_parts(a, b) -> tuple[np.ndarray, ...]:
+    """:func:`quat_multiply` on quaternions given as their four component arrays.
+
+    For callers that keep quaternions component by component (contiguous per
+    component, e.g. :func:`~mocapflow.stages.motion.kinematics.forward_kinematics`);
+    the same arithmetic, so the same values, as :func:`quat_multiply`.
+
+    Parameters
+    ----------
+    a, b : sequence of 4 float ndarrays
+        ``(w, x, y, z)`` components, broadcastable to one shape.
+
+    Returns
+    -------
+    tuple of 4 float ndarrays
+        ``(w, x, y, z)`` of ``a * b``.
+    """
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return (
+        aw * bw - ax * bx - ay * by - az * bz,
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
     )
 
 
@@ -174,10 +199,40 @@ def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     """
     q = np.asarray(q, dtype=np.float64)
     v = np.asarray(v, dtype=np.float64)
-    w = q[..., :1]
-    u = q[..., 1:]
-    uv = np.cross(u, v)
-    return v + 2.0 * (w * uv + np.cross(u, uv))
+    out = np.empty(np.broadcast_shapes(q.shape[:-1], v.shape[:-1]) + (3,))
+    parts = quat_rotate_parts([q[..., c] for c in range(4)], [v[..., c] for c in range(3)])
+    for c, part in enumerate(parts):
+        out[..., c] = part
+    return out
+
+
+def quat_rotate_parts(q, v) -> tuple[np.ndarray, ...]:
+    """:func:`quat_rotate` on quaternions and vectors given as their component arrays.
+
+    The same arithmetic, so the same values, as :func:`quat_rotate`: ``v + 2 (w (u × v)
+    + u × (u × v))`` with ``u = (x, y, z)``, the cross products written out.
+
+    Parameters
+    ----------
+    q : sequence of 4 float ndarrays
+        ``(w, x, y, z)`` of unit quaternions.
+    v : sequence of 3 float ndarrays
+        ``(x, y, z)`` of the vectors (broadcastable against ``q``'s).
+
+    Returns
+    -------
+    tuple of 3 float ndarrays
+    """
+    w, x, y, z = q
+    vx, vy, vz = v
+    cx = y * vz - z * vy
+    cy = z * vx - x * vz
+    cz = x * vy - y * vx
+    return (
+        vx + 2.0 * (w * cx + (y * cz - z * cy)),
+        vy + 2.0 * (w * cy + (z * cx - x * cz)),
+        vz + 2.0 * (w * cz + (x * cy - y * cx)),
+    )
 
 
 def quat_from_axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:

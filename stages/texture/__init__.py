@@ -24,7 +24,7 @@ Moradoff §3.5–3.7 neighbourhood distance  neighbourhood.window_cost (per slot
                                           neighbourhood.level_view; slot weights:
                                           neighbourhood.slot_pair_weights; per pair:
                                           neighbourhood.pair_distance, tabulated for the
-                                          coarsest search: neighbourhood.verbatim_distances)
+                                          coarsest search: neighbourhood.pair_tables)
   three-level neighbourhood (ancestor,    search.LevelSearch.cost_rows (search.LevelSearch.cost,
   current, finer)                         ._ancestor_cost, ._finer_cost)
   random choice among the k best          search.LevelSearch.choose, search.LevelSearch._draw

@@ -91,8 +91,10 @@ def _smooth_seams(
     max_widening: int,
     jerk_tolerance: float | None,
     warn,
+    world_in: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
-    """Adaptive smoothing of the seams with the input's acceleration floor and jerk limit.
+    """Adaptive smoothing of the seams with the input's acceleration floor and jerk limit
+    (``world_in``: the input's joint positions, :func:`motion_positions`).
 
     Returns
     -------
@@ -101,7 +103,6 @@ def _smooth_seams(
     report : dict
         ``widening``, ``passed``, ``seam_acc``, ``ref_acc`` per seam.
     """
-    world_in = motion_positions(motion)
     acc_in = acceleration_per_frame(world_in, motion.rate)
     floor = ACCEL_FLOOR * float(np.nanmedian(acc_in)) if motion.n_frames > 2 else 0.0
     jerk_limit = None
@@ -136,16 +137,24 @@ def _smooth_seams(
     return sm.rotations, sm.features, report
 
 
-def _planted_velocity(pyramid, motion, rot, feat, src, loop) -> np.ndarray:
-    """Root velocities keeping the input's stance toes planted (see ``plant_feet``)."""
+def _input_contacts(motion: Motion, world: np.ndarray):
+    """Toe joints and their input contacts ``(F, T)`` (input thresholds), or ``None``
+    when the skeleton has no usable toes (``world``: the input's joint positions)."""
     try:
         toes = toe_indices(motion.skeleton)
     except ValueError:
-        return feat[:, 1:3]
-    lev = pyramid.levels[0]
-    world = motion_positions(motion)
+        return None
     h, s = contact_thresholds(world, toes, motion.rate)
-    contact = foot_contacts(world, toes, motion.rate, height_threshold=h, speed_threshold=s)
+    return toes, foot_contacts(world, toes, motion.rate, height_threshold=h, speed_threshold=s)
+
+
+def _planted_velocity(pyramid, motion, rot, feat, src, loop, contacts) -> np.ndarray:
+    """Root velocities keeping the input's stance toes planted (see ``plant_feet``;
+    ``contacts``: :func:`_input_contacts`)."""
+    if contacts is None:
+        return feat[:, 1:3]
+    toes, contact = contacts
+    lev = pyramid.levels[0]
     disp_in = toe_displacements(lev.yaw_rate, lev.velocity, lev.positions[:, toes][..., [0, 2]])
     J = motion.skeleton.n_joints
     trans = feat[:, 4:].reshape(len(src), J, 3) if feat.shape[1] > 4 else None
@@ -233,24 +242,25 @@ def _output_motion(
 
 
 def _foot_ik(motion: Motion, out: Motion, src: np.ndarray, constrained, blended,
-             retargeted: bool = False, loop: bool = False):
+             retargeted: bool = False, loop: bool = False, *, world: np.ndarray, contacts):
     """Leg IK keeping every stance toe moving as in the input (see ``foot_corrections``).
 
     ``retargeted``: the root follows a path (turned, stride paced), so the legs use
     the :data:`PATH_IK` weights; ``loop``: the corrections are periodic (the toes'
     ground positions wrap: a loop on a closed path).
 
+    ``world``: the input's joint positions; ``contacts``: :func:`_input_contacts`.
+
     Returns the new local rotations and the largest correction (metres), or
     ``None`` when the skeleton has no usable toes or legs.
     """
+    if contacts is None:
+        return None
+    toes, contact_in = contacts
     try:
-        toes = toe_indices(motion.skeleton)
         chains = leg_chains(motion.skeleton, toes)
     except ValueError:
         return None
-    world = motion_positions(motion)
-    h, s = contact_thresholds(world, toes, motion.rate)
-    contact_in = foot_contacts(world, toes, motion.rate, height_threshold=h, speed_threshold=s)
     heading_in, _ = heading_split(motion.rotations[:, 0])
     ground = world[:, toes][..., [0, 2]]
     step = np.concatenate([np.diff(ground, axis=0), np.zeros((1,) + ground.shape[1:])], axis=0)
@@ -349,6 +359,10 @@ def assemble_motion(
     rot_in, feat_in = _input_features(pyramid)
     rot, feat = rot_in[src].copy(), feat_in[src].copy()
     seams = seams_from_source(src, cyclic=loop)
+    # the input's joint positions and toe contacts, once for the steps that need them
+    world_in = motion_positions(motion) if (smoothing and seams.size) or plant or foot_ik \
+        else None
+    contacts = _input_contacts(motion, world_in) if plant or (foot_ik and L > 2) else None
     sm_report: dict[str, Any] = {"enabled": smoothing}
     if smoothing and seams.size:
         rot, feat, widened = _smooth_seams(
@@ -364,11 +378,12 @@ def assemble_motion(
             max_widening=max_widening,
             jerk_tolerance=jerk_tolerance,
             warn=warn,
+            world_in=world_in,
         )
         sm_report.update(widened)
 
     if plant:
-        feat[:, 1:3] = _planted_velocity(pyramid, motion, rot, feat, src, loop)
+        feat[:, 1:3] = _planted_velocity(pyramid, motion, rot, feat, src, loop, contacts)
     heading, ground, path_info = _place_root(motion, feat, src, cons, curve, pyramid.rate,
                                              warn, loop)
     out = _output_motion(motion, rot, feat, heading, ground)
@@ -378,7 +393,8 @@ def assemble_motion(
         # periodic corrections only where the ground positions wrap too (a loop on a
         # closed path); a loop in place of a path ends a lap away from its start
         res = _foot_ik(motion, out, src, [j for _, j in cons], blended, curve is not None,
-                       loop and curve is not None and curve.closed)
+                       loop and curve is not None and curve.closed, world=world_in,
+                       contacts=contacts)
         if res is not None:
             rotations, ik_max = res
             rot[:, 1:] = rotations[:, 1:]

@@ -217,8 +217,8 @@ class LevelRefinement(LevelSearch):
         """Constrained positions (unwrapped) in ``[a, b]``."""
         if not anchors:
             return []
-        us = np.arange(a, b + 1)
-        return [int(u) for u in us if self._at(int(u)) in anchors]
+        n, cyclic = self.n, self.cyclic
+        return [u for u in range(int(a), int(b) + 1) if (u % n if cyclic else u) in anchors]
 
     def _transition(self, val, runs, k: int, anchors: dict[int, int]) -> _Transition:
         """Transition from run ``k`` to ``k + 1`` (an open output's last run ends at n - 1)."""

@@ -332,11 +332,18 @@ class LevelSearch:
         """Map positions to ``[0, n)``; second value marks positions that exist."""
         if self.cyclic:
             return np.mod(pos, n), np.ones(pos.shape, dtype=bool)
-        return np.clip(pos, 0, n - 1), (pos >= 0) & (pos < n)
+        return np.minimum(np.maximum(pos, 0), n - 1), (pos >= 0) & (pos < n)
 
     def _out_values(self, src: np.ndarray, pos: np.ndarray) -> np.ndarray:
         p, ok = self._wrap(pos, src.shape[0])
         return np.where(ok, src[p], -1)
+
+    def _out_value(self, src: np.ndarray, t: int) -> int:
+        """:meth:`_out_values` of one position (a Python int, no arrays)."""
+        n = src.shape[0]
+        if self.cyclic:
+            return int(src[t % n])
+        return int(src[t]) if 0 <= t < n else -1
 
     # ----------------------------------------------------------- costs
     def cost(self, src: np.ndarray, t: int, cands: np.ndarray) -> np.ndarray:
@@ -431,11 +438,13 @@ class LevelSearch:
         up = self.upper.src
         T = t // 2 if not self.cyclic else (t % self.n) // 2
         if np.ndim(T):  # one parent window per row: each distinct (T, parent) once
-            key = np.stack([np.asarray(T), cands // 2], axis=1)
-            K, inv = np.unique(key, axis=0, return_inverse=True)
+            T, P = np.asarray(T), cands // 2
+            t0, p0 = int(T.min()), int(P.min())
+            width = int(P.max()) - p0 + 1
+            key, inv = np.unique((T - t0) * width + (P - p0), return_inverse=True)
             inv = inv.ravel()
-            ov = self._out_values(up, K[:, :1] + self.off[None, :])
-            C = K[:, 1]
+            ov = self._out_values(up, (key // width + t0)[:, None] + self.off[None, :])
+            C = key % width + p0
         else:
             C, inv = np.unique(cands // 2, return_inverse=True)
             ov = np.broadcast_to(self._out_values(up, T + self.off), (C.size, self.off.size))
@@ -610,11 +619,13 @@ class LevelSearch:
         order = np.argsort(key, kind="stable")
         order = order[key[order] <= key[order[0]] + tau]
         chosen: list[int] = []
-        for i in order:
+        picked: list[int] = []  # their identities (Python ints: a short loop, no arrays)
+        for i, r in zip(order.tolist(), ranked[order].tolist()):
             if len(chosen) >= self.p.k_best:
                 break
-            if not chosen or np.all(np.abs(ranked[i] - ranked[chosen]) >= self.p.slots):
-                chosen.append(int(i))
+            if all(abs(r - c) >= self.p.slots for c in picked):
+                chosen.append(i)
+                picked.append(r)
         return int(self.rng.choice(chosen))
 
     def _settled(self, src: np.ndarray, t: int) -> bool:
@@ -639,7 +650,7 @@ class LevelSearch:
         if self.coarsest:
             used = src[src >= 0]
             counts = np.bincount(used, minlength=self.view.n).astype(np.float64)
-            a, b = self._out_values(src, np.array([t - 1, t + 1]))
+            a, b = self._out_value(src, t - 1), self._out_value(src, t + 1)
             self._usage = ahead_usage(counts, 2 * self.p.slots + 1, -1 if b >= 0 > a else 1)
         cands = self.candidates(src, t)
         cost = self.cost(src, t, cands)
@@ -673,7 +684,7 @@ class LevelSearch:
         run : int
             Nodes in the run.
         """
-        a, b = self._out_values(src, np.array([t - 1, t + 1]))
+        a, b = self._out_value(src, t - 1), self._out_value(src, t + 1)
         if a >= 0 and b < 0:
             growth = 1
         elif b >= 0 and a < 0:
@@ -697,8 +708,8 @@ class LevelSearch:
         like any other; the run then continues verbatim from the new jump.
         """
         n_in, S = self.view.n, self.p.slots
-        a, b = self._out_values(src, np.array([t - 1, t + 1]))
-        here = self._out_values(src, np.array([t]))[0]
+        a, b = self._out_value(src, t - 1), self._out_value(src, t + 1)
+        here = self._out_value(src, t)
         if a >= 0 and b < 0 and here != a + 1 and (forced or a == n_in - 1):
             side = -1  # left front: move back into the run behind
         elif b >= 0 and a < 0 and here != b - 1 and (forced or b == 0):

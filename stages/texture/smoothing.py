@@ -209,11 +209,7 @@ def seam_test(
     J = rotations.shape[1]
     r = rate_scale(rate)
     half, nref = int(round(_HALF * r)), int(round(3 * r))  # frames at this rate
-    raw = seams[:, None] + np.arange(-half, half)[None, :]
-    if cyclic:
-        idx, ok = np.mod(raw, L), np.ones(raw.shape, bool)
-    else:
-        idx, ok = np.clip(raw, 0, L - 1), (raw >= 0) & (raw < L)
+    idx, ok = _test_window(seams, L, rate, cyclic)
     yaw = features[idx, 0]
     vel = features[idx, 1:3]
     heading = np.concatenate([np.zeros((S, 1)), np.cumsum(yaw[:, :-1], axis=1)], axis=1)
@@ -368,6 +364,7 @@ def adaptive_smoothing(
         accel_floor=accel_floor,
         jerk_limit=jerk_limit,
     )
+    before_rot, before_feat = rot.copy(), feat.copy()
     while not passed.all():
         fail = ~passed & (k < max_widening)
         if not fail.any():
@@ -383,16 +380,36 @@ def adaptive_smoothing(
             _filter_linear(feat, taps, cyclic=cyclic, frames=act) - feat[act])
         if len(constrained):
             _pin(rot, feat, rot0, feat0, constrained, int(k.max() * r + taper) + 2, cyclic)
-        passed, sa, _ = seam_test(
-            skeleton,
-            rot,
-            feat,
-            seams,
-            rate,
-            cyclic=cyclic,
-            accel_tolerance=accel_tolerance,
-            accel_floor=accel_floor,
-            reference=ref,
-            jerk_limit=jerk_limit,
-        )
+        # a seam's test reads only the frames of its window: only the seams whose window
+        # holds a frame this pass changed are tested again (the others keep their result)
+        changed = (rot != before_rot).any(axis=(1, 2)) | (feat != before_feat).any(axis=1)
+        again = changed[_test_window(seams, L, rate, cyclic)[0]].any(axis=1)
+        if again.any():
+            p2, s2, _ = seam_test(
+                skeleton,
+                rot,
+                feat,
+                seams[again],
+                rate,
+                cyclic=cyclic,
+                accel_tolerance=accel_tolerance,
+                accel_floor=accel_floor,
+                reference=ref[again],
+                jerk_limit=jerk_limit,
+            )
+            passed, sa = passed.copy(), sa.copy()
+            passed[again], sa[again] = p2, s2
+        before_rot, before_feat = rot.copy(), feat.copy()
     return SmoothingResult(rot, feat, k, passed, sa, ref)
+
+
+def _test_window(
+    seams: np.ndarray, L: int, rate: float, cyclic: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frames ``(S, w)`` the acceleration test of each seam reads (:func:`seam_test`), and
+    which of them lie inside the motion (all, when ``cyclic``)."""
+    half = int(round(_HALF * rate_scale(rate)))
+    raw = seams[:, None] + np.arange(-half, half)[None, :]
+    if cyclic:
+        return np.mod(raw, L), np.ones(raw.shape, bool)
+    return np.clip(raw, 0, L - 1), (raw >= 0) & (raw < L)
