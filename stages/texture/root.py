@@ -741,13 +741,25 @@ def apply_foot_ik(
         Local rotations with the hip, knee and ankle joints of each chain changed.
     """
     rot = np.array(rotations, dtype=np.float64)
+    moves = np.abs(offsets).max(axis=-1) > 1e-7  # (L, T)
+    frames = np.flatnonzero(moves.any(axis=1))
+    # one forward kinematics for all legs when no chain moves a joint above another's
+    shared = frames.size and _independent_chains(skeleton, chains)
+    if shared:
+        tr = None if translations is None else translations[frames]
+        pos_all, glob_all = forward_kinematics(
+            skeleton, rot[frames], root_position[frames], translations=tr)
     for k, (h, kn, an) in enumerate(chains):
-        move = np.abs(offsets[:, k]).max(axis=-1) > 1e-7
-        if not move.any():
+        if shared:
+            sel = np.flatnonzero(moves[frames, k])
+            idx, pos, glob = frames[sel], pos_all[sel], glob_all[sel]
+        else:
+            idx = np.flatnonzero(moves[:, k])
+            tr = None if translations is None else translations[idx]
+            pos, glob = forward_kinematics(
+                skeleton, rot[idx], root_position[idx], translations=tr)
+        if idx.size == 0:
             continue
-        idx = np.flatnonzero(move)
-        tr = None if translations is None else translations[idx]
-        pos, glob = forward_kinematics(skeleton, rot[idx], root_position[idx], translations=tr)
         d = np.zeros((idx.size, 3))
         d[:, [0, 2]] = offsets[idx, k]
         hinge = quat_rotate(glob[:, kn], np.array([1.0, 0.0, 0.0]))
@@ -760,3 +772,19 @@ def apply_foot_ik(
         rot[idx, kn] = quat_normalize(quat_multiply(quat_inverse(g_hip), g_knee))
         rot[idx, an] = quat_normalize(quat_multiply(quat_inverse(g_knee), glob[:, an]))
     return rot
+
+
+def _independent_chains(skeleton, chains: list[tuple[int, int, int]]) -> bool:
+    """Whether no chain's joint is (or is an ancestor of) a joint of another chain."""
+    def above(j: int) -> set[int]:
+        out = set()
+        while j >= 0:
+            out.add(j)
+            j = int(skeleton.parents[j])
+        return out
+
+    for a, ca in enumerate(chains):
+        lineage = set().union(*(above(j) for j in ca))
+        if any(set(cb) & lineage for b, cb in enumerate(chains) if b != a):
+            return False
+    return True

@@ -302,6 +302,28 @@ def test_apply_foot_ik_moves_the_ankles_and_keeps_the_feet(walk):
     np.testing.assert_allclose(p1[:, chains[1][2]], p0[:, chains[1][2]], atol=1e-12)
 
 
+def test_apply_foot_ik_both_legs_equal_one_leg_at_a_time(walk):
+    # the legs share one forward kinematics; each leg must come out as when moved alone
+    m = walk
+    chains = leg_chains(m.skeleton, toe_indices(m.skeleton))
+    offsets = np.random.default_rng(2).uniform(-0.05, 0.05, (m.n_frames, 2, 2))
+    offsets[::3, 0] = 0.0  # legs moving in different frames
+    both = apply_foot_ik(m.skeleton, m.rotations, m.root_position, chains, offsets)
+    for k in range(2):
+        alone = np.zeros_like(offsets)
+        alone[:, k] = offsets[:, k]
+        one = apply_foot_ik(m.skeleton, m.rotations, m.root_position, chains, alone)
+        np.testing.assert_array_equal(both[:, list(chains[k])], one[:, list(chains[k])])
+    # the same chain twice: the second move starts from the first (no shared kinematics)
+    twice = apply_foot_ik(m.skeleton, m.rotations, m.root_position, [chains[0]] * 2,
+                          np.stack([offsets[:, 0], offsets[:, 0]], axis=1))
+    p2, _ = forward_kinematics(m.skeleton, twice, m.root_position)
+    p0, _ = forward_kinematics(m.skeleton, m.rotations, m.root_position)
+    moved = np.linalg.norm(p2[:, chains[0][2]] - p0[:, chains[0][2]], axis=1)
+    want = 2 * np.linalg.norm(offsets[:, 0], axis=1)
+    assert np.median(moved / np.maximum(want, 1e-9)) > 0.9
+
+
 def test_foot_corrections_stop_the_slide_of_stance_toes():
     L = 60
     contact = np.zeros((L, 1), dtype=bool)
