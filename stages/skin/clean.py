@@ -170,42 +170,80 @@ STATUS = {"missing": -1, "observed": 0, "merged": 1, "filled": 2}
 
 def _smooth_run(y: np.ndarray, lam: float, iterations: int) -> np.ndarray:
     """``y ← y − λ Δ⁴ y`` along axis 0, ends extended by odd reflection."""
-    n = len(y)
-    if n < 5 or iterations <= 0 or lam == 0:
+    return _smooth_runs(y, np.array([0]), np.array([len(y)]), lam, iterations)
+
+
+def _smooth_runs(y: np.ndarray, starts: np.ndarray, stops: np.ndarray, lam: float,
+                 iterations: int) -> np.ndarray:
+    """:func:`_smooth_run` of every run ``y[a:b]`` at once (runs of 5 or more samples;
+    the rest of ``y``, shorter runs included, is returned as it is).
+
+    Parameters
+    ----------
+    y : (N, 3) float ndarray
+    starts, stops : (R,) int ndarray
+        Disjoint half-open runs ``[a, b)`` along axis 0.
+    lam : float
+    iterations : int
+
+    Returns
+    -------
+    (N, 3) float ndarray
+    """
+    long = (stops - starts) >= 5
+    starts, stops = starts[long], stops[long]
+    if not len(starts) or iterations <= 0 or lam == 0:
         return y
-    y = y.copy()
+    L = stops - starts
+    # each run padded by 2 samples a side: index into y, and for the pads the run
+    # end they reflect about (odd reflection: 2 y[end] - y[mirror])
+    seg = np.repeat(np.arange(len(L)), L + 4)
+    pos = np.arange(len(seg)) - np.repeat(np.cumsum(L + 4) - (L + 4), L + 4) - 2  # -2 .. L+1
+    a, last = starts[seg], stops[seg] - 1
+    src = np.where(pos < 0, a - pos, np.where(pos >= L[seg], 2 * last - (a + pos), a + pos))
+    pad = (pos < 0) | (pos >= L[seg])
+    anchor = np.where(pos < 0, a, last)[pad]
+    body = np.flatnonzero(~pad)  # the run samples, in order, in the padded array
+    idx = src[body]
+    out = y.copy()
     for _ in range(iterations):
-        pad = np.concatenate([2 * y[:1] - y[2:0:-1], y, 2 * y[-1:] - y[-2:-4:-1]])
-        d4 = pad[:-4] - 4 * pad[1:-3] + 6 * pad[2:-2] - 4 * pad[3:-1] + pad[4:]
-        y -= lam * d4
-    return y
+        ext = out[src]
+        ext[pad] = 2 * out[anchor] - out[src[pad]]
+        d4 = ext[:-4] - 4 * ext[1:-3] + 6 * ext[2:-2] - 4 * ext[3:-1] + ext[4:]
+        out[idx] -= lam * d4[body - 2]
+    return out
 
 
 def _smooth_chunk(item: tuple) -> tuple[np.ndarray, np.ndarray]:
     X, markers, neighbours, rigidity, reference, lam, iterations, measured = item
     F = X.shape[0]
     out = X[:, markers].copy()
+    fits, ys_all, runs = [], [], []
     for c, m in enumerate(markers):
         sel = neighbours[c] >= 0
         nb = neighbours[c][sel]
-        x = X[:, m]
         src = np.broadcast_to(reference[nb], (F, len(nb), 3))
         w = np.broadcast_to(rigidity[c][sel], (F, len(nb)))
         R, t = absolute_orientation_batch(src, X[:, nb], weights=w)
-        y = _apply_inv(R, t, x)
+        y = _apply_inv(R, t, X[:, m])
         ok = np.isfinite(y).all(1)
-        ys = y.copy()
         # runs of measured samples and runs of filled ones are smoothed separately:
         # estimates never drag measurements
         meas = np.ones(F, dtype=bool) if measured is None else measured[:, m]
         kind = np.where(ok, 1 + meas, 0)
         cut = np.flatnonzero(np.diff(kind) != 0) + 1
-        d4 = []
-        for a, b in zip(np.r_[0, cut], np.r_[cut, F]):
-            if kind[a]:
-                ys[a:b] = _smooth_run(y[a:b], lam, iterations)
-                if kind[a] == 2 and b - a >= 5:
-                    d4.append(np.diff(y[a:b], n=4, axis=0))
+        a, b = np.r_[0, cut], np.r_[cut, F]
+        fits.append((R, t, ok, meas, kind, a, b))
+        ys_all.append(y)
+        runs.append((a[kind[a] > 0] + c * F, b[kind[a] > 0] + c * F))
+    # every marker's runs in one vectorised smoothing
+    Y = np.concatenate(ys_all) if ys_all else np.zeros((0, 3))
+    YS = _smooth_runs(Y, np.concatenate([r[0] for r in runs]).astype(np.int64),
+                      np.concatenate([r[1] for r in runs]).astype(np.int64), lam, iterations)
+    for c, (R, t, ok, meas, kind, a_, b_) in enumerate(fits):
+        y, ys = Y[c * F:(c + 1) * F], YS[c * F:(c + 1) * F]
+        d4 = [np.diff(y[a:b], n=4, axis=0) for a, b in zip(a_, b_)
+              if kind[a] == 2 and b - a >= 5]
         if d4:  # measurements move by at most MAX_CORRECTION_SIGMA noise deviations
             k = MAX_CORRECTION_SIGMA
             dd = np.concatenate(d4)
@@ -399,6 +437,7 @@ def _pca_merge_rounds(
     ``mrep`` are updated in place.  Returns the merged positions ``(F, M, 3)``.
     """
     frags = markers.fragments
+    fvis = np.isfinite(frags).all(-1)  # (F, U), once: the fragments never change
     models = None
     fill_cache: dict = {}  # the rounds' data differ only where fragments were merged
     for k in range(rounds):
@@ -407,7 +446,7 @@ def _pca_merge_rounds(
         if not len(left):
             break
         # judge the rest against the PCA hole filling of the merged data (§4.3)
-        waiting = np.isfinite(frags[:, left]).all(-1).any(1)
+        waiting = fvis[:, left].any(1)
         Xf, finfo0 = fill_holes(X, surf, variance=variance, models=models, frames=waiting,
                                 model="pca", cache=fill_cache, ctx=ctx,
                                 max_passes=MERGE_FILL_PASSES, rigid_fallback=False)

@@ -237,8 +237,11 @@ def model_estimates_batch(
 
     The pose fits of the models of one member count, over every frame, are one
     batched Horn solve (no padding, so a model's result does not depend on the
-    other models of the call); only the coefficient solves run per model.  A
-    pass of the fill calls this once per chunk of models instead of once per model.
+    other models of the call); the coefficient solves are batched over the models
+    of one component count, the system of a model inverted once per pattern of
+    visible members (:func:`_coefficient_group`), not once per frame and pose
+    refit.  A pass of the fill calls this once per chunk of models instead of
+    once per model.
 
     Parameters
     ----------
@@ -293,6 +296,33 @@ def model_estimates_batch(
     return out
 
 
+def _coefficient_group(models: list[LocalPCA], model_of: np.ndarray, q: np.ndarray,
+                       vis: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The coefficient solve's per-pair arrays of pairs ``q`` (models of one component
+    count): ``(q, mu (P, 3n), B (P, 3n, k), A⁻¹ (P, k, k), w3 (P, 3n), noise (P, 1))``.
+
+    ``A = Bᵀ W B / noise + diag(1/λ)`` depends on the model and which members are
+    visible only, so it is inverted once per model and visibility pattern (the
+    same for every frame and every pose refit), each pair's result independent
+    of the other pairs and models of the call.
+    """
+    mi = model_of[q]
+    n = vis.shape[1]
+    key = mi * (1 << n) + vis[q] @ (1 << np.arange(n))
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    ui = mi[first]  # model of each pattern
+    Bm = {i: models[i].basis for i in np.unique(mi)}
+    Bu = np.stack([Bm[i] for i in ui])  # (U, 3n, k)
+    w3u = np.repeat(w[q[first]], 3, axis=1)
+    noise_u = np.array([models[i].noise for i in ui])[:, None, None]
+    prior = np.stack([np.diag(1.0 / np.maximum(models[i].eigenvalues, 1e-12)) for i in ui])
+    A = np.matmul(np.swapaxes(Bu, 1, 2) * w3u[:, None, :], Bu) / noise_u + prior
+    Ainv = np.linalg.inv(A)[inverse]
+    mu = np.stack([models[i].mean.reshape(-1) for i in ui])[inverse]
+    return (q, mu, Bu[inverse], Ainv, np.repeat(w[q], 3, axis=1),
+            noise_u[inverse, 0])
+
+
 def _estimate_block(models: list[LocalPCA], X: np.ndarray, vis: np.ndarray, tgt: np.ndarray,
                     pick: np.ndarray, mem: np.ndarray, mw: np.ndarray, mean: np.ndarray, *,
                     iterations: int, neighbour_weight: float) -> list[tuple[np.ndarray, ...]]:
@@ -308,28 +338,24 @@ def _estimate_block(models: list[LocalPCA], X: np.ndarray, vis: np.ndarray, tgt:
     Xw = np.where(w[..., None] > 0, Xr, np.nan)
     shape = mean[model_of]
     R, t = absolute_orientation_batch(shape, Xw, weights=w)
-    starts = np.searchsorted(model_of, np.arange(nm + 1))
-    solvable = [i for i, md in enumerate(models)
-                if md.basis.shape[1] and starts[i + 1] > starts[i]]
-    if solvable:
+    k_of = np.array([md.basis.shape[1] for md in models])
+    solvable = k_of[model_of] > 0  # (P,) pairs of models with components
+    if solvable.any():
         shape = shape.copy()
         Xr0 = np.nan_to_num(Xr)
+        vis_p = vis[row, model_of]  # (P, n)
+        groups = [_coefficient_group(models, model_of,
+                                     np.flatnonzero(solvable & (k_of[model_of] == k)), vis_p, w)
+                  for k in np.unique(k_of[model_of][solvable])]
+        sel = np.flatnonzero(solvable)
         for it in range(iterations + 1):
-            for i in solvable:
-                md = models[i]
-                sl = slice(starts[i], starts[i + 1])
-                n = len(md.members)
-                B = md.basis
-                w3 = np.repeat(w[sl, :n], 3, axis=1)
-                prior = np.diag(1.0 / np.maximum(md.eigenvalues, 1e-12))
-                A = np.matmul(B.T[None] * w3[:, None, :], B) / md.noise + prior
-                mu = md.mean.reshape(-1)
-                z = _apply_inv(R[sl], t[sl], Xr0[sl, :n]).reshape(-1, 3 * n)
-                rhs = (w3 * np.nan_to_num(z - mu)) @ B / md.noise
-                a = np.linalg.solve(A, rhs[..., None])[..., 0]
-                shape[sl, :n] = (mu + a @ B.T).reshape(-1, n, 3)
+            for q, mu, B, Ainv, w3, noise in groups:
+                z = _apply_inv(R[q], t[q], Xr0[q]).reshape(len(q), -1)
+                rhs = np.matmul((w3 * np.nan_to_num(z - mu))[:, None, :], B)[:, 0] / noise
+                a = np.matmul(Ainv, rhs[..., None])[..., 0]
+                shape[q] = (mu + np.matmul(a[:, None, :], np.swapaxes(B, 1, 2))[:, 0]
+                            ).reshape(len(q), -1, 3)
             if it < iterations:
-                sel = np.concatenate([np.arange(starts[i], starts[i + 1]) for i in solvable])
                 R2, t2 = absolute_orientation_batch(shape[sel], Xw[sel], weights=w[sel])
                 good = np.isfinite(R2).all((1, 2))
                 R[sel[good]], t[sel[good]] = R2[good], t2[good]

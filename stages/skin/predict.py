@@ -283,10 +283,11 @@ def predict_missing(
     canpredict = np.isfinite(reference).all(1) & (nbv.sum(1) >= MIN_NEIGHBOURS)
     pending = ~avail & canpredict[None, :]
     adjacency = _adjacency(neighbours)  # (M, M): row j counts the neighbours of j
+    users = adjacency.T.tocsr()  # row k: the markers j that have k as a neighbour
     active = np.flatnonzero(pending.any(1))
-    cnt = np.zeros((F, M))
+    cnt = np.zeros((F, M))  # available neighbours, kept up to date as samples are predicted
+    cnt[active] = (adjacency @ avail[active].T.astype(float)).T
     while len(active):
-        cnt[active] = (adjacency @ avail[active].T.astype(float)).T
         cand = pending[active] & (cnt[active] >= MIN_NEIGHBOURS)
         keep = cand.any(1)
         active, cand = active[keep], cand[keep]
@@ -309,6 +310,9 @@ def predict_missing(
         support[f[ok], m[ok]] = sup[ok]
         avail[f[ok], m[ok]] = True
         pending[f, m] = False  # degenerate sets are not retried
+        # the new samples count for the markers that have them as neighbours
+        new = users[m[ok]].tocoo()
+        np.add.at(cnt, (f[ok][new.row], new.col), new.data)
     return (est, depth, support) if return_depth else est
 
 

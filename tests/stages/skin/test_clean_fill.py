@@ -268,6 +268,55 @@ def test_batched_estimates_equal_one_model_at_a_time(monkeypatch):
                 np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
 
 
+def _estimates_frame_by_frame(md, X, targets, iterations):
+    """The model's estimates one frame at a time, each coefficient solve an ordinary
+    least-squares problem: ``[√(w/σ²) B; diag(1/√λ)] a = [√(w/σ²) (z − μ); 0]``."""
+    n = len(md.members)
+    B, mu, out = md.basis, md.mean.reshape(-1), {}
+    for f in range(len(X)):
+        x = X[f, md.members]
+        w = np.isfinite(x).all(1) * md.weights
+        if (w > 0).sum() < 3 or not (targets[f, md.members] & ~(w > 0)).any():
+            continue
+        shape = md.mean
+        R, t = absolute_orientation_batch(shape[None], np.where(w[:, None] > 0, x, np.nan)[None],
+                                          weights=w[None])
+        for it in range(iterations + 1):
+            z = ((np.nan_to_num(x) - t[0]) @ R[0]).reshape(-1)
+            sw = np.sqrt(np.repeat(w, 3) / md.noise)
+            lhs = np.vstack([sw[:, None] * B, np.diag(1 / np.sqrt(md.eigenvalues))])
+            rhs = np.concatenate([sw * (z - mu), np.zeros(B.shape[1])])
+            shape = (mu + B @ np.linalg.lstsq(lhs, rhs, rcond=None)[0]).reshape(n, 3)
+            if it < iterations:
+                R, t = absolute_orientation_batch(shape[None], np.where(
+                    w[:, None] > 0, x, np.nan)[None], weights=w[None])
+        for j in np.flatnonzero(targets[f, md.members] & ~(w > 0)):
+            out[(f, int(md.members[j]))] = shape[j] @ R[0].T + t[0]
+    return out
+
+
+@pytest.mark.parametrize("iterations", [0, 1])
+def test_batched_coefficients_equal_a_least_squares_solve_per_frame(iterations):
+    """The batch solves each model's coefficients once per visibility pattern; every
+    estimate equals the frame's own prior-regularised least squares (1e-9 m)."""
+    P = deforming_patch(160, seed=4)
+    rng = np.random.default_rng(8)
+    X = P + rng.normal(0, 0.0003, P.shape)
+    X[rng.random(X.shape[:2]) < 0.25] = np.nan
+    surf = build_marker_surface(P[0], positions=X)
+    models = [train_local_pca(P + rng.normal(0, 0.0003, P.shape), m,
+                              surf.neighbours[m][surf.neighbours[m] >= 0], surf.reference,
+                              surf.frames[m]) for m in (24, 17, 31)]
+    assert all(md.basis.shape[1] > 0 for md in models)
+    targets = ~np.isfinite(X).all(-1)
+    got = model_estimates_batch(models, X, targets, iterations=iterations)
+    for md, (f, m, e, _) in zip(models, got):
+        want = _estimates_frame_by_frame(md, X, targets, iterations)
+        assert len(want) > 50 and sorted(want) == sorted(zip(f.tolist(), m.tolist()))
+        np.testing.assert_allclose(e, [want[k] for k in zip(f.tolist(), m.tolist())],
+                                   rtol=0, atol=1e-9)
+
+
 def test_a_models_estimates_do_not_depend_on_the_other_models_of_its_call():
     """Bit for bit: the fill cuts its models into chunks by the worker count, so a
     model batched with others must give what it gives alone (else the cleaned
