@@ -271,7 +271,9 @@ class LevelRefinement(LevelSearch):
             )
         pick, order = self._draw_join(rows, keys)
         m, s_ = ms[pick]
-        self._write_join(val, ranked, runs, k, tr, m, s_, [ms[i] for i in order])
+        # the lines of the joins at m, best first (the ranked alternatives written there)
+        m_all, s_all = np.asarray(ms).T
+        self._write_join(val, ranked, runs, k, tr, m, s_, s_all[order[m_all[order] == m]])
         return m
 
     # ----------------------------------------------------------- join schedule
@@ -423,16 +425,16 @@ class LevelRefinement(LevelSearch):
         return pick, order
 
     def _write_join(self, val, ranked, runs, k: int, tr: _Transition, m: int, s_: int,
-                    ordered: list[tuple[int, int]]) -> None:
-        """Write both lines around the join at ``m`` (in place); ``ordered``: joins, best first."""
+                    lines_here: np.ndarray) -> None:
+        """Write both lines around the join at ``m`` (in place); ``lines_here``: the right
+        lines ``s`` of the joins at ``m``, best first."""
         n_in = self.view.n
         span_l = np.arange(tr.a1, m)
         span_r = np.arange(m, tr.b2 + 1)
         val[self._at(span_l)] = tr.left_end + (span_l - tr.b1)
         val[self._at(span_r)] = s_ + (span_r - tr.a2)
         runs[k + 1] = [m, min(tr.b2, m + (n_in - 1 - (s_ + m - tr.a2)))]
-        best_here = [s + (m - tr.a2) for mm, s in ordered if mm == m]
-        top = list(dict.fromkeys(best_here))[:3]
+        top = list(dict.fromkeys((lines_here + (m - tr.a2)).tolist()))[:3]
         ranked[self._at(m), : len(top)] = top
 
     # ----------------------------------------------------------- gap growing

@@ -738,20 +738,18 @@ class LevelSearch:
         # every position d at once (one cost evaluation)
         c = self.cost_rows(np.concatenate(rows), np.concatenate(ts),
                            tables=self._coarse_tables()).reshape(len(rows), n_in)
-        c = np.where(np.stack(bads) | np.isnan(c), np.inf, c)
-        found: list[tuple[float, int, int]] = [
-            (float(c[d, i]), t + side * d, int(i)) for d, i in zip(*np.nonzero(np.isfinite(c)))
-        ]
-        if not found:
+        c = np.where(np.stack(bads) | np.isnan(c), np.inf, c).ravel()
+        # the finite (d, node) pairs in (d, node) order, then by cost (stable: ties keep it)
+        flat = np.flatnonzero(np.isfinite(c))
+        if flat.size == 0:
             return
-        found.sort(key=lambda f: f[0])
-        costs = np.array([f[0] for f in found])
-        nodes = np.array([f[2] for f in found])
+        flat = flat[np.argsort(c[flat], kind="stable")]
+        costs, (ds, nodes) = c[flat], np.divmod(flat, n_in)
+        ms = t + side * ds
         pick = 0
         if self.randomize and self.p.k_best > 1:
-            key = np.array([f[1] * 1_000_000 + f[2] for f in found])
-            pick = self._draw(key, costs, nodes)
-        _, m, node = found[pick]
+            pick = self._draw(ms * 1_000_000 + nodes, costs, nodes)
+        m, node = int(ms[pick]), int(nodes[pick])
         span = np.arange(min(m, t), max(m, t) + 1)
         vals = node + (span - m)  # the output plays forwards on both sides of the jump
         pos = self._positions(span[0], span[-1])
