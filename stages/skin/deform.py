@@ -87,11 +87,8 @@ support_margin=None, clamp_margin=None, max_blend_stretch=None``:
   the markers (``tests/stages/skin/test_artifacts.py``).  Held-out error
   (``benchmarks/deform.py --quick``) is unchanged within a few hundredths of a
   millimetre.
-* **blends widened where they tear** — opt in (``max_blend_stretch=2.5``, the
-  measured setting; default ``None`` = the paper, because the widened vertices
-  are not yet bit-reproducible across executors: the demo's frozen replay saw
-  one vertex of one frame differ by 1.7e-18 m, enough to change the output
-  digest), ``blend_widening_steps`` 100: two parts' models
+* **blends widened where they tear** (``max_blend_stretch`` 2.5; ``None`` = the
+  paper), ``blend_widening_steps`` 100: two parts' models
   disagree at a vertex between them (a part's rigid transform is a compromise
   away from its markers; on the demo's segmentation the rigid predictions of
   neighbouring parts differ by 48 mm at the median blend vertex and by up to
@@ -116,10 +113,11 @@ support_margin=None, clamp_margin=None, max_blend_stretch=None``:
   47 / 46 in quadratic + residual, 153 / 168 in rigid); the mean vertex error
   drops in rigid (7.10 → 6.70 / 7.11 → 6.85 mm) and quadratic (5.38 → 5.16 /
   5.48 → 5.34) and changes by −0.02 / +0.07 mm in quadratic + residual
-  (3.68 → 3.66 / 3.65 → 3.72).  Cost, whole process
-  deforming the benchmark's 13,000-vertex body over 240 frames: 1.6× the time
-  in ``quadratic_residual`` (about 0.5 s), 2.9× in ``rigid`` (about 1.3 s),
-  where the parts disagree most.
+  (3.68 → 3.66 / 3.65 → 3.72).  Cost: on the throughput body of
+  ``benchmarks/deform.py --throughput --quick`` (13,000 vertices, 900 frames)
+  ``quadratic_residual`` reweights 1,543 vertices in 46 steps and runs at about
+  170 frames per CPU-second instead of about 1,100 without widening: the checks
+  gather every frame of the triangles around each tear (table 4 has both rows).
   Held-out markers (``benchmarks/deform.py`` table 2) are points without
   triangles, so they are not affected; table 3 (the simulator's true mesh)
   measures it.  Not fixed by this: triangles that turn over against the rigid
@@ -144,14 +142,25 @@ Implementation notes (none changes the method):
   residual oscillates by centimetres between markers (B-spline kernel only);
 * all parts and frames are evaluated as one linear map
   ``vertices(f) = H · C(f)`` (``H``: β-weighted local coordinates, monomials
-  and kernel values of the vertices, built once; ``C``: per-frame part
-  coefficients), done as two dense BLAS products per part and 32-frame chunk
-  (non-rigid, then rigid) into preallocated work arrays; ``β`` is folded into
-  ``H`` because the clamp commutes with a positive scale, and only the few
-  entries beyond their bound are clamped.  With BLAS at one thread (as the
-  engine runs stages) this takes 0.45 CPU-s instead of 1.04 (user) and 0.15
-  instead of 1.2 (system: fresh pages) for 900 frames of a 13,000-vertex mesh
-  (``benchmarks/deform.py --throughput``); results are the same to 5e-16 m.
+  and kernel values of the vertex-part pairs, built once; ``C``: per-frame part
+  coefficients), done as two sparse products per 16-frame chunk (non-rigid,
+  clamped, then rigid) into reused work arrays; ``β`` is folded into ``H``
+  because the clamp commutes with a positive scale, and only the few entries
+  beyond their bound are clamped;
+* **bit-reproducible**: every vertex's result is computed by operations whose
+  rounding does not depend on which other vertices, frames or parts are computed
+  in the same call, nor on BLAS or its thread count: ``H``'s rows come from their
+  own vertex alone (local coordinates as products summed in a fixed order, not a
+  BLAS product), a sparse row times the coefficients adds its terms in column
+  order one row at a time (scipy's CSR kernel), ``C`` is built by products summed
+  in a fixed order, and each vertex's parts are summed in a fixed order.  A BLAS
+  product does not have this property: the same row of ``H @ C`` rounds
+  differently (last bit) depending on how many rows are multiplied with it, which
+  made the widened vertices (evaluated apart from the rest) differ by 1.7e-18 m
+  between the demo's run and its frozen replay.  Worker frame chunks,
+  ``max_blend_stretch`` re-evaluations, vertex subsets and thread counts give the
+  same bytes (``tests/stages/skin/test_deform.py``); results equal the former
+  dense BLAS evaluation within 1e-15 m.
 
 Fallbacks, each with a warning naming the part: a part with fewer than
 ``min_quadratic_markers`` markers (quadratic under-determined) uses the rigid
@@ -209,57 +218,70 @@ __all__ = [
 
 @dataclass
 class VertexOperator:
-    """Per-part dense blocks with ``vertices(f) = Σ_p scatter_p(H_p @ C_p(f))`` (P&H Eq. 8–9).
+    """Sparse rows with ``vertices(f) = Σ_pairs (R_pair + N_pair) @ C(f)`` (P&H Eq. 8–9).
 
-    Built once per mesh and segmentation (bind time); every frame is then a few
-    dense products.  The rows of all parts are stacked ("vertex-part pairs":
-    part ``p`` owns rows ``rows[p]:rows[p + 1]``) and summed into the mesh
-    vertices layer by layer (``layers``).
+    Built once per mesh, segmentation and ``β``; every frame is then two sparse
+    products.  One row per vertex-part pair, ordered by layer (layer ``k``: each
+    vertex's ``k``-th part, vertices ascending; layer 0 holds every vertex with a
+    part), so the pairs are summed into the vertices layer by layer.  Every entry of a
+    row depends only on its vertex and part, and a sparse row times a dense matrix
+    adds its terms in column order, one row at a time: a vertex's result never
+    depends on which other vertices are evaluated with it, on BLAS, or on its thread
+    count (:func:`deform_positions`).
 
     Attributes
     ----------
     vertices : list of (Vp,) int ndarray
         Mesh vertices of each part (``β > 0``).
-    blocks : list of (Vp, Kp) float ndarray
-        ``β [v̄, 1, q(v̄), 1, φ(v̄)]`` per part: the rigid columns (local
-        position, constant), then the non-rigid ones (centred scaled monomials,
-        constant, residual kernel values at the part's markers), every row
-        weighted by the vertex's ``β``.
-    offsets : (P + 1,) int ndarray
-        Rows of each part's block in :func:`frame_coefficients`.
-    n_vertices : int
     beta : list of (Vp,) float ndarray
         The vertices' ``β`` per part.
+    rigid : (N, K) scipy.sparse.csr_matrix
+        ``β [v̄, 1]`` of each pair at its part's first four columns (local position,
+        constant of the rigid transform).
+    nonrigid : (N, K) scipy.sparse.csr_matrix
+        ``β [q(v̄), 1, φ(v̄)]`` of each pair at its part's remaining columns (centred
+        scaled monomials, constant, residual kernel values at the part's markers).
+    pair_part : (N,) int ndarray
+    pair_beta : (N,) float ndarray
+    offsets : (P + 1,) int ndarray
+        Columns of each part in :func:`frame_coefficients`.
+    n_vertices : int
     clamp_margins : list of float or None
         Each part's :func:`~mocapflow.stages.skin.parts.soft_clamp` margin (None: no clamp).
-    rows : (P + 1,) int ndarray
-        Each part's range of vertex-part pairs.
-    layers : list of ((n,) int ndarray, (n,) int ndarray)
-        ``(vertices, pairs)``: layer ``k`` holds each vertex's ``k``-th pair, so no
-        vertex repeats within a layer (layer 0: every vertex with a part).
+    layers : list of ((n,) int ndarray, int)
+        ``(vertices, first pair)`` of each layer; its pairs are consecutive.
     """
 
     vertices: list[np.ndarray]
-    blocks: list[np.ndarray]
+    beta: list[np.ndarray]
+    rigid: sp.csr_matrix
+    nonrigid: sp.csr_matrix
+    pair_part: np.ndarray
+    pair_beta: np.ndarray
     offsets: np.ndarray
     n_vertices: int
-    beta: list[np.ndarray]
     clamp_margins: list[float | None]
-    rows: np.ndarray
-    layers: list[tuple[np.ndarray, np.ndarray]]
+    layers: list[tuple[np.ndarray, int]]
 
 
-def vertex_operator(models: list[PartModel], n_vertices: int, *, residual: bool) -> VertexOperator:
+def _part_local(m: PartModel, points: np.ndarray) -> np.ndarray:
+    """``(points - origin) @ axes`` as three products and two sums per coordinate, in a fixed
+    order: a point's local coordinates never depend on the other points (BLAS blocking)."""
+    d = points - m.origin
+    return d[:, :1] * m.axes[0] + d[:, 1:2] * m.axes[1] + d[:, 2:3] * m.axes[2]
+
+
+def vertex_operator(models: list[PartModel], n_vertices: int, *, residual: bool,
+                    rest: np.ndarray | None = None,
+                    beta: np.ndarray | None = None) -> VertexOperator:  # fmt: skip
     """Operator with ``vertices(f) = H @ C(f)`` for every frame (P&H Eq. 8–9).
 
-    For part ``p`` and vertex ``v`` the row block is ``β [v̄, 1, q(v̄), 1, φ(v̄)]``
-    (local position and constant of the rigid transform; centred scaled
-    monomials, constant and kernel values at the part's markers of the non-rigid
-    terms); :func:`frame_coefficients` gives the matching ``C``.  The non-rigid
-    product is clamped (:func:`~mocapflow.stages.skin.parts.soft_clamp`, which
-    commutes with the positive scale ``β``) in :func:`deform_positions`.  The
-    blocks are dense: one BLAS product per part and frame chunk is faster than one
-    sparse product over all parts, even for the compact B-spline.
+    For part ``p`` and vertex ``v`` the row is ``β [v̄, 1, q(v̄), 1, φ(v̄)]`` (local
+    position and constant of the rigid transform; centred scaled monomials,
+    constant and kernel values at the part's markers of the non-rigid terms);
+    :func:`frame_coefficients` gives the matching ``C``.  The non-rigid product is
+    clamped (:func:`~mocapflow.stages.skin.parts.soft_clamp`, which commutes with
+    the positive scale ``β``) in :func:`deform_positions`.
 
     Parameters
     ----------
@@ -267,30 +289,62 @@ def vertex_operator(models: list[PartModel], n_vertices: int, *, residual: bool)
     n_vertices : int
     residual : bool
         Include the RBF kernel columns.
+    rest : (n_vertices, 3) float ndarray, optional
+        Rest vertices, with ``beta``: the pairs are ``β > 0`` and every row is computed
+        here from its own vertex alone.  Omitted: the models' own vertex arrays
+        (:func:`~mocapflow.stages.skin.parts.prepare_part` with ``vertices``).
+    beta : (n_vertices, P) float ndarray, optional
+        Vertex weights, with ``rest``.
 
     Returns
     -------
     VertexOperator
     """
-    verts, blocks, sizes = [], [], []
-    for m in models:
-        n = len(m.members) if residual else 0
-        one = np.ones((len(m.vertices), 1))
-        cols = [m.vertex_local, one, m.vertex_basis, one]
-        if n:
-            cols.append(m.vertex_kernel.toarray())
-        verts.append(m.vertices)
-        blocks.append(np.concatenate(cols, axis=1) * m.beta[:, None])
-        sizes.append(14 + n)
-    rows = np.cumsum([0, *(len(v) for v in verts)])
-    pair_vertex = np.concatenate(verts).astype(np.int64) if verts else np.zeros(0, np.int64)
-    order = np.argsort(pair_vertex, kind="stable")
-    sorted_v = pair_vertex[order]
-    rank = np.arange(len(sorted_v)) - np.searchsorted(sorted_v, sorted_v)  # k-th pair of v
-    layers = [(sorted_v[rank == k], order[rank == k]) for k in range(int(rank.max(initial=-1)) + 1)]
-    return VertexOperator(verts, blocks, np.cumsum([0, *sizes]), n_vertices,
-                          [m.beta for m in models], [m.clamp_margin for m in models],
-                          rows, layers)  # fmt: skip
+    if (rest is None) != (beta is None):
+        raise ValueError("vertex_operator: give rest and beta together")
+    sizes = [14 + (len(m.members) if residual else 0) for m in models]
+    offsets = np.cumsum([0, *sizes])
+    verts, betas, rigid, nonrigid = [], [], [], []
+    for p, m in enumerate(models):
+        if rest is None:
+            v, b, local = m.vertices, m.beta, m.vertex_local
+            basis, kernel = m.vertex_basis, m.vertex_kernel if residual else None
+        else:
+            v = np.flatnonzero(beta[:, p] > 0)
+            b, local = beta[v, p], _part_local(m, rest[v])
+            basis, kernel = m.basis(local), m.kernel_rows(local) if residual else None
+        one = np.ones((len(v), 1))
+        dense = sp.csr_matrix(np.concatenate([basis, one], axis=1) * b[:, None])
+        if kernel is not None and kernel.shape[1]:
+            kernel = sp.csr_matrix(kernel)
+            kernel = sp.csr_matrix((kernel.data * np.repeat(b, np.diff(kernel.indptr)),
+                                    kernel.indices, kernel.indptr), shape=kernel.shape)  # fmt: skip
+            dense = sp.hstack([dense, kernel], format="csr")
+        pad = sp.csr_matrix((len(v), int(offsets[-1] - offsets[p + 1])))
+        lead = sp.csr_matrix((len(v), int(offsets[p])))
+        rigid.append(sp.hstack([lead, sp.csr_matrix(np.concatenate([local, one], 1) * b[:, None]),
+                                sp.csr_matrix((len(v), sizes[p] - 4)), pad], format="csr"))
+        nonrigid.append(sp.hstack([lead, sp.csr_matrix((len(v), 4)), dense, pad], format="csr"))
+        verts.append(np.asarray(v, dtype=np.int64))
+        betas.append(np.asarray(b, dtype=np.float64))
+    K = int(offsets[-1])
+    stack = (lambda blocks: sp.vstack(blocks, format="csr")) if models else (
+        lambda blocks: sp.csr_matrix((0, K)))  # fmt: skip
+    R, N = stack(rigid), stack(nonrigid)
+    for M in (R, N):
+        M.sort_indices()  # each row's terms are added in column order
+    pair_vertex = np.concatenate(verts) if verts else np.zeros(0, np.int64)
+    pair_part = np.repeat(np.arange(len(models)), [len(v) for v in verts])
+    order = np.argsort(pair_vertex, kind="stable")  # by vertex, then part
+    rank = np.empty(len(order), np.int64)  # k-th part of its vertex
+    rank[order] = np.arange(len(order)) - np.searchsorted(pair_vertex[order], pair_vertex[order])
+    order = np.lexsort((pair_vertex, rank))  # by layer, then vertex
+    counts = np.bincount(rank, minlength=1) if len(rank) else np.zeros(0, np.int64)
+    starts = np.cumsum([0, *counts])
+    layers = [(pair_vertex[order[a:b]], int(a)) for a, b in zip(starts, starts[1:])]
+    return VertexOperator(verts, betas, R[order], N[order], pair_part[order],
+                          np.concatenate(betas)[order] if betas else np.zeros(0), offsets,
+                          n_vertices, [m.clamp_margin for m in models], layers)  # fmt: skip
 
 
 def operator_matrix(operator: VertexOperator) -> sp.csr_matrix:
@@ -299,15 +353,22 @@ def operator_matrix(operator: VertexOperator) -> sp.csr_matrix:
     The linear map without the clamp: exact where no part clamps (``clamp_margin``
     None, or no vertex beyond its part's marker deviation).
     """
-    rows, cols, vals = [], [], []
-    for v, blk, o in zip(operator.vertices, operator.blocks, operator.offsets):
-        r, c = np.nonzero(blk)
-        rows.append(v[r])
-        cols.append(c + o)
-        vals.append(blk[r, c])
-    cat = (lambda x: np.concatenate(x)) if rows else (lambda x: np.zeros(0))
-    return sp.csr_matrix((cat(vals), (cat(rows), cat(cols))),
-                         shape=(operator.n_vertices, int(operator.offsets[-1])))  # fmt: skip
+    n = operator.rigid.shape[0]
+    pair_vertex = np.zeros(n, np.int64)
+    for v, first in operator.layers:
+        pair_vertex[first : first + len(v)] = v
+    to_vertex = sp.csr_matrix((np.ones(n), (pair_vertex, np.arange(n))),
+                              shape=(operator.n_vertices, n))  # fmt: skip
+    return (to_vertex @ (operator.rigid + operator.nonrigid)).tocsr()
+
+
+def _products(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` over the last two axes, ``(..., i, j) @ (..., j, k)``, as products summed in
+    a fixed order (no BLAS: a frame's result never depends on the other frames)."""
+    out = a[..., :, :1] * b[..., :1, :]
+    for j in range(1, a.shape[-1]):
+        out += a[..., :, j : j + 1] * b[..., j : j + 1, :]
+    return out
 
 
 def frame_coefficients(
@@ -326,46 +387,59 @@ def frame_coefficients(
         rigid_d = f.d if f.rigid_d is None else f.rigid_d
         out.append(f.R.transpose(2, 0, 1))  # (3, F, 3): row k = R[:, :, k]
         out.append(rigid_d[None])  # (1, F, 3)
-        out.append((f.R @ f.A).transpose(2, 0, 1))  # (9, F, 3): row k = (R A)[:, :, k]
+        out.append(_products(f.R, f.A).transpose(2, 0, 1))  # (9, F, 3): row k = (R A)[:, :, k]
         out.append((f.d - rigid_d)[None])  # (1, F, 3): the quadratic's constant, R c
         if residual:
-            out.append((f.W @ f.R.transpose(0, 2, 1)).transpose(1, 0, 2))  # (n, F, 3)
+            out.append(_products(f.W, f.R.transpose(0, 2, 1)).transpose(1, 0, 2))  # (n, F, 3)
     return np.concatenate(out, axis=0)
 
 
-#: Frames per product in :func:`deform_positions`: the products stay BLAS-sized and the
-#: work array of a 13,000-vertex mesh a few MB.
-_FRAMES_PER_PRODUCT = 32
+#: Frames per product in :func:`deform_positions`: the work arrays of a 13,000-vertex mesh
+#: stay a few MB.
+_FRAMES_PER_PRODUCT = 16
 _XYZ = np.dtype((np.void, 24))  # one vertex position (3 float64) as one item
 
 
-def _clamp_weighted(u: np.ndarray, beta: np.ndarray, bound: np.ndarray, margin: float) -> None:
-    """Soft-clamp β-weighted displacements ``u (Vp, 3f)`` in place at ``β × bound (f,)``.
+def _clamp_weighted(u: np.ndarray, beta: np.ndarray, bound: np.ndarray,
+                    margin: np.ndarray) -> None:  # fmt: skip
+    """Soft-clamp β-weighted displacements ``u (N, 3f)`` in place at ``β × bound (N, f)``.
 
     Equal to ``β soft_clamp(u / β, bound)`` (the clamp commutes with a positive
     scale); only the entries beyond the bound (few) go through
-    :func:`~mocapflow.stages.skin.parts.soft_clamp`.
+    :func:`~mocapflow.stages.skin.parts.soft_clamp` (``margin (N,)`` per row).
     """
     sq = np.square(u)
     r2 = sq[:, 0::3] + sq[:, 1::3]
-    r2 += sq[:, 2::3]  # (Vp, f): |β R u|²
+    r2 += sq[:, 2::3]  # (N, f): |β R u|²
     r2 /= np.square(beta)[:, None]
-    over = r2 > np.square(bound)[None, :]
+    over = r2 > np.square(bound)
     if over.any():
         i, j = np.nonzero(over)
         u3 = u.reshape(len(u), -1, 3)
-        u3[i, j] = soft_clamp(u3[i, j], beta[i] * bound[j], margin)
+        u3[i, j] = soft_clamp(u3[i, j], beta[i] * bound[i, j], margin[i])
+
+
+def _sparse_product(A: sp.csr_matrix, X: np.ndarray, out: np.ndarray) -> None:
+    """``out[:] = A @ X`` for ``X (K, n)`` and ``out (N, n)``: scipy's CSR kernel adds
+    each row's terms in column order, one row at a time, so a row's value does not
+    depend on the other rows."""
+    if A.nnz:
+        out[...] = A @ X
+    else:
+        out.fill(0.0)
 
 
 def deform_positions(
     models: list[PartModel], fits: list[PartFit], n_vertices: int,
     operator: VertexOperator | None = None, *, residual: bool | None = None,
 ) -> np.ndarray:  # fmt: skip
-    """Blend every part's moved vertices with their weights ``β`` (P&H Eq. 9).
+    """Blend every part's moved vertices with their weights ``β`` (P&H Eq. 8–9).
 
-    Per chunk of frames and part: one product for the non-rigid displacement
-    (clamped), one for the rigid transform; then each vertex's pairs are summed
-    layer by layer (:class:`VertexOperator`).
+    Per chunk of frames: one sparse product for the non-rigid displacements of all
+    vertex-part pairs (clamped per part), one for the rigid transforms; then each
+    vertex's pairs are summed layer by layer (:class:`VertexOperator`).  Bit-for-bit
+    the same whichever vertices, frames or parts are evaluated together, with any
+    BLAS and thread count.
 
     Parameters
     ----------
@@ -391,48 +465,48 @@ def deform_positions(
     K, F, _ = C.shape
     if K != operator.offsets[-1]:
         raise ValueError("deform_positions: operator and fits disagree (residual?)")
-    o, rows = operator.offsets, operator.rows
-    # parts whose non-rigid coefficients are all zero (rigid mode, a rigid fallback) skip them
-    nonrigid = [bool(C[o[p] + 4 : o[p + 1]].any()) for p in range(len(operator.blocks))]
-    bounds = [None if margin is None else f.marker_deviation
-              for margin, f in zip(operator.clamp_margins, fits)]  # fmt: skip
+    o = operator.offsets
+    # without any non-rigid coefficient (rigid mode) that product is exactly zero: skipped
+    nonrigid = any(C[o[p] + 4 : o[p + 1]].any() for p in range(len(models)))
+    # the clamp: each pair's bound per frame (its part's marker deviation) and margin
+    clamped = np.array([m is not None for m in operator.clamp_margins], bool)
+    pairs = np.flatnonzero(clamped[operator.pair_part]) if nonrigid else np.zeros(0, np.int64)
+    if len(pairs):
+        deviation = np.stack([f.marker_deviation if c else np.zeros(F)
+                              for f, c in zip(fits, clamped)])  # fmt: skip
+        margin = np.array([m or 0.0 for m in operator.clamp_margins])[operator.pair_part[pairs]]
+        beta = operator.pair_beta[pairs]
     out = np.empty((F, n_vertices, 3))
-    # work arrays reused by every chunk (fresh pages cost more than the products here)
-    n = min(F, _FRAMES_PER_PRODUCT)
-    Y_full = np.empty((rows[-1], 3 * n))  # vertex-part pairs x (frame, xyz)
-    X_full = np.empty((n_vertices, 3 * n))  # vertices x (frame, xyz)
-    T_full = np.empty((max(np.diff(rows), default=0), 3 * n))  # one part's rigid product
     layers = operator.layers
     complete = bool(layers) and len(layers[0][0]) == n_vertices  # every vertex has a part
+    # work arrays reused by every chunk (fresh pages cost more than the products here)
+    n, N = min(F, _FRAMES_PER_PRODUCT), operator.rigid.shape[0]
+    Y_full, U_full = np.empty((N, 3 * n)), np.empty((N, 3 * n) if nonrigid else (0, 0))
     for a in range(0, F, _FRAMES_PER_PRODUCT):
         b = min(F, a + _FRAMES_PER_PRODUCT)
+        Cc = np.ascontiguousarray(C[:, a:b]).reshape(K, 3 * (b - a))
         full = b - a == n
-        Y = Y_full if full else np.empty((rows[-1], 3 * (b - a)))
-        X = X_full if full else np.empty((n_vertices, 3 * (b - a)))
-        T = T_full if full else np.empty((len(T_full), 3 * (b - a)))
-        for p, blk in enumerate(operator.blocks):
-            Yp = Y[rows[p] : rows[p + 1]]
-            if not len(Yp):
-                continue
-            Cp = C[o[p] : o[p + 1], a:b].reshape(o[p + 1] - o[p], 3 * (b - a))
-            if not nonrigid[p]:
-                np.matmul(blk[:, :4], Cp[:4], out=Yp)
-                continue
-            np.matmul(blk[:, 4:], Cp[4:], out=Yp)  # β R u: the non-rigid displacement
-            if bounds[p] is not None:
-                _clamp_weighted(Yp, operator.beta[p], bounds[p][a:b], operator.clamp_margins[p])
-            Tp = T[: len(Yp)]
-            np.matmul(blk[:, :4], Cp[:4], out=Tp)  # β (R v̄ + d): the rigid transform
-            Yp += Tp
-        # sum each vertex's pairs (a vertex appears at most once per layer)
+        Y = Y_full if full else np.empty((N, 3 * (b - a)))
+        _sparse_product(operator.rigid, Cc, Y)  # β (R v̄ + d): the rigid transforms
+        if nonrigid:
+            U = U_full if full else np.empty((N, 3 * (b - a)))
+            _sparse_product(operator.nonrigid, Cc, U)  # β R u: the non-rigid displacements
+            if len(pairs) == len(U):  # every part clamps (the default): in place
+                _clamp_weighted(U, beta, deviation[operator.pair_part, a:b], margin)
+            elif len(pairs):
+                Up = U[pairs]
+                _clamp_weighted(Up, beta, deviation[operator.pair_part[pairs], a:b], margin)
+                U[pairs] = Up
+            Y += U
+        # sum each vertex's pairs, layer by layer (layer 0: vertices 0..V-1 when complete)
         if complete:
-            np.take(Y, layers[0][1], axis=0, out=X, mode="clip")  # valid indices: no buffer
+            X = Y[:n_vertices]
         else:
-            X.fill(0.0)
+            X = np.zeros((n_vertices, 3 * (b - a)))
             if layers:
-                X[layers[0][0]] = Y[layers[0][1]]
-        for v, pairs in layers[1:]:
-            X[v] += Y[pairs]
+                X[layers[0][0]] = Y[: len(layers[0][0])]
+        for v, first in layers[1:]:
+            X[v] += Y[first : first + len(v)]
         # (V, f, 3) -> (f, V, 3), moving whole xyz triplets (24 bytes) at a time
         out[a:b].view(_XYZ)[..., 0] = X.view(_XYZ).T
     return out
@@ -514,12 +588,13 @@ def _fallback_hint(message: str) -> str | None:
 
 
 def _deform_frames(models: list[PartModel], fits: list[PartFit], n_frames: int,
-                   n_vertices: int, *, residual: bool, chunk_frames: int,
-                   ctx: Context) -> np.ndarray:
-    """The blended vertices ``(F, V, 3)`` (P&H Eq. 8–9): in one in-process pass, or in
-    frame chunks of ``chunk_frames`` on the executor's workers."""
-    F, V = n_frames, n_vertices
-    operator = vertex_operator(models, V, residual=residual)
+                   rest: np.ndarray, beta: np.ndarray, *, residual: bool, chunk_frames: int,
+                   ctx: Context) -> np.ndarray:  # fmt: skip
+    """The blended vertices ``(F, V, 3)`` of ``rest (V, 3)`` with weights ``beta (V, P)``
+    (P&H Eq. 8–9): in one in-process pass, or in frame chunks of ``chunk_frames`` on the
+    executor's workers (the same bits either way)."""
+    F, V = n_frames, len(rest)
+    operator = vertex_operator(models, V, residual=residual, rest=rest, beta=beta)
     bounds = list(range(0, F, max(1, chunk_frames))) + [F]
     if ctx.mapper is None or len(bounds) <= 2:  # in-process: one pass, no copies
         return deform_positions(models, fits, V, operator, residual=residual)
@@ -585,11 +660,10 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
 
     def predictions(v: np.ndarray, p: int) -> np.ndarray:
         new = v[slot[v, p] < 0]
-        if len(new):
-            m, f = models[p], fits[p]
-            local = (rest[new] - m.origin) @ m.axes
-            kernel = m.kernel_rows(local) if residual else None
-            moved = evaluate_part(m, f, local, m.basis(local), kernel)
+        if len(new):  # part p's model alone (β = 1), by the same row-by-row products
+            one = vertex_operator([models[p]], len(new), residual=residual, rest=rest[new],
+                                  beta=np.ones((len(new), 1)))  # fmt: skip
+            moved = deform_positions([models[p]], [fits[p]], len(new), one, residual=residual)
             slot[new, p] = pred.append(moved.transpose(1, 0, 2))
         return pred.data[slot[v, p]]
 
@@ -717,7 +791,7 @@ def deform(
     chunk_frames: int = 1024,
     support_margin: float | None = 0.5,
     clamp_margin: float | None = 0.1,
-    max_blend_stretch: float | None = None,
+    max_blend_stretch: float | None = 2.5,
     blend_widening_steps: int = 100,
     ctx: Context,
 ) -> dict[str, Any]:
@@ -768,10 +842,9 @@ def deform(
         Where the blend between parts stretches a mesh edge beyond this factor of
         its rest length in some frame, the weights ``β`` there are diffused over the
         mesh (widening the blend) until it does not, or ``blend_widening_steps``
-        steps were taken (see the module docstring); ``None`` (default): ``β`` as
-        bound (the paper).  2.5 removes the demo's torn triangles (40 -> 0 in
-        ``quadratic_residual``); it is off by default until its output is
-        bit-reproducible across executors.
+        steps were taken (see the module docstring); ``None``: ``β`` as bound (the
+        paper).  The default 2.5 removes the demo's torn triangles (40 -> 0 in
+        ``quadratic_residual``).
     blend_widening_steps : int
         Most diffusion steps of ``max_blend_stretch`` (each widens a blend by about
         one ring of mesh vertices).
@@ -804,8 +877,7 @@ def deform(
     # frame-independent set-up in-process (cheap; per-vertex arrays stay here), the
     # per-part fits over all frames on the executor (small inputs and outputs)
     models = [
-        prepare_part(segmentation, p, vertices=mesh.vertices, beta=binding.beta,
-                     min_quadratic_markers=min_quadratic_markers,
+        prepare_part(segmentation, p, min_quadratic_markers=min_quadratic_markers,
                      dilation_factor=dilation_factor, residual_kernel=residual_kernel,
                      support_margin=support_margin, clamp_margin=clamp_margin)
         for p in range(segmentation.n_parts)
@@ -813,8 +885,8 @@ def deform(
     fits = _fit_parts(models, x, mode=mode, min_quadratic_markers=min_quadratic_markers,
                       damping=quadratic_damping, ctx=ctx)
     V = mesh.vertices.shape[0]
-    verts = _deform_frames(models, fits, x.shape[0], V, residual=mode.endswith("residual"),
-                           chunk_frames=chunk_frames, ctx=ctx)
+    verts = _deform_frames(models, fits, x.shape[0], mesh.vertices, binding.beta,
+                           residual=mode.endswith("residual"), chunk_frames=chunk_frames, ctx=ctx)
     beta, widened = binding.beta, {"steps": 0, "vertices": 0}
     if max_blend_stretch is not None and len(mesh.faces):
         beta, n_steps, n_changed = _widen_blends(

@@ -120,8 +120,8 @@ def test_blend_is_widened_where_parts_disagree(sliding_parts, mode):
         v = out["mesh"].vertices
         return v, (triangle_edge_lengths(v, faces) / triangle_edge_lengths(rest, faces)).max(), out
 
-    _, paper_stretch, _ = run()  # the default: the paper's beta
-    v, stretch, out = run(max_blend_stretch=2.5)
+    _, paper_stretch, _ = run(max_blend_stretch=None)  # the paper's beta
+    v, stretch, out = run()  # the default: max_blend_stretch 2.5
     # measured: 6.85 as bound, 2.28 widened in 7 steps (160 of 480 vertices reweighted)
     assert paper_stretch > 3.0
     assert stretch <= 2.5 + 1e-9
@@ -179,13 +179,10 @@ def _demo_artifacts(demo_run):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=(
-    "issue 15 item 4: the demo runs deform's default max_blend_stretch=None (the blend "
-    "widening is opt-in until bit-reproducible across executors): 40 triangles stretched > 3x "
-    "in quadratic_residual (238 in rigid); with max_blend_stretch=2.5 0, largest 2.50x"))
 def test_demo_mesh_has_no_stretched_triangles(demo_run):
     """Item 4 on the demo's own deformed body: no triangle stretched > 3x against the rest
-    (fitted) mesh."""
+    (fitted) mesh (deform's blend widening, max_blend_stretch 2.5 by default; without it
+    40 triangles stretched in quadratic_residual, 238 in rigid)."""
     stretched, _ = _demo_artifacts(demo_run)
     assert not stretched.any(), int(stretched.sum())
 
@@ -193,11 +190,11 @@ def test_demo_mesh_has_no_stretched_triangles(demo_run):
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason=(
     "issue 15 item 4 not met on the demo capture: measured (quick demo, 120 frames, 5,001 "
-    "vertices) 351 triangles flipped vs the rigid mode at some frame (313 with the opt-in "
-    "blend widening, max_blend_stretch=2.5); the residual turns most (rigid_residual 341, "
-    "quadratic alone 89; thin-plate residual 274), and the rigid mode itself turns 351 "
-    "against each triangle's dominant part's rotation (the right arm is one part bending "
-    "at the elbow)"))  # fmt: skip
+    "vertices) 313 triangles flipped vs the rigid mode at some frame with the blend "
+    "widening (max_blend_stretch=2.5, the default; 351 without); the residual turns most "
+    "(rigid_residual 341, quadratic alone 89; thin-plate residual 274), and the rigid mode "
+    "itself turns 351 against each triangle's dominant part's rotation (the right arm is "
+    "one part bending at the elbow)"))  # fmt: skip
 def test_demo_mesh_has_no_flipped_triangles(demo_run):
     """Item 4 on the demo's own deformed body: no triangle flipped against the rigid mode."""
     _, flipped = _demo_artifacts(demo_run)

@@ -518,3 +518,55 @@ def test_held_out_points_on_a_bending_bulging_limb():
     paper = deform(d["markers"], seg, d["mesh"], beta_sharpness=1.0, quadratic_damping=0.0,
                    residual_kernel="cubic_bspline", ctx=Context())["mesh"].vertices  # fmt: skip
     assert qr < 0.7 * err(paper) and err(paper) < 0.8 * ours["rigid"]
+
+
+def test_deform_is_bit_reproducible_across_groupings_chunks_and_threads(limb):
+    """Issue 15 item 4: the same bytes whichever vertices are evaluated together, however
+    the frames are chunked on an executor and with 1 or 2 BLAS threads (a BLAS product
+    rounds a row differently depending on how many rows go with it: with the former
+    dense evaluation a vertex evaluated alone differed in the last bit)."""
+    from threadpoolctl import threadpool_limits
+
+    seg, markers, mesh = limb["seg"], limb["markers"], limb["mesh"]
+    V = mesh.vertices
+    with threadpool_limits(1):
+        full = deform(markers, seg, mesh, max_blend_stretch=None, ctx=Context())["mesh"].vertices
+        sub = np.arange(1, len(V), 3)[::-1]  # another grouping, order and count of vertices
+        part = deform(markers, seg, Mesh(V[sub], np.zeros((0, 3), int)),
+                      ctx=Context())["mesh"].vertices  # fmt: skip
+        alone = [deform(markers, seg, Mesh(V[[k]], np.zeros((0, 3), int)),
+                        ctx=Context())["mesh"].vertices for k in (0, 641, 1279)]  # fmt: skip
+    assert part.tobytes() == full[:, sub].tobytes()
+    for k, one in zip((0, 641, 1279), alone):  # one vertex alone: a BLAS product differed here
+        assert one.tobytes() == np.ascontiguousarray(full[:, [k]]).tobytes()
+    # blends widened (a low bound: many vertices move again, evaluated apart from the rest)
+    runs = []
+    with ThreadPoolExecutor(2) as pool:
+        for threads, mapper, chunk in ((1, None, 1024), (2, None, 1024),
+                                       (2, lambda fn, it: list(pool.map(fn, it)), 7)):
+            with threadpool_limits(threads):
+                runs.append(deform(markers, seg, mesh, max_blend_stretch=1.05, chunk_frames=chunk,
+                                   ctx=Context(mapper=mapper)))  # fmt: skip
+    assert runs[0]["report"]["blend_widening"]["vertices"] > 10
+    assert np.abs(runs[0]["mesh"].vertices - full).max() > 1e-4  # widening moved them
+    for r in runs[1:]:
+        assert r["mesh"].vertices.tobytes() == runs[0]["mesh"].vertices.tobytes()
+
+
+def test_operator_rows_do_not_depend_on_the_other_vertices(limb):
+    """deform_positions of a vertex subset (with other weights elsewhere) gives the same
+    bytes for those vertices as the whole mesh."""
+    seg, x, V = limb["seg"], limb["markers"].positions[:40], limb["mesh"].vertices
+    beta = bind_mesh(V, seg, sharpness=4.0).beta
+    models = [prepare_part(seg, p) for p in range(seg.n_parts)]
+    fits = [fit_part(m, x[:, m.members], mode="quadratic_residual") for m in models]
+    whole = deform_positions(models, fits, len(V), vertex_operator(
+        models, len(V), residual=True, rest=V, beta=beta), residual=True)  # fmt: skip
+    rng = np.random.default_rng(3)
+    for size in (1, 7, len(V) // 2):
+        sub = rng.choice(len(V), size, replace=False)
+        op = vertex_operator(models, size, residual=True, rest=V[sub], beta=beta[sub])
+        got = deform_positions(models, fits, size, op, residual=True)
+        assert got.tobytes() == np.ascontiguousarray(whole[:, sub]).tobytes()
+    with pytest.raises(ValueError, match="together"):
+        vertex_operator(models, len(V), residual=True, rest=V)
