@@ -23,6 +23,8 @@ the paper lives in one function (modules of this package):
   trajectory merging                     merge.merge_fragments (rounds: merge._merge_rounds)
   ε₁ = α₁·d̄, ε₂ = α₂·d̄                   merge._tolerances
   entry / tube / ambiguity tests         merge._judge_fragment
+  continuity across a break or short     merge.continue_breaks (carried by the
+  gap (beyond the paper)                 neighbours' rigid motion: merge._carry)
   fragments left, against the final      merge.assign_fragments (exact gaps:
   filling, jointly (beyond the paper)    merge._exact_gap_jumps; one assignment per
                                          frame window: merge._decide); rounds:
@@ -56,7 +58,9 @@ the paper lives in one function (modules of this package):
   RBF residual, cubic B-spline           parts._residual_fits, kernels.rbf_matrix,
   (P&H Eq. 7)                            kernels.cubic_bspline, kernels._solve_kernel
   vertices moved and blended             parts.evaluate_part, deform.vertex_operator,
-  (P&H Eq. 8–9)                          deform.deform_positions; the stage deform.deform
+  (P&H Eq. 8–9)                          deform.deform_positions (bit-reproducible:
+                                         sparse rows, sums in a fixed order, no BLAS);
+                                         the stage deform.deform
 rendering (Figure 7: modes side by side) render.render_frames, render.render_modes
 
 Departures from the paper (each module docstring says why, with measurements):
@@ -98,8 +102,8 @@ Departures from the paper (each module docstring says why, with measurements):
   the quadratic held at the edge of its markers' box (``support_margin``,
   parts.PartModel.basis) and each vertex's non-rigid displacement softly clamped
   at the part markers' deviation from rigid (``clamp_margin``, parts.soft_clamp);
-  opt in: β diffused over the mesh where a blend between parts would stretch an
-  edge beyond ``max_blend_stretch`` (deform._widen_blends,
+  β diffused over the mesh where a blend between parts would stretch an edge
+  beyond ``max_blend_stretch`` (2.5; deform._widen_blends,
   binding.blend_smoothing_operator); the paper exactly: ``beta_sharpness=1,
   quadratic_damping=0, residual_kernel="cubic_bspline", support_margin=None,
   clamp_margin=None, max_blend_stretch=None``.

@@ -274,7 +274,9 @@ def test_merge_with_index_equals_dense_merge(monkeypatch):
 def grid_case(offset_true, offset_wrong=0.004):
     """A 6×6 marker grid (40 mm); markers 14 and 15 missing in frames 5..12.
 
-    The fragment is marker 15's true trajectory there.  Hole-filled estimates:
+    The fragment is marker 15's true trajectory there (it continues marker 15 across
+    the gap: the tests of the prediction rules turn continuity off, ``max_break=0``).
+    Hole-filled estimates:
     marker 14's lies ``offset_wrong`` from the fragment; marker 15's (trusted
     only as a competitor) ``offset_true`` from it.
     """
@@ -308,10 +310,11 @@ def test_pca_merge_with_a_close_marker_far_off_its_estimate_is_ambiguous(offset_
     rule for hole-filled estimates (ratio 6.5 for markers within one d̄) does not."""
     X, frags, surf, direct, comp = grid_case(offset_true)
     plain = cm.merge_fragments(X, frags, surf, predictions=direct, competitors=comp,
-                               mean_tolerance=1.0, near_ratio=cm.AMBIGUITY_RATIO)
+                               max_break=0, mean_tolerance=1.0,
+                               near_ratio=cm.AMBIGUITY_RATIO)
     assert plain[1][0] == 14  # the wrong merge the rule prevents
     _, assigned, rep = cm.merge_fragments(X, frags, surf, predictions=direct,
-                                          competitors=comp)
+                                          competitors=comp, max_break=0)
     assert assigned[0] == -1
     assert rep["rejections"][0]["reason"].startswith("ambiguous: M")
     assert rep["conflicts"][0]["labels"] == [surf.labels[14], surf.labels[15]]
@@ -319,7 +322,8 @@ def test_pca_merge_with_a_close_marker_far_off_its_estimate_is_ambiguous(offset_
 
 def test_pca_merge_without_close_rival_still_merges():
     X, frags, surf, direct, comp = grid_case(0.05)  # 12.5× farther: not a rival
-    _, assigned, rep = cm.merge_fragments(X, frags, surf, predictions=direct, competitors=comp)
+    _, assigned, rep = cm.merge_fragments(X, frags, surf, predictions=direct,
+                                          competitors=comp, max_break=0)
     assert assigned[0] == 14
     assert rep["merges"][0]["mean_mm"] == pytest.approx(4.0, abs=1e-6)
 
@@ -327,8 +331,9 @@ def test_pca_merge_without_close_rival_still_merges():
 def test_pca_merge_needs_a_tighter_mean_distance():
     X, frags, surf, direct, comp = grid_case(0.2, offset_wrong=0.014)  # 0.7 ε₁
     rigid_rule = cm.merge_fragments(X, frags, surf, predictions=direct, competitors=comp,
-                                    mean_tolerance=1.0)
+                                    max_break=0, mean_tolerance=1.0)
     assert rigid_rule[1][0] == 14
-    _, assigned, rep = cm.merge_fragments(X, frags, surf, predictions=direct, competitors=comp)
+    _, assigned, rep = cm.merge_fragments(X, frags, surf, predictions=direct,
+                                          competitors=comp, max_break=0)
     assert assigned[0] == -1
     assert rep["rejections"][0]["reason"].startswith("mean distance 14.0 mm")
