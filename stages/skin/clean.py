@@ -111,7 +111,7 @@ from mocapflow.stages.skin.labelling import (
     label_markers,
     subject_groups,
 )
-from mocapflow.stages.skin.merge import assign_fragments, merge_fragments
+from mocapflow.stages.skin.merge import BREAK_JUMP, assign_fragments, merge_fragments
 from mocapflow.stages.skin.predict import (
     MIN_NEIGHBOURS,
     _apply,
@@ -352,7 +352,7 @@ def _trajectory_count(positions: np.ndarray) -> int:
 
 
 def _check_params(positions: np.ndarray, *, alpha1: float, alpha2: float, variance: float,
-                  fill_model: str, fill_predictors: int) -> None:
+                  fill_model: str, fill_predictors: int, max_break: float = BREAK_JUMP) -> None:
     """Raise :class:`CleanError` for an empty capture or params out of range."""
     F, M, _ = positions.shape
     if M == 0 or F == 0:
@@ -366,6 +366,8 @@ def _check_params(positions: np.ndarray, *, alpha1: float, alpha2: float, varian
     if fill_predictors < REGRESSION_MIN_PREDICTORS:
         raise CleanError(f"clean: fill_predictors must be >= {REGRESSION_MIN_PREDICTORS}, "
                          f"got {fill_predictors}")
+    if not max_break >= 0:
+        raise CleanError(f"clean: max_break must be >= 0 (0: off), got {max_break}")
 
 
 def _reference(
@@ -427,7 +429,7 @@ def _marker_surface(
 def _pca_merge_rounds(
     X: np.ndarray, assigned: np.ndarray, mrep: dict[str, Any], markers: Markers,
     surf: MarkerSurface, *, alpha1: float, alpha2: float, variance: float, rounds: int,
-    ctx: Context,
+    ctx: Context, max_break: float = BREAK_JUMP,
 ) -> np.ndarray:
     """Step 2, beyond the paper: fragments left unmerged judged against the §4.3 PCA fill.
 
@@ -456,7 +458,7 @@ def _pca_merge_rounds(
         X, a2, rep2 = merge_fragments(
             X, frags[:, left], surf, alpha1=alpha1, alpha2=alpha2,
             fragment_labels=[markers.fragment_labels[u] for u in left], predictions=direct,
-            competitors=Xf, ctx=ctx,
+            competitors=Xf, max_break=max_break, ctx=ctx,
         )
         assigned[left[a2 >= 0]] = a2[a2 >= 0]
         for mg in rep2["merges"]:
@@ -518,6 +520,7 @@ def _merge(
     markers: Markers, surf: MarkerSurface, *, merge: bool, alpha1: float, alpha2: float,
     variance: float, pca_rounds: int, ctx: Context, fill_rounds: int = 0,
     fill_model: str = "regression", fill_predictors: int = REGRESSION_PREDICTORS,
+    max_break: float = BREAK_JUMP,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Step 2 (§4.2): fragments merged against rigid predictions, then the PCA rounds,
     then the rounds against the final filling (:func:`_fill_merge_rounds`).
@@ -533,10 +536,10 @@ def _merge(
     ctx.progress(0, 1 + pca_rounds + fill_rounds, "merge passes")
     X, assigned, mrep = merge_fragments(
         P, frags, surf, alpha1=alpha1, alpha2=alpha2,
-        fragment_labels=markers.fragment_labels, depths=(1,), ctx=ctx,
+        fragment_labels=markers.fragment_labels, depths=(1,), max_break=max_break, ctx=ctx,
     )
     X = _pca_merge_rounds(X, assigned, mrep, markers, surf, alpha1=alpha1, alpha2=alpha2,
-                          variance=variance, rounds=pca_rounds, ctx=ctx)
+                          variance=variance, rounds=pca_rounds, max_break=max_break, ctx=ctx)
     X = _fill_merge_rounds(X, assigned, mrep, markers, surf, alpha1=alpha1, alpha2=alpha2,
                            variance=variance, fill_model=fill_model,
                            fill_predictors=fill_predictors, rounds=fill_rounds, ctx=ctx)
@@ -676,6 +679,7 @@ def clean(
     fill_predictors: int = REGRESSION_PREDICTORS,
     pca_merge_rounds: int = 3,
     fill_merge_rounds: int = 0,
+    max_break: float = BREAK_JUMP,
     subjects: Literal["auto", "none"] = "auto",
     subject_gap: float = 0.3,
     label_template: FilePath | None = None,
@@ -726,6 +730,13 @@ def clean(
         captures it keeps 99-100 % of real samples with no wrong merge, but on a
         range-of-motion capture, whose fill is off by more than ε₁, it made 1-2
         wrong merges (seeds 2, 3), so it is off by default.
+    max_break : float
+        A fragment that picks up where a marker stopped, across a break or a gap of
+        a few frames, merges by continuity when its end lies within
+        ``max_break · ε₁`` of the marker's gap-end sample carried by its
+        neighbours' rigid motion and no rival comes close
+        (:func:`~mocapflow.stages.skin.merge.continue_breaks`; 0.25; 0: off, the
+        paper).
     subjects : {"auto", "none"}
         Several subjects in one take (:func:`~mocapflow.stages.skin.labelling.subject_groups`):
         ``"auto"`` finds them by the C3D's ``SUBJECTS:LABEL_PREFIXES``, ``Name:``
@@ -764,7 +775,8 @@ def clean(
             "smooth_lambda": smooth_lambda, "smooth_iterations": smooth_iterations,
             "surface": surface, "merge": merge, "fill": fill, "fill_model": fill_model,
             "fill_predictors": fill_predictors, "pca_merge_rounds": pca_merge_rounds,
-            "fill_merge_rounds": fill_merge_rounds}
+            "fill_merge_rounds": fill_merge_rounds,
+            "max_break": max_break}
     with ctx.timer("labelling"):
         try:
             markers, labelling = label_markers(markers, template=label_template,
@@ -778,7 +790,7 @@ def clean(
                      "left to merge")
     P = markers.positions
     _check_params(P, alpha1=alpha1, alpha2=alpha2, variance=variance, fill_model=fill_model,
-                  fill_predictors=fill_predictors)
+                  fill_predictors=fill_predictors, max_break=max_break)
     groups = [("all", np.arange(P.shape[1]))]
     if subjects != "none" and surface is None:
         frame = choose_reference_frame(P) if reference_frame is None else reference_frame
@@ -829,7 +841,8 @@ def _clean_subject(markers: Markers, *, reference_frame: int | None, opts: dict[
                                    pca_rounds=o["pca_merge_rounds"] if fill else 0,
                                    fill_rounds=o["fill_merge_rounds"] if fill else 0,
                                    fill_model=o["fill_model"],
-                                   fill_predictors=o["fill_predictors"], ctx=ctx)
+                                   fill_predictors=o["fill_predictors"],
+                                   max_break=o["max_break"], ctx=ctx)
     vis1 = np.isfinite(X).all(-1)
     with ctx.timer("fill"):
         Xf, finfo = _fill(X, surf, fill=fill, variance=o["variance"],

@@ -356,6 +356,8 @@ def test_bad_requests(tmp_path, sim):
         clean(m, alpha1=0.0)
     with pytest.raises(CleanError, match="variance"):
         clean(m, variance=1.5)
+    with pytest.raises(CleanError, match="max_break must be >= 0"):
+        clean(m, max_break=-0.1)
     bad = tmp_path / "surf.txt"
     bad.write_text(f"{m.labels[0]} {m.labels[1]} NOPE\n")
     with pytest.raises(SurfaceFileError, match=r"surf\.txt:1.*'NOPE'"):
