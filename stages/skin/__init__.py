@@ -23,6 +23,8 @@ the paper lives in one function (modules of this package):
   trajectory merging                     merge.merge_fragments (rounds: merge._merge_rounds)
   ε₁ = α₁·d̄, ε₂ = α₂·d̄                   merge._tolerances
   entry / tube / ambiguity tests         merge._judge_fragment
+  another unmerged fragment as close     merge._rival_fragment
+  in the same frames (beyond the paper)
   continuity across a break or short     merge.continue_breaks (carried by the
   gap (beyond the paper)                 neighbours' rigid motion: merge._carry)
   fragments left, against the final      merge.assign_fragments (exact gaps:

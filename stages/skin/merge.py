@@ -5,8 +5,10 @@ of the missing samples in the frames that need them (:func:`_predict_round`, by
 :func:`mocapflow.stages.skin.predict.predict_missing`), every unmerged fragment
 judged against them (:func:`_judge_round`, :func:`_judge_fragment`: the entry test
 against ``ε₁ = α₁·d̄``, the tube ``ε₂ = α₂·d̄`` over the fragment, the mean
-distance and the ambiguity tests; :func:`_tolerances`), and the claims merged,
-closest first (:func:`_merge_claims`).  Before and after the rounds, fragments
+distance and the ambiguity tests; :func:`_tolerances`; beyond the paper, an
+unmerged fragment in the same frames as close to the prediction makes the merge
+ambiguous: :func:`_rival_fragment`), and the claims merged, closest first
+(:func:`_merge_claims`).  Before and after the rounds, fragments
 that continue a marker's trajectory across a break or a short gap are merged by
 continuity (:func:`continue_breaks`, beyond the paper).  See :mod:`mocapflow.stages.skin.clean` for
 the whole procedure and where it goes beyond the paper.
@@ -504,6 +506,56 @@ def _predict_round(run: _MergeRun, surface: MarkerSurface, fvis: np.ndarray, tod
     return Y_new
 
 
+def _rival_fragment(fragments: np.ndarray, unmerged: np.ndarray, u: int, T: np.ndarray,
+                    v: dict[str, Any], E_all: np.ndarray, eps1: np.ndarray,
+                    labels: list[str], flabels: list[str]) -> dict[str, Any]:
+    """Refuse fragment ``u``'s merge verdict ``v`` when another unmerged fragment seen
+    in its frames ``T`` could be the chosen marker as well (beyond §4.2).
+
+    The paper's tests compare one fragment with every missing marker; two fragments
+    of two close markers, both missing, in the same frames are judged one at a time,
+    and where the markers' predictions are off the wrong one can pass alone.  A rival
+    is an unmerged fragment ``r`` (``unmerged``, ``(F, U)`` bool) seen with a
+    prediction (``E_all``, ``(F, M, 3)``) in at least half of ``u``'s frames, whose
+    mean distance to the marker's prediction over those frames is below ``ε₁`` and
+    below :data:`AMBIGUITY_RATIO` times ``u``'s mean distance there.  Returns ``v``
+    or an ambiguous rejection.
+
+    On the simulated 350-marker captures with labels stripped (``benchmarks/clean.py``
+    table 1b, seed 1) the wrong merges this refuses were a 4-frame fragment
+    (range of motion, 10.1 mm from the prediction, its neighbour's own fragment at
+    18.5 mm) and a 3-frame one (dynamic, 9.3 / 21.9 mm).  A rival seen in only a
+    few frames of a long fragment is none: long fragments of one marker, each
+    crossed for 3–5 frames by short fragments of a neighbour, were refused
+    (0.4 points of the real samples on the dynamic capture).
+    """
+    m = int(v["marker"])
+    rivals = np.flatnonzero(unmerged[T].any(0))
+    rivals = rivals[rivals != u]
+    if not len(rivals):
+        return v
+    p = E_all[T, m]  # (|T|, 3)
+    d_r = np.linalg.norm(fragments[T][:, rivals] - p[:, None], axis=-1)  # NaN: not seen
+    d_u = np.linalg.norm(fragments[T, u] - p, axis=-1)[:, None]
+    both = np.isfinite(d_r) & np.isfinite(d_u)
+    n = both.sum(0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_r = np.where(both, d_r, 0.0).sum(0) / n
+        mean_u = np.where(both, d_u, 0.0).sum(0) / n
+    close = ((n >= max(1, int(np.ceil(0.5 * len(T))))) & (mean_r < eps1[m])
+             & (mean_r < AMBIGUITY_RATIO * mean_u))
+    if not close.any():
+        return v
+    k = int(np.argmin(np.where(close, mean_r, np.inf)))
+    mm = 1000.0
+    return {"reason": f"ambiguous: fragment {flabels[int(rivals[k])]} in the same frames at "
+                      f"{mean_r[k] * mm:.1f} mm of the prediction of {labels[m]}, this one at "
+                      f"{mean_u[k] * mm:.1f} mm",
+            "conflict": {"labels": [labels[m]], "fragments": [flabels[int(rivals[k])]],
+                         "mean_mm": [round(float(mean_u[k] * mm), 2),
+                                     round(float(mean_r[k] * mm), 2)]}}
+
+
 def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarray, *,
                  mean_tolerance: float, near: np.ndarray | None,
                  near_ratio: float) -> dict[int, list[tuple[float, int, dict]]]:
@@ -514,6 +566,7 @@ def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarr
     """
     avail = np.isfinite(run.X).all(-1)
     index = PredictionIndex(avail, np.isfinite(E).all(-1))
+    unmerged = np.isfinite(run.fragments).all(-1) & (run.assigned < 0)[None]  # (F, U)
     claims: dict[int, list[tuple[float, int, dict]]] = {}
     for u in todo:
         T = run.frames_of[u]
@@ -524,6 +577,9 @@ def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarr
                             E, E_all, run.eps1, run.eps2, run.labels, index,
                             mean_tolerance=mean_tolerance, near=near,
                             near_ratio=near_ratio)
+        if "marker" in v:
+            v = _rival_fragment(run.fragments, unmerged, u, T, v, E_all, run.eps1,
+                                run.labels, run.flabels)
         if "marker" in v:
             claims.setdefault(v["marker"], []).append((v["mean"], u, v))
             run.verdict.pop(u, None)

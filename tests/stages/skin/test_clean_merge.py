@@ -337,3 +337,60 @@ def test_pca_merge_needs_a_tighter_mean_distance():
                                           competitors=comp, max_break=0)
     assert assigned[0] == -1
     assert rep["rejections"][0]["reason"].startswith("mean distance 14.0 mm")
+
+
+# --------------------------------------------------------------------------- rival fragments
+
+
+def fold_case(offset_rival, rival_frames=8):
+    """The 6×6 grid of :func:`grid_case`, markers 14 and 15 missing in frames 5..12,
+    where they come within 15 mm of each other (a skin fold, x axis).
+
+    Fragment 0 is marker 15 there, fragment 1 another trajectory ``offset_rival``
+    (x) from marker 14's prediction in the first ``rival_frames`` of them; marker
+    14's prediction lies 6 mm from
+    fragment 0 (off towards marker 15), marker 15's 30 mm from it (one round of
+    given predictions judged by the rigid rounds' rules: ``mean_tolerance=1``,
+    plain ambiguity ratio, no continuity).
+    """
+    X, _, surf, _, _ = grid_case(0.05)
+    T = np.arange(5, 13)
+    p14 = np.repeat(surf.reference[14][None], len(T), 0) + np.linspace(0, 0.1, 20)[T, None]
+    frags = np.full((20, 2, 3), np.nan)
+    frags[T, 0] = p14 + [0.015, 0, 0]
+    pred = np.full_like(X, np.nan)
+    pred[T, 14] = p14 + [0.009, 0, 0]
+    pred[T, 15] = frags[T, 0] + [0, 0.03, 0]
+    R = T[:rival_frames]
+    frags[R, 1] = pred[R, 14] + [-offset_rival, 0, 0]
+    return cm.merge_fragments(X, frags, surf, predictions=pred, max_break=0,
+                              mean_tolerance=1.0, near_ratio=cm.AMBIGUITY_RATIO)
+
+
+def test_fragment_with_a_rival_fragment_at_the_prediction_is_ambiguous(monkeypatch):
+    """Range-of-motion capture, labels stripped (seed 1): a 4-frame fragment of one
+    marker merged 10.5 mm from its neighbour's prediction while the neighbour's own
+    fragment lay 19.9 mm from it in the same frames (< ε₁, < 3×)."""
+    _, assigned, rep = fold_case(0.009)  # fragment 1 is marker 14, 9 mm off (< 3 × 6)
+    assert assigned.tolist() == [-1, -1]
+    reasons = sorted(r["reason"] for r in rep["rejections"])
+    assert reasons[0].startswith("ambiguous: fragment *1 in the same frames at 6.0 mm")
+    assert reasons[1].startswith("ambiguous: fragment *2 in the same frames at 9.0 mm")
+    assert rep["conflicts"][0]["fragments"] in (["*1"], ["*2"])
+    # the rule judged one fragment at a time (before this check): the wrong merge
+    monkeypatch.setattr(cm, "_rival_fragment", lambda *a, **k: a[4])
+    assert fold_case(0.009)[1][0] == 14
+
+
+@pytest.mark.parametrize("offset_rival", [0.019, 0.025])
+def test_rival_fragment_clearly_farther_or_beyond_eps1_is_no_rival(offset_rival):
+    """19 mm is > 3 × 6 mm (below ε₁ = 20 mm); 25 mm is beyond ε₁: fragment 0 merges."""
+    _, assigned, rep = fold_case(offset_rival)
+    assert assigned[0] == 14
+    assert rep["merges"][0]["mean_mm"] == pytest.approx(6.0, abs=1e-6)
+
+
+def test_rival_fragment_seen_in_under_half_the_frames_is_no_rival():
+    """Seen in 3 of the 8 frames (a neighbour's short fragment crossing a long one)."""
+    assert fold_case(0.009, rival_frames=3)[1][0] == 14
+    assert fold_case(0.009, rival_frames=4)[1].tolist() == [-1, -1]
