@@ -116,8 +116,9 @@ support_margin=None, clamp_margin=None, max_blend_stretch=None``:
   (3.68 → 3.66 / 3.65 → 3.72).  Cost: on the throughput body of
   ``benchmarks/deform.py --throughput --quick`` (13,000 vertices, 900 frames)
   ``quadratic_residual`` reweights 1,543 vertices in 46 steps and runs at about
-  170 frames per CPU-second instead of about 1,100 without widening: the checks
-  gather every frame of the triangles around each tear (table 4 has both rows).
+  410 frames per CPU-second against about 750 without widening in the same
+  (loaded) run, 200 against 1,150 before the checks were made incremental (each
+  mesh edge checked once, again only where an end moved; table 4 has both rows).
   Held-out markers (``benchmarks/deform.py`` table 2) are points without
   triangles, so they are not affected; table 3 (the simulator's true mesh)
   measures it.  Not fixed by this: triangles that turn over against the rigid
@@ -612,6 +613,27 @@ def _deform_frames(models: list[PartModel], fits: list[PartFit], n_frames: int,
 #: Most diffusion steps of :func:`_widen_blends` between two checks of the stretch: one
 #: while the torn triangles get fewer, twice as many each time they do not.
 _MOST_STEPS_PER_CHECK = 8
+#: Edge-frames (stretch checks) or vertex-frames (moved vertices) per slice of
+#: :func:`_widen_blends`: work arrays of a few MB.
+_EDGE_FRAMES_PER_SLICE = 100_000
+
+
+def _mesh_edges(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The unique edges of triangles ``faces (T, 3)``.
+
+    Returns
+    -------
+    ends : (E, 2) int ndarray
+        Each edge's two vertices, lower first.
+    face_edge : (T, 3) int ndarray
+        Edge ``k`` of each triangle (from its corner ``k`` to corner ``k + 1``).
+    first : (E,) int ndarray
+        The first ``3 t + k`` of each edge in ``face_edge``.
+    """
+    ahead = np.roll(faces, -1, axis=1)  # corner k + 1
+    lo, hi = np.minimum(faces, ahead).ravel(), np.maximum(faces, ahead).ravel()
+    _, first, inverse = np.unique(lo * n_vertices + hi, return_index=True, return_inverse=True)
+    return np.stack([lo[first], hi[first]], 1), inverse.reshape(faces.shape), first
 
 
 def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta: np.ndarray,
@@ -630,8 +652,11 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     Eq. 8–9; each vertex-part prediction is computed once), up to ``steps`` steps
     in all.  Vertices away from a tear keep their weights.
 
-    ``verts (F, V, 3)`` is updated in place; returns the new ``β (V, P)``, the steps
-    taken and the number of vertices whose weights changed.
+    The stretch is kept per mesh edge (each checked once for its two triangles) and
+    checked again only where an end moved or a triangle starts to blend; a vertex is
+    moved again only when its weights changed.  ``verts (F, V, 3)`` is updated in
+    place; returns the new ``β (V, P)``, the steps taken and the number of vertices
+    whose weights were diffused.
     """
     faces = np.asarray(mesh.faces, dtype=np.int64)
     rest = mesh.vertices
@@ -641,8 +666,13 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     rest_edges = np.stack([np.linalg.norm(rest[faces[:, (k + 1) % 3]] - rest[faces[:, k]], axis=1)
                            for k in range(3)], 1)  # fmt: skip
     rest_edges = np.maximum(rest_edges, 1e-12)
+    ends, face_edge, first = _mesh_edges(faces, V)
+    E = len(ends)
+    limit = (max_stretch * rest_edges.ravel()[first]) ** 2  # (E,) longest squared length
     incidence = sp.csr_matrix((np.ones(3 * T), (faces.ravel(), np.repeat(np.arange(T), 3))),
                               shape=(V, T))  # fmt: skip
+    vertex_edges = sp.csr_matrix((np.ones(2 * E), (ends.ravel(), np.repeat(np.arange(E), 2))),
+                                 shape=(V, E))  # fmt: skip
     smooth = blend_smoothing_operator(rest, faces)
     ring = (smooth != 0).astype(np.int8).tocsr()
     # vertex-major stores (rows of F x 3), filled on first use: current positions of the
@@ -652,47 +682,68 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     slot = np.full((V, P), -1, np.int64)
     pred = _Rows(F)
 
-    def positions(v: np.ndarray) -> np.ndarray:
-        new = np.unique(v[row[v] < 0])
+    def with_rows(v: np.ndarray) -> None:
+        """Give vertices ``v`` (any order, repeats) a row of ``pos``."""
+        new = np.zeros(V, bool)
+        new[v[row[v] < 0]] = True
+        new = np.flatnonzero(new)
         if len(new):
-            row[new] = pos.append(verts[:, new].transpose(1, 0, 2))
-        return pos.data[row[v]]
+            row[new] = pos.append(verts[:, new])
 
-    def predictions(v: np.ndarray, p: int) -> np.ndarray:
-        new = v[slot[v, p] < 0]
-        if len(new):  # part p's model alone (β = 1), by the same row-by-row products
-            one = vertex_operator([models[p]], len(new), residual=residual, rest=rest[new],
-                                  beta=np.ones((len(new), 1)))  # fmt: skip
-            moved = deform_positions([models[p]], [fits[p]], len(new), one, residual=residual)
-            slot[new, p] = pred.append(moved.transpose(1, 0, 2))
-        return pred.data[slot[v, p]]
+    # whether a part's model alone has non-rigid terms (deform_positions adds them then)
+    nonrigid = np.array([bool(frame_coefficients([m], [f], residual=residual)[4:].any())
+                         for m, f in zip(models, fits)], bool)  # fmt: skip
 
-    def tearing(t: np.ndarray) -> np.ndarray:
-        """Of triangles ``t``, those whose corners blend differently and stretch too far."""
-        t = t[np.ptp(beta[faces[t]], axis=1).max(1) > 0]
-        if not len(t):
-            return t
-        X = positions(faces[t].ravel()).reshape(len(t), 3, F, 3)
-        over = np.zeros(len(t), bool)
-        for k in range(3):
-            e = X[:, (k + 1) % 3] - X[:, k]
-            longest = np.einsum("tfi,tfi->tf", e, e).max(1)
-            over |= longest > (max_stretch * rest_edges[t, k]) ** 2
-        return t[over]
+    def predict(v: np.ndarray, p: np.ndarray) -> None:
+        """Give pairs ``(v, p)`` a row of ``pred``: part ``p``'s model alone at vertex ``v``
+        (β = 1), by the same row-by-row products (one call per kind of part)."""
+        key = np.unique(v[slot[v, p] < 0] * P + p[slot[v, p] < 0])
+        v, p = key // P, key % P
+        for kind in (False, True):
+            sel = nonrigid[p] == kind
+            if not sel.any():
+                continue
+            parts, col = np.unique(p[sel], return_inverse=True)
+            one = np.zeros((int(sel.sum()), len(parts)))
+            one[np.arange(len(one)), col] = 1.0
+            group = [models[q] for q in parts]
+            op = vertex_operator(group, len(one), residual=residual, rest=rest[v[sel]], beta=one)
+            moved = deform_positions(group, [fits[q] for q in parts], len(one), op,
+                                     residual=residual)  # fmt: skip
+            slot[v[sel], p[sel]] = pred.append(moved)
 
-    # only triangles whose corners blend differently can tear: start from those, checked
-    # on the frame-major vertices (a vertex-major row only for those near a tear)
-    blend = np.flatnonzero(np.ptp(beta[faces], axis=1).max(1) > 0)
-    over = np.zeros(len(blend), bool)
-    chunk = max(1, 100_000 // max(1, len(blend)))  # frames per slice: a few MB
-    for f0 in range(0, F, chunk):
-        X = verts[f0 : f0 + chunk]
-        for k in range(3):
-            e = X[:, faces[blend, (k + 1) % 3]] - X[:, faces[blend, k]]
-            over |= (np.einsum("fti,fti->ft", e, e).max(0)
-                     > (max_stretch * rest_edges[blend, k]) ** 2)  # fmt: skip
-    bad = blend[over]
-    changed = np.zeros(V, bool)
+    def blending(t: np.ndarray) -> np.ndarray:
+        """Whether the corners of triangles ``t`` blend differently."""
+        return np.ptp(beta[faces[t]], axis=1).max(1) > 0
+
+    def stretched(e: np.ndarray) -> np.ndarray:
+        """Whether edges ``e`` are longer than ``limit`` in some frame (current positions)."""
+        with_rows(ends[e].ravel())
+        out = np.empty(len(e), bool)
+        n = max(1, _EDGE_FRAMES_PER_SLICE // max(1, F))
+        for i in range(0, len(e), n):
+            a, b = row[ends[e[i : i + n]].T]
+            d = pos.take(b) - pos.take(a)
+            out[i : i + n] = (np.einsum("efi,efi->ef", d, d) > limit[e[i : i + n], None]).any(1)
+        return out
+
+    # only triangles whose corners blend differently can tear: start from their edges,
+    # checked on the frame-major vertices (a vertex-major row only for those near a tear)
+    blended = blending(np.arange(T))
+    over = np.zeros(E, bool)  # stretched beyond max_stretch in some frame
+    known = np.zeros(E, bool)  # `over` holds for the current positions
+    check = np.zeros(E, bool)
+    check[face_edge[blended]] = True
+    check = np.flatnonzero(check)
+    a, b = ends[check].T
+    hit = np.zeros(len(check), bool)
+    n = max(1, _EDGE_FRAMES_PER_SLICE // max(1, len(check)))  # frames per slice
+    for f0 in range(0, F, n):
+        d = verts[f0 : f0 + n, b] - verts[f0 : f0 + n, a]
+        hit |= (np.einsum("fei,fei->fe", d, d) > limit[check]).any(0)
+    over[check], known[check] = hit, True
+    bad = np.flatnonzero(blended & over[face_edge].any(1))
+    changed = np.zeros(V, bool)  # weights diffused; the position is then Σ β_p prediction_p
     taken, k, before = 0, 1, len(bad) + 1
     while len(bad) and taken < steps:
         if len(bad) >= before:  # no progress: diffuse farther before the next check
@@ -704,43 +755,93 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         for _ in range(k):  # the torn triangles' corners and k rings around them
             S = np.unique(ring[S].indices)
         sub = smooth[S]
+        prior = beta[S]
         for _ in range(k):
             beta[S] = np.asarray(sub @ beta)
         b = beta[S]
         b[b < 1e-3] = 0.0
         b /= b.sum(1, keepdims=True)
         beta[S] = b
+        # a vertex moved before with the same weights would be moved to the same place
+        redo = ~changed[S] | (b != prior).any(1)
         changed[S] = True
-        positions(S)  # make sure they have rows
-        moved = np.zeros((len(S), F, 3))
-        for p in np.flatnonzero(b.any(0)):
-            sel = np.flatnonzero(b[:, p] > 0)
-            moved[sel] += b[sel, p][:, None, None] * predictions(S[sel], p)
-        pos.data[row[S]] = moved
-        bad = tearing(np.unique(incidence[S].indices))
+        R, b = S[redo], b[redo]
+        with_rows(R)
+        i, p = np.nonzero(b > 0)  # each vertex's parts, ascending
+        predict(R[i], p)
+        layer = np.arange(len(i)) - np.searchsorted(i, i)  # k-th part of its vertex
+        shifted = np.zeros(len(R), bool)
+        n = max(1, _EDGE_FRAMES_PER_SLICE // max(1, F))  # vertices per slice
+        for c in range(0, len(R), n):  # Σ_p β_p prediction_p, parts in ascending order
+            moved = np.zeros((min(n, len(R) - c), F, 3))
+            lo, hi = np.searchsorted(i, [c, c + n])
+            for j in range(int(layer[lo:hi].max(initial=-1)) + 1):
+                q = lo + np.flatnonzero(layer[lo:hi] == j)
+                moved[i[q] - c] += b[i[q], p[q]][:, None, None] * pred.take(slot[R[i[q]], p[q]])
+            rows = row[R[c : c + n]]
+            shifted[c : c + n] = (moved != pos.take(rows)).reshape(len(moved), -1).any(1)
+            pos.put(rows, moved)
+        shifted = R[shifted]
+        # triangles may start or stop blending where weights changed; the edges of a vertex
+        # that moved are checked again when their triangle blends
+        t = incidence[S].indices
+        blended[t] = blending(t)
+        known[vertex_edges[shifted].indices] = False
+        check = np.zeros(E, bool)
+        check[face_edge[blended]] = True
+        check = np.flatnonzero(check & ~known)
+        over[check], known[check] = stretched(check), True
+        bad = np.flatnonzero(blended & over[face_edge].any(1))
     done = np.flatnonzero(changed)
     if len(done):
-        verts[:, done] = pos.data[row[done]].transpose(1, 0, 2)
+        for c in range(0, len(done), 256):
+            rows = pos.take(row[done[c : c + 256]])
+            verts[:, done[c : c + 256]] = rows.view(_XYZ)[..., 0].T[..., None].view(np.float64)
     return beta, taken, len(done)
 
 
 class _Rows:
-    """A growing stack of ``(F, 3)`` rows (amortised doubling); :meth:`append` returns the
-    new rows' indices."""
+    """A growing store of ``(F, 3)`` rows in blocks, each twice the size of the one before
+    (nothing is copied when it grows; a block's unused rows are never touched)."""
 
-    def __init__(self, n_frames: int):
-        self.data = np.empty((0, n_frames, 3))
+    def __init__(self, n_frames: int, first_block: int = 256):
+        self.blocks: list[np.ndarray] = []
+        self.starts = [0]  # first row of each block, then the capacity
+        self.shape = (n_frames, 3)
+        self.first_block = first_block
         self.n = 0
 
     def append(self, rows: np.ndarray) -> np.ndarray:
-        k = len(rows)
-        if self.n + k > len(self.data):
-            grown = np.empty((max(2 * len(self.data), self.n + k, 64),) + self.data.shape[1:])
-            grown[: self.n] = self.data[: self.n]
-            self.data = grown
-        self.data[self.n : self.n + k] = rows
+        """Store ``rows (F, k, 3)`` (frame-major, as :func:`deform_positions` returns them);
+        returns their indices ``(k,)``."""
+        k = rows.shape[1]
+        while self.n + k > self.starts[-1]:
+            size = 2 * len(self.blocks[-1]) if self.blocks else self.first_block
+            self.blocks.append(np.empty((size, *self.shape)))
+            self.starts.append(self.starts[-1] + size)
+        for b, block in enumerate(self.blocks):  # the blocks the new rows fall in
+            a, z = max(self.n, self.starts[b]), min(self.n + k, self.starts[b + 1])
+            if a < z:  # (F, k) -> (k, F), moving whole xyz triplets (24 bytes) at a time
+                into = block[a - self.starts[b] : z - self.starts[b]]
+                into.view(_XYZ)[..., 0] = rows[:, a - self.n : z - self.n].view(_XYZ)[..., 0].T
         self.n += k
         return np.arange(self.n - k, self.n)
+
+    def put(self, index: np.ndarray, values: np.ndarray) -> None:
+        """Overwrite rows ``index (n,)`` with ``values (n, F, 3)``."""
+        block = np.searchsorted(self.starts, index, side="right") - 1
+        for b in np.unique(block):
+            sel = block == b
+            self.blocks[b][index[sel] - self.starts[b]] = values[sel]
+
+    def take(self, index: np.ndarray) -> np.ndarray:
+        """Rows ``index (n,)`` as an ``(n, F, 3)`` array."""
+        out = np.empty((len(index), *self.shape))
+        block = np.searchsorted(self.starts, index, side="right") - 1
+        for b in np.unique(block):
+            sel = block == b
+            out[sel] = self.blocks[b][index[sel] - self.starts[b]]
+        return out
 
 
 def _deform_report(models: list[PartModel], fits: list[PartFit], x: np.ndarray,

@@ -11,8 +11,15 @@ from scipy.spatial import cKDTree
 
 from mocapflow.pipeline import Context
 from mocapflow.stages.motion.datatypes import Markers, Mesh
-from mocapflow.stages.skin.binding import DeformError, bind_mesh, closest_points_on_triangles
+from mocapflow.stages.skin.binding import (
+    DeformError,
+    bind_mesh,
+    blend_smoothing_operator,
+    closest_points_on_triangles,
+)
 from mocapflow.stages.skin.deform import (
+    _Rows,
+    _widen_blends,
     deform,
     deform_positions,
     frame_coefficients,
@@ -570,3 +577,91 @@ def test_operator_rows_do_not_depend_on_the_other_vertices(limb):
         assert got.tobytes() == np.ascontiguousarray(whole[:, sub]).tobytes()
     with pytest.raises(ValueError, match="together"):
         vertex_operator(models, len(V), residual=True, rest=V)
+
+
+def _widen_blends_directly(models, fits, mesh, beta, verts, *, max_stretch, steps, residual):
+    """:func:`_widen_blends` written out plainly: after every round every triangle whose
+    corners blend differently is checked on every frame, and every diffused vertex is moved
+    again from its parts' predictions (β = 1, parts in ascending order)."""
+    faces, rest, beta, verts = mesh.faces, mesh.vertices, beta.copy(), verts.copy()
+    smooth = blend_smoothing_operator(rest, faces)
+    ring = (smooth != 0).astype(np.int8).tocsr()
+    limit = np.stack([np.maximum(np.linalg.norm(rest[faces[:, (k + 1) % 3]] - rest[faces[:, k]],
+                                                axis=1), 1e-12) for k in range(3)], 1)  # fmt: skip
+    limit = (max_stretch * limit) ** 2
+
+    def torn():
+        over = np.ptp(beta[faces], axis=1).max(1) > 0
+        longer = np.zeros(len(faces), bool)
+        for k in range(3):
+            e = verts[:, faces[:, (k + 1) % 3]] - verts[:, faces[:, k]]
+            longer |= (np.einsum("fti,fti->ft", e, e) > limit[:, k]).any(0)
+        return np.flatnonzero(over & longer)
+
+    bad, taken, k, before = torn(), 0, 1, np.inf
+    changed = np.zeros(len(rest), bool)
+    while len(bad) and taken < steps:
+        k = min(2 * k, 8) if len(bad) >= before else k
+        before, k = len(bad), min(k, steps - taken)
+        taken += k
+        S = np.unique(faces[bad])
+        for _ in range(k):
+            S = np.unique(ring[S].indices)
+        for _ in range(k):
+            beta[S] = smooth[S] @ beta
+        b = beta[S]
+        b[b < 1e-3] = 0.0
+        b /= b.sum(1, keepdims=True)
+        beta[S], changed[S] = b, True
+        moved = np.zeros((len(verts), len(S), 3))
+        for p in range(beta.shape[1]):
+            sel = np.flatnonzero(b[:, p] > 0)
+            if len(sel):
+                one = vertex_operator([models[p]], len(sel), residual=residual,
+                                      rest=rest[S[sel]], beta=np.ones((len(sel), 1)))  # fmt: skip
+                alone = deform_positions([models[p]], [fits[p]], len(sel), one, residual=residual)
+                moved[:, sel] += b[sel, p][None, :, None] * alone
+        verts[:, S] = moved
+        bad = torn()
+    return beta, verts, taken, int(changed.sum())
+
+
+@pytest.mark.parametrize("mode", ["quadratic_residual", "rigid"])
+def test_widen_blends_matches_the_direct_loop(limb, mode):
+    """The incremental widening (edges checked again only where an end moved, vertices moved
+    again only where their weights changed) gives the same bytes as the plain loop: β,
+    positions, steps and reweighted vertices; also when the step budget runs out."""
+    seg, x, mesh = limb["seg"], limb["markers"].positions, limb["mesh"]
+    V, residual = mesh.vertices, mode.endswith("residual")
+    beta = bind_mesh(V, seg, sharpness=4.0).beta
+    models = [prepare_part(seg, p) for p in range(seg.n_parts)]
+    fits = [fit_part(m, x[:, m.members], mode=mode) for m in models]
+    verts = deform_positions(models, fits, len(V), vertex_operator(
+        models, len(V), residual=residual, rest=V, beta=beta), residual=residual)  # fmt: skip
+    for stretch, steps in ((1.05, 100), (1.05, 3), (1.3, 100)):
+        kw = {"max_stretch": stretch, "steps": steps, "residual": residual}
+        want_beta, want_verts, want_steps, want_n = _widen_blends_directly(
+            models, fits, mesh, beta, verts, **kw)
+        got_verts = verts.copy()
+        got_beta, got_steps, got_n = _widen_blends(models, fits, mesh, beta, got_verts, **kw)
+        assert want_n > 10 and want_steps >= min(steps, 2)  # the blends were widened
+        assert (got_steps, got_n) == (want_steps, want_n)
+        assert got_beta.tobytes() == want_beta.tobytes()
+        assert got_verts.tobytes() == want_verts.tobytes()
+
+
+def test_rows_store_across_blocks():
+    """_Rows keeps rows appended across its growing blocks; take/put by row index."""
+    rng = np.random.default_rng(5)
+    store, kept = _Rows(4, first_block=3), []
+    for k in (2, 5, 1, 9):  # blocks of 3, 6, 12 rows: appends straddle them
+        rows = rng.standard_normal((4, k, 3))  # frame-major, as deform_positions returns
+        assert (store.append(rows) == np.arange(store.n - k, store.n)).all()
+        kept.append(rows.transpose(1, 0, 2))
+    kept = np.concatenate(kept)
+    assert len(store.blocks) == 3 and store.n == len(kept) == 17
+    index = rng.permutation(17)[:8]
+    assert store.take(index).tobytes() == kept[index].tobytes()
+    store.put(index[:4], -kept[index[:4]])
+    kept[index[:4]] *= -1
+    assert store.take(np.arange(17)).tobytes() == kept.tobytes()
