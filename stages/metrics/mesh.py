@@ -1,11 +1,13 @@
 """Surface artifacts of a deformed triangle mesh (skin deformation, issue 15 item 4).
 
-Imports nothing of the package; registers nothing.
+Registers nothing; :func:`triangle_normals` is :mod:`mocapflow.stages.motion.geometry`'s.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from mocapflow.stages.motion.geometry import triangle_normals
 
 __all__ = ["flipped_triangles", "stretched_triangles", "triangle_edge_lengths",
            "triangle_normals"]
@@ -27,23 +29,6 @@ def triangle_edge_lengths(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray
     X = np.asarray(vertices)
     return np.stack([np.linalg.norm(X[..., faces[:, (k + 1) % 3], :] - X[..., faces[:, k], :],
                                     axis=-1) for k in range(3)], -1)  # fmt: skip
-
-
-def triangle_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """Unnormalised normals of every triangle, ``(b - a) × (c - a)``.
-
-    Parameters
-    ----------
-    vertices : (..., V, 3) float ndarray
-    faces : (T, 3) int ndarray
-
-    Returns
-    -------
-    (..., T, 3) float ndarray
-    """
-    X = np.asarray(vertices)
-    a = X[..., faces[:, 0], :]
-    return np.cross(X[..., faces[:, 1], :] - a, X[..., faces[:, 2], :] - a)
 
 
 def stretched_triangles(vertices: np.ndarray, rest: np.ndarray, faces: np.ndarray, *,

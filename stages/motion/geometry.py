@@ -5,7 +5,24 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-__all__ = ["vertex_normals"]
+__all__ = ["triangle_normals", "vertex_normals"]
+
+
+def triangle_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Unnormalised normals of every triangle, ``(b - a) × (c - a)``.
+
+    Parameters
+    ----------
+    vertices : (..., V, 3) float ndarray
+    faces : (T, 3) int ndarray
+
+    Returns
+    -------
+    (..., T, 3) float ndarray
+    """
+    X = np.asarray(vertices)
+    a = X[..., faces[:, 0], :]
+    return np.cross(X[..., faces[:, 1], :] - a, X[..., faces[:, 2], :] - a)
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -23,8 +40,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     v = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
     V, T = v.shape[-2], len(faces)
-    a, b, c = (v[..., faces[:, k], :] for k in range(3))
-    fn = np.cross(b - a, c - a)  # (..., T, 3)
+    fn = triangle_normals(v, faces)  # (..., T, 3)
     S = sp.csr_matrix((np.ones(3 * T), (faces.ravel(), np.repeat(np.arange(T), 3))),
                       shape=(V, T))
     moved = np.moveaxis(fn, -2, 0).reshape(T, -1)

@@ -23,6 +23,7 @@ __all__ = [
     "bind_mesh",
     "blend_smoothing_operator",
     "closest_points_on_triangles",
+    "mesh_edges",
 ]
 
 
@@ -211,6 +212,24 @@ def bind_mesh(
     return MeshBinding(beta=beta, triangle=tri, barycentric=bary, distance=dist)
 
 
+def mesh_edges(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The unique edges of triangles ``faces (T, 3)``.
+
+    Returns
+    -------
+    ends : (E, 2) int ndarray
+        Each edge's two vertices, lower first.
+    face_edge : (T, 3) int ndarray
+        Edge ``k`` of each triangle (from its corner ``k`` to corner ``k + 1``).
+    first : (E,) int ndarray
+        The first ``3 t + k`` of each edge in ``face_edge``.
+    """
+    ahead = np.roll(faces, -1, axis=1)  # corner k + 1
+    lo, hi = np.minimum(faces, ahead).ravel(), np.maximum(faces, ahead).ravel()
+    _, first, inverse = np.unique(lo * n_vertices + hi, return_index=True, return_inverse=True)
+    return np.stack([lo[first], hi[first]], 1), inverse.reshape(faces.shape), first
+
+
 def blend_smoothing_operator(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_matrix:
     """One step of weight diffusion over a triangle mesh: ``β ← S β`` (rows sum to 1).
 
@@ -231,8 +250,7 @@ def blend_smoothing_operator(vertices: np.ndarray, faces: np.ndarray) -> sp.csr_
     """
     V = len(vertices)
     faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    e = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]),
-                          axis=1), axis=0)  # fmt: skip
+    e = mesh_edges(faces, V)[0]
     length = np.linalg.norm(vertices[e[:, 0]] - vertices[e[:, 1]], axis=1)
     w = 1.0 / np.maximum(length, 1e-9 * max(float(length.max(initial=0.0)), 1e-12))
     W = sp.csr_matrix((np.r_[w, w], (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),

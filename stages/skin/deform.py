@@ -190,6 +190,7 @@ from mocapflow.stages.skin.binding import (
     MeshBinding,
     bind_mesh,
     blend_smoothing_operator,
+    mesh_edges,
 )
 from mocapflow.stages.skin.parts import (
     Mode,
@@ -618,24 +619,6 @@ _MOST_STEPS_PER_CHECK = 8
 _EDGE_FRAMES_PER_SLICE = 100_000
 
 
-def _mesh_edges(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The unique edges of triangles ``faces (T, 3)``.
-
-    Returns
-    -------
-    ends : (E, 2) int ndarray
-        Each edge's two vertices, lower first.
-    face_edge : (T, 3) int ndarray
-        Edge ``k`` of each triangle (from its corner ``k`` to corner ``k + 1``).
-    first : (E,) int ndarray
-        The first ``3 t + k`` of each edge in ``face_edge``.
-    """
-    ahead = np.roll(faces, -1, axis=1)  # corner k + 1
-    lo, hi = np.minimum(faces, ahead).ravel(), np.maximum(faces, ahead).ravel()
-    _, first, inverse = np.unique(lo * n_vertices + hi, return_index=True, return_inverse=True)
-    return np.stack([lo[first], hi[first]], 1), inverse.reshape(faces.shape), first
-
-
 def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta: np.ndarray,
                   verts: np.ndarray, *, max_stretch: float, steps: int,
                   residual: bool) -> tuple[np.ndarray, int, int]:  # fmt: skip
@@ -666,7 +649,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     rest_edges = np.stack([np.linalg.norm(rest[faces[:, (k + 1) % 3]] - rest[faces[:, k]], axis=1)
                            for k in range(3)], 1)  # fmt: skip
     rest_edges = np.maximum(rest_edges, 1e-12)
-    ends, face_edge, first = _mesh_edges(faces, V)
+    ends, face_edge, first = mesh_edges(faces, V)
     E = len(ends)
     limit = (max_stretch * rest_edges.ravel()[first]) ** 2  # (E,) longest squared length
     incidence = sp.csr_matrix((np.ones(3 * T), (faces.ravel(), np.repeat(np.arange(T), 3))),

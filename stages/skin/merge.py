@@ -827,13 +827,13 @@ def merge_fragments(
     if near_ratio is None:
         near_ratio = PCA_NEAR_RATIO if given else AMBIGUITY_RATIO
     near = _near_markers(surface) if near_ratio > AMBIGUITY_RATIO else None
-    _merge_breaks(run, surface, max_break, rnd="break")
+    n_breaks = _merge_breaks(run, surface, max_break, rnd="break")
     n_by_depth = _merge_rounds(run, surface, fvis, ["given"] if given else list(depths),
                                rounds_per_level=rounds_per_level, predictions=predictions,
                                competitors=competitors, min_support=min_support,
                                mean_tolerance=mean_tolerance, near=near, near_ratio=near_ratio,
                                ctx=ctx)
-    n_by_depth["break"] = _merge_breaks(run, surface, max_break, rnd="break")
+    n_by_depth["break"] = n_breaks + _merge_breaks(run, surface, max_break, rnd="break")
     return run.X, run.assigned, {"merges": run.merges, "rejections": _rejections(run),
                                  "conflicts": run.conflicts, "merged_by_depth": n_by_depth}
 
