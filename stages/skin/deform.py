@@ -106,8 +106,14 @@ support_margin=None, clamp_margin=None, max_blend_stretch=None``:
   and rings at once while the torn triangles do not get fewer) and those
   vertices are moved again with every part they now follow
   (:func:`_widen_blends`).  Only the blends that tear are widened; elsewhere
-  the sharpened ``β`` stay.  On the demo: ``quadratic_residual`` reweights 630
-  of 5,001 vertices in 87 steps and no edge stretches beyond 2.50×;
+  the sharpened ``β`` stay.  Where widening does not leave fewer torn triangles
+  than it found, the paper's ``β`` are kept (a one-line warning): rigid
+  skinning of the sparse real captures, whose parts disagree by decimetres,
+  tore more after it (graph to ``deform`` on the shared C3Ds, triangles stretched
+  beyond 3×, widening against the paper: Qualisys 543 / 661, racing 530 / 1,138,
+  pyomeca 2,560 / 854 before this rule, 854 / 854 with it).  On the demo:
+  ``quadratic_residual`` reweights 630 of 5,001 vertices in 87 steps and no
+  edge stretches beyond 2.50×;
   ``rigid`` 888 vertices in 31 steps (2.49×).  On the simulator's true mesh
   (table 3, quick; seeds 0 / 1) no triangle stretches beyond 3× (before:
   47 / 46 in quadratic + residual, 153 / 168 in rigid); the mean vertex error
@@ -621,7 +627,7 @@ _EDGE_FRAMES_PER_SLICE = 100_000
 
 def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta: np.ndarray,
                   verts: np.ndarray, *, max_stretch: float, steps: int,
-                  residual: bool) -> tuple[np.ndarray, int, int]:  # fmt: skip
+                  residual: bool) -> tuple[np.ndarray, int, int, int, int]:  # fmt: skip
     """Widen the blend between parts where it tears the surface (P&H Eq. 9's ``β``).
 
     Where two parts' models disagree at a vertex by ``D`` and ``β`` changes by
@@ -637,9 +643,14 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
 
     The stretch is kept per mesh edge (each checked once for its two triangles) and
     checked again only where an end moved or a triangle starts to blend; a vertex is
-    moved again only when its weights changed.  ``verts (F, V, 3)`` is updated in
-    place; returns the new ``β (V, P)``, the steps taken and the number of vertices
-    whose weights were diffused.
+    moved again only when its weights changed.
+
+    Where the widening does not leave fewer torn triangles than it found (parts
+    whose models disagree widely, as rigid skinning of a sparse real capture),
+    nothing changes: ``β`` and ``verts`` stay as they were.  Otherwise ``verts
+    (F, V, 3)`` is updated in place.  Returns the ``β (V, P)`` kept, the steps
+    taken, the number of vertices whose weights were diffused (0 when nothing
+    changed), and the torn triangles before and after.
     """
     faces = np.asarray(mesh.faces, dtype=np.int64)
     rest = mesh.vertices
@@ -726,6 +737,8 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         hit |= (np.einsum("fei,fei->fe", d, d) > limit[check]).any(0)
     over[check], known[check] = hit, True
     bad = np.flatnonzero(blended & over[face_edge].any(1))
+    torn_before = len(bad)
+    beta_in = beta.copy()
     changed = np.zeros(V, bool)  # weights diffused; the position is then Σ β_p prediction_p
     taken, k, before = 0, 1, len(bad) + 1
     while len(bad) and taken < steps:
@@ -775,12 +788,14 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         check = np.flatnonzero(check & ~known)
         over[check], known[check] = stretched(check), True
         bad = np.flatnonzero(blended & over[face_edge].any(1))
+    if len(bad) >= torn_before:  # no better: the weights as they were
+        return beta_in, taken, 0, torn_before, len(bad)
     done = np.flatnonzero(changed)
     if len(done):
         for c in range(0, len(done), 256):
             rows = pos.take(row[done[c : c + 256]])
             verts[:, done[c : c + 256]] = rows.view(_XYZ)[..., 0].T[..., None].view(np.float64)
-    return beta, taken, len(done)
+    return beta, taken, len(done), torn_before, len(bad)
 
 
 class _Rows:
@@ -973,10 +988,14 @@ def deform(
                            residual=mode.endswith("residual"), chunk_frames=chunk_frames, ctx=ctx)
     beta, widened = binding.beta, {"steps": 0, "vertices": 0}
     if max_blend_stretch is not None and len(mesh.faces):
-        beta, n_steps, n_changed = _widen_blends(
+        beta, n_steps, n_changed, torn0, torn1 = _widen_blends(
             models, fits, mesh, binding.beta, verts, max_stretch=max_blend_stretch,
             steps=blend_widening_steps, residual=mode.endswith("residual"))
-        widened = {"steps": n_steps, "vertices": n_changed}
+        widened = {"steps": n_steps, "vertices": n_changed, "torn_before": torn0,
+                   "torn_after": torn1 if n_changed else torn0}
+        if torn0 and not n_changed:
+            ctx.warn(f"deform: widening the blends did not tear fewer triangles ({torn0} "
+                     f"-> {torn1} beyond {max_blend_stretch:g}x), so the paper's blend is kept")
     report = _deform_report(models, fits, x, binding, V, mode=mode)
     for p, part in enumerate(report["parts"].values()):
         part["vertices"] = int(np.count_nonzero(beta[:, p]))
