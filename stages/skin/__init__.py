@@ -41,8 +41,8 @@ the paper lives in one function (modules of this package):
   local fill, whole-body PCA without     scored on copies of it moved nearby:
   complete frames, spline, rigid body,   fill._shifted_runs), lowrank.whole_body_pca,
   blended by validation on the take      fill._rigid_body_fill
-§4.4 smoothing x ← x − λ Δ⁴x in the      clean.smooth_local (the iteration: clean._smooth_run)
-  local frames
+§4.4 smoothing x ← x − λ Δ⁴x in the      clean.smooth_local (the iteration, every run
+  local frames                           at once: clean._smooth_runs)
 §5.1–5.2 near-rigid segmentation         segment.segment
   triangle rotation sequences            segment.triangle_rotations, segment.rotation_features
   mean-shift clustering                  segment.mean_shift
