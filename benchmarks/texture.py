@@ -38,6 +38,8 @@ Run::
     .venv/bin/python benchmarks/texture.py --quick    # 2 seeds, 2× rows only
     .venv/bin/python benchmarks/texture.py --quick --level-weights 2/1/0.5   # + weighted rows
     .venv/bin/python benchmarks/texture.py --quick --graph-path   # + graph-path rows
+    .venv/bin/python benchmarks/texture.py --quick --smooth-levels every   # + rows smoothing
+                                                   # every level (the thesis, §3.8)
     .venv/bin/python benchmarks/texture.py --calibrate runs.jsonl   # vs GenMM itself
 """
 
@@ -389,6 +391,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--graph-path", action="store_true",
                     help="extra rows of ours with method=graph_path (the transition-graph "
                          "gap filler, same variety / max_run / usage_weight)")
+    ap.add_argument("--smooth-levels", action="append", default=[],
+                    choices=("finest", "every"),
+                    help="extra rows of ours with this smooth_levels (every: each level "
+                         "smoothed before the next finer one is refined from it, as the "
+                         "thesis; finest: the output only)")
     ap.add_argument("--no-speed", action="store_true",
                     help="skip the speed table (1,024 frames at 30 fps, 4,096 at 120 fps)")
     ap.add_argument("--calibrate", default=None, metavar="FILE",
@@ -406,6 +413,8 @@ def main(argv: list[str] | None = None) -> int:
     variants = {"ours": {}, f"ours variety={MORE_VARIED}": {"variety": MORE_VARIED}}
     if args.graph_path:
         variants["ours graph_path"] = {"method": "graph_path"}
+    for sl in args.smooth_levels:
+        variants[f"ours smooth_levels={sl}"] = {"smooth_levels": sl}
     for w in args.level_weights:
         a, c, f = (float(x) for x in w.split("/"))
         variants[f"ours weights {w}"] = {"ancestor_weight": a, "current_weight": c,

@@ -48,13 +48,18 @@ Moradoff §3.5–3.7 neighbourhood distance  neighbourhood.window_cost (per slot
   the parent's 3 best ±candidate_range)   search.LevelSearch.candidates
 Moradoff §3.7.2 graph path                graph.transition_costs, graph.transition_graph,
                                           graph.graph_path (DFS under a cost bound, keeping
-                                          max_run: graph._min_cost_to_end, graph._run_limit_kept;
+                                          max_run: graph._min_cost_to_end, graph._run_limit_kept,
+                                          nodes without a jump edge given their cheapest
+                                          jump where it cannot: graph._with_escapes;
                                           variety / usage_weight draw: graph.jump_window,
                                           graph._drawn_order); per gap: synth._graph_level
                                           (run limit less refinement's reach:
                                           synth._graph_run_limit)
 Moradoff §3.8 adaptive local smoothing    smoothing.adaptive_smoothing (with the input's floor
                                           and jerk limit: assemble._smooth_seams)
+  after every level (``smooth_levels``)   assemble.smooth_level (a coarser level's output in its
+                                          own representation), read by the next finer level's
+                                          ancestor windows: synth._SmoothedParentRefinement
   acceleration test                       smoothing.seam_test
   Gaussian of width 5 on quaternions      smoothing.gaussian_taps, smoothing.filter_quaternions
                                           (only the frames inside a window are filtered)
@@ -98,8 +103,19 @@ Departures from the thesis (the module docstrings say why):
   diversity (patch distance to the input, lower is better) on all three benchmark
   inputs (1,024 frames, seeds 0-2: salsa 0.141 -> 0.165, walk 0.216 -> 0.266,
   figure-8 walk 0.183 -> 0.217) with jerk and skate about equal;
-* smoothing runs once, at the finest level (the thesis smooths after every
-  level); smoothing the coarser levels was not built or measured;
+* smoothing runs once, at the finest level, by default; ``smooth_levels="every"``
+  smooths every level as the thesis does (each coarser level before the next finer
+  one is refined from it).  It measured no better (``benchmarks/texture.py --seeds 5
+  --no-speed --no-cases --smooth-levels every``, 1,024 frames from the first 512
+  input frames (the whole take when shorter) at 30 fps, seeds 0-4, finest ->
+  every): seam jerk-p99 ratio salsa 0.55 -> 0.43, walk 0.75 -> 0.74, figure-8 walk
+  0.87 -> 0.89; skate ratio 0.93 -> 0.93, 0.97 -> 0.96, 0.96 -> 0.93; coverage 1.00
+  on all; GANimator local diversity 0.157 -> 0.148, 0.211 -> 0.205, 0.175 -> 0.169
+  but global diversity 0.165 -> 0.147, 0.192 -> 0.180, 0.164 -> 0.166 (closer to the
+  input on both, as a lower ``variety`` is); CPU s (pyramid + synthesis) 0.21 ->
+  0.24, 0.17 -> 0.21, 0.19 -> 0.22; and the figure-8 walk's longest verbatim run
+  leaves ``max_run`` + 5 % of the input (93 frames): 96 in seeds 0-4 (finest 86),
+  over it in 4 of seeds 0-19 (up to 105; finest at most 91);
 * smoothing: a seam also fails the test while its jerk exceeds
   ``jerk_tolerance`` × the input's p99 jerk (smoothing.seam_test); its frame
   counts are the thesis' at 30 fps and scale with the synthesis rate

@@ -23,6 +23,9 @@ input frame copied into each output frame) into a motion on the input skeleton:
    :func:`~mocapflow.stages.texture.root.apply_foot_ik`); on a path with the
    :data:`PATH_IK` weights (the legs take up the turned, paced root);
 6. the errors at the constrained frames are measured (:func:`_constraint_errors`).
+
+:func:`smooth_level` smooths the output of a coarser level in the same way, in that
+level's representation (``smooth_levels="every"`` of the ``synth`` stage).
 """
 from __future__ import annotations
 
@@ -38,9 +41,10 @@ from mocapflow.stages.motion.rotations import (
     heading_split,
     quat_angle,
     quat_multiply,
+    quat_rotate,
     yaw_quaternion,
 )
-from mocapflow.stages.texture.pyramid import Pyramid, level_positions
+from mocapflow.stages.texture.pyramid import Pyramid, PyramidLevel, level_positions
 from mocapflow.stages.texture.root import (
     PACE_TOLERANCE,
     PathCurve,
@@ -55,7 +59,7 @@ from mocapflow.stages.texture.root import (
 )
 from mocapflow.stages.texture.smoothing import adaptive_smoothing, rate_scale
 
-__all__ = ["ACCEL_FLOOR", "PATH_IK", "assemble_motion"]
+__all__ = ["ACCEL_FLOOR", "PATH_IK", "assemble_motion", "smooth_level"]
 
 #: Seam accelerations below this fraction of the input's median acceleration pass the test.
 ACCEL_FLOOR = 0.25
@@ -78,8 +82,8 @@ def _input_features(pyramid: Pyramid) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _smooth_seams(
-    pyramid: Pyramid,
-    motion: Motion,
+    skeleton,
+    rate: float,
     rot: np.ndarray,
     feat: np.ndarray,
     seams: np.ndarray,
@@ -94,7 +98,7 @@ def _smooth_seams(
     world_in: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Adaptive smoothing of the seams with the input's acceleration floor and jerk limit
-    (``world_in``: the input's joint positions, :func:`motion_positions`).
+    (``world_in``: the input's joint positions at ``rate``, :func:`motion_positions`).
 
     Returns
     -------
@@ -103,17 +107,18 @@ def _smooth_seams(
     report : dict
         ``widening``, ``passed``, ``seam_acc``, ``ref_acc`` per seam.
     """
-    acc_in = acceleration_per_frame(world_in, motion.rate)
-    floor = ACCEL_FLOOR * float(np.nanmedian(acc_in)) if motion.n_frames > 2 else 0.0
+    n_in = world_in.shape[0]
+    acc_in = acceleration_per_frame(world_in, rate)
+    floor = ACCEL_FLOOR * float(np.nanmedian(acc_in)) if n_in > 2 else 0.0
     jerk_limit = None
-    if jerk_tolerance is not None and motion.n_frames > 8:
-        jerk_limit = jerk_tolerance * jerk_p99(world_in, motion.rate)
+    if jerk_tolerance is not None and n_in > 8:
+        jerk_limit = jerk_tolerance * jerk_p99(world_in, rate)
     sm = adaptive_smoothing(
-        motion.skeleton,
+        skeleton,
         rot,
         feat,
         seams,
-        pyramid.rate,
+        rate,
         constrained=constrained,
         cyclic=loop,
         gaussian_width=gaussian_width,
@@ -135,6 +140,77 @@ def _smooth_seams(
         ref_acc=sm.ref_acc.tolist(),
     )
     return sm.rotations, sm.features, report
+
+
+def smooth_level(
+    pyramid: Pyramid,
+    skeleton,
+    level: int,
+    source: np.ndarray,
+    *,
+    constrained: list[int] = (),
+    loop: bool = False,
+    gaussian_width: int = 5,
+    accel_tolerance: float = 1.0,
+    max_widening: int = 12,
+    jerk_tolerance: float | None = 1.0,
+) -> PyramidLevel:
+    """The output of one coarser level with its seams smoothed (Moradoff §3.8, after
+    every level).
+
+    The level's representation is smoothed: its nodes are frames at ``rate / 2**level``
+    (joint rotations, root as per-node yaw and heading-frame velocity, height), tested
+    and smoothed as the finest level is (:func:`_smooth_seams`, frame counts in nodes, as
+    the thesis filters every level), against the acceleration floor and jerk of the
+    input's own level.
+
+    Parameters
+    ----------
+    pyramid : Pyramid
+    skeleton : Skeleton
+        The input's.
+    level : int
+        Pyramid level of ``source``.
+    source : (n,) int ndarray
+        Input node copied at each output node of the level.
+    constrained : sequence of int
+        Output nodes pinned (the constraints' anchors ``j >> level``).
+    loop : bool
+    gaussian_width, accel_tolerance, max_widening, jerk_tolerance :
+        As :func:`assemble_motion`.
+
+    Returns
+    -------
+    PyramidLevel
+        ``n`` output nodes: smoothed rotations, root features and the 3-D pose
+        representation (:func:`~mocapflow.stages.texture.pyramid.level_positions`).
+    """
+    lev = pyramid.levels[level]
+    f = 2.0**level
+    rate = pyramid.rate / f
+    src = np.asarray(source, dtype=np.int64)
+    trans = lev.translations
+    parts = [f * lev.yaw_rate[:, None], f * lev.velocity, lev.height[:, None]]
+    if trans is not None:
+        parts.append(trans.reshape(lev.n_nodes, -1))
+    feat_in = np.concatenate(parts, axis=1)  # root per node of the level
+    rot, feat = lev.rotations[src].copy(), feat_in[src].copy()
+    seams = seams_from_source(src, cyclic=loop)
+    if seams.size:
+        heading, ground = integrate_root(feat_in[:, 0], feat_in[:, 1:3])
+        world_in = quat_rotate(yaw_quaternion(heading)[:, None], lev.positions)
+        world_in[..., 0] += ground[:, None, 0]
+        world_in[..., 2] += ground[:, None, 1]
+        rot, feat, _ = _smooth_seams(
+            skeleton, rate, rot, feat, seams, list(constrained), loop,
+            gaussian_width=gaussian_width, accel_tolerance=accel_tolerance,
+            max_widening=max_widening, jerk_tolerance=jerk_tolerance,
+            warn=lambda msg: None, world_in=world_in,
+        )
+    J = skeleton.n_joints
+    tr = feat[:, 4:].reshape(-1, J, 3) if feat.shape[1] > 4 else None
+    return PyramidLevel(rot, feat[:, 0] / f, feat[:, 1:3] / f, feat[:, 3],
+                        level_positions(skeleton, rot, feat[:, 3], tr), tr)
 
 
 def _input_contacts(motion: Motion, world: np.ndarray):
@@ -366,8 +442,8 @@ def assemble_motion(
     sm_report: dict[str, Any] = {"enabled": smoothing}
     if smoothing and seams.size:
         rot, feat, widened = _smooth_seams(
-            pyramid,
-            motion,
+            motion.skeleton,
+            motion.rate,
             rot,
             feat,
             seams,

@@ -12,7 +12,10 @@ every seed gives another path.  The exact remaining-cost table makes the DFS
 prune every branch that cannot meet the bound.  It carries the length of the
 verbatim run each node ends, so the path keeps ``max_run`` (no run of natural
 successors longer than the synthesis' limit, counting the run that enters the
-gap); a gap whose graph cannot keep it keeps the shortest limit it can.  The
+gap); where the graph cannot keep it (nodes with no jump edge along a stretch
+longer than the limit, e.g. the first 10 of the 39 coarsest nodes of
+``cmu_131_02`` at 30 fps), each node without a jump edge gets its cheapest jump
+as one (``escapes``), and only a gap that still cannot keeps the shortest limit it can.  The
 walk draws like the neighbourhood search (:mod:`~mocapflow.stages.texture.search`):
 among the ``k_best`` allowed successors whose *key* — edge cost plus
 ``usage_weight`` windows per time the input nodes they would play next are
@@ -212,6 +215,7 @@ def graph_path(
     usage: np.ndarray | None = None,
     usage_weight: float = 0.0,
     settle: int = 0,
+    escapes: np.ndarray | None = None,
     where: str = "gap",
 ) -> np.ndarray:
     """A random path of exactly ``steps`` edges under a cost bound (DFS).
@@ -245,8 +249,9 @@ def graph_path(
         Cost unit of the level.
     max_run : int, optional
         Most nodes a verbatim run (natural successors) may have.  Where no path
-        keeps it (too few edges or steps), the smallest limit some path keeps is
-        used instead.  ``None``: no limit.
+        keeps it (too few edges or steps), every node without a jump edge first gets
+        its cheapest transition of ``escapes`` as one; where that is not enough, the
+        smallest limit some path keeps is used instead.  ``None``: no limit.
     run_before : int
         Nodes of the verbatim run that ends at ``start`` (``start`` included).
     keep : int
@@ -269,6 +274,11 @@ def graph_path(
     settle : int
         Verbatim nodes a run needs before the next drawn jump, and the half width
         of the material ``U`` measures (0: no rule, ``U`` of ``v`` alone).
+    escapes : (n, n) float ndarray, optional
+        Costs of the transitions outside the graph that may become edges so that
+        ``max_run`` holds (``inf``: none; its natural successors are ignored), e.g.
+        every jump of the graph's ``min_jump``: ``transition_graph(costs,
+        threshold=1.0, min_jump=…)``.  ``None``: the graph only.
     where : str
         Gap description for error messages.
 
@@ -294,7 +304,7 @@ def graph_path(
                 start=None if start is None else start + head,
                 end=None if end is None else end - tail, slack=slack, unit=unit,
                 max_run=max_run, run_before=run_before + head, keep=0,
-                end_run=tail, where=where, **draw)
+                end_run=tail, escapes=escapes, where=where, **draw)
             none = np.zeros(0, np.int64)
             return np.concatenate([
                 np.arange(start, start + head, dtype=np.int64) if head else none, inner,
@@ -303,7 +313,8 @@ def graph_path(
             pass  # the gap cannot keep the neighbourhoods: search without them
     end_set = np.arange(n) if end is None else np.array([end])
     starts = np.arange(n) if start is None else np.array([start])
-    R, i0, D = _run_limit_kept(E, end_set, starts, steps, max_run, start, run_before, end_run)
+    E, R, i0, D = _run_limit_kept(E, end_set, starts, steps, max_run, start, run_before,
+                                  end_run, escapes)
     feasible = starts[np.isfinite(D[steps, starts, i0])]
     if feasible.size == 0:
         raise UnreachableGapError(
@@ -351,18 +362,40 @@ def graph_path(
     raise UnreachableGapError(f"{where}: no path within the cost bound {bound:.3g}")
 
 
-def _run_limit_kept(E, end_set, starts, steps, max_run, start, run_before, end_run):
-    """``(R, i0, D)``: the run limit a path can keep (``max_run`` or, where no path keeps
-    it, the smallest larger one some path keeps; ``None`` without a limit), the start's
-    run index and the remaining-cost table (:func:`_min_cost_to_end`)."""
+def _run_limit_kept(E, end_set, starts, steps, max_run, start, run_before, end_run,
+                    escapes=None):
+    """``(E, R, i0, D)``: the graph and the run limit a path can keep, the start's run
+    index and the remaining-cost table (:func:`_min_cost_to_end`).
+
+    The limit is ``max_run``; where no path keeps it, the graph with the nodes that have
+    no jump edge given their cheapest ``escapes`` transition (:func:`_with_escapes`),
+    and where still none does, the smallest larger limit some path keeps (``R`` ``None``
+    without a limit).
+    """
     n = E.shape[0]
     R = None if max_run is None else max(int(max_run), 1)
+    tried_escapes = escapes is None
     while True:
         i0 = 0 if R is None or start is None else min(max(int(run_before), 1), R) - 1
         D = _min_cost_to_end(E, end_set, steps, R, end_run if R is not None else 0)
         if R is None or np.isfinite(D[steps, starts, i0]).any():
-            return R, i0, D
+            return E, R, i0, D
+        if not tried_escapes:  # first the limit kept through the cheapest extra jumps
+            E, tried_escapes = _with_escapes(E, escapes), True
+            continue
         R = None if R > n + steps else R + max(1, R // 4)  # relax the limit by a quarter
+
+
+def _with_escapes(E: np.ndarray, escapes: np.ndarray) -> np.ndarray:
+    """``E`` with an edge from every node that has no jump edge: its cheapest jump in
+    ``escapes`` (nodes with none there keep none)."""
+    _, J = _natural_and_jumps(E)
+    _, X = _natural_and_jumps(np.asarray(escapes, dtype=np.float64))
+    lone = np.flatnonzero(~np.isfinite(J).any(axis=1) & np.isfinite(X).any(axis=1))
+    out = E.copy()
+    b = np.argmin(X[lone], axis=1)
+    out[lone, b] = X[lone, b]
+    return out
 
 
 def _drawn_order(nxt, acc, run, natural, settle, window, k_best, counts, scale, rng):

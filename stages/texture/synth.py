@@ -16,6 +16,10 @@ into the motion: seams smoothed adaptively
 (:mod:`~mocapflow.stages.texture.smoothing`), the root integrated or steered
 along a path (:mod:`~mocapflow.stages.texture.root`), stance toes then pinned
 by two-bone leg IK (``foot_ik``).  The ``synth`` stage composes the three.
+With ``smooth_levels="every"`` (the thesis' §3.8) every coarser level is smoothed
+too, in its own representation, before the next finer level is refined from it
+(:func:`~mocapflow.stages.texture.assemble.smooth_level`, read by the finer level's
+ancestor windows: :class:`_SmoothedParentRefinement`).
 
 Frame rate: the synthesis works at the rate of its input motion (the ingest
 ``rate``); the output motion is resampled back to the source's rate (the rate
@@ -39,7 +43,9 @@ the input's), any number of meeting points per output (one per gap), loops.
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 from typing import Any, Literal
 
 import numpy as np
@@ -52,7 +58,7 @@ from mocapflow.stages.motion.kinematics import (
     reorient_motion,
     resample_motion,
 )
-from mocapflow.stages.texture.assemble import assemble_motion
+from mocapflow.stages.texture.assemble import assemble_motion, smooth_level
 from mocapflow.stages.texture.graph import (
     UnreachableGapError,
     graph_path,
@@ -60,8 +66,8 @@ from mocapflow.stages.texture.graph import (
     transition_costs,
     transition_graph,
 )
-from mocapflow.stages.texture.neighbourhood import level_view
-from mocapflow.stages.texture.pyramid import Pyramid
+from mocapflow.stages.texture.neighbourhood import LevelView, level_view, window_cost
+from mocapflow.stages.texture.pyramid import Pyramid, PyramidLevel
 from mocapflow.stages.texture.refine import LevelRefinement
 from mocapflow.stages.texture.root import PathCurve
 from mocapflow.stages.texture.search import (
@@ -185,6 +191,9 @@ def _graph_level(
     # neither line to join them (the left one ends the input, the right one starts it)
     S = params.slots
     E[-S:, :S] = np.inf
+    # where the graph cannot keep max_run: every jump (same rules) may become an edge
+    escapes = transition_graph(T, threshold=1.0, min_jump=S)
+    escapes[-S:, :S] = np.inf
     n = search.n
     meetings = {}
     for g in gaps:
@@ -200,7 +209,7 @@ def _graph_level(
             E, steps, rng, start=start, end=end, slack=slack, unit=view.unit,
             max_run=_graph_run_limit(search, params),
             run_before=_run_into(src, g.lo, search.cyclic),
-            keep=params.slots, where=where,
+            keep=params.slots, escapes=escapes, where=where,
             usage=np.bincount(src[src >= 0], minlength=view.n).astype(np.float64), **draw,
         )
         if g.left and g.right:
@@ -293,6 +302,43 @@ def _coarsest_level(
     return LevelResult(src, ranked, meetings)
 
 
+class _SmoothedParentRefinement(LevelRefinement):
+    """Refinement whose ancestor windows read the parent level's *smoothed* output
+    (Moradoff §3.8: every level is smoothed before the next finer one is synthesized
+    from it), not the input nodes its source track copies.
+
+    ``parent``: :func:`~mocapflow.stages.texture.assemble.smooth_level` of the level
+    above.  The input's parent level and that output are one view (input nodes
+    ``0 … n - 1``, output node ``T`` at ``n + T``), so
+    :func:`~mocapflow.stages.texture.neighbourhood.window_cost` compares them as it
+    compares input nodes; the candidate's own parent stays the input's.
+    """
+
+    def __init__(self, views, level, n_out, cyclic, upper, params, rng, *, parent):
+        super().__init__(views, level, n_out, cyclic, upper, params, rng)
+        inp = views[level + 1]
+        out = level_view(parent, inp.spacing)
+        self._parent_view = LevelView(np.concatenate([inp.P, out.P]),
+                                      np.concatenate([inp.R, out.R]), inp.spacing, inp.unit)
+        self._parent_ids = inp.n + np.arange(parent.n_nodes)
+
+    def _ancestor_cost(self, t, cands: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The parent window around ``t // 2`` (smoothed output) with the candidate's
+        parent (an input node) at its centre; ``t``: one position or one per candidate."""
+        n_in = self.views[self.l + 1].n
+        T = np.broadcast_to(t // 2 if not self.cyclic else (np.asarray(t) % self.n) // 2,
+                            cands.shape)
+        C = cands // 2
+        key, inv = np.unique(np.stack([T, C]), axis=1, return_inverse=True)
+        ov = self._out_values(self._parent_ids, key[0][:, None] + self.off[None, :])
+        ov[:, self.blk] = key[1][:, None]
+        iv = key[1][:, None] + self.off[None, :]
+        iv[iv >= n_in] = -1  # past the input's end: empty, as in the input's own view
+        num, den, _ = window_cost(self._parent_view, ov, iv, self.blk, self.pw)
+        inv = np.ravel(inv)
+        return num[inv], den[inv]
+
+
 def synthesize_source(
     pyramid: Pyramid,
     length: int,
@@ -305,12 +351,15 @@ def synthesize_source(
     rng: np.random.Generator,
     graph_threshold: float = 0.1,
     graph_slack: float = 0.5,
+    level_smoothing: Callable[..., PyramidLevel] | None = None,
 ) -> tuple[np.ndarray, dict]:
     """The finest source track of a constrained multi-resolution synthesis.
 
     The coarsest level is searched (:func:`_coarsest_level`), every finer one
     refined from the level above
-    (:class:`~mocapflow.stages.texture.refine.LevelRefinement`).
+    (:class:`~mocapflow.stages.texture.refine.LevelRefinement`; with
+    ``level_smoothing``, from the level above smoothed:
+    :class:`_SmoothedParentRefinement`).
 
     Parameters
     ----------
@@ -329,6 +378,13 @@ def synthesize_source(
     rng : numpy.random.Generator
     graph_threshold, graph_slack : float
         Transition-graph options (graph_path).
+    level_smoothing : callable, optional
+        ``level_smoothing(l, src, constrained=…)`` -> the smoothed output of level ``l``
+        (a :class:`~mocapflow.stages.texture.pyramid.PyramidLevel`, e.g.
+        :func:`~mocapflow.stages.texture.assemble.smooth_level` with the skeleton and
+        smoothing options bound): every level above the finest is smoothed before the
+        next finer one is refined from it (``smooth_levels="every"``).  ``None``: the
+        source tracks only (the finest is smoothed by the assembly).
 
     Returns
     -------
@@ -338,6 +394,7 @@ def synthesize_source(
         (synthesis frame ``t``, the jump between ``t - 1`` and ``t``;
         :func:`_follow_meetings`).
     """
+    pinned = list(constraints)  # the frames smoothing keeps (the user's constraints)
     if not constraints and not cyclic:
         constraints = [(0, 0)]  # unconstrained: the output starts where the input starts
     views = [level_view(pyramid.levels[l], 2.0**l) for l in range(levels)]
@@ -355,7 +412,13 @@ def synthesize_source(
     meetings = dict(upper.meetings)
     for l in range(top - 1, -1, -1):
         pos, node, _ = _anchors(constraints, l)
-        refinement = LevelRefinement(views, l, n_out, cyclic, upper, params, rng)
+        if level_smoothing is None:
+            refinement = LevelRefinement(views, l, n_out, cyclic, upper, params, rng)
+        else:
+            parent = level_smoothing(l + 1, upper.src,
+                                     constrained=_anchors(pinned, l + 1)[0])
+            refinement = _SmoothedParentRefinement(views, l, n_out, cyclic, upper, params,
+                                                   rng, parent=parent)
         upper = refinement.refine(dict(zip(pos, node)))
         meetings = _follow_meetings(meetings, upper.src, pos, cyclic)
     info: dict[str, Any] = {"meetings": {str(k): int(v) for k, v in meetings.items()}}
@@ -499,6 +562,7 @@ def synth(
     graph_threshold: float = 0.1,
     graph_slack: float = 0.5,
     smoothing: bool = True,
+    smooth_levels: Literal["finest", "every"] = "finest",
     gaussian_width: int = 5,
     accel_tolerance: float = 1.0,
     jerk_tolerance: float = 1.0,
@@ -571,8 +635,9 @@ def synth(
         Longest verbatim run as a fraction of the input (0.3): a run that long
         must jump, where the jump fits best among its last positions.  0 (or
         >= 1) disables.  graph_path keeps it in its search (less the few nodes
-        refinement may add; where the graph has too few edges for it, the shortest
-        limit it can keep: raise ``graph_threshold``).
+        refinement may add; where the graph has too few edges for it, nodes without
+        a jump edge get their cheapest jump as one, and only where that is not
+        enough the shortest limit it can keep applies: raise ``graph_threshold``).
     usage_weight : float
         Preference for input material not used yet (coverage of the input): a
         candidate's rank rises by ``usage_weight`` draw windows per time the input
@@ -590,6 +655,13 @@ def synth(
         DFS cost bound relative to the cheapest path.
     smoothing : bool
         Adaptive local smoothing (Moradoff §3.8).
+    smooth_levels : {"finest", "every"}
+        Levels smoothed: the finest only (the output motion), or, as the thesis,
+        every level after its synthesis, in its own representation (joint rotations
+        and root at ``rate / 2**l``), before the next finer level is refined from it
+        (its ancestor windows then read the smoothed level).  The finest measured
+        better (``benchmarks/texture.py --smooth-levels every``; the package
+        docstring's departures give the numbers).  Ignored when ``smoothing`` is off.
     gaussian_width : int
         Taps of the smoothing Gaussian (5) at 30 fps; at a higher synthesis rate
         the Gaussian keeps its width in seconds
@@ -652,18 +724,23 @@ def synth(
         meeting_window=meeting_window, variety=variety, max_run=max_run,
         usage_weight=usage_weight,
     )
+    smooth_opts = dict(gaussian_width=gaussian_width, accel_tolerance=accel_tolerance,
+                       max_widening=max_widening,
+                       jerk_tolerance=jerk_tolerance if jerk_tolerance > 0 else None)
+    per_level = None
+    if smoothing and smooth_levels == "every":
+        per_level = functools.partial(smooth_level, pyramid, motion.skeleton, loop=loop,
+                                      **smooth_opts)
     with ctx.timer("search"):
         src, info = synthesize_source(
             pyramid, L, cons, levels=levels, cyclic=loop, method=method, params=params,
             rng=ctx.rng, graph_threshold=graph_threshold, graph_slack=graph_slack,
+            level_smoothing=per_level,
         )
     with ctx.timer("assemble"):
         out, assembly = assemble_motion(
             pyramid, motion, src, constraints=cons, loop=loop, curve=curve,
-            smoothing=smoothing, gaussian_width=gaussian_width,
-            accel_tolerance=accel_tolerance, max_widening=max_widening,
-            jerk_tolerance=jerk_tolerance if jerk_tolerance > 0 else None,
-            foot_ik=foot_ik, warn=ctx.warn,
+            smoothing=smoothing, foot_ik=foot_ik, warn=ctx.warn, **smooth_opts,
         )
     out, assembly = _at_output_rate(out, assembly, motion.rate, source_rate, out_rate, cons,
                                     loop)

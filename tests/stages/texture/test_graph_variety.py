@@ -11,6 +11,13 @@ material each successor plays next, settled jumps), the cost bound allows one
 drawn jump per jump the run limit forces, jumps shorter than ``slots`` nodes are
 no edges, and the run limit leaves room for refinement: now 154 and 90 frames,
 a 1-s block played at most 5.0 and 6.6 times, coverage 0.94 and 0.99 (was 0.40, 0.74).
+
+On the walk ``cmu_131_02`` (312 frames at 30 fps, 39 coarsest nodes) the graph has no
+jump edge out of nodes 0-9 and 30-37, so no walk from the start kept the coarse limit
+(6 nodes) and the limit was relaxed for the whole path (to 12): verbatim runs of up to
+133 frames (limit 0.3 x 312 = 94, 10 of 20 seeds above 109).  Nodes without a jump
+edge now get their cheapest jump as one (``escapes``) before the limit is relaxed:
+at most 87 frames (salsa and the figure-8 walk keep their limits: unchanged).
 """
 
 from __future__ import annotations
@@ -29,7 +36,7 @@ from mocapflow.stages.texture.synth import synthesize_source
 SEEDS = range(20)
 LENGTH = 1024
 BLOCK = 30  # frames: 1 s at 30 fps
-TAKES = ["cmu_60_01_scaled", "pymo_AV_8Walk_Meredith_HVHA_Rep1"]
+TAKES = ["cmu_60_01_scaled", "pymo_AV_8Walk_Meredith_HVHA_Rep1", "cmu_131_02"]
 
 
 @pytest.fixture(scope="module", params=TAKES)
@@ -108,6 +115,29 @@ def test_an_unkeepable_run_limit_is_relaxed_not_dropped():
     E[n - 1, 0] = 1.0
     p = graph_path(E, 45, np.random.default_rng(0), start=0, end=None, max_run=5)
     assert M.longest_verbatim_run(p) == n
+
+
+def test_escapes_keep_the_run_limit_where_the_graph_cannot():
+    """The line graph above with every jump of cost 1 + b / 100 as an escape: limit 5 is
+    kept, through each node's cheapest escape (to node 0, the only one added)."""
+    n = 20
+    E = np.full((n, n), np.inf)
+    E[np.arange(n - 1), np.arange(1, n)] = 0.0
+    E[n - 1, 0] = 1.0
+    escapes = 1.0 + np.tile(np.arange(n) / 100.0, (n, 1))
+    for seed in range(3):
+        p = graph_path(E, 45, np.random.default_rng(seed), start=0, end=None, max_run=5,
+                       escapes=escapes)
+        assert p.size == 46 and M.longest_verbatim_run(p) <= 5
+        jumps = np.flatnonzero(p[1:] != p[:-1] + 1)
+        assert (p[jumps + 1] == 0).all()  # the cheapest escape of every node
+    # the graph that keeps the limit is not changed by escapes
+    ring = _ring()
+    for seed in range(3):
+        a = graph_path(ring, 30, np.random.default_rng(seed), start=0, end=None, max_run=8)
+        b = graph_path(ring, 30, np.random.default_rng(seed), start=0, end=None, max_run=8,
+                       escapes=np.zeros_like(ring))
+        np.testing.assert_array_equal(a, b)
 
 
 def test_jump_window_is_the_variety_quantile_of_best_jumps():
