@@ -46,6 +46,12 @@ Moradoff §3.5–3.7 neighbourhood distance  neighbourhood.window_cost (per slot
                                           refine.LevelRefinement.refine)
   candidate acceleration (children of     refine.LevelRefinement._candidate_lines,
   the parent's 3 best ±candidate_range)   search.LevelSearch.candidates
+  pose term of a finest-level join (an    refine.LevelRefinement.line_costs and
+  addition, off by default:               ._pose_lines (neighbourhood.pose_distance)
+  SearchParams.pose_weight, pose_lines)
+  a front after a settled run (same       search.LevelSearch.after_run_costs (read by
+  costs, tabulated once per level)        search.LevelSearch.fill and ._jump_earlier; row
+                                          minima: .jump_costs)
 Moradoff §3.7.2 graph path                graph.transition_costs, graph.transition_graph,
                                           graph.graph_path (DFS under a cost bound, keeping
                                           max_run: graph._min_cost_to_end, graph._run_limit_kept,

@@ -32,6 +32,7 @@ __all__ = [
     "slot_distance",
     "PairTables",
     "pair_tables",
+    "pose_distance",
     "window_cost",
 ]
 
@@ -64,6 +65,8 @@ class LevelView:
 
     def __post_init__(self) -> None:
         self.V = np.diff(self.P, axis=0) if self.P.shape[0] > 1 else np.zeros_like(self.P)
+        #: (n, 3K) poses flattened, for :func:`pose_distance`
+        self.Pf = np.ascontiguousarray(self.P.reshape(self.P.shape[0], -1))
 
     @property
     def n(self) -> int:
@@ -86,6 +89,29 @@ def slot_distance(d: np.ndarray) -> np.ndarray:
     # the mean as sum / count: what ndarray.mean computes, without its wrapper
     root_mean = np.add.reduce(np.sqrt(d), axis=-1) / d.shape[-1]
     return np.maximum.reduce(d, axis=-1) + root_mean * root_mean
+
+
+def pose_distance(view: LevelView, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """RMS over joints of the distance between the poses of nodes ``a`` and ``b``.
+
+    Parameters
+    ----------
+    view : LevelView
+    a : (m,) int ndarray
+        Nodes in ``[0, n)``.
+    b : (n_b,) int ndarray
+        Nodes in ``[0, n)``.
+
+    Returns
+    -------
+    (m, n_b) float ndarray
+        ``sqrt(mean_j ‖P[a, j] - P[b, j]‖²)`` (metres) of every pair, in Gram form
+        (one matrix product).
+    """
+    X, K = view.Pf, view.P.shape[1]
+    sq = np.einsum("ij,ij->i", X, X)
+    d2 = sq[a][:, None] + sq[b][None, :] - 2.0 * (X[a] @ X[b].T)
+    return np.sqrt(np.maximum(d2, 0.0) / K)
 
 
 def level_view(level, spacing: float) -> LevelView:

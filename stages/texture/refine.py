@@ -27,6 +27,12 @@ Below the coarsest level the output of a level is derived from the level above
   its randomisation — survive refinement; as a last resort a join may replay a
   few nodes (a stall), rather than fail.  Joins are drawn within
   ``tolerance`` cost units (:meth:`LevelRefinement._draw_join`).
+* **pose term** (an addition, off by default: ``SearchParams.pose_weight``) — at
+  the finest level a join also costs how far apart in pose the two lines stay
+  within ``±POSE_SPAN_FRAMES`` frames (:meth:`LevelRefinement.line_costs`), and
+  the ``pose_lines`` nearest lines are tried beside the drawn one
+  (:meth:`LevelRefinement._pose_lines`; none that would leave the input before
+  the run ends or run into the next run).
 * **gap growing** — ends the runs leave outside the input (open outputs) are
   grown node by node with the ordinary search
   (:meth:`LevelRefinement._grow_free_ends`).
@@ -38,12 +44,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mocapflow.stages.texture.neighbourhood import pose_distance
 from mocapflow.stages.texture.search import LevelResult, LevelSearch, SynthesisError
 
-__all__ = ["MIN_RUN_FRAMES", "LevelRefinement", "verbatim_runs"]
+__all__ = ["MIN_RUN_FRAMES", "POSE_SPAN_FRAMES", "LevelRefinement", "verbatim_runs"]
 
 #: Shortest run (fine frames) refinement leaves between two transitions when it can.
 MIN_RUN_FRAMES = 12
+
+#: Half span (finest frames) over which :meth:`LevelRefinement._pose_lines` compares
+#: the two lines of a join: the half window of the local patch metric (15 frames).
+POSE_SPAN_FRAMES = 7
 
 
 def verbatim_runs(
@@ -257,8 +268,14 @@ class LevelRefinement(LevelSearch):
         last_run = k + 1 == len(runs) - 1 and not self.cyclic
         window, fallback = self._join_windows(tr, prev_join, last_run=last_run)
         starts = self._candidate_lines(tr)
+        near = self._pose_lines(tr)
+        if near.size and k + 2 < len(runs):  # a pose line must not run into the next run
+            a3 = runs[k + 2][0]
+            nxt = int(val[self._at(a3)]) - (a3 - tr.a2)  # that run's line at a2
+            near = near[np.abs(near - nxt) >= self.p.slots]
+        starts = np.union1d(starts, near)
         for lines, (m_lo, m_hi), strict, min_run, stall in self._join_attempts(
-            tr, starts, window, fallback
+            tr, starts, window, fallback, near
         ):
             rows, keys, ms = self.join_costs(val, tr, lines, m_lo, m_hi, strict, min_run,
                                              allow_stall=stall)
@@ -332,7 +349,81 @@ class LevelRefinement(LevelSearch):
         starts = np.unique((lines[:, None] + np.arange(-r, r + 1)[None, :]).ravel())
         return np.unique(np.concatenate([starts, [tr.right_start]]))
 
-    def _join_attempts(self, tr: _Transition, starts: np.ndarray, window, fallback) -> tuple:
+    def _pose_term(self, tr: _Transition) -> bool:
+        """Whether the joins of ``tr`` are scored and widened by pose (finest level,
+        ``pose_weight > 0``, the right run unconstrained)."""
+        return self.l == 0 and self.p.pose_weight > 0 and not tr.right_anchors
+
+    def line_costs(self, tr: _Transition, m: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """How far apart the left line and right line ``s`` stay around a join at ``m``.
+
+        The mean :func:`~mocapflow.stages.texture.neighbourhood.pose_distance`
+        (metres) between the left line's node ``L(u) = left_end + (u - b1)`` and
+        the right line's ``R_s(u) = s + (u - a2)`` over the output positions ``u``
+        within ``±POSE_SPAN_FRAMES`` of ``m`` where both are inside the input:
+        the frames a 15-frame patch around the join mixes from the two lines
+        (0 when they are one line).
+
+        Parameters
+        ----------
+        tr : _Transition
+        m, s : (r,) int ndarrays
+            Join positions and right lines.
+
+        Returns
+        -------
+        (r,) float ndarray
+            ``inf`` where fewer than ``POSE_SPAN_FRAMES + 1`` positions compare.
+        """
+        view, h = self.view, POSE_SPAN_FRAMES
+        n = view.n
+        m, s = np.asarray(m, dtype=np.int64), np.asarray(s, dtype=np.int64)
+        if m.size == 0:
+            return np.zeros(0)
+        x = tr.left_end + (m - tr.b1)  # the left line at m
+        y = s + (m - tr.a2)  # the right line at m
+        j = np.arange(-h, h + 1)
+        x0 = max(int(x.min()) - h, 0)
+        x1 = min(int(x.max()) + h, n - 1)
+        if x1 < x0:
+            return np.full(m.size, np.inf)
+        rows = np.arange(x0, x1 + 1)
+        pd = pose_distance(view, rows, np.arange(n))  # (rows, n)
+        xj, yj = x[:, None] + j[None, :], y[:, None] + j[None, :]
+        ok = (xj >= 0) & (xj < n) & (yj >= 0) & (yj < n)
+        vals = np.where(ok, pd[np.clip(xj - x0, 0, rows.size - 1), np.clip(yj, 0, n - 1)], 0.0)
+        cnt = ok.sum(axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(cnt > h, vals.sum(axis=1) / cnt, np.inf)
+
+    def _pose_lines(self, tr: _Transition) -> np.ndarray:
+        """Right lines whose poses stay nearest the left line's around the join.
+
+        With the pose term (:meth:`_pose_term`): the ``pose_lines`` input lines with
+        the lowest :meth:`line_costs` at ``a2``, the left line's own continuation
+        (closer than ``slots``) and lines that would leave the input before the
+        right run's end excluded — the transitions that leave the input's
+        patch space least, so smoothing has little to bridge.  They are tried
+        beside the drawn line (:meth:`_join_attempts`).
+
+        Returns
+        -------
+        (k,) int ndarray
+            Empty without the pose term.
+        """
+        k = self.p.pose_lines
+        if k <= 0 or not self._pose_term(tr):
+            return np.zeros(0, dtype=np.int64)
+        n = self.view.n
+        s = np.arange(n)
+        cost = self.line_costs(tr, np.full(n, tr.a2), s)
+        cost[np.abs(s - (tr.left_end + (tr.a2 - tr.b1))) < self.p.slots] = np.inf
+        cost[s + (tr.b2 - tr.a2) >= n] = np.inf  # the whole right run stays in the input
+        order = np.argsort(cost, kind="stable")[:k]
+        return order[np.isfinite(cost[order])].astype(np.int64)
+
+    def _join_attempts(self, tr: _Transition, starts: np.ndarray, window, fallback,
+                       near: np.ndarray | None = None) -> tuple:
         """``(lines, window, strict, min_run, allow_stall)`` to try in order until a join
         fits.
 
@@ -342,11 +433,15 @@ class LevelRefinement(LevelSearch):
         (a stall): when a constrained right run's line is at most ``slots``
         nodes behind the left line — e.g. a loop's wrap into a constraint near
         the output's start — nothing else joins them, and a short replay is
-        better than no motion (finer levels search the join again).
+        better than no motion (finer levels search the join again).  ``near``
+        (:meth:`_pose_lines`) join the drawn line in the first attempt.
         """
         S = self.p.slots
         novel = starts[np.abs(starts - (tr.left_end + (tr.a2 - tr.b1))) >= S]
-        own = novel[np.abs(novel - tr.right_start) <= self.p.candidate_range]  # the drawn line
+        own = np.abs(novel - tr.right_start) <= self.p.candidate_range  # the drawn line
+        if near is not None and near.size:
+            own |= np.isin(novel, near)
+        own = novel[own]
         span = 2 * S + 1  # a new run plays at least this long before the input ends
         any_line = np.arange(-self.p.meeting_window - (tr.a2 - tr.b1), self.view.n)
         if tr.right_anchors:  # a constrained run keeps its line
@@ -409,6 +504,8 @@ class LevelRefinement(LevelSearch):
         ov[(ov < 0) | (ov >= n_in)] = -1
         c = self.cost_rows(ov, m, coherence=False, strict=strict, allow_stall=allow_stall)
         c = np.where(np.isnan(c), 0.0, c)
+        if self._pose_term(tr):
+            c = c + self.p.pose_weight * self.line_costs(tr, m, ss)
         ok = np.isfinite(c)
         m, ss = m[ok].tolist(), ss[ok].tolist()
         keys = [s_ * 1_000_000 + mm for mm, s_ in zip(m, ss)]

@@ -130,6 +130,26 @@ class SearchParams:
     alternate : bool
         Grow the two fronts of a gap alternately, one node each (the thesis);
         False: the left front fills its half first, then the right front.
+    pose_weight : float
+        At the finest level a join also costs ``pose_weight`` × how far apart (mean
+        RMS joint distance, metres) the two lines it joins stay within ±7 frames
+        (:meth:`~mocapflow.stages.texture.refine.LevelRefinement.line_costs`), so
+        a transition joins lines whose poses AND velocities match around it and
+        smoothing has little to bridge.  0 (default): the thesis' velocity
+        neighbourhood only.  Measured (``benchmarks/texture.py``, 1,024 frames,
+        seeds 0-4, 0 -> 0.5 with ``pose_lines`` 4): GANimator local diversity
+        salsa 0.157 -> 0.104, walk 0.211 -> 0.160, figure-8 walk 0.175 -> 0.131
+        (1.01 / 1.21 / 0.78 × the GenMM baseline's), jerk and skate about equal,
+        but global diversity 0.165 -> 0.103, 0.192 -> 0.135, 0.164 -> 0.119 (below
+        the baseline's 0.108 / 0.162 / 0.210: the output is closer to a piecewise
+        copy), the nearest lines are reused (a 1-s block of the figure-8 walk
+        played 14 times in 1,024 graph-path frames) and the ±7 frames are not
+        scaled with the rate (120 fps seams over the input's jerk), so it is off.
+    pose_lines : int
+        With ``pose_weight``, each finest-level join also tries the ``pose_lines``
+        input lines nearest the left line in that sense (4)
+        (:meth:`~mocapflow.stages.texture.refine.LevelRefinement._pose_lines`),
+        beside the line the coarser levels drew (0: only that line).
     """
 
     slots: int = 3
@@ -145,6 +165,8 @@ class SearchParams:
     usage_weight: float = 0.5
     relocate: int = 6
     alternate: bool = True
+    pose_weight: float = 0.0
+    pose_lines: int = 4
 
 
 def ahead_usage(counts: np.ndarray, span: int, side: int) -> np.ndarray:
@@ -310,6 +332,7 @@ class LevelSearch:
         self._usage: np.ndarray | None = None
         self._tau: float | None = None
         self._tables: tuple | None = None
+        self._after_run: np.ndarray | None = None
         #: cost unit of every level: natural frame-to-frame velocity change of the input
         self.unit = views[0].unit
         self.coarsest = level == len(views) - 1
@@ -545,9 +568,26 @@ class LevelSearch:
             ``min_b cost`` per ``a`` (``inf`` where no jump is possible).
         """
         n, S = self.view.n, self.p.slots
+        b = np.arange(n)
+        table = self.after_run_costs()
+        if table is not None:
+            far = np.abs(b[None, :] - (b[:, None] + 1)) >= S
+            return np.where(far & np.isfinite(table), table, np.inf).min(axis=1)
+        best = np.full(n, np.inf)
+        for a, c in self._after_run_rows():
+            far = np.abs(b[None, :] - (a[:, None] + 1)) >= S
+            best[a] = np.where(far & np.isfinite(c), c, np.inf).min(axis=1)
+        return best
+
+    #: Largest input (nodes) whose :meth:`after_run_costs` table is kept (n² floats).
+    AFTER_RUN_TABLE_NODES = 2048
+
+    def _after_run_rows(self):
+        """``(a, costs)`` blocks: the :meth:`cost_rows` of every input node ``b`` placed
+        after the verbatim run ``a-slots+1 … a`` (nothing after it), for every ``a``."""
+        n, S = self.view.n, self.p.slots
         t = S
         base = np.full(2 * S + 1, -1, dtype=np.int64)
-        best = np.full(n, np.inf)
         b = np.arange(n)
         chunk = max(1, 60_000 // max(n, 1))
         # slot pair distances looked up (same costs)
@@ -562,11 +602,44 @@ class LevelSearch:
             ov[:, :S] = aa[:, None] + np.arange(-S + 1, 1)[None, :]
             ov[:, :S][ov[:, :S] < 0] = -1
             ov[:, S] = bb
-            c = self.cost_rows(ov, t, coherence=False, tables=tables).reshape(a.size, n)
-            far = np.abs(b[None, :] - (a[:, None] + 1)) >= S
-            c = np.where(far & np.isfinite(c), c, np.inf)
-            best[a] = c.min(axis=1)
-        return best
+            yield a, self.cost_rows(ov, t, coherence=False, tables=tables).reshape(a.size, n)
+
+    def after_run_costs(self) -> np.ndarray | None:
+        """``(n, n)`` cost of input node ``b`` right after the verbatim run ending at
+        ``a`` with nothing filled after it (row ``a``; :meth:`cost_rows`, no coherence
+        bonus), at the coarsest level; built once (``None`` elsewhere, or above
+        :attr:`AFTER_RUN_TABLE_NODES` input nodes).
+
+        This is the whole neighbourhood of a front growing forwards from a settled run:
+        :meth:`fill` and :meth:`_jump_earlier` read it there instead of scoring every
+        input node again (same values: the rows are the ones they would compute), and
+        :meth:`jump_costs` takes its row minima.
+        """
+        if not self.coarsest or self.view.n > self.AFTER_RUN_TABLE_NODES:
+            return None
+        if self._after_run is None:
+            self._after_run = np.concatenate([c for _, c in self._after_run_rows()])
+        return self._after_run
+
+    def _cost_after_run(self, src: np.ndarray, t: int) -> np.ndarray | None:
+        """:meth:`cost` of every input node at ``t`` read from :meth:`after_run_costs`,
+        when the window around ``t`` is a settled run before it and nothing after it;
+        ``None`` otherwise (then the cost is computed)."""
+        S = self.p.slots
+        if not self.coarsest or self.view.n > self.AFTER_RUN_TABLE_NODES:
+            return None
+        if not self.cyclic:
+            # the finer level's slots of the window must all exist, as in the table's
+            nf = self.n_out[self.l - 1] if self.l > 0 else 2 * self.n
+            if t < S or 2 * t + S + 1 >= nf or 3 * S + 1 >= nf:
+                return None
+        ov = self._out_values(src, t + self.off)
+        a = int(ov[S - 1])
+        if a < S - 1 or (ov[S + 1:] >= 0).any():
+            return None
+        if not (ov[:S] == np.arange(a - S + 1, a + 1)).all():
+            return None
+        return self.after_run_costs()[a].copy()
 
     def jump_threshold(self) -> float:
         """Cost window (cost units × unit) within which alternatives are drawn.
@@ -653,7 +726,9 @@ class LevelSearch:
             a, b = self._out_value(src, t - 1), self._out_value(src, t + 1)
             self._usage = ahead_usage(counts, 2 * self.p.slots + 1, -1 if b >= 0 > a else 1)
         cands = self.candidates(src, t)
-        cost = self.cost(src, t, cands)
+        cost = self._cost_after_run(src, t)  # every input node, as candidates() gives
+        if cost is None:
+            cost = self.cost(src, t, cands)
         if not np.isfinite(cost).any():  # accelerated set exhausted: search everything
             cands = np.arange(self.view.n)
             cost = self.cost(src, t, cands)
@@ -717,7 +792,7 @@ class LevelSearch:
         else:
             return
         every = np.arange(n_in)
-        rows, ts, bads = [], [], []
+        rows, ts, at, bads, read = [], [], [], [], {}
         for d in range(0, self.p.relocate + 1):
             m = t + side * d  # candidate jump position; m+side .. t-side must stay verbatim
             if d:
@@ -726,18 +801,27 @@ class LevelSearch:
                     break
             trial = src.copy()
             trial[self._positions(min(m, t), max(m, t))] = -1
-            ov = np.broadcast_to(self._out_values(trial, m + self.off), (n_in, self.off.size))
-            ov = ov.copy()
-            ov[:, self.blk] = every[:, None]
             prev = self._out_values(trial, np.array([m + side]))[0]
             bad = np.abs(every - (prev - side)) < S  # continuing the run is what ends here
             bad |= (every - side * d < 0) | (every - side * d >= n_in)  # run must fit to t
-            rows.append(ov)
-            ts.append(np.full(n_in, m))
+            row = self._cost_after_run(trial, m)  # a left front: the tabulated costs
+            if row is not None:
+                read[len(bads)] = row
+            else:
+                ov = np.broadcast_to(self._out_values(trial, m + self.off),
+                                     (n_in, self.off.size)).copy()
+                ov[:, self.blk] = every[:, None]
+                rows.append(ov)
+                ts.append(np.full(n_in, m))
+                at.append(len(bads))
             bads.append(bad)
-        # every position d at once (one cost evaluation)
-        c = self.cost_rows(np.concatenate(rows), np.concatenate(ts),
-                           tables=self._coarse_tables()).reshape(len(rows), n_in)
+        # every other position d at once (one cost evaluation)
+        c = np.empty((len(bads), n_in))
+        if rows:
+            c[at] = self.cost_rows(np.concatenate(rows), np.concatenate(ts),
+                                   tables=self._coarse_tables()).reshape(len(rows), n_in)
+        for i, row in read.items():
+            c[i] = row
         c = np.where(np.stack(bads) | np.isnan(c), np.inf, c).ravel()
         # the finite (d, node) pairs in (d, node) order, then by cost (stable: ties keep it)
         flat = np.flatnonzero(np.isfinite(c))

@@ -557,6 +557,8 @@ def synth(
     variety: float = 0.3,
     max_run: float = 0.3,
     usage_weight: float = 0.5,
+    pose_weight: float = 0.0,
+    pose_lines: int = 4,
     tolerance: float = 0.5,
     meeting_window: int = 4,
     graph_threshold: float = 0.1,
@@ -643,6 +645,15 @@ def synth(
         candidate's rank rises by ``usage_weight`` draw windows per time the input
         it would play next (``2 slots + 1`` nodes, mean) is already in the output;
         the same in graph_path's draw.  0 disables.
+    pose_weight : float
+        Finest-level joins also cost ``pose_weight`` × how far apart in pose the
+        two joined input lines stay around the seam (metres; 0, the thesis:
+        velocities only).  Raising it lowers local diversity and global diversity
+        together (measured in
+        :class:`~mocapflow.stages.texture.search.SearchParams`), so it is off.
+    pose_lines : int
+        With ``pose_weight``, nearest input lines (in that pose sense) tried at each
+        finest-level join beside the one the coarser levels drew (4).
     tolerance : float
         Cost units within which the k best joins are drawn below the coarsest level.
     meeting_window : int
@@ -714,6 +725,9 @@ def synth(
     L = 2 * F if length is None else int(length)
     if L < 2:
         raise SynthesisError(f"length must be >= 2 frames, got {L}")
+    if pose_weight < 0 or pose_lines < 0:
+        raise SynthesisError(f"pose_weight and pose_lines must be >= 0, got {pose_weight}, "
+                             f"{pose_lines}")
     given = [list(c) for c in constraints or []]
     cons = _constraints_at_synthesis_rate(given, motion.rate, source_rate, out_rate, F, L,
                                           levels, loop)
@@ -722,7 +736,7 @@ def synth(
         slots=slots, level_weights=(ancestor_weight, current_weight, finer_weight),
         candidate_range=candidate_range, k_best=k_best, tolerance=tolerance,
         meeting_window=meeting_window, variety=variety, max_run=max_run,
-        usage_weight=usage_weight,
+        usage_weight=usage_weight, pose_weight=pose_weight, pose_lines=pose_lines,
     )
     smooth_opts = dict(gaussian_width=gaussian_width, accel_tolerance=accel_tolerance,
                        max_widening=max_widening,
