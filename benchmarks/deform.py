@@ -1,6 +1,6 @@
 """Skin deformation (Park & Hodgins 2006 §5) on a simulated dense capture with ground truth.
 
-One run prints five tables:
+One run prints five tables (``--graph-path`` prints its own, 5 below, instead):
 
 1. segmentation of a range-of-motion trial against the simulator's parts
    (each marker's dominant skin-weight joint): adjusted Rand index over all
@@ -31,40 +31,67 @@ One run prints five tables:
 Markers are the simulator's true skin-marker centres plus its measurement noise
 (no occlusion: the deformation is measured, not the cleaning).
 
+5. ``--graph-path`` (alone): the animated detailed mesh against the simulator's true
+   body through the skin graph's own path and stage params (configs/skin.yaml):
+   ``simulate_capture`` (range of motion + dynamic run of one subject, occlusion,
+   fragments, ghosts, noise; the subject's shape drawn from the seed as in
+   ``benchmarks/fit_mesh.py``) -> ``clean`` -> ``segment`` (ROM) -> ``template_mesh``
+   (procedural or MakeHuman) -> ``fit_mesh`` (allen, with the automatic anatomical
+   landmarks) -> ``match_markers`` -> ``deform`` (four modes); per template x seed x
+   mode the mean / p95 distance of the deformed vertices to the true surface and of
+   the true vertices to the deformed surface (mm) over the run's frames after the
+   T-pose calibration (every 8th with ``--quick``, 4th otherwise), with the breakdown
+   rows: the fitted rest mesh against the true rest mesh (registration), the true
+   rest mesh through the same deform (no registration error), and the fitted mesh
+   driven by the true marker positions (no cleaning error).  Seeds 3-5 (held out;
+   0-2 for tuning).
+
 Run: ``python benchmarks/deform.py`` (``--quick`` for a small run; ``--throughput``
-for table 4 alone, 900 frames; with ``--quick`` on the small simulated body's segmentation).
+for table 4 alone, 900 frames; with ``--quick`` on the small simulated body's
+segmentation; ``--graph-path [--quick] [--seeds ...] [--templates ...]`` for table 5,
+about 2 minutes per seed and template with ``--quick``).
 """
 
 from __future__ import annotations
 
 import argparse
 import inspect
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from functools import partial
+from pathlib import Path
+from unittest import mock
 
 import numpy as np
 from scipy.interpolate import RBFInterpolator
 
 from mocapflow.pipeline import Context
+from mocapflow.pipeline.config import load_config
 from mocapflow.pipeline.execute import single_threaded_blas
 from mocapflow.stages.metrics.mesh import flipped_triangles, stretched_triangles
 from mocapflow.stages.motion.datatypes import Markers, Mesh
 from mocapflow.stages.motion.rotations import quat_from_matrix, quat_multiply, quat_rotate
+from mocapflow.stages.motion.simulate import capture as sim_capture
 from mocapflow.stages.motion.simulate.body import skin, skinning_transforms
 from mocapflow.stages.motion.simulate.capsules import procedural_body
-from mocapflow.stages.motion.simulate.capture import capture_motion
+from mocapflow.stages.motion.simulate.capture import capture_motion, simulate_capture
 from mocapflow.stages.motion.simulate.markers import place_markers
 from mocapflow.stages.motion.simulate.skin_dynamics import SkinDynamics
-from mocapflow.stages.skin.binding import bind_mesh
+from mocapflow.stages.skin.binding import DeformError, bind_mesh, closest_points_on_triangles
+from mocapflow.stages.skin.clean import clean
 from mocapflow.stages.skin.deform import deform
-from mocapflow.stages.skin.mesh_fit import fit_mesh
+from mocapflow.stages.skin.mesh_fit import fit_mesh, skeleton_bones, template_mesh
 from mocapflow.stages.skin.parts import MODES, evaluate_part, fit_part, prepare_part
+from mocapflow.stages.skin.registration import anatomical_landmarks
+from mocapflow.stages.skin.rom import match_markers
 from mocapflow.stages.skin.segment import segment
 from mocapflow.stages.skin.segmentation import adjusted_rand_index
 from mocapflow.stages.skin.surface import build_marker_surface
 
 RATE = 120.0
+if str(Path(__file__).resolve().parent) not in sys.path:  # fit_mesh.py beside this file
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 # --------------------------------------------------------------------------- data
@@ -536,14 +563,171 @@ def throughput_table(sim, seg, mk_test, *, frames):
         ["method", "processes", "frames/s", "frames/CPU-s"], rows)
 
 
+# --------------------------------------------------------------------------- graph path
+
+
+MAKEHUMAN = "/work/shared/data/mesh/makehuman_base.obj"
+GRAPH_NODES = ("clean", "rom_clean", "segment", "template", "fit", "match", "deform")
+
+
+def graph_params() -> dict[str, dict]:
+    """The skin graph's own stage params (configs/skin.yaml, defaults filled), per node."""
+    cfg = load_config("skin", parts=[__file__])
+    return {n: dict(cfg.nodes[n].params) for n in GRAPH_NODES}
+
+
+def simulate_graph_captures(seed, *, subject, rom_frames, test_frames, body_vertices):
+    """A range-of-motion and a dynamic capture (stage ``simulate_capture``: occlusion,
+    fragments, ghosts, noise) of one subject whose shape is drawn from ``seed``
+    (``fit_mesh.shaped_body``: height, bone lengths, girths; procedural or MakeHuman).
+
+    The simulator builds its body with ``capture.capture_body``; it is swapped for the
+    shaped body here, everything else is the stage as the demo runs it."""
+    from fit_mesh import shaped_body  # noqa: PLC0415 (the subject of benchmarks/fit_mesh.py)
+
+    body = shaped_body(seed, kind=subject, n_vertices=body_vertices)
+    out = {}
+    with mock.patch.object(sim_capture, "capture_body", lambda *a, **k: body):
+        for name, motion, n in (("rom", "range_of_motion", rom_frames),
+                                ("test", "dynamic", test_frames)):
+            ctx = Context(part=f"seed={seed}", seed=seed)
+            out[name] = simulate_capture(n_markers=350, n_frames=n, motion=motion, seed=seed,
+                                         ctx=ctx)  # fmt: skip
+    return body, out
+
+
+def graph_landmarks(body, rom, seg, template, ref_frame):
+    """The automatic anatomical landmarks (``{marker label: template vertex}``): markers on
+    the simulated body's bones (its dominant joint, ``truth["part"]``) matched to template
+    vertices at the same place on the same bone (``registration.anatomical_landmarks``)."""
+    truth = rom["truth"]
+    index = {lb: i for i, lb in enumerate(truth["labels"])}
+    names = truth["part_names"]
+    marker_joint = [names[truth["part"][index[lb]]] for lb in seg.labels]
+    R, p = skinning_transforms(body, rom["motion"])
+    bones = skeleton_bones(body, R[ref_frame], p[ref_frame])
+    tn = template.attrs["joint_names"]
+    vj = [tn[j] for j in template.attrs["vertex_part"]]
+    lm = anatomical_landmarks(seg.reference, marker_joint, bones, template.vertices, vj,
+                              template.attrs["bones"])  # fmt: skip
+    return {seg.labels[m]: v for m, v in lm.items()}
+
+
+def surface_errors_mm(verts, faces, true_verts, true_faces):
+    """Per frame: mean distance (mm) of ``verts``' vertices to the true surface and of the
+    true vertices to ``verts``' surface, pooled as two flat arrays."""
+    fwd = [closest_points_on_triangles(v, t, true_faces, k=24)[2] for v, t in
+           zip(verts, true_verts)]  # fmt: skip
+    back = [closest_points_on_triangles(t, v, faces, k=24)[2] for v, t in
+            zip(verts, true_verts)]  # fmt: skip
+    return np.concatenate(fwd) * 1000, np.concatenate(back) * 1000
+
+
+def graph_path_run(seed, template_name, *, quick, stride):
+    """One seed and template through the skin graph's own path, against the true body."""
+    P = graph_params()
+    t0 = time.perf_counter()
+    body, cap = simulate_graph_captures(seed, subject=template_name,
+                                        rom_frames=240 if quick else 600,
+                                        test_frames=240 if quick else 480,
+                                        body_vertices=3000 if quick else 6000)  # fmt: skip
+    rom_c = clean(cap["rom"]["markers"], **P["rom_clean"], ctx=Context())
+    test_c = clean(cap["test"]["markers"], **P["clean"], ctx=Context())
+    seg = segment(rom_c["markers"], rom_c["surface"], **P["segment"], ctx=Context())
+    seg = seg["segmentation"]
+    tkw = {**P["template"], "body_mesh": MAKEHUMAN if template_name == "makehuman" else None}
+    if quick:
+        tkw["n_vertices"] = 5000  # the quick demo's
+    template = template_mesh(**tkw, ctx=Context())["mesh"]
+    ref_frame = rom_c["report"]["reference_frame"]
+    lm = graph_landmarks(body, cap["rom"], seg, template, ref_frame)
+    try:
+        fit = fit_mesh(template, seg, **{**P["fit"], "landmarks": lm}, ctx=Context())["mesh"]
+    except DeformError as e:  # the stage refuses the template: a row says so
+        print(f"  seed {seed} {template_name}: fit_mesh fails", flush=True)
+        return [[str(seed), template_name, f"fit_mesh fails: {str(e)[:70]}…", "", "", "",
+                 ""]], {}  # fmt: skip
+    mk = match_markers(test_c["markers"], seg, **P["match"], ctx=Context())["markers"]
+    true_mesh = cap["test"]["mesh"]
+    true_faces = true_mesh.faces
+    n_cal = cap["test"]["motion"].attrs.get("calibration_frames", 0)
+    frames = np.arange(n_cal, true_mesh.vertices.shape[0], stride)  # the motion, not the T-pose
+    true_v = true_mesh.vertices[frames]
+    true_rest = cap["rom"]["mesh"].vertices[ref_frame]
+    rows = []
+
+    def row(what, verts, faces):
+        f, b = surface_errors_mm(verts, faces, true_v, true_faces)
+        rows.append([str(seed), template_name, what, f"{f.mean():.2f}",
+                     f"{np.percentile(f, 95):.2f}", f"{b.mean():.2f}",
+                     f"{np.percentile(b, 95):.2f}"])  # fmt: skip
+        return f.mean()
+
+    f, b = (closest_points_on_triangles(fit.vertices, true_rest, true_faces, k=24)[2] * 1000,
+            closest_points_on_triangles(true_rest, fit.vertices, fit.faces, k=24)[2] * 1000)
+    rows.append([str(seed), template_name, f"fitted rest mesh vs true rest ({len(lm)} landmarks)",
+                 f"{f.mean():.2f}", f"{np.percentile(f, 95):.2f}", f"{b.mean():.2f}",
+                 f"{np.percentile(b, 95):.2f}"])  # fmt: skip
+    dkw = dict(P["deform"])
+    means = {}
+    for mode in MODES:
+        out = deform(mk, seg, fit, **{**dkw, "mode": mode}, ctx=Context())["mesh"].vertices
+        means[mode] = row(f"fitted, {mode}", out[frames], fit.faces)
+    # the same deformation of the true rest body: what registration costs
+    out = deform(mk, seg, Mesh(true_rest, true_faces), **dkw, ctx=Context())["mesh"].vertices
+    row(f"true rest mesh, {dkw['mode']}", out[frames], true_faces)
+    # the same with the true marker positions (no cleaning error)
+    mk_true = Markers(cap["test"]["truth"]["positions"], cap["test"]["truth"]["labels"],
+                      mk.rate)
+    mk_true = match_markers(mk_true, seg, **P["match"], ctx=Context())["markers"]
+    out = deform(mk_true, seg, fit, **dkw, ctx=Context())["mesh"].vertices
+    row(f"fitted, {dkw['mode']}, true marker positions", out[frames], fit.faces)
+    print(f"  seed {seed} {template_name}: {time.perf_counter() - t0:.0f} s", flush=True)
+    return rows, means
+
+
+def graph_path_table(*, seeds, templates, quick):
+    """Table 5: the animated detailed mesh against the true body through the graph's path."""
+    stride = 8 if quick else 4
+    rows, summary = [], {}
+    for seed in seeds:
+        for name in templates:
+            r, means = graph_path_run(seed, name, quick=quick, stride=stride)
+            rows += r
+            for mode, v in means.items():
+                summary.setdefault((name, mode), []).append(v)
+    print_table(
+        f"Animated detailed mesh vs the simulator's true body through the skin graph's path "
+        f"(simulate_capture -> clean -> segment (ROM) -> template_mesh -> fit_mesh allen + "
+        f"automatic landmarks -> match_markers -> deform, params of configs/skin.yaml; "
+        f"seeds {seeds}; motion frames after the T-pose calibration, every {stride}th; "
+        f"distances vertex to surface, mm)",
+        ["seed", "template", "mesh / mode", "fitted->true mean", "p95", "true->fitted mean",
+         "p95"], rows)  # fmt: skip
+    print_table("Mean over seeds (fitted->true mean mm; target <= 5; seeds whose fit_mesh "
+                "failed are left out)", ["template", "mode", "mean mm", "seeds"],
+                [[t, m, f"{np.mean(v):.2f}", len(v)] for (t, m), v in summary.items()])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="small run")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--throughput", action="store_true",
                     help="only table 4 (throughput), on the full run's 900 test frames")
+    ap.add_argument("--graph-path", action="store_true",
+                    help="only table 5 (the animated mesh vs truth through the graph's path)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[3, 4, 5],
+                    help="--graph-path: simulated subjects (held out; 0-2 for tuning)")
+    ap.add_argument("--templates", nargs="+", default=["procedural", "makehuman"],
+                    choices=["procedural", "makehuman"], help="--graph-path: templates")
     args = ap.parse_args()
     q = args.quick
+    if args.graph_path:
+        t0 = time.perf_counter()
+        graph_path_table(seeds=args.seeds, templates=args.templates, quick=q)
+        print(f"\ntotal {time.perf_counter() - t0:.0f} s")
+        return
     n_markers = 350
     t0 = time.perf_counter()
     n_test = 240 if q and not args.throughput else 900

@@ -133,6 +133,21 @@ def test_template_fits_a_body_of_other_proportions_within_4mm(subject, template)
     assert allen["report"]["fitted"]["rms_mm"] < 2.0  # markers 7 mm off the fitted skin
 
 
+def test_default_template_pose_is_the_calibration_pose(subject):
+    """The skin graph's fit node gives no landmarks: the default template (legs abducted
+    12 degrees, the simulator's calibration pose) fits the subject within 4 mm that way,
+    while legs together (the old default, 0) leave the feet and shins centimetres off."""
+    seg = _segmentation(subject["markers"])
+    errs = {}
+    for kw in ({}, {"leg_abduction": 0.0}):
+        t = template_mesh(n_vertices=1500, ctx=Context(), **kw)["mesh"]
+        fit = fit_mesh(t, seg, marker_offset=OFFSET, ctx=Context())["mesh"]
+        errs[bool(kw)] = _mean_mm(fit.vertices, subject)
+    # measured: 3.24 mm default, 28.2 mm legs together
+    assert errs[False] <= 4.0, errs
+    assert errs[True] > 10.0, errs
+
+
 # --------------------------------------------------------------------------- failures
 
 
