@@ -39,8 +39,10 @@ the paper lives in one function (modules of this package):
   passes re-using estimates              fill.fill_by_local_pca
   sparse captures (beyond the paper):    fill.fill_by_validated_blend (each run of holes
   local fill, whole-body PCA without     scored on copies of it moved nearby:
-  complete frames, spline, rigid body,   fill._shifted_runs), lowrank.whole_body_pca,
-  blended by validation on the take      fill._rigid_body_fill
+  complete frames, spline, rigid body,   fill._shifted_runs, fill._validation_errors;
+  blended by validation on the take      models compared on the copies they all reached:
+                                         fill._validation_mse), lowrank.whole_body_pca,
+                                         fill._rigid_body_fill (most rigid / nearest donors)
 §4.4 smoothing x ← x − λ Δ⁴x in the      clean.smooth_local (the iteration, every run
   local frames                           at once: clean._smooth_runs)
 §5.1–5.2 near-rigid segmentation         segment.segment
