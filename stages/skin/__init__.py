@@ -25,8 +25,11 @@ the paper lives in one function (modules of this package):
   entry / tube / ambiguity tests         merge._judge_fragment
   another unmerged fragment as close     merge._rival_fragment
   in the same frames (beyond the paper)
+  a missing marker with no prediction    merge._blind_rival
+  near the chosen one (beyond the paper)
   continuity across a break or short     merge.continue_breaks (carried by the
-  gap (beyond the paper)                 neighbours' rigid motion: merge._carry)
+  gap (beyond the paper)                 neighbours' rigid motion: merge._carry;
+                                         longest gap: merge.bridge_frames)
   fragments left, against the final      merge.assign_fragments (exact gaps:
   filling, jointly (beyond the paper)    merge._exact_gap_jumps; one assignment per
                                          frame window: merge._decide); rounds:

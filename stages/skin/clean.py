@@ -458,7 +458,7 @@ def _pca_merge_rounds(
         X, a2, rep2 = merge_fragments(
             X, frags[:, left], surf, alpha1=alpha1, alpha2=alpha2,
             fragment_labels=[markers.fragment_labels[u] for u in left], predictions=direct,
-            competitors=Xf, max_break=max_break, ctx=ctx,
+            competitors=Xf, max_break=max_break, rate=markers.rate, ctx=ctx,
         )
         assigned[left[a2 >= 0]] = a2[a2 >= 0]
         for mg in rep2["merges"]:
@@ -536,7 +536,8 @@ def _merge(
     ctx.progress(0, 1 + pca_rounds + fill_rounds, "merge passes")
     X, assigned, mrep = merge_fragments(
         P, frags, surf, alpha1=alpha1, alpha2=alpha2,
-        fragment_labels=markers.fragment_labels, depths=(1,), max_break=max_break, ctx=ctx,
+        fragment_labels=markers.fragment_labels, depths=(1,), max_break=max_break,
+        rate=markers.rate, ctx=ctx,
     )
     X = _pca_merge_rounds(X, assigned, mrep, markers, surf, alpha1=alpha1, alpha2=alpha2,
                           variance=variance, rounds=pca_rounds, max_break=max_break, ctx=ctx)
@@ -732,7 +733,9 @@ def clean(
         wrong merges (seeds 2, 3), so it is off by default.
     max_break : float
         A fragment that picks up where a marker stopped, across a break or a gap of
-        a few frames, merges by continuity when its end lies within
+        at most 8 frames, or 67 ms above 120 Hz
+        (:func:`~mocapflow.stages.skin.merge.bridge_frames`), merges by continuity
+        when its end lies within
         ``max_break · ε₁`` of the marker's gap-end sample carried by its
         neighbours' rigid motion and no rival comes close
         (:func:`~mocapflow.stages.skin.merge.continue_breaks`; 0.25; 0: off, the

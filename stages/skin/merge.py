@@ -7,9 +7,11 @@ judged against them (:func:`_judge_round`, :func:`_judge_fragment`: the entry te
 against ``ε₁ = α₁·d̄``, the tube ``ε₂ = α₂·d̄`` over the fragment, the mean
 distance and the ambiguity tests; :func:`_tolerances`; beyond the paper, an
 unmerged fragment in the same frames as close to the prediction makes the merge
-ambiguous: :func:`_rival_fragment`), and the claims merged, closest first
-(:func:`_merge_claims`).  Before and after the rounds, fragments
-that continue a marker's trajectory across a break or a short gap are merged by
+ambiguous: :func:`_rival_fragment`, and so does a missing marker without a prediction
+close enough to the chosen one: :func:`_blind_rival`), and the claims merged, closest
+first (:func:`_merge_claims`).  Before and after the rounds, fragments
+that continue a marker's trajectory across a break or a gap of at most
+:func:`bridge_frames` (8 frames, 67 ms above 120 Hz) are merged by
 continuity (:func:`continue_breaks`, beyond the paper).  See :mod:`mocapflow.stages.skin.clean` for
 the whole procedure and where it goes beyond the paper.
 """
@@ -272,8 +274,38 @@ BREAK_JUMP = 0.25
 #: sample or another unmerged fragment in that frame) lies at least this many ε₁
 #: from it and at least :data:`AMBIGUITY_RATIO` times farther than the fragment.
 BREAK_CLEARANCE = 1.0
-#: Longest gap (frames) :func:`continue_breaks` bridges.
+#: Longest gap :func:`continue_breaks` bridges: at least :data:`MAX_BRIDGE` frames and
+#: at least :data:`MAX_BRIDGE_TIME` seconds (:func:`bridge_frames`), between the
+#: marker's gap-end sample and the fragment's end sample.  What the carried sample
+#: misses is the marker's motion relative to its neighbours while it is lost; the
+#: jump test (:data:`BREAK_JUMP`), not the gap length, is what keeps continuity
+#: right (on the shared C3Ds cut into pieces, true continuations across 20-80 ms lie
+#: 0.001-0.1 ε₁ from the carried sample).  Measured (shared C3Ds, 2-4 cuts per
+#: trajectory, gaps of 0-8 frames; simulated Tables 1/1b, seeds 0-4):
+#: a bridge of 67 ms alone (3 frames at 50 Hz) loses right continuations (22 of 45
+#: merges at 50 Hz, 8 of 22 at 70 Hz, 50 of 121 at 100 Hz: a missed continuation
+#: breaks the chain after it); 160 ms gains on the real files (100 Hz 121 -> 136,
+#: none wrong) but at 120 Hz (19 frames) made 2 wrong merges on the simulated range of
+#: motion, seed 4; 8 frames at 120 Hz (the simulator) and below, 13 at 200 Hz
+#: (Qualisys 141 -> 150 merges, all right) are what measured without a wrong merge.
+MAX_BRIDGE_TIME = 8 / 120
+#: The bridge's floor in frames (and the bridge when the capture rate is not known).
 MAX_BRIDGE = 8
+
+
+def bridge_frames(rate: float | None, seconds: float | None = None) -> int:
+    """Longest gap bridged at ``rate`` Hz, in frames: ``⌊seconds · rate⌋``, at least
+    :data:`MAX_BRIDGE`; ``seconds`` default :data:`MAX_BRIDGE_TIME`; ``rate`` None:
+    :data:`MAX_BRIDGE`.
+
+    Up to 120 Hz: 8 frames; 200 Hz: 13; 250 Hz: 16.
+    """
+    if rate is None:
+        return MAX_BRIDGE
+    seconds = MAX_BRIDGE_TIME if seconds is None else seconds
+    if not (np.isfinite(rate) and rate > 0) or not seconds >= 0:
+        raise ValueError(f"bridge_frames: need rate > 0 and seconds >= 0, got {rate}, {seconds}")
+    return max(MAX_BRIDGE, int(np.floor(seconds * rate + 1e-9)))
 #: Markers farther than this (metres) from the fragment's end sample at their own
 #: gap end are not candidates (a screen: the carried motion is a few centimetres).
 BRIDGE_SCREEN = 0.25
@@ -338,8 +370,9 @@ def continue_breaks(
     jump, clearance : float
         :data:`BREAK_JUMP`, :data:`BREAK_CLEARANCE`.
     max_gap : int
-        Longest gap bridged, frames (:data:`MAX_BRIDGE`; 1: breaks without a lost
-        frame only).
+        Longest gap bridged, frames between the two end samples (:data:`MAX_BRIDGE`,
+        :func:`bridge_frames` of the capture rate; 1: breaks without a lost frame
+        only).
 
     Returns
     -------
@@ -458,6 +491,7 @@ class _MergeRun:
     assigned: np.ndarray
     dirty: np.ndarray
     stale: np.ndarray
+    reference: np.ndarray
     verdict: dict[int, dict[str, Any]] = field(default_factory=dict)
     merges: list[dict[str, Any]] = field(default_factory=list)
     conflicts: list[dict[str, Any]] = field(default_factory=list)
@@ -556,6 +590,55 @@ def _rival_fragment(fragments: np.ndarray, unmerged: np.ndarray, u: int, T: np.n
                                      round(float(mean_r[k] * mm), 2)]}}
 
 
+def _blind_rival(frag: np.ndarray, T: np.ndarray, v: dict[str, Any], free: np.ndarray,
+                 E_all: np.ndarray, reference: np.ndarray, labels: list[str]) -> dict[str, Any]:
+    """Refuse the merge verdict ``v`` of fragment ``frag`` (frames ``T``) when a marker
+    missing in all its frames, but not predicted there, could be it (beyond §4.2).
+
+    The ambiguity test compares the fragment with the predictions of the other
+    missing markers; a marker without one (fewer than 3 neighbours with data, in at
+    least half of the fragment's frames) escapes it however close it is.  Such a
+    marker ``r`` is bounded instead through the chosen marker ``m``: under the local
+    rigidity the predictions assume, ``r`` lies ``D`` (their distance in the
+    reference pose) from ``m``, so if the fragment, at mean distance ``δ`` from
+    ``m``'s prediction, were ``r``, that prediction would be off by at least
+    ``|D − δ|``.  The merge is clear only if this is :data:`AMBIGUITY_RATIO` times
+    ``δ``, i.e. ``D ≥ (1 + AMBIGUITY_RATIO) δ``.  ``D`` is at least the nearest
+    marker distance ``≥ d̄ = 2 ε₁``, so merges within ``ε₁ / 2`` are never refused (nor
+    continuity merges, :func:`continue_breaks`: within :data:`BREAK_JUMP` ε₁).
+
+    ``free`` ``(M,)`` bool: the markers missing in all of ``T`` (and usable);
+    ``E_all`` ``(F, M, 3)``: every prediction; ``reference`` ``(M, 3)``: the
+    reference pose.  Returns ``v`` or an ambiguous rejection.
+
+    On the real PiG calibration cut into pieces (``btkdata_PiG_Calibration-
+    FlatFoot-Hole.c3d``, head markers 123 mm apart, ``ε₁`` 62 mm) the fragment of
+    RFHD over frames 274–299 went to RBHD 46 mm from its prediction (made from the
+    torso while the head turned), RFHD free there but with no prediction.
+    """
+    m = int(v["marker"])
+    others = np.flatnonzero(free)
+    others = others[others != m]
+    if not len(others):
+        return v
+    seen = np.isfinite(E_all[T[:, None], others[None]]).all(-1).sum(0)
+    blind = others[seen < max(1, int(np.ceil(0.5 * len(T))))]
+    with np.errstate(invalid="ignore"):
+        D = np.linalg.norm(reference[blind] - reference[m], axis=-1)
+        close = D < (1.0 + AMBIGUITY_RATIO) * v["mean"]
+    if not close.any():
+        return v
+    k = int(np.argmin(np.where(close, D, np.inf)))
+    r = int(blind[k])
+    mm = 1000.0
+    return {"reason": f"ambiguous: {labels[m]} at {v['mean'] * mm:.1f} mm, {labels[r]} "
+                      f"({D[k] * mm:.1f} mm from it in the reference pose) missing with no "
+                      "prediction",
+            "conflict": {"labels": [labels[m], labels[r]],
+                         "mean_mm": [round(float(v["mean"] * mm), 2)],
+                         "reference_mm": round(float(D[k] * mm), 2)}}
+
+
 def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarray, *,
                  mean_tolerance: float, near: np.ndarray | None,
                  near_ratio: float) -> dict[int, list[tuple[float, int, dict]]]:
@@ -573,10 +656,12 @@ def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarr
         if u in run.verdict and not run.dirty[T].any():
             continue  # nothing it depends on changed
         free = index.free(T[0], T[-1]) if _is_run(T) else ~avail[T].any(0)
-        v = _judge_fragment(run.fragments[T, u], T, free & np.isfinite(run.dbar),
-                            E, E_all, run.eps1, run.eps2, run.labels, index,
-                            mean_tolerance=mean_tolerance, near=near,
+        free &= np.isfinite(run.dbar)
+        v = _judge_fragment(run.fragments[T, u], T, free, E, E_all, run.eps1, run.eps2,
+                            run.labels, index, mean_tolerance=mean_tolerance, near=near,
                             near_ratio=near_ratio)
+        if "marker" in v:
+            v = _blind_rival(run.fragments[T, u], T, v, free, E_all, run.reference, run.labels)
         if "marker" in v:
             v = _rival_fragment(run.fragments, unmerged, u, T, v, E_all, run.eps1,
                                 run.labels, run.flabels)
@@ -633,15 +718,16 @@ def _merge_claims(run: _MergeRun, claims: dict[int, list[tuple[float, int, dict]
 
 
 def _merge_breaks(run: _MergeRun, surface: MarkerSurface, max_break: float, *,
-                  rnd: Any) -> int:
-    """:func:`continue_breaks` on the run (``max_break`` its ``jump``; 0: nothing),
-    the merges reported; returns their number."""
+                  rnd: Any, max_gap: int = MAX_BRIDGE) -> int:
+    """:func:`continue_breaks` on the run (``max_break`` its ``jump``; 0: nothing; gaps up
+    to ``max_gap`` frames), the merges reported; returns their number."""
     if max_break <= 0:
         return 0
     mm = 1000.0
     done = continue_breaks(run.X, run.fragments,
                            np.where(np.isfinite(run.dbar), run.eps1, np.nan), run.assigned,
-                           surface.neighbours, rigidity=surface.rigidity, jump=max_break)
+                           surface.neighbours, rigidity=surface.rigidity, jump=max_break,
+                           max_gap=max_gap)
     for u, m, d in done:
         T = run.frames_of[u]
         run.verdict.pop(u, None)
@@ -730,6 +816,7 @@ def merge_fragments(
     mean_tolerance: float | None = None,
     near_ratio: float | None = None,
     max_break: float = BREAK_JUMP,
+    rate: float | None = None,
     ctx: Context | None = None,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Merge unlabelled fragments into labelled markers (Park & Hodgins §4.2).
@@ -788,10 +875,14 @@ def merge_fragments(
         members, long unobserved) while the chosen one's lies on the fragment.
     max_break : float
         Before and after the rounds, fragments that continue a marker across a
-        break or a gap of at most :data:`MAX_BRIDGE` frames, within
+        break or a gap of at most :func:`bridge_frames` (8 frames, 67 ms above
+        120 Hz), within
         ``max_break · ε₁`` of its gap-end sample carried across by its
         neighbours' rigid motion, are merged (:func:`continue_breaks`,
         :data:`BREAK_JUMP`; 0: off, the paper).
+    rate : float, optional
+        Capture rate (Hz): the bridge in frames (:func:`bridge_frames`); default
+        :data:`MAX_BRIDGE` frames.
     ctx : Context, optional
         For the parallel prediction (frame chunks through ``ctx.map``).
 
@@ -807,6 +898,7 @@ def merge_fragments(
         :func:`continue_breaks`).
     """
     ctx = ctx or Context()
+    max_gap = bridge_frames(rate)
     F = positions.shape[0]
     U = fragments.shape[1]
     fvis = np.isfinite(fragments).all(-1)
@@ -818,7 +910,7 @@ def merge_fragments(
         labels=surface.labels, dbar=dbar, eps1=eps1, eps2=eps2,
         assigned=np.full(U, -1, dtype=np.int64),
         dirty=np.ones(F, dtype=bool),  # frames whose predictions / data changed
-        stale=np.arange(F),
+        stale=np.arange(F), reference=surface.reference,
     )
     run.verdict = {u: {"reason": "empty fragment"} for u in range(U) if not len(run.frames_of[u])}
     given = predictions is not None
@@ -827,13 +919,14 @@ def merge_fragments(
     if near_ratio is None:
         near_ratio = PCA_NEAR_RATIO if given else AMBIGUITY_RATIO
     near = _near_markers(surface) if near_ratio > AMBIGUITY_RATIO else None
-    n_breaks = _merge_breaks(run, surface, max_break, rnd="break")
+    n_breaks = _merge_breaks(run, surface, max_break, rnd="break", max_gap=max_gap)
     n_by_depth = _merge_rounds(run, surface, fvis, ["given"] if given else list(depths),
                                rounds_per_level=rounds_per_level, predictions=predictions,
                                competitors=competitors, min_support=min_support,
                                mean_tolerance=mean_tolerance, near=near, near_ratio=near_ratio,
                                ctx=ctx)
-    n_by_depth["break"] = n_breaks + _merge_breaks(run, surface, max_break, rnd="break")
+    n_by_depth["break"] = n_breaks + _merge_breaks(run, surface, max_break, rnd="break",
+                                                   max_gap=max_gap)
     return run.X, run.assigned, {"merges": run.merges, "rejections": _rejections(run),
                                  "conflicts": run.conflicts, "merged_by_depth": n_by_depth}
 

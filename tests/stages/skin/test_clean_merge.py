@@ -11,7 +11,11 @@
   ε₁ = 20 mm: a fragment 4 mm from a wrong marker's estimate while the true,
   adjacent marker's estimate is 18–25 mm off is not merged (the plain ratio-3
   ambiguity test merges it), 50 mm off it is merged; a mean distance of
-  14 mm (0.7 ε₁) is rejected (> 0.6 ε₁).
+  14 mm (0.7 ε₁) is rejected (> 0.6 ε₁);
+* a missing marker with no prediction 40 mm from the chosen one (same grid): a
+  fragment more than a quarter of that from the chosen marker's prediction is
+  ambiguous (the rule before merged it), closer or with the other marker's
+  prediction 40 mm off it merges.
 """
 
 from __future__ import annotations
@@ -394,3 +398,51 @@ def test_rival_fragment_seen_in_under_half_the_frames_is_no_rival():
     """Seen in 3 of the 8 frames (a neighbour's short fragment crossing a long one)."""
     assert fold_case(0.009, rival_frames=3)[1][0] == 14
     assert fold_case(0.009, rival_frames=4)[1].tolist() == [-1, -1]
+
+
+# ------------------------------------------------------------------ markers without a prediction
+
+
+def blind_case(offset, rival_prediction=None):
+    """The 6×6 grid of :func:`grid_case` (40 mm, ε₁ = 20 mm), markers 14 and 15 missing
+    in frames 5..12; the fragment is marker 15 there.  Marker 14's prediction lies
+    ``offset`` (y) from it; marker 15 has no prediction (``rival_prediction``: one
+    that far (y) from the fragment instead).  One round of given predictions judged
+    by the rigid rounds' rules, no continuity.
+    """
+    X, frags, surf, _, _ = grid_case(0.05)
+    T = np.arange(5, 13)
+    pred = np.full_like(X, np.nan)
+    pred[T, 14] = frags[T, 0] + [0, offset, 0]
+    if rival_prediction is not None:
+        pred[T, 15] = frags[T, 0] + [0, rival_prediction, 0]
+    return cm.merge_fragments(X, frags, surf, predictions=pred, max_break=0,
+                              mean_tolerance=1.0, near_ratio=cm.AMBIGUITY_RATIO)
+
+
+@pytest.mark.parametrize("offset", [0.0105, 0.012, 0.018])
+def test_merge_beside_a_missing_marker_without_prediction_is_ambiguous(offset, monkeypatch):
+    """Real PiG calibration, cut into pieces: RFHD's fragment went to RBHD 46 mm
+    (0.75 ε₁) from its prediction while RFHD, 124 mm away, was missing with no
+    prediction.  Here marker 15, 40.1 mm from 14, is the fragment; 14's prediction at
+    10.5-18 mm: had the fragment been 14, 15 would sit 40.1 mm from it, so 14's
+    prediction would be off by 29.6-22.1 mm, < 3x the offset."""
+    _, assigned, rep = blind_case(offset)
+    assert assigned[0] == -1
+    why = rep["rejections"][0]["reason"]
+    assert why.startswith(f"ambiguous: M014 at {offset * 1000:.1f} mm, M015 (40.1 mm from it"), why
+    assert rep["conflicts"][0]["labels"] == ["M014", "M015"]
+    # the rule judged the predicted markers only (before this check): the wrong merge
+    monkeypatch.setattr(cm, "_blind_rival", lambda *a, **k: a[2])
+    assert blind_case(offset)[1][0] == 14
+
+
+@pytest.mark.parametrize("offset, rival_prediction", [(0.0095, None), (0.005, None),
+                                                      (0.012, 0.04)])
+def test_merge_clear_of_markers_without_prediction_still_merges(offset, rival_prediction):
+    """Within D / 4 = 10.03 mm the marker without prediction cannot be it (0.5 ε₁, the
+    bound for the nearest marker); with a prediction 40 mm off (> 3 x 12 mm) it is no
+    rival either."""
+    _, assigned, rep = blind_case(offset, rival_prediction)
+    assert assigned[0] == 14
+    assert rep["merges"][0]["mean_mm"] == pytest.approx(offset * 1000, abs=1e-6)

@@ -154,3 +154,33 @@ def test_continue_breaks_rejects_bad_params():
     with pytest.raises(ValueError, match="max_gap >= 1"):
         cm.continue_breaks(X, np.full((5, 1, 3), np.nan), np.ones(36), np.full(1, -1),
                            grid_neighbours(X[0]), max_gap=0)
+
+
+def test_bridge_is_8_frames_or_67_ms():
+    """At least 8 frames (the simulator's 120 Hz and below, as before), 67 ms above."""
+    rates = (50, 69.99, 100, 120, 200, 250, 10)
+    assert [cm.bridge_frames(r) for r in rates] == [8, 8, 8, 8, 13, 16, 8]
+    assert [cm.bridge_frames(r, 0.16) for r in rates] == [8, 11, 16, 19, 32, 40, 8]
+    assert cm.bridge_frames(None) == cm.MAX_BRIDGE == 8
+    with pytest.raises(ValueError, match="rate > 0"):
+        cm.bridge_frames(0.0)
+
+
+@pytest.mark.parametrize("rate, continued", [(200.0, True), (250.0, True), (120.0, False),
+                                           (50.0, False), (None, False)])
+def test_merge_fragments_bridges_by_the_capture_rate(rate, continued):
+    """Marker 14 of the moving grid lost over frames 10-19: its fragment from frame 20 is
+    11 frames from its last sample, 55 ms at 200 Hz, 44 ms at 250 Hz: continued there
+    (67 ms), not within 8 frames at 120 Hz and below or with no rate given (the rigid
+    rounds merge it instead)."""
+    from mocapflow.stages.skin.surface import build_marker_surface  # noqa: PLC0415
+
+    true = moving_grid(40)
+    X = true.copy()
+    X[10:, 14] = np.nan
+    frags = np.full((40, 1, 3), np.nan)
+    frags[20:, 0] = true[20:, 14]
+    surf = build_marker_surface(true[0], positions=true)
+    _, assigned, rep = cm.merge_fragments(X, frags, surf, rate=rate)
+    assert assigned.tolist() == [14]
+    assert (rep["merges"][0]["predictor"] == "continuity") == continued, rep["merges"]
