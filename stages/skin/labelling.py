@@ -34,6 +34,7 @@ from scipy.interpolate import RBFInterpolator
 from scipy.optimize import linear_sum_assignment
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+from scipy.spatial.distance import pdist
 from scipy.spatial.transform import Rotation
 
 from mocapflow.stages.motion.axes import axis_vector
@@ -48,6 +49,11 @@ MIN_LABEL_DURATION = 0.25
 #: A subject needs at least this many markers; smaller groups (a few markers on a
 #: prop) stay with the nearest subject (the segment stage keeps objects apart).
 MIN_SUBJECT_MARKERS = 10
+#: A group of markers apart in space is a subject only if its two farthest markers are
+#: this many metres apart: a standing body spans more (a child's too).  The legs of
+#: btk's PiG calibration (12 markers) lie more than 0.3 m from its pelvis markers but
+#: span 0.71 m: one subject, not two (the upper body spans 1.53 m).
+MIN_SUBJECT_SPAN = 1.0
 
 
 class LabellingError(ValueError):
@@ -384,14 +390,15 @@ def _c3d_prefixes(markers: Markers) -> list[str]:
 def subject_groups(
     markers: Markers, reference: np.ndarray, *,
     mode: Literal["auto", "none"] = "auto", gap: float = 0.3,
-    min_markers: int = MIN_SUBJECT_MARKERS,
+    min_markers: int = MIN_SUBJECT_MARKERS, min_span: float = MIN_SUBJECT_SPAN,
 ) -> list[tuple[str, np.ndarray]]:
     """The subjects of a take: ``[(name, marker indices)]`` (one group: one subject).
 
     ``auto``: the C3D's ``SUBJECTS:LABEL_PREFIXES`` (two or more), else label
     prefixes ``Name:`` (two or more), else groups of the reference pose whose
-    markers are all more than ``gap`` from every other group's (single linkage).
-    Groups smaller than ``min_markers`` join the subject nearest to them.
+    markers are all more than ``gap`` from every other group's (single linkage)
+    and that span a body (``min_span``).  Groups smaller than ``min_markers``, and
+    groups in space that span less than ``min_span``, join the subject nearest to them.
 
     Parameters
     ----------
@@ -402,6 +409,10 @@ def subject_groups(
     gap : float
         Metres between subjects standing apart.
     min_markers : int
+    min_span : float
+        Metres a group found in space must span (its two farthest markers) to be a
+        subject of its own: a body part set apart by a sparse marker set is not one
+        (:data:`MIN_SUBJECT_SPAN`).
 
     Returns
     -------
@@ -440,14 +451,28 @@ def subject_groups(
     big = np.flatnonzero(sizes >= min_markers)
     if len(big) < 2:
         return everyone
-    # small groups and unassigned markers join the nearest big subject
+    group = _join_nearest(reference, group, big)
+    if not prefixes:  # groups found in space: a subject spans a body
+        span = np.array([pdist(reference[(group == g) & np.isfinite(reference).all(1)])
+                         .max(initial=0.0) for g in big])
+        big = big[span >= min_span]
+        if len(big) < 2:
+            return everyone
+        group = _join_nearest(reference, group, big)
+    return [(names[g], np.flatnonzero(group == g)) for g in big]
+
+
+def _join_nearest(reference: np.ndarray, group: np.ndarray, big: np.ndarray) -> np.ndarray:
+    """``group`` with every marker outside the ``big`` groups in the big group whose
+    median is nearest to it (unknown position: the first big group)."""
+    group = group.copy()
     centre = {int(g): np.nanmedian(reference[group == g], axis=0) for g in big}
     for i in np.flatnonzero(~np.isin(group, big)):
         if np.isfinite(reference[i]).all():
             group[i] = min(centre, key=lambda g: np.linalg.norm(reference[i] - centre[g]))
         else:
             group[i] = int(big[0])
-    return [(names[g], np.flatnonzero(group == g)) for g in big]
+    return group
 
 
 def fragment_subjects(markers: Markers, groups: list[tuple[str, np.ndarray]]) -> np.ndarray:

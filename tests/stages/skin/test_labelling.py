@@ -230,3 +230,20 @@ def test_subjects_from_c3d_subjects_parameter():
     assert [g[0] for g in groups] == ["S1_", "S2_"]
     assert groups[0][1].tolist() == list(range(20))
     assert len(subject_groups(Markers(mk.positions, labels, 100.0), ref)) == 1  # overlapping
+
+
+def test_a_body_part_apart_in_space_is_not_a_subject():
+    """A sparse marker set leaves more than 0.3 m between a body's groups (btk's PiG
+    calibration: 12 leg markers, 0.71 m across, apart from the 23 above them): they stay
+    one subject; two whole bodies apart are still two."""
+    from mocapflow.stages.motion.datatypes import Markers  # noqa: PLC0415
+    pig = QUALISYS.parent / "btkdata_PiG_Calibration-FlatFoot-Hole.c3d"
+    if not pig.is_file():
+        pytest.skip("shared data not found")
+    m = read_c3d(pig)
+    ref = m.positions[choose_reference_frame(m.positions)]
+    assert len(subject_groups(m, ref, min_span=0.0)) == 2  # the split the span rule stops
+    assert [(n, len(i)) for n, i in subject_groups(m, ref)] == [("all", 35)]
+    two = np.concatenate([ref, ref + [3.0, 0.0, 0.0]])
+    mk = Markers(np.repeat(two[None], 2, 0), [f"m{i}" for i in range(70)], 100.0)
+    assert [len(i) for _, i in subject_groups(mk, two)] == [35, 35]
