@@ -603,9 +603,10 @@ def _blind_rival(frag: np.ndarray, T: np.ndarray, v: dict[str, Any], free: np.nd
     reference pose) from ``m``, so if the fragment, at mean distance ``δ`` from
     ``m``'s prediction, were ``r``, that prediction would be off by at least
     ``|D − δ|``.  The merge is clear only if this is :data:`AMBIGUITY_RATIO` times
-    ``δ``, i.e. ``D ≥ (1 + AMBIGUITY_RATIO) δ``.  ``D`` is at least the nearest
-    marker distance ``≥ d̄ = 2 ε₁``, so merges within ``ε₁ / 2`` are never refused (nor
-    continuity merges, :func:`continue_breaks`: within :data:`BREAK_JUMP` ε₁).
+    ``δ``, i.e. ``D ≥ (1 + AMBIGUITY_RATIO) δ``.  With ``ε₁ = d̄ / 2`` (``d̄`` the
+    mean neighbour distance), a merge within ``ε₁ / 2`` is refused only for a blind
+    marker nearer than ``d̄`` to the chosen one.  Continuity merges
+    (:func:`continue_breaks`) have their own rival test and are not judged here.
 
     ``free`` ``(M,)`` bool: the markers missing in all of ``T`` (and usable);
     ``E_all`` ``(F, M, 3)``: every prediction; ``reference`` ``(M, 3)``: the
