@@ -25,12 +25,35 @@ Baselines, measured in the same run on the same inputs and seeds:
 * *copy* — the input played again and again; *shuffle* — random 30-frame chunks,
   no blending (same root integration as ours, no search, no smoothing).
 
-``--calibrate FILE`` compares the reimplementation with GenMM itself: ``FILE`` holds
-one JSON object per line, ``{"input": "bvh/….bvh", "length": 1024, "seed": 0,
-"cpu": seconds, "path": "GenMM's output BVH"}``, written by a GenMM run outside this
-repository (GenMM is not on PyPI; its BVH writer writes ``Frame Time: 1.0``, so the
-rate is set to the input's when reading).  Both are evaluated here with the same
-functions.
+GenMM's released code is not part of this repository (it is not on PyPI and needs
+PyTorch); two ways to measure it against the same metrics, both reading its output
+BVHs with the rate set to the input's (its BVH writer writes ``Frame Time: 1.0``) and
+evaluating them with the same :func:`evaluate` as every row:
+
+* ``--genmm-command "CMD"`` — an extra row *GenMM (released code, external command)*
+  in the main table and columns *CPU s ours/GenMM released* and *CPU s
+  reimpl./GenMM released* in the summary.  For every (input, output length, seed)
+  of the main table (the reimplementation's seeds, ``--genmm-seeds``), right after
+  ours and the reimplementation on that seed (so machine load falls on all three
+  alike), the benchmark runs, as a subprocess::
+
+      CMD INPUT.bvh LENGTH SEED OUTPUT.bvh
+
+  ``CMD`` split as a shell would (``shlex``); ``INPUT.bvh`` the row's input exactly
+  as ours gets it (resampled to 30 fps, cropped for the 1024-frame rows; written by
+  this package's BVH writer to a temporary folder); ``LENGTH`` output frames; ``SEED``
+  an int; ``OUTPUT.bvh`` where to write the result (in the same temporary folder).
+  The environment is passed on (``OMP_NUM_THREADS=1`` unless set otherwise); the
+  command must itself run on one thread, as ours does.  It prints (the last stdout
+  line starting with ``{``) one JSON object with at least ``"cpu"``: CPU seconds of
+  its synthesis only (no imports, no file I/O), and optionally ``"path"``: the BVH
+  written, if not ``OUTPUT.bvh``.  The command — a script that calls GenMM's code —
+  lives and runs outside this repository.
+* ``--calibrate FILE`` — the same comparison from runs made earlier: ``FILE`` holds
+  one such JSON object per line, ``{"input": "bvh/….bvh", "length": 1024, "seed": 0,
+  "cpu": seconds, "path": "GenMM's output BVH"}`` (``input`` relative to the data
+  folder; GenMM run on it at 30 fps), set beside the reimplementation on the same
+  seeds.
 
 Run::
 
@@ -41,13 +64,19 @@ Run::
     .venv/bin/python benchmarks/texture.py --quick --smooth-levels every   # + rows smoothing
                                                    # every level (the thesis, §3.8)
     .venv/bin/python benchmarks/texture.py --calibrate runs.jsonl   # vs GenMM itself
+    .venv/bin/python benchmarks/texture.py --no-cases --no-speed \
+        --genmm-command "/path/to/venv/bin/python /path/to/run_genmm.py"   # + GenMM's code
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
+import shlex
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -60,7 +89,7 @@ import numpy as np  # noqa: E402
 from mocapflow.pipeline import Context  # noqa: E402
 from mocapflow.stages.metrics import quality as M  # noqa: E402
 from mocapflow.stages.motion.contacts import contact_thresholds, toe_indices  # noqa: E402
-from mocapflow.stages.motion.formats.bvh import read_bvh  # noqa: E402
+from mocapflow.stages.motion.formats.bvh import read_bvh, write_bvh  # noqa: E402
 from mocapflow.stages.motion.kinematics import motion_positions, resample_motion  # noqa: E402
 from mocapflow.stages.texture.assemble import assemble_motion  # noqa: E402
 from mocapflow.stages.texture.pyramid import build_pyramid, levels_for_rate  # noqa: E402
@@ -82,6 +111,7 @@ HEADING_FREE = True
 MORE_VARIED = 0.6
 TARGETS = "targets: ≤3 s/1024 frames, coverage ≥0.95, jerk ratio ≤1.3, skate ratio ≤1.1"
 GENMM = "GenMM baseline (reimplementation)"
+RELEASED = "GenMM (released code, external command)"
 NA = "n/a (no constraints/path in GenMM)"
 #: constrained case: [input frame at the source rate (120 fps), output frame], as in
 #: tests/stages/texture/test_constraints.py
@@ -168,17 +198,52 @@ def run_genmm(ref: Reference, motion, length: int, seed: int) -> dict[str, float
     return evaluate(ref, r["motion"], r["source_index"], seconds)
 
 
+def evaluate_released(ref: Reference, rec: dict) -> dict[str, float]:
+    """Metrics of one output of GenMM's released code, read back at the input's rate.
+
+    ``rec``: its JSON record, with ``"path"`` (the output BVH), ``"cpu"`` (seconds) and
+    ``"length"`` (frames asked for; a shorter output is reported on stderr).
+    """
+    out = read_bvh(rec["path"]).replace(rate=ref.motion.rate)  # GenMM writes Frame Time 1.0
+    if out.skeleton.names != ref.motion.skeleton.names:
+        raise SystemExit(f"{rec['path']}: skeleton differs from the input's")
+    if out.n_frames != int(rec["length"]):
+        print(f"note: {rec['path']}: {out.n_frames} frames, {rec['length']} asked",
+              file=sys.stderr)
+    return evaluate(ref, out, None, float(rec["cpu"]))
+
+
+def run_released(command: str, ref: Reference, src: Path, length: int,
+                 seed: int) -> dict[str, float]:
+    """GenMM's released code on one seed: ``command src length seed output`` (a subprocess,
+    see the module docstring), its JSON line read and its output evaluated."""
+    out = src.with_name(f"{src.stem}.{length}.seed{seed}.bvh")
+    argv = [*shlex.split(command), str(src), str(length), str(seed), str(out)]
+    proc = subprocess.run(argv, capture_output=True, text=True)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.lstrip().startswith("{")]
+    if proc.returncode or not lines:
+        raise SystemExit(f"--genmm-command failed (exit {proc.returncode}, no JSON line: "
+                         f"{not lines}): {shlex.join(argv)}\n{proc.stderr[-3000:]}")
+    rec = {"path": str(out), **json.loads(lines[-1]), "length": length}
+    return evaluate_released(ref, rec)
+
+
 def run_row(motion, length: int, seeds: list[int], levels: int, variants: dict,
-            genmm_seeds: list[int] | None = None):
+            genmm_seeds: list[int] | None = None, genmm_command: str | None = None):
     """Metrics of our variants, the GenMM baseline, copy and shuffle; ``{method: [dict]}``.
 
     ``variants``: method name -> ``synth`` params; ``genmm_seeds``: the seeds the
-    baseline runs with (default ``seeds``).
+    baseline runs with (default ``seeds``); ``genmm_command``: also GenMM's released
+    code on those seeds, run by this command (:func:`run_released`).
     """
     ref = Reference(motion)
     res: dict[str, list[dict]] = {name: [] for name in variants}
-    res.update({GENMM: [], "copy": [], "shuffle": []})
+    res.update({GENMM: [], **({RELEASED: []} if genmm_command else {}), "copy": [],
+                "shuffle": []})
     genmm_seeds = seeds if genmm_seeds is None else genmm_seeds
+    if genmm_command:  # the row's input as ours gets it, in a folder removed at the end
+        tmp = tempfile.TemporaryDirectory(prefix="texture-genmm-")  # (or when collected)
+        src_bvh = write_bvh(motion, Path(tmp.name) / f"input{motion.n_frames}.bvh")
     for seed in seeds:
         for name, params in variants.items():
             t0 = time.process_time()  # CPU seconds: robust to other jobs on the machine
@@ -192,6 +257,9 @@ def run_row(motion, length: int, seeds: list[int], levels: int, variants: dict,
                               "seed": seed})
         if seed in genmm_seeds:
             res[GENMM].append({**run_genmm(ref, motion, length, seed), "seed": seed})
+            if genmm_command:
+                res[RELEASED].append({**run_released(genmm_command, ref, src_bvh, length,
+                                                     seed), "seed": seed})
         rng = np.random.default_rng(1000 + seed)
         for name, src in (
             ("copy", copy_source(motion.n_frames, length)),
@@ -200,6 +268,8 @@ def run_row(motion, length: int, seeds: list[int], levels: int, variants: dict,
             t0 = time.process_time()
             out, _ = assemble_motion(pyr, motion, src, smoothing=False, plant=False, foot_ik=False)
             res[name].append(evaluate(ref, out, src, time.process_time() - t0))
+    if genmm_command:
+        tmp.cleanup()
     return res
 
 
@@ -233,12 +303,24 @@ def _mean(values: list[dict], key: str) -> float:
     return float(v.mean()) if v.size else float("nan")
 
 
+def time_ratio(a: list[dict], b: list[dict]) -> tuple[float, str]:
+    """CPU time of ``a`` over ``b``: the ratio of the means, and as a cell with the
+    per-seed ratios' min–max (seeds run by both)."""
+    by_seed = {d["seed"]: d["time"] for d in b}
+    ratios = np.array([d["time"] / by_seed[d["seed"]] for d in a if d["seed"] in by_seed])
+    r = _mean(a, "time") / _mean(b, "time")
+    return r, (f"{r:.2f} ({ratios.min():.2f}–{ratios.max():.2f})" if ratios.size else "—")
+
+
 def summary_line(name: str, n_in: int, length: int, res: dict) -> str:
-    """Ours vs the GenMM baseline on one row: time ratio and the must-show checks."""
+    """Ours vs the GenMM baseline on one row: time ratio and the must-show checks; with
+    GenMM's released code in ``res``, also ours and the baseline over it in CPU time."""
     ours, base = res["ours"], res[GENMM]
-    by_seed = {d["seed"]: d["time"] for d in base}
-    ratios = np.array([d["time"] / by_seed[d["seed"]] for d in ours if d["seed"] in by_seed])
-    t_ratio = _mean(ours, "time") / _mean(base, "time")
+    t_ratio, rr = time_ratio(ours, base)
+    released = ""
+    if RELEASED in res:
+        t_rel, cell = time_ratio(ours, res[RELEASED])
+        released = f" {cell} | {time_ratio(base, res[RELEASED])[1]} |"
     cover = min(d["coverage"] for d in ours)
     g_o, g_b = _mean(ours, "global_diversity"), _mean(base, "global_diversity")
     l_o, l_b = _mean(ours, "local_diversity"), _mean(base, "local_diversity")
@@ -252,9 +334,11 @@ def summary_line(name: str, n_in: int, length: int, res: dict) -> str:
         ("global", g_o >= g_b),
         ("local≤1.2×", l_o <= 1.2 * l_b),
     ]
+    if released:
+        checks.insert(1, ("≥2× faster than released", t_rel <= 0.5))
     verdict = ", ".join(f"{k} {'ok' if ok else 'NO'}" for k, ok in checks)
-    rr = f"{t_ratio:.2f} ({ratios.min():.2f}–{ratios.max():.2f})" if ratios.size else "—"
-    return (f"| {name} ({n_in}) | {length} | {rr} | {cover:.2f} | {g_o:.3f} / {g_b:.3f} | "
+    return (f"| {name} ({n_in}) | {length} | {rr} |{released} {cover:.2f} | "
+            f"{g_o:.3f} / {g_b:.3f} | "
             f"{l_o:.3f} / {l_b:.3f} = {l_o / l_b:.2f} | {j_o:.2f} / {j_b:.2f} | "
             f"{s_o:.2f} / {s_b:.2f} | {verdict} |")
 
@@ -341,8 +425,6 @@ def run_cases(seeds: list[int], levels: int, only: str | None) -> list[str]:
 
 def calibrate(path: str) -> int:
     """Real GenMM outputs (``path``: JSON lines) vs the reimplementation, same functions."""
-    import json
-
     recs = [json.loads(line) for line in open(path) if line.strip().startswith("{")]
     groups: dict[tuple[str, int], list[dict]] = {}
     for r in recs:
@@ -359,10 +441,7 @@ def calibrate(path: str) -> int:
         ref = Reference(motion)
         real, ours = [], []
         for r in sorted(runs, key=lambda r: r["seed"]):
-            out = read_bvh(r["path"]).replace(rate=motion.rate)  # GenMM writes Frame Time 1.0
-            if out.skeleton.names != motion.skeleton.names:
-                raise SystemExit(f"{r['path']}: skeleton differs from {rel}")
-            real.append(evaluate(ref, out, None, float(r["cpu"])))
+            real.append(evaluate_released(ref, r))
             ours.append(run_genmm(ref, motion, length, int(r["seed"])))
         seeds = ",".join(str(r["seed"]) for r in sorted(runs, key=lambda r: r["seed"]))
         for method, vals in (("GenMM (released code)", real), (GENMM, ours)):
@@ -401,6 +480,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--calibrate", default=None, metavar="FILE",
                     help="compare the GenMM reimplementation with GenMM's own outputs "
                          "(JSON lines: input, length, seed, cpu, path) and exit")
+    ap.add_argument("--genmm-command", default=None, metavar="CMD",
+                    help="also run GenMM's released code (outside this repository) on "
+                         "every input, length and seed of the main table as 'CMD INPUT.bvh "
+                         "LENGTH SEED OUTPUT.bvh'; CMD prints a JSON line with 'cpu' "
+                         "(synthesis CPU seconds, one thread); see the module docstring")
     args = ap.parse_args(argv)
     if not DATA.exists():
         print(f"data directory {DATA} not found (set MOCAPFLOW_DATA)", file=sys.stderr)
@@ -430,7 +514,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{d.usage_weight}, foot IK); 'ours variety={MORE_VARIED}' draws among more "
           f"alternatives; '{GENMM}' = benchmarks/genmm_baseline.py (GenMM's algorithm and "
           "defaults reimplemented in NumPy, not GenMM's code; seams read from its patch "
-          "matches)\n")
+          "matches)" + (f"; '{RELEASED}' = GenMM's own code run outside this repository "
+                        f"by: {args.genmm_command}" if args.genmm_command else "") + "\n")
     header = "| input (frames) | output | method | " + " | ".join(c[1] for c in COLS) + " |"
     print(header)
     print("|" + "---|" * (3 + len(COLS)))
@@ -443,7 +528,8 @@ def main(argv: list[str] | None = None) -> int:
         rows = [] if args.quick else [(crop(full, min(512, full.n_frames)), 1024)]
         rows.append((full, 2 * full.n_frames))
         for motion, length in rows:
-            res = run_row(motion, length, seeds, args.levels, variants, genmm_seeds)
+            res = run_row(motion, length, seeds, args.levels, variants, genmm_seeds,
+                          args.genmm_command)
             for method in res:
                 cells = " | ".join(fmt(res[method], k, sp) for k, _, sp in COLS)
                 print(
@@ -452,10 +538,12 @@ def main(argv: list[str] | None = None) -> int:
             summary.append(summary_line(name, motion.n_frames, length, res))
     print(f"\nOurs vs the {GENMM}, same inputs and seeds (means; time ratio per seed "
           "min–max):\n")
-    print("| input (frames) | output | CPU s ours/baseline | cover (ours, min) | global ours / "
-          "baseline | local ours / baseline | jerk× ours / baseline | skate× ours / baseline "
-          "| checks |")
-    print("|" + "---|" * 9)
+    released = (" CPU s ours/GenMM released | CPU s reimpl./GenMM released |"
+                if args.genmm_command else "")
+    print(f"| input (frames) | output | CPU s ours/baseline |{released} cover (ours, min) | "
+          "global ours / baseline | local ours / baseline | jerk× ours / baseline | skate× "
+          "ours / baseline | checks |")
+    print("|" + "---|" * (11 if released else 9))
     for line in summary:
         print(line)
     if not args.no_speed:
