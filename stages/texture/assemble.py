@@ -49,6 +49,7 @@ from mocapflow.stages.texture.root import (
     PACE_TOLERANCE,
     PathCurve,
     apply_foot_ik,
+    chain_kinematics,
     follow_path,
     foot_corrections,
     integrate_root,
@@ -234,7 +235,9 @@ def _planted_velocity(pyramid, motion, rot, feat, src, loop, contacts) -> np.nda
     disp_in = toe_displacements(lev.yaw_rate, lev.velocity, lev.positions[:, toes][..., [0, 2]])
     J = motion.skeleton.n_joints
     trans = feat[:, 4:].reshape(len(src), J, 3) if feat.shape[1] > 4 else None
-    local = level_positions(motion.skeleton, rot, feat[:, 3], trans)[:, toes][..., [0, 2]]
+    root = np.zeros((len(src), 3))  # heading-free, as level_positions
+    root[:, 1] = feat[:, 3]
+    local = chain_kinematics(motion.skeleton, rot, root, toes, translations=trans)[0][..., [0, 2]]
     # the planted root offset is smoothed over 2 frames at 30 fps, the same time at any rate
     return plant_feet(feat[:, 0], feat[:, 1:3], local, src, disp_in, contact, cyclic=loop,
                       smooth=2.0 * rate_scale(motion.rate))
@@ -347,11 +350,12 @@ def _foot_ik(motion: Motion, out: Motion, src: np.ndarray, constrained, blended,
     L = src.size
     toe_step = rotate_xz(step_h[src], heading_out[:, None])
     toe_step[blended] = 0.0  # a blend of two stances keeps the stance foot still
-    pos_out = motion_positions(out)
+    toes_out = chain_kinematics(out.skeleton, out.rotations, out.root_position, toes,
+                                translations=out.translations)[0][..., [0, 2]]
     fixed = np.zeros(L, dtype=bool)
     fixed[[int(j) for j in constrained]] = True
     weights = PATH_IK if retargeted else {}
-    corr = foot_corrections(pos_out[:, toes][..., [0, 2]], toe_step, contact_in[src], fixed=fixed,
+    corr = foot_corrections(toes_out, toe_step, contact_in[src], fixed=fixed,
                             cyclic=loop, **weights)
     rot = apply_foot_ik(
         out.skeleton, out.rotations, out.root_position, chains, corr,

@@ -67,6 +67,18 @@ class LevelView:
         self.V = np.diff(self.P, axis=0) if self.P.shape[0] > 1 else np.zeros_like(self.P)
         #: (n, 3K) poses flattened, for :func:`pose_distance`
         self.Pf = np.ascontiguousarray(self.P.reshape(self.P.shape[0], -1))
+        self._rate_norms: np.ndarray | None = None
+
+    #: Largest level (nodes) whose :meth:`rate_norms` are tabulated (``n² E`` floats): a
+    #: synthesis compares some ``100 n`` pairs per level, so the table pays up to ~160.
+    RATE_TABLE_NODES = 160
+
+    def rate_norms(self) -> np.ndarray | None:
+        """``(n, n, E)`` table of ``‖R[a] - R[b]‖`` per rate feature (built once), or
+        ``None`` above :attr:`RATE_TABLE_NODES` nodes."""
+        if self._rate_norms is None and self.n <= self.RATE_TABLE_NODES:
+            self._rate_norms = _norms(self.R[:, None] - self.R[None, :])
+        return self._rate_norms
 
     @property
     def n(self) -> int:
@@ -167,7 +179,8 @@ def window_cost(
     tables : PairTables, optional
         :func:`pair_tables` of ``view``: pairs that play the input forwards, or jump
         into or out of the input pair, are looked up instead of computed (same
-        values; worth it where a level is searched over all its nodes).
+        values; worth it where a level is searched over all its nodes), those of a
+        table it does not hold (``None``) computed.
 
     Returns
     -------
@@ -183,9 +196,10 @@ def window_cost(
     out_ok = ov >= 0
     in_ok = (iv >= 0) & (iv < n)
     both_out = out_ok[:, 1:] & out_ok[:, :-1]
-    valid = both_out & in_ok[:, 1:] & in_ok[:, :-1]
+    in_pair = in_ok[:, 1:] & in_ok[:, :-1]
+    valid = both_out & in_pair
     touch = block[1:] | block[:-1]
-    reject = (both_out & ~valid & touch).any(axis=1)
+    reject = np.logical_or.reduce(both_out & ~in_pair & touch, axis=1)  # filled, not valid
     # only valid pairs are read below: there iv lies inside the input and ov, a filled
     # slot, holds an input node (capped at the last one, as a guard)
     o = np.minimum(ov, n - 1)
@@ -195,14 +209,20 @@ def window_cost(
     dist = np.zeros(o0.shape)
     need = valid & ((o0 != i0) | (o1 != i1))
     if tables is not None:  # valid pairs have i1 = i0 + 1, both inside the input
-        for sel, T, x, y in (
-            (o1 == o0 + 1, tables.verbatim, o0, i0),
-            (o1 == i1, tables.into, o0, i1),
-            (o0 == i0, tables.out_of, o0, o1),
+        for T, sel, x, y in (
+            (tables.verbatim, o1 == o0 + 1, o0, i0),
+            (tables.into, o1 == i1, o0, i1),
+            (tables.out_of, o0 == i0, o0, o1),
         ):
+            if T is None:  # not tabulated: computed below
+                continue
             sel &= need
             if sel.any():
-                dist[sel] = T[x[sel], y[sel]]
+                got = T[x[sel], y[sel]]
+                if tables.partial:  # entries not tabulated (nan) stay needed
+                    sel[sel] = ~np.isnan(got)
+                    got = got[~np.isnan(got)]
+                dist[sel] = got
                 need &= ~sel
     if need.any():
         dist[need] = pair_distance(view, o0[need], o1[need], i0[need], i1[need])
@@ -226,10 +246,15 @@ def pair_distance(view: LevelView, o0, o1, i0, i1) -> np.ndarray:
         V[i0]‖ / spacing`` and the rate-feature errors at both nodes.
     """
     P, R, V = view.P, view.R, view.V
-    dv = (P[o1] - P[o0]) - V[np.minimum(i0, view.n - 2)]
-    d = _norms(dv) / view.spacing
-    return slot_distance(np.concatenate([d, _norms(R[o0] - R[i0]), _norms(R[o1] - R[i1])],
-                                        axis=-1))
+    dv = (P.take(o1, axis=0) - P.take(o0, axis=0)) - V.take(np.minimum(i0, view.n - 2), axis=0)
+    q = dv * dv  # _norms3's sum of squares, in its order
+    d = np.sqrt((q[..., 0] + q[..., 2]) + q[..., 1]) / view.spacing
+    RN = view.rate_norms()
+    if RN is None:
+        r0, r1 = _norms(R[o0] - R[i0]), _norms(R[o1] - R[i1])
+    else:  # the same norms, looked up
+        r0, r1 = RN[o0, i0], RN[o1, i1]
+    return slot_distance(np.concatenate([d, r0, r1], axis=-1))
 
 
 @dataclass
@@ -243,14 +268,17 @@ class PairTables:
     into : (n, n) float ndarray
         Output pair ``(x, y)`` against input pair ``(y - 1, y)`` (a jump into ``y``;
         column 0 unused).
-    out_of : (n, n) float ndarray
+    out_of : (n, n) float ndarray or None
         Output pair ``(x, y)`` against input pair ``(x, x + 1)`` (a jump out of ``x``;
-        row ``n - 1`` unused).
+        row ``n - 1`` unused); ``None`` when not tabulated (:func:`window_cost` then
+        computes those pairs).
     """
 
     verbatim: np.ndarray
     into: np.ndarray
-    out_of: np.ndarray
+    out_of: np.ndarray | None
+    #: Entries not tabulated are ``nan`` (:func:`window_cost` computes those pairs).
+    partial: bool = False
 
 
 def _norms3(x0: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
@@ -270,8 +298,8 @@ def _norms(x: np.ndarray) -> np.ndarray:
     return _norms3(x[..., 0], x[..., 1], x[..., 2])
 
 
-def pair_tables(view: LevelView) -> PairTables:
-    """The :class:`PairTables` of a level (``3 n²`` distances), for :func:`window_cost`.
+def pair_tables(view: LevelView, out_of: bool = True, children: bool = False) -> PairTables:
+    """The :class:`PairTables` of a level (up to ``3 n²`` distances), for :func:`window_cost`.
 
     The same values as :func:`pair_distance` of each pair, computed by table: the
     output velocity of a verbatim pair is the input's ``V[x]``, a jump's ``P[y] -
@@ -282,6 +310,15 @@ def pair_tables(view: LevelView) -> PairTables:
     Parameters
     ----------
     view : LevelView
+    out_of : bool
+        Tabulate ``out_of`` too (False: ``None``; the coarsest search reads about one
+        in 500 of its entries, so it computes those pairs instead).
+    children : bool
+        Only the entries the next coarser level's search reads (its finer windows hold
+        the children ``2 p``, ``2 p + 1`` of its nodes, and so do the candidates'
+        windows ``2 c + k``): ``verbatim`` where ``x`` and ``y`` have one parity,
+        ``into`` at odd ``x`` and even ``y``, the rest ``nan`` (``partial``; no
+        ``out_of``).
 
     Returns
     -------
@@ -293,27 +330,45 @@ def pair_tables(view: LevelView) -> PairTables:
     Vc = np.ascontiguousarray(np.moveaxis(view.V, -1, 0))
     top = n - 1  # clamp: entries of pairs outside the input are never read
     y = np.arange(n)
-    RN = _norms(R[:, None] - R[None, :])  # (n, n, E): RN[a, b] = ‖R[a] - R[b]‖ per feature
-    zero = np.zeros(RN.shape[1:])
+    RN = view.rate_norms()  # (n, n, E): RN[a, b] = ‖R[a] - R[b]‖ per feature
+    if RN is None:
+        RN = _norms(R[:, None] - R[None, :])
+    zero = np.zeros(RN.shape[2:])  # (E,)
     V_into = Vc[:, np.minimum(np.maximum(y - 1, 0), n - 2)]  # input pair (y - 1, y)
-    verbatim, into, out_of = np.empty((n - 1, n - 1)), np.empty((n, n)), np.empty((n, n))
-    rows = max(1, 2_000 // max(n, 1))  # row blocks: (rows, n, K) temporaries
-    for a in range(0, n, rows):
-        x = y[a : a + rows]
-        xv = x[x < n - 1]
-        if xv.size:  # output pair (x, x + 1) = V[x] against input pair (y, y + 1)
-            d = _norms3(*(Vc[c, xv][:, None] - Vc[c, None, : n - 1] for c in range(3))) / s
-            verbatim[xv] = slot_distance(np.concatenate(
-                [d, RN[xv][:, : n - 1], RN[xv + 1][:, 1:n]], axis=-1))
-        D = [Pc[c, None, :] - Pc[c, x][:, None] for c in range(3)]  # output pair (x, y)
-        z = np.broadcast_to(zero, (x.size,) + zero.shape)
-        d = _norms3(*(D[c] - V_into[c, None] for c in range(3))) / s
-        into[x] = slot_distance(np.concatenate([d, RN[x][:, np.maximum(y - 1, 0)], z], axis=-1))
-        xn = np.minimum(x, n - 2)
-        d = _norms3(*(D[c] - Vc[c, xn][:, None] for c in range(3))) / s
-        rb = RN[y[None, :], np.minimum(x + 1, top)[:, None]]  # ‖R[y] - R[x + 1]‖
-        out_of[x] = slot_distance(np.concatenate([d, z, rb], axis=-1))
-    return PairTables(verbatim=verbatim, into=into, out_of=out_of)
+    if children:  # entries not written stay nan
+        verbatim, into = np.full((n - 1, n - 1), np.nan), np.full((n, n), np.nan)
+    else:
+        verbatim, into = np.empty((n - 1, n - 1)), np.empty((n, n))
+    jumps_out = np.empty((n, n)) if out_of and not children else None
+    # (rows, verbatim columns, into / out_of columns) of each class of entries
+    if children:
+        classes = [(y[0::2], y[0 : n - 1 : 2], y[:0]), (y[1::2], y[1 : n - 1 : 2], y[0::2])]
+    else:
+        classes = [(y, y[: n - 1], y)]
+    # row blocks: (rows, n, K) temporaries of about 60,000 values (cache-sized; measured)
+    rows = max(1, 60_000 // max(n * view.P.shape[1], 1))
+    for xs, cv, ci in classes:
+        for a in range(0, xs.size, rows):
+            x = xs[a : a + rows]
+            xv = x[x < n - 1]
+            if xv.size and cv.size:  # output pair (x, x + 1) = V[x] against (y, y + 1)
+                d = _norms3(*(Vc[c, xv][:, None] - Vc[c, cv][None, :] for c in range(3))) / s
+                verbatim[np.ix_(xv, cv)] = slot_distance(np.concatenate(
+                    [d, RN[xv][:, cv], RN[xv + 1][:, cv + 1]], axis=-1))
+            if not ci.size:
+                continue
+            D = [Pc[c, ci][None, :] - Pc[c, x][:, None] for c in range(3)]  # output pair (x, y)
+            z = np.broadcast_to(zero, (x.size, ci.size) + zero.shape)
+            d = _norms3(*(D[c] - V_into[c, ci][None, :] for c in range(3))) / s
+            into[np.ix_(x, ci)] = slot_distance(np.concatenate(
+                [d, RN[x][:, np.maximum(ci - 1, 0)], z], axis=-1))
+            if jumps_out is None:
+                continue
+            xn = np.minimum(x, n - 2)
+            d = _norms3(*(D[c] - Vc[c, xn][:, None] for c in range(3))) / s
+            rb = RN[ci[None, :], np.minimum(x + 1, top)[:, None]]  # ‖R[y] - R[x + 1]‖
+            jumps_out[np.ix_(x, ci)] = slot_distance(np.concatenate([d, z, rb], axis=-1))
+    return PairTables(verbatim=verbatim, into=into, out_of=jumps_out, partial=children)
 
 
 def slot_pair_weights(offsets: np.ndarray, centre: float, sigma: float) -> np.ndarray:

@@ -37,6 +37,7 @@ from mocapflow.stages.motion.rotations import (
     quat_rotate,
     yaw_quaternion,
 )
+from mocapflow.stages.texture.smoothing import _row_sum
 
 __all__ = [
     "LEVELS_AT_30",
@@ -248,9 +249,9 @@ def downsample_quaternions(q: np.ndarray, filter_size: int = 4) -> np.ndarray:
     w = binomial_filter(filter_size)
     taps = q[_taps(q.shape[0], filter_size)]  # (k, f, ..., 4)
     ref = taps[:, filter_size // 2 - 1 : filter_size // 2]
-    sign = np.where(np.sum(taps * ref, axis=-1, keepdims=True) < 0, -1.0, 1.0)
+    sign = np.where(_row_sum(taps * ref) < 0, -1.0, 1.0)  # (np.sum's values)
     s = np.einsum("kf...,f->k...", taps * sign, w)
-    return s / np.linalg.norm(s, axis=-1, keepdims=True)
+    return s / np.sqrt(_row_sum(s * s))  # (np.linalg.norm's values)
 
 
 # --------------------------------------------------------------------------- root
@@ -386,14 +387,21 @@ def build_pyramid(
     rot = quat_continuity(rot, axis=0)
     yaw, vel, height = root_features(motion.root_position, heading)
     trans = motion.translations
-    out: list[PyramidLevel] = []
+    tree = []
     for l in range(levels):
         if l:
             rot = downsample_quaternions(rot, filter_size)
             yaw, vel, height = (downsample(a, filter_size) for a in (yaw, vel, height))
             trans = None if trans is None else downsample(trans, filter_size)
-        pos = level_positions(motion.skeleton, rot, height, trans)
-        out.append(PyramidLevel(rot, yaw, vel, height, pos, trans))
+        tree.append((rot, yaw, vel, height, trans))
+    # the poses of every level in one forward kinematics (frame by frame, so the same
+    # positions as one call per level), cut back into levels
+    pos = level_positions(motion.skeleton, np.concatenate([t[0] for t in tree]),
+                          np.concatenate([t[3] for t in tree]),
+                          None if trans is None else np.concatenate([t[4] for t in tree]))
+    cuts = np.cumsum([t[0].shape[0] for t in tree])[:-1]
+    out = [PyramidLevel(r, y, v, h, p.copy(), tr)
+           for (r, y, v, h, tr), p in zip(tree, np.split(pos, cuts))]
     attrs = {"n_frames": F, "source": motion.attrs.get("source", motion.attrs.get("path"))}
     return Pyramid(out, filter_size, motion.rate, attrs)
 

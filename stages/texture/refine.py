@@ -40,6 +40,7 @@ Below the coarsest level the output of a level is derived from the level above
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -90,18 +91,17 @@ def verbatim_runs(
     if starts.size == 0:
         return 0, ([[0, n - 1]] if valid.all() else [])
     p0 = int(starts[0])
-    runs: list[list[int]] = []
-    for u in range(p0, p0 + n):
-        i = u % n if cyclic else u
-        if i >= n:
-            break
-        if not valid[i]:
-            continue
-        if runs and cont[i] and runs[-1][1] == u - 1:
-            runs[-1][1] = u
-        else:
-            runs.append([u, u])
-    return p0, runs
+    # positions from p0 on (wrapping in loop mode): a run starts at every valid position
+    # that does not continue its predecessor and ends before the next position that does
+    # not continue the run (a start or an invalid position)
+    u = np.arange(p0, p0 + n) if cyclic else np.arange(p0, n)
+    i = u % n if cyclic else u
+    on = valid[i] & cont[i]
+    on[0] = False  # p0 starts the first run
+    first = np.flatnonzero(valid[i] & ~on)
+    stop = np.flatnonzero(~on)
+    last = np.append(stop, u.size)[np.searchsorted(stop, first, side="right")] - 1
+    return p0, np.stack([u[first], u[last]], axis=1).tolist()
 
 
 @dataclass
@@ -273,7 +273,8 @@ class LevelRefinement(LevelSearch):
             a3 = runs[k + 2][0]
             nxt = int(val[self._at(a3)]) - (a3 - tr.a2)  # that run's line at a2
             near = near[np.abs(near - nxt) >= self.p.slots]
-        starts = np.union1d(starts, near)
+        if near.size:  # (starts: np.unique's, already sorted and distinct)
+            starts = np.union1d(starts, near)
         for lines, (m_lo, m_hi), strict, min_run, stall in self._join_attempts(
             tr, starts, window, fallback, near
         ):
@@ -343,10 +344,9 @@ class LevelRefinement(LevelSearch):
         q = int(self._at(tr.a2))
         Tq = min(q // 2, up.src.size - 1)
         par = up.ranked[Tq]
-        par = par[par >= 0][: self.p.n_parent_matches]
-        par = np.unique(np.concatenate([par, [up.src[Tq]]]))
-        lines = 2 * par + (q - 2 * Tq)
-        starts = np.unique((lines[:, None] + np.arange(-r, r + 1)[None, :]).ravel())
+        par = par[par >= 0][: self.p.n_parent_matches].tolist() + [int(up.src[Tq])]
+        lines = 2 * np.array(sorted(set(par)), dtype=np.int64) + (q - 2 * Tq)
+        starts = (lines[:, None] + np.arange(-r, r + 1)[None, :]).ravel()
         return np.unique(np.concatenate([starts, [tr.right_start]]))
 
     def _pose_term(self, tr: _Transition) -> bool:
@@ -423,9 +423,9 @@ class LevelRefinement(LevelSearch):
         return order[np.isfinite(cost[order])].astype(np.int64)
 
     def _join_attempts(self, tr: _Transition, starts: np.ndarray, window, fallback,
-                       near: np.ndarray | None = None) -> tuple:
+                       near: np.ndarray | None = None) -> Iterator[tuple]:
         """``(lines, window, strict, min_run, allow_stall)`` to try in order until a join
-        fits.
+        fits (a generator: the later attempts are built only when reached).
 
         Right lines ``R_s(u) = s + (u - a2)``; where one runs past the input's
         end the run is cut short and the next join covers the rest.  The last
@@ -443,18 +443,17 @@ class LevelRefinement(LevelSearch):
             own |= np.isin(novel, near)
         own = novel[own]
         span = 2 * S + 1  # a new run plays at least this long before the input ends
+        yield own, window, True, span, False
+        yield novel, window, True, span, False
+        yield starts, window, True, span, False
+        yield starts, fallback, True, 1, False
+        yield starts, fallback, False, 1, False
+        # the last resorts (built only when reached)
         any_line = np.arange(-self.p.meeting_window - (tr.a2 - tr.b1), self.view.n)
         if tr.right_anchors:  # a constrained run keeps its line
             any_line = starts
-        return (
-            (own, window, True, span, False),
-            (novel, window, True, span, False),
-            (starts, window, True, span, False),
-            (starts, fallback, True, 1, False),
-            (starts, fallback, False, 1, False),
-            (any_line, fallback, False, 1, False),
-            (any_line, fallback, False, 1, True),
-        )
+        yield any_line, fallback, False, 1, False
+        yield any_line, fallback, False, 1, True
 
     # ----------------------------------------------------------- join cost, draw, write
     def join_costs(

@@ -40,6 +40,7 @@ from scipy.ndimage import gaussian_filter1d
 from scipy.spatial import cKDTree
 
 from mocapflow.stages.motion.contacts import true_runs
+from mocapflow.stages.motion.datatypes import Skeleton
 from mocapflow.stages.motion.kinematics import forward_kinematics
 from mocapflow.stages.motion.rotations import (
     quat_from_rotvec,
@@ -54,6 +55,7 @@ __all__ = [
     "PathCurve",
     "PathError",
     "apply_foot_ik",
+    "chain_kinematics",
     "figure_eight",
     "follow_path",
     "foot_corrections",
@@ -712,6 +714,52 @@ def _cyclic_foot_corrections(toe_ground, toe_step, contact, *, stiffness, decay,
     return corr
 
 
+def chain_kinematics(
+    skeleton: Skeleton,
+    rotations: np.ndarray,
+    root_position: np.ndarray,
+    joints,
+    *,
+    translations: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Forward kinematics of a few joints: only they and their ancestors are computed.
+
+    Joint by joint the arithmetic of
+    :func:`~mocapflow.stages.motion.kinematics.forward_kinematics`, so the same values
+    as its ``[:, joints]`` (a leg or the toes of a 30-joint body is a third of the work).
+
+    Parameters
+    ----------
+    skeleton : Skeleton
+    rotations : (F, J, 4) float ndarray
+    root_position : (F, 3) float ndarray
+    joints : sequence of int
+        ``G`` joint indices (any order).
+    translations : (F, J, 3) float ndarray, optional
+
+    Returns
+    -------
+    positions : (F, G, 3) float ndarray
+    global_rotations : (F, G, 4) float ndarray
+    """
+    parents = skeleton.parents
+    chain: set[int] = set()
+    for j in joints:
+        j = int(j)
+        while j >= 0 and j not in chain:
+            chain.add(j)
+            j = int(parents[j])
+    keep = sorted(chain)  # parents before children, as in the skeleton
+    at = {j: k for k, j in enumerate(keep)}
+    sub = Skeleton([skeleton.names[j] for j in keep],
+                   [at[int(parents[j])] if parents[j] >= 0 else -1 for j in keep],
+                   skeleton.offsets[keep], [skeleton.channels[j] for j in keep])
+    tr = None if translations is None else translations[:, keep]
+    pos, glob = forward_kinematics(sub, rotations[:, keep], root_position, translations=tr)
+    cols = [at[int(j)] for j in joints]
+    return pos[:, cols], glob[:, cols]
+
+
 def apply_foot_ik(
     skeleton,
     rotations: np.ndarray,
@@ -743,34 +791,40 @@ def apply_foot_ik(
     rot = np.array(rotations, dtype=np.float64)
     moves = np.abs(offsets).max(axis=-1) > 1e-7  # (L, T)
     frames = np.flatnonzero(moves.any(axis=1))
+    # the joints read below: each chain and its hip's parent (the legs' kinematics only)
+    need = sorted({int(j) for c in chains for j in c}
+                  | {int(skeleton.parents[c[0]]) for c in chains if skeleton.parents[c[0]] >= 0})
+    col = np.full(skeleton.n_joints, -1)
+    col[need] = np.arange(len(need))
     # one forward kinematics for all legs when no chain moves a joint above another's
     shared = frames.size and _independent_chains(skeleton, chains)
     if shared:
         tr = None if translations is None else translations[frames]
-        pos_all, glob_all = forward_kinematics(
-            skeleton, rot[frames], root_position[frames], translations=tr)
-    for k, (h, kn, an) in enumerate(chains):
+        pos_all, glob_all = chain_kinematics(
+            skeleton, rot[frames], root_position[frames], need, translations=tr)
+    for k, (hip, knee, ankle) in enumerate(chains):
         if shared:
             sel = np.flatnonzero(moves[frames, k])
             idx, pos, glob = frames[sel], pos_all[sel], glob_all[sel]
         else:
             idx = np.flatnonzero(moves[:, k])
             tr = None if translations is None else translations[idx]
-            pos, glob = forward_kinematics(
-                skeleton, rot[idx], root_position[idx], translations=tr)
+            pos, glob = chain_kinematics(
+                skeleton, rot[idx], root_position[idx], need, translations=tr)
         if idx.size == 0:
             continue
+        h, kn, an = col[hip], col[knee], col[ankle]  # their columns in pos and glob
         d = np.zeros((idx.size, 3))
         d[:, [0, 2]] = offsets[idx, k]
         hinge = quat_rotate(glob[:, kn], np.array([1.0, 0.0, 0.0]))
         r_hip, r_knee = two_bone_ik(pos[:, h], pos[:, kn], pos[:, an], pos[:, an] + d, hinge=hinge)
         g_hip = quat_multiply(r_hip, glob[:, h])
         g_knee = quat_multiply(r_hip, quat_multiply(r_knee, glob[:, kn]))
-        p = skeleton.parents[h]
-        g_par = glob[:, p] if p >= 0 else np.tile([1.0, 0, 0, 0], (idx.size, 1))
-        rot[idx, h] = quat_normalize(quat_multiply(quat_inverse(g_par), g_hip))
-        rot[idx, kn] = quat_normalize(quat_multiply(quat_inverse(g_hip), g_knee))
-        rot[idx, an] = quat_normalize(quat_multiply(quat_inverse(g_knee), glob[:, an]))
+        p = skeleton.parents[hip]
+        g_par = glob[:, col[p]] if p >= 0 else np.tile([1.0, 0, 0, 0], (idx.size, 1))
+        rot[idx, hip] = quat_normalize(quat_multiply(quat_inverse(g_par), g_hip))
+        rot[idx, knee] = quat_normalize(quat_multiply(quat_inverse(g_hip), g_knee))
+        rot[idx, ankle] = quat_normalize(quat_multiply(quat_inverse(g_knee), glob[:, an]))
     return rot
 
 

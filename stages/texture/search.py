@@ -358,8 +358,12 @@ class LevelSearch:
         return np.minimum(np.maximum(pos, 0), n - 1), (pos >= 0) & (pos < n)
 
     def _out_values(self, src: np.ndarray, pos: np.ndarray) -> np.ndarray:
-        p, ok = self._wrap(pos, src.shape[0])
-        return np.where(ok, src[p], -1)
+        """Input node at output positions ``pos`` (unwrapped; -1 where none)."""
+        n = src.shape[0]
+        if self.cyclic:
+            return src[np.mod(pos, n)]
+        ok = (pos >= 0) & (pos < n)
+        return np.where(ok, src[np.where(ok, pos, 0)], -1)
 
     def _out_value(self, src: np.ndarray, t: int) -> int:
         """:meth:`_out_values` of one position (a Python int, no arrays)."""
@@ -396,8 +400,11 @@ class LevelSearch:
         if not self.coarsest:
             return None
         if self._tables is None:
-            self._tables = (pair_tables(self.view),
-                            pair_tables(self.views[self.l - 1]) if self.l > 0 else None)
+            # jumps out of the input pair are rare here (computed); of the finer level only
+            # the entries between children are read (the others computed if ever needed)
+            self._tables = (pair_tables(self.view, out_of=False),
+                            pair_tables(self.views[self.l - 1], out_of=False, children=True)
+                            if self.l > 0 else None)
         return self._tables
 
     def cost_rows(
@@ -435,13 +442,19 @@ class LevelSearch:
         iv = cands[:, None] + self.off[None, :]
         tab, tab_f = tables if tables is not None else (None, None)
         num, den, reject = window_cost(self.view, ov, iv, self.blk, self.pw, tab)
-        num, den = lc * num, lc * den
+        # (a weight of 1 multiplies nothing: x * 1.0 is x, so it is skipped)
+        if lc != 1.0:
+            num, den = lc * num, lc * den
         if self.upper is not None and la > 0:
             a_num, a_den = self._ancestor_cost(t, cands)
-            num, den = num + la * a_num, den + la * a_den
+            if la != 1.0:
+                a_num, a_den = la * a_num, la * a_den
+            num, den = num + a_num, den + a_den
         if self.l > 0 and lf > 0:
             f_num, f_den = self._finer_cost(ov, t, tab_f)
-            num, den = num + lf * f_num, den + lf * f_den
+            if lf != 1.0:
+                f_num, f_den = lf * f_num, lf * f_den
+            num, den = num + f_num, den + f_den
         with np.errstate(invalid="ignore", divide="ignore"):
             total = num / den
         a, b = ov[:, S - 1], ov[:, S + 1]
@@ -592,8 +605,9 @@ class LevelSearch:
         chunk = max(1, 60_000 // max(n, 1))
         # slot pair distances looked up (same costs)
         tables = self._coarse_tables() or (
-            pair_tables(self.view),
-            pair_tables(self.views[self.l - 1]) if self.l > 0 else None)
+            pair_tables(self.view, out_of=False),
+            pair_tables(self.views[self.l - 1], out_of=False, children=True)
+            if self.l > 0 else None)
         for a0 in range(0, n, chunk):
             a = np.arange(a0, min(n, a0 + chunk))
             ov = np.tile(base, (a.size * n, 1))
@@ -633,11 +647,11 @@ class LevelSearch:
             nf = self.n_out[self.l - 1] if self.l > 0 else 2 * self.n
             if t < S or 2 * t + S + 1 >= nf or 3 * S + 1 >= nf:
                 return None
-        ov = self._out_values(src, t + self.off)
-        a = int(ov[S - 1])
-        if a < S - 1 or (ov[S + 1:] >= 0).any():
+        ov = [self._out_value(src, t + o) for o in range(-S, S + 1)]  # Python ints
+        a = ov[S - 1]
+        if a < S - 1 or any(x >= 0 for x in ov[S + 1:]):
             return None
-        if not (ov[:S] == np.arange(a - S + 1, a + 1)).all():
+        if ov[:S] != list(range(a - S + 1, a + 1)):
             return None
         return self.after_run_costs()[a].copy()
 
@@ -699,7 +713,9 @@ class LevelSearch:
             if all(abs(r - c) >= self.p.slots for c in picked):
                 chosen.append(i)
                 picked.append(r)
-        return int(self.rng.choice(chosen))
+        # Generator.choice of a list draws integers(0, len) (the same stream; measured on
+        # NumPy 2.4 against choice), without turning the list into an array
+        return chosen[int(self.rng.integers(0, len(chosen)))]
 
     def _settled(self, src: np.ndarray, t: int) -> bool:
         """Whether the ``slots`` filled nodes on one side of ``t`` form one verbatim run.
@@ -709,13 +725,11 @@ class LevelSearch:
         land inside the first one's neighbourhood (and often jump straight back).
         """
         S = self.p.slots
-        for side in (-1, 1):
-            v = self._out_values(src, t + side * np.arange(1, S + 1))
+        for side in (-1, 1):  # Python ints: a handful of positions
+            v = [self._out_value(src, t + side * k) for k in range(1, S + 1)]
             if v[0] < 0:
                 continue
-            if (v >= 0).all() and np.all(np.diff(v) == side):
-                return True
-            return False
+            return all(x >= 0 for x in v) and all(b - a == side for a, b in zip(v, v[1:]))
         return True
 
     def fill(self, src, ranked, t: int, where: str) -> None:
@@ -766,11 +780,15 @@ class LevelSearch:
             growth = -1
         else:
             return 0, -1, 0
-        back = self._out_values(src, t - growth * np.arange(1, self.n + 1))
-        ok = back >= 0
-        steps = ok[1:] & ok[:-1] & (back[:-1] - back[1:] == growth)
-        run = 1 + int(np.argmin(steps)) if not steps.all() else int(steps.size + 1)
-        return growth, int(back[0] + growth), run
+        # walk back while the nodes play the input on (at most n positions)
+        first = prev = a if growth == 1 else b
+        run = 1
+        for k in range(2, self.n + 1):
+            v = self._out_value(src, t - growth * k)
+            if v < 0 or prev - v != growth:
+                break
+            run, prev = run + 1, v
+        return growth, first + growth, run
 
     def _jump_earlier(self, src, ranked, t: int, where: str, *, forced: bool = False) -> None:
         """A run that had to end jumps where the jump fits best.

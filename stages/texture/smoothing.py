@@ -94,6 +94,20 @@ def gaussian_taps(width: int = 5, scale: float = 1.0) -> np.ndarray:
     return w / w.sum()
 
 
+def _row_sum(p: np.ndarray) -> np.ndarray:
+    """Sum over a short last axis (3 or 4: vectors, quaternions), kept as a length-1 axis.
+
+    Left to right, the order in which ``np.sum(p, axis=-1)`` (and so ``np.linalg.norm``)
+    adds fewer than 8 values (NumPy 2.4; tests/stages/texture/test_exact_shortcuts.py
+    checks it), so the same values, without a reduction over rows of 3-4 (about six
+    times slower on the ``(frames, joints, 4)`` arrays of a smoothing pass).
+    """
+    out = p[..., 0:1] + p[..., 1:2]
+    for k in range(2, p.shape[-1]):
+        out += p[..., k : k + 1]
+    return out
+
+
 def _shift_index(L: int, m: int, cyclic: bool, frames: np.ndarray | None = None) -> np.ndarray:
     idx = (np.arange(L) if frames is None else frames) + m
     return np.mod(idx, L) if cyclic else np.clip(idx, 0, L - 1)
@@ -123,9 +137,9 @@ def filter_quaternions(q: np.ndarray, taps: np.ndarray, *, cyclic: bool = False,
     acc = np.zeros_like(q0)
     for m, w in zip(range(-h, h + 1), taps):
         s = q[_shift_index(L, m, cyclic, frames)]
-        sign = np.where(np.sum(s * q0, axis=-1, keepdims=True) < 0, -1.0, 1.0)
+        sign = np.where(_row_sum(s * q0) < 0, -1.0, 1.0)
         acc += w * sign * s
-    return acc / np.linalg.norm(acc, axis=-1, keepdims=True)
+    return acc / np.sqrt(_row_sum(acc * acc))
 
 
 def _filter_linear(x: np.ndarray, taps: np.ndarray, *, cyclic: bool,
@@ -140,16 +154,17 @@ def _filter_linear(x: np.ndarray, taps: np.ndarray, *, cyclic: bool,
 
 def _blend_quaternions(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Normalised lerp from ``a`` to ``b`` by per-frame weight ``w`` (L,)."""
-    sign = np.where(np.sum(a * b, axis=-1, keepdims=True) < 0, -1.0, 1.0)
+    sign = np.where(_row_sum(a * b) < 0, -1.0, 1.0)
     ww = w.reshape((-1,) + (1,) * (a.ndim - 1))
     out = (1 - ww) * a + ww * sign * b
-    return out / np.linalg.norm(out, axis=-1, keepdims=True)
+    return out / np.sqrt(_row_sum(out * out))
 
 
-def _window(L: int, centre: float, inner: float, cyclic: bool, taper: float = _TAPER
-            ) -> np.ndarray:
-    """Weight 1 within ``inner`` of ``centre``, cosine taper over ``taper`` frames."""
-    f = np.arange(L, dtype=np.float64)
+def _window(L: int, centre: float, inner: float, cyclic: bool, taper: float = _TAPER,
+            frames: np.ndarray | None = None) -> np.ndarray:
+    """Weight 1 within ``inner`` of ``centre``, cosine taper over ``taper`` frames (exactly
+    0 beyond), at every frame or at ``frames`` only."""
+    f = np.arange(L, dtype=np.float64) if frames is None else frames.astype(np.float64)
     d = np.abs(f - centre)
     if cyclic:
         d = np.minimum(d, L - d)
@@ -226,7 +241,8 @@ def seam_test(
     if features.shape[1] > 4:
         trans = features[idx, 4:].reshape(idx.shape + (J, 3))
     pos, _ = forward_kinematics(skeleton, rot, root, translations=trans)
-    a = np.linalg.norm(pos[:, 2:] - 2 * pos[:, 1:-1] + pos[:, :-2], axis=-1).mean(-1) * rate**2
+    acc3 = pos[:, 2:] - 2 * pos[:, 1:-1] + pos[:, :-2]
+    a = np.sqrt(_row_sum(acc3 * acc3)[..., 0]).mean(-1) * rate**2  # (np.linalg.norm's values)
     a_ok = ok[:, 2:] & ok[:, 1:-1] & ok[:, :-2]
     acc = np.full(idx.shape, np.nan)
     acc[:, 1:-1] = np.where(a_ok, a, np.nan)
@@ -241,7 +257,7 @@ def seam_test(
     passed |= ~np.isfinite(ref).any(1)
     if jerk_limit is not None:
         j = pos[:, 3:] - 3 * pos[:, 2:-1] + 3 * pos[:, 1:-2] - pos[:, :-3]
-        j = np.linalg.norm(j, axis=-1).mean(-1) * rate**3  # local frame f = index + 1
+        j = np.sqrt(_row_sum(j * j)[..., 0]).mean(-1) * rate**3  # local frame f = index + 1
         j_ok = ok[:, 3:] & ok[:, :-3]
         m = int(round(r)) - 1  # frames i-1, i, i+1 at 30 fps, widened with the rate
         jerk = np.where(j_ok, j, np.nan)[:, i - 2 - m : i + 1 + m]
@@ -346,7 +362,8 @@ def adaptive_smoothing(
     """
     rot = np.array(rotations, dtype=np.float64)
     feat = np.array(features, dtype=np.float64)
-    rot0, feat0 = rot.copy(), feat.copy()
+    pinned = len(constrained) > 0  # _pin may change any frame; else only a pass's frames
+    rot0, feat0 = (rot.copy(), feat.copy()) if pinned else (rot, feat)  # (read by _pin)
     seams = np.asarray(seams, dtype=np.int64)
     r = rate_scale(rate)
     taps = gaussian_taps(gaussian_width, r)
@@ -364,7 +381,8 @@ def adaptive_smoothing(
         accel_floor=accel_floor,
         jerk_limit=jerk_limit,
     )
-    before_rot, before_feat = rot.copy(), feat.copy()
+    if pinned:  # the whole track before a pass (else only the frames it smooths)
+        before_rot, before_feat = rot.copy(), feat.copy()
     while not passed.all():
         fail = ~passed & (k < max_widening)
         if not fail.any():
@@ -372,17 +390,30 @@ def adaptive_smoothing(
         k[fail] += 1
         w = np.zeros(L)
         for t, kk in zip(seams[fail], k[fail]):
-            w = np.maximum(w, _window(L, t - 0.5, kk * r, cyclic, taper))
+            # the window's frames (it is exactly 0 beyond inner + taper)
+            reach = kk * r + taper + 1
+            f = np.arange(int(np.floor(t - 0.5 - reach)), int(np.ceil(t - 0.5 + reach)) + 1)
+            f = np.mod(f, L) if cyclic else f[(f >= 0) & (f < L)]
+            if f.size >= L:
+                w = np.maximum(w, _window(L, t - 0.5, kk * r, cyclic, taper))
+            else:
+                w[f] = np.maximum(w[f], _window(L, t - 0.5, kk * r, cyclic, taper, frames=f))
         act = np.flatnonzero(w > 0)  # frames inside a smoothing window (the rest keep theirs)
+        if not pinned:
+            before_rot, before_feat = rot[act], feat[act]
         rot[act] = _blend_quaternions(
             rot[act], filter_quaternions(rot, taps, cyclic=cyclic, frames=act), w[act])
         feat[act] += w[act, None] * (
             _filter_linear(feat, taps, cyclic=cyclic, frames=act) - feat[act])
-        if len(constrained):
-            _pin(rot, feat, rot0, feat0, constrained, int(k.max() * r + taper) + 2, cyclic)
         # a seam's test reads only the frames of its window: only the seams whose window
         # holds a frame this pass changed are tested again (the others keep their result)
-        changed = (rot != before_rot).any(axis=(1, 2)) | (feat != before_feat).any(axis=1)
+        if pinned:
+            _pin(rot, feat, rot0, feat0, constrained, int(k.max() * r + taper) + 2, cyclic)
+            changed = (rot != before_rot).any(axis=(1, 2)) | (feat != before_feat).any(axis=1)
+        else:
+            changed = np.zeros(L, dtype=bool)
+            changed[act] = ((rot[act] != before_rot).any(axis=(1, 2))
+                            | (feat[act] != before_feat).any(axis=1))
         again = changed[_test_window(seams, L, rate, cyclic)[0]].any(axis=1)
         if again.any():
             p2, s2, _ = seam_test(
@@ -399,7 +430,8 @@ def adaptive_smoothing(
             )
             passed, sa = passed.copy(), sa.copy()
             passed[again], sa[again] = p2, s2
-        before_rot, before_feat = rot.copy(), feat.copy()
+        if pinned:
+            before_rot, before_feat = rot.copy(), feat.copy()
     return SmoothingResult(rot, feat, k, passed, sa, ref)
 
 
