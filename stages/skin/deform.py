@@ -120,11 +120,13 @@ support_margin=None, clamp_margin=None, max_blend_stretch=None``:
   drops in rigid (7.10 → 6.70 / 7.11 → 6.85 mm) and quadratic (5.38 → 5.16 /
   5.48 → 5.34) and changes by −0.02 / +0.07 mm in quadratic + residual
   (3.68 → 3.66 / 3.65 → 3.72).  Cost: on the throughput body of
-  ``benchmarks/deform.py --throughput --quick`` (13,000 vertices, 900 frames)
-  ``quadratic_residual`` reweights 1,543 vertices in 46 steps and runs at about
-  410 frames per CPU-second against about 750 without widening in the same
-  (loaded) run, 200 against 1,150 before the checks were made incremental (each
-  mesh edge checked once, again only where an end moved; table 4 has both rows).
+  ``benchmarks/deform.py --throughput`` (13,000 vertices, 900 frames)
+  ``quadratic_residual`` reweights 2,619 vertices in 60 steps and runs at about
+  470 frames per CPU-second against about 1,000 without widening in the same
+  (loaded) run, ``rigid`` (2,709 vertices, 92 steps) at about 580 against 2,300
+  (table 4 has both rows; before the edges' length bounds, the positions computed
+  only where measured and the first check made during the evaluation pass: 350 and
+  270; before the checks were made incremental: 200).
   Held-out markers (``benchmarks/deform.py`` table 2) are points without
   triangles, so they are not affected; table 3 (the simulator's true mesh)
   measures it.  Not fixed by this: triangles that turn over against the rigid
@@ -150,8 +152,10 @@ Implementation notes (none changes the method):
 * all parts and frames are evaluated as one linear map
   ``vertices(f) = H · C(f)`` (``H``: β-weighted local coordinates, monomials
   and kernel values of the vertex-part pairs, built once; ``C``: per-frame part
-  coefficients), done as two sparse products per 16-frame chunk (non-rigid,
-  clamped, then rigid) into reused work arrays; ``β`` is folded into ``H``
+  coefficients), done as two sparse products per chunk of frames (non-rigid,
+  clamped, then rigid; 16 frames of a 13,000-vertex mesh, all frames of a few
+  hundred vertices: the work arrays stay a few MB, and the chunking changes no
+  bit) into reused work arrays; ``β`` is folded into ``H``
   because the clamp commutes with a positive scale, and only the few entries
   beyond their bound are clamped;
 * **bit-reproducible**: every vertex's result is computed by operations whose
@@ -402,9 +406,10 @@ def frame_coefficients(
     return np.concatenate(out, axis=0)
 
 
-#: Frames per product in :func:`deform_positions`: the work arrays of a 13,000-vertex mesh
-#: stay a few MB.
-_FRAMES_PER_PRODUCT = 16
+#: Pair-coordinates (rows x 3 frames) per product in :func:`deform_positions`: the work
+#: arrays stay a few MB (16 frames of a 13,000-vertex mesh; all frames of a few hundred
+#: vertices, as :func:`_widen_blends` evaluates them).
+_VALUES_PER_PRODUCT = 800_000
 _XYZ = np.dtype((np.void, 24))  # one vertex position (3 float64) as one item
 
 
@@ -465,11 +470,59 @@ def deform_positions(
     -------
     (F, V, 3) float ndarray
     """
+    return _frame_major(models, fits, n_vertices, operator, residual=residual)[0]
+
+
+def _frame_major(models: list[PartModel], fits: list[PartFit], n_vertices: int,
+                 operator: VertexOperator | None = None, *, residual: bool | None = None,
+                 edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """:func:`deform_positions` ``(F, V, 3)``, and the largest squared length over the frames
+    of ``edges (E, 2)`` (vertex pairs; ``(E,)``, empty without), measured on each chunk of
+    frames while it is at hand (the same numbers as :func:`_longest_edges` of the result)."""
+    F = fits[0].R.shape[0] if fits else 0
+    out = np.empty((F, n_vertices, 3))
+    edges = np.zeros((0, 2), np.int64) if edges is None else edges
+    most = np.zeros(len(edges))
+    for a, b, X in _blended_chunks(models, fits, n_vertices, operator, residual=residual):
+        # (V, f, 3) -> (f, V, 3), moving whole xyz triplets (24 bytes) at a time
+        out[a:b].view(_XYZ)[..., 0] = X.view(_XYZ).T
+        if len(edges):
+            d = (X[edges[:, 1]] - X[edges[:, 0]]).reshape(len(edges), b - a, 3)
+            np.maximum(most, _squared_lengths(d).max(1), out=most)
+    return out, most
+
+
+def _squared_lengths(d: np.ndarray) -> np.ndarray:
+    """``|d|²`` of vectors ``d (..., 3)``, its three terms added in a fixed order."""
+    out = d[..., 0] * d[..., 0]
+    out += d[..., 1] * d[..., 1]
+    out += d[..., 2] * d[..., 2]
+    return out
+
+
+def _longest_edges(verts: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """The largest squared length over the frames of ``edges (E, 2)`` of ``verts (F, V, 3)``."""
+    most = np.zeros(len(edges))
+    n = max(1, _EDGE_FRAMES_PER_SLICE // max(1, len(edges)))  # frames per slice
+    for f0 in range(0, verts.shape[0], n):
+        d = verts[f0 : f0 + n, edges[:, 1]] - verts[f0 : f0 + n, edges[:, 0]]
+        np.maximum(most, _squared_lengths(d).max(0), out=most)
+    return most
+
+
+def _blended_chunks(models: list[PartModel], fits: list[PartFit], n_vertices: int,
+                    operator: VertexOperator | None = None, *, residual: bool | None = None,
+                    coefficients: np.ndarray | None = None):  # fmt: skip
+    """The blended vertices chunk by chunk of frames, vertex-major: yields ``(a, b, X)``
+    with ``X (V, 3 (b - a))`` the positions in frames ``a..b-1`` (a work array, overwritten
+    by the next chunk); see :func:`deform_positions`.  ``coefficients``: the models'
+    :func:`frame_coefficients` when already computed."""
     if residual is None:
         residual = any(np.any(f.W) for f in fits)
     if operator is None:
         operator = vertex_operator(models, n_vertices, residual=residual)
-    C = frame_coefficients(models, fits, residual=residual)
+    C = frame_coefficients(models, fits, residual=residual) if coefficients is None else (
+        coefficients)  # fmt: skip
     K, F, _ = C.shape
     if K != operator.offsets[-1]:
         raise ValueError("deform_positions: operator and fits disagree (residual?)")
@@ -484,14 +537,14 @@ def deform_positions(
                               for f, c in zip(fits, clamped)])  # fmt: skip
         margin = np.array([m or 0.0 for m in operator.clamp_margins])[operator.pair_part[pairs]]
         beta = operator.pair_beta[pairs]
-    out = np.empty((F, n_vertices, 3))
     layers = operator.layers
     complete = bool(layers) and len(layers[0][0]) == n_vertices  # every vertex has a part
     # work arrays reused by every chunk (fresh pages cost more than the products here)
-    n, N = min(F, _FRAMES_PER_PRODUCT), operator.rigid.shape[0]
+    N = operator.rigid.shape[0]
+    n = max(1, min(F, _VALUES_PER_PRODUCT // (3 * max(1, N))))  # frames per product
     Y_full, U_full = np.empty((N, 3 * n)), np.empty((N, 3 * n) if nonrigid else (0, 0))
-    for a in range(0, F, _FRAMES_PER_PRODUCT):
-        b = min(F, a + _FRAMES_PER_PRODUCT)
+    for a in range(0, F, n):
+        b = min(F, a + n)
         Cc = np.ascontiguousarray(C[:, a:b]).reshape(K, 3 * (b - a))
         full = b - a == n
         Y = Y_full if full else np.empty((N, 3 * (b - a)))
@@ -515,9 +568,7 @@ def deform_positions(
                 X[layers[0][0]] = Y[: len(layers[0][0])]
         for v, first in layers[1:]:
             X[v] += Y[first : first + len(v)]
-        # (V, f, 3) -> (f, V, 3), moving whole xyz triplets (24 bytes) at a time
-        out[a:b].view(_XYZ)[..., 0] = X.view(_XYZ).T
-    return out
+        yield a, b, X
 
 
 def _slice_fit(fit: PartFit, sl: slice) -> PartFit:
@@ -597,15 +648,18 @@ def _fallback_hint(message: str) -> str | None:
 
 def _deform_frames(models: list[PartModel], fits: list[PartFit], n_frames: int,
                    rest: np.ndarray, beta: np.ndarray, *, residual: bool, chunk_frames: int,
-                   ctx: Context) -> np.ndarray:  # fmt: skip
+                   ctx: Context,
+                   edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """The blended vertices ``(F, V, 3)`` of ``rest (V, 3)`` with weights ``beta (V, P)``
     (P&H Eq. 8–9): in one in-process pass, or in frame chunks of ``chunk_frames`` on the
-    executor's workers (the same bits either way)."""
+    executor's workers (the same bits either way); and the largest squared length over the
+    frames of ``edges (E, 2)`` (:func:`_longest_edges`; empty without)."""
     F, V = n_frames, len(rest)
+    edges = np.zeros((0, 2), np.int64) if edges is None else edges
     operator = vertex_operator(models, V, residual=residual, rest=rest, beta=beta)
     bounds = list(range(0, F, max(1, chunk_frames))) + [F]
     if ctx.mapper is None or len(bounds) <= 2:  # in-process: one pass, no copies
-        return deform_positions(models, fits, V, operator, residual=residual)
+        return _frame_major(models, fits, V, operator, residual=residual, edges=edges)
     light = [_without_vertices(m) for m in models]
     chunks = [
         (light, [_slice_fit(f, slice(a, b)) for f in fits], V, operator, residual)
@@ -614,7 +668,22 @@ def _deform_frames(models: list[PartModel], fits: list[PartFit], n_frames: int,
     verts = np.empty((F, V, 3))
     for (a, b), part in zip(zip(bounds, bounds[1:]), ctx.map(_deform_chunk, chunks)):
         verts[a:b] = part
-    return verts
+    return verts, _longest_edges(verts, edges)
+
+
+def _blending(beta: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Whether the corners of triangles ``faces (T, 3)`` blend differently (``β (V, P)``)."""
+    return np.ptp(beta[faces], axis=1).max(1) > 0
+
+
+def _blending_edges(mesh: Mesh, beta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The edges (:func:`~mocapflow.stages.skin.binding.mesh_edges`, ascending) of the
+    triangles of ``mesh`` whose corners blend differently with weights ``β (V, P)``:
+    their indices ``(E,)`` and ends ``(E, 2)``."""
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    ends, face_edge, _ = mesh_edges(faces, len(mesh.vertices))
+    watch = np.unique(face_edge[_blending(beta, faces)])
+    return watch, ends[watch]
 
 
 #: Most diffusion steps of :func:`_widen_blends` between two checks of the stretch: one
@@ -623,11 +692,18 @@ _MOST_STEPS_PER_CHECK = 8
 #: Edge-frames (stretch checks) or vertex-frames (moved vertices) per slice of
 #: :func:`_widen_blends`: work arrays of a few MB.
 _EDGE_FRAMES_PER_SLICE = 100_000
+#: Relative margin of :func:`_widen_blends`' length bounds over the round-off of the lengths
+#: they bound (~1e-16): a bound within it of ``max_blend_stretch`` is measured instead.
+_BOUND_MARGIN = 1e-9
+#: Absolute slack (m) of :func:`_widen_blends`' bound on how far a vertex moved, over the
+#: round-off of positions (~1e-16 m at a few metres from the origin).
+_MOVE_ROUND_OFF = 1e-12
 
 
 def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta: np.ndarray,
-                  verts: np.ndarray, *, max_stretch: float, steps: int,
-                  residual: bool) -> tuple[np.ndarray, int, int, int, int]:  # fmt: skip
+                  verts: np.ndarray, *, max_stretch: float, steps: int, residual: bool,
+                  measured: tuple[np.ndarray, np.ndarray] | None = None,
+                  ) -> tuple[np.ndarray, int, int, int, int]:  # fmt: skip
     """Widen the blend between parts where it tears the surface (P&H Eq. 9's ``β``).
 
     Where two parts' models disagree at a vertex by ``D`` and ``β`` changes by
@@ -641,16 +717,25 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     Eq. 8–9; each vertex-part prediction is computed once), up to ``steps`` steps
     in all.  Vertices away from a tear keep their weights.
 
-    The stretch is kept per mesh edge (each checked once for its two triangles) and
-    checked again only where an end moved or a triangle starts to blend; a vertex is
-    moved again only when its weights changed.
+    The stretch is kept per mesh edge (each checked once for its two triangles), with
+    bounds of its largest length over the frames: the length when last measured plus
+    (upper) or less (lower) how far each end can have moved since (a vertex whose
+    weights change by ``Δβ`` moves by at most ``Σ_p |Δβ_p| max_f |prediction_p -
+    prediction_first|``, the weights summing to 1).  An edge is measured again (on every
+    frame) only where a triangle starts to blend or a moved end's edge has bounds on
+    both sides of ``max_stretch`` (within ``_BOUND_MARGIN``): the same decisions as
+    measuring every such edge.  A vertex's position ``Σ_p β_p prediction_p`` is computed
+    only when one of its edges is measured, and at the end (the same bits whenever it is
+    computed).
 
     Where the widening does not leave fewer torn triangles than it found (parts
     whose models disagree widely, as rigid skinning of a sparse real capture),
     nothing changes: ``β`` and ``verts`` stay as they were.  Otherwise ``verts
     (F, V, 3)`` is updated in place.  Returns the ``β (V, P)`` kept, the steps
     taken, the number of vertices whose weights were diffused (0 when nothing
-    changed), and the torn triangles before and after.
+    changed), and the torn triangles before and after.  ``measured``: the edges of the
+    triangles that blend (:func:`_blending_edges`) and their largest squared lengths over
+    ``verts``' frames, when already measured (:func:`_deform_frames`).
     """
     faces = np.asarray(mesh.faces, dtype=np.int64)
     rest = mesh.vertices
@@ -669,30 +754,43 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
                                  shape=(V, E))  # fmt: skip
     smooth = blend_smoothing_operator(rest, faces)
     ring = (smooth != 0).astype(np.int8).tocsr()
-    # vertex-major stores (rows of F x 3), filled on first use: current positions of the
-    # vertices near a tear, and each vertex-part prediction
+    # vertex-major stores (rows of F x 3), filled on first use: positions of the vertices
+    # whose edges are measured, and each vertex-part prediction with how far it lies from
+    # the vertex's first prediction (largest over the frames)
     row = np.full(V, -1, np.int64)
     pos = _Rows(F)
     slot = np.full((V, P), -1, np.int64)
     pred = _Rows(F)
+    spread = np.zeros(0)
+    first = np.full(V, -1, np.int64)  # slot of each vertex's first prediction
+    stale = np.zeros(V, bool)  # weights changed since its row of pos was last computed
 
     def with_rows(v: np.ndarray) -> None:
-        """Give vertices ``v`` (any order, repeats) a row of ``pos``."""
+        """Give vertices ``v`` (any order, repeats) a row of ``pos``; a stale vertex's
+        position is then computed from its predictions."""
         new = np.zeros(V, bool)
         new[v[row[v] < 0]] = True
-        new = np.flatnonzero(new)
+        fresh = np.flatnonzero(new & ~stale)  # still at their first-pass positions
+        if len(fresh):
+            row[fresh] = pos.append(verts[:, fresh])
+        new = np.flatnonzero(new & stale)  # placed below
         if len(new):
-            row[new] = pos.append(verts[:, new])
+            row[new] = pos.append(None, n_rows=len(new))
+        place(np.flatnonzero(np.isin(np.arange(V), v) & stale) if len(v) else v)
 
-    # whether a part's model alone has non-rigid terms (deform_positions adds them then)
-    nonrigid = np.array([bool(frame_coefficients([m], [f], residual=residual)[4:].any())
-                         for m, f in zip(models, fits)], bool)  # fmt: skip
+    # each part's frame_coefficients (a group's are its parts' concatenated) and whether
+    # its model alone has non-rigid terms (deform_positions adds them then)
+    blocks = [frame_coefficients([m], [f], residual=residual) for m, f in zip(models, fits)]
+    nonrigid = np.array([bool(c[4:].any()) for c in blocks], bool)
 
     def predict(v: np.ndarray, p: np.ndarray) -> None:
         """Give pairs ``(v, p)`` a row of ``pred``: part ``p``'s model alone at vertex ``v``
         (β = 1), by the same row-by-row products (one call per kind of part)."""
+        nonlocal spread
         key = np.unique(v[slot[v, p] < 0] * P + p[slot[v, p] < 0])
         v, p = key // P, key % P
+        if not len(key):
+            return
         for kind in (False, True):
             sel = nonrigid[p] == kind
             if not sel.any():
@@ -702,23 +800,55 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
             one[np.arange(len(one)), col] = 1.0
             group = [models[q] for q in parts]
             op = vertex_operator(group, len(one), residual=residual, rest=rest[v[sel]], beta=one)
-            moved = deform_positions(group, [fits[q] for q in parts], len(one), op,
-                                     residual=residual)  # fmt: skip
-            slot[v[sel], p[sel]] = pred.append(moved)
+            moved = np.empty((len(one), F, 3))  # vertex-major, as pred keeps them
+            C = np.concatenate([blocks[q] for q in parts])
+            for a, b, X in _blended_chunks(group, [fits[q] for q in parts], len(one), op,
+                                           residual=residual, coefficients=C):  # fmt: skip
+                moved[:, a:b] = X.reshape(len(one), b - a, 3)
+            slot[v[sel], p[sel]] = pred.append(moved, frame_major=False)
+        new = slot[v, p]  # consecutive from len(spread)
+        u, at = np.unique(v, return_index=True)
+        first[u[first[u] < 0]] = new[at[first[u] < 0]]
+        far = np.empty(len(new))
+        n = max(1, _EDGE_FRAMES_PER_SLICE // max(1, F))
+        for c in range(0, len(new), n):
+            d = pred.take(new[c : c + n]) - pred.take(first[v[c : c + n]])
+            far[c : c + n] = np.sqrt(_squared_lengths(d).max(1))
+        spread = np.concatenate([spread, far[np.argsort(new)]])
+
+    def place(R: np.ndarray) -> None:
+        """Rows of ``pos`` for vertices ``R`` (ascending, with rows): ``Σ_p β_p prediction_p``,
+        parts in ascending order."""
+        b = beta[R]
+        i, p = np.nonzero(b > 0)  # each vertex's parts, ascending
+        layer = np.arange(len(i)) - np.searchsorted(i, i)  # k-th part of its vertex
+        n = max(1, _EDGE_FRAMES_PER_SLICE // max(1, F))  # vertices per slice
+        for c in range(0, len(R), n):
+            lo, hi = np.searchsorted(i, [c, c + n])
+            moved = None  # layer 0 holds each vertex's first part, vertices in order
+            for j in range(int(layer[lo:hi].max(initial=-1)) + 1):
+                q = lo + np.flatnonzero(layer[lo:hi] == j)
+                term = pred.take(slot[R[i[q]], p[q]])
+                term *= b[i[q], p[q]][:, None, None]
+                if moved is None:
+                    moved = term
+                else:
+                    moved[i[q] - c] += term
+            pos.put(row[R[c : c + n]], moved)
+        stale[R] = False
 
     def blending(t: np.ndarray) -> np.ndarray:
         """Whether the corners of triangles ``t`` blend differently."""
-        return np.ptp(beta[faces[t]], axis=1).max(1) > 0
+        return _blending(beta, faces[t])
 
-    def stretched(e: np.ndarray) -> np.ndarray:
-        """Whether edges ``e`` are longer than ``limit`` in some frame (current positions)."""
+    def longest(e: np.ndarray) -> np.ndarray:
+        """The largest squared length of edges ``e`` over the frames (current positions)."""
         with_rows(ends[e].ravel())
-        out = np.empty(len(e), bool)
+        out = np.empty(len(e))
         n = max(1, _EDGE_FRAMES_PER_SLICE // max(1, F))
         for i in range(0, len(e), n):
             a, b = row[ends[e[i : i + n]].T]
-            d = pos.take(b) - pos.take(a)
-            out[i : i + n] = (np.einsum("efi,efi->ef", d, d) > limit[e[i : i + n], None]).any(1)
+            out[i : i + n] = _squared_lengths(pos.take(b) - pos.take(a)).max(1)
         return out
 
     # only triangles whose corners blend differently can tear: start from their edges,
@@ -726,16 +856,24 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     blended = blending(np.arange(T))
     over = np.zeros(E, bool)  # stretched beyond max_stretch in some frame
     known = np.zeros(E, bool)  # `over` holds for the current positions
+    # an upper bound of each edge's longest length over the frames: its length when last
+    # measured plus how far each end can have moved since (triangle inequality); an edge
+    # whose bound stays below max_stretch cannot be over it, so it is not measured again
+    upper = np.full(E, np.inf)
+    reach = np.sqrt(limit) / (1.0 + _BOUND_MARGIN)
+    # and a lower bound (the length when last measured less how far the ends moved): an
+    # edge whose lower bound stays beyond max_stretch is still over it
+    lower = np.zeros(E)
+    beyond = np.sqrt(limit) * (1.0 + _BOUND_MARGIN)
     check = np.zeros(E, bool)
     check[face_edge[blended]] = True
     check = np.flatnonzero(check)
-    a, b = ends[check].T
-    hit = np.zeros(len(check), bool)
-    n = max(1, _EDGE_FRAMES_PER_SLICE // max(1, len(check)))  # frames per slice
-    for f0 in range(0, F, n):
-        d = verts[f0 : f0 + n, b] - verts[f0 : f0 + n, a]
-        hit |= (np.einsum("fei,fei->fe", d, d) > limit[check]).any(0)
-    over[check], known[check] = hit, True
+    if measured is not None and np.array_equal(measured[0], check):
+        most = measured[1]
+    else:
+        most = _longest_edges(verts, ends[check])
+    over[check], known[check], upper[check] = most > limit[check], True, np.sqrt(most)
+    lower[check] = upper[check]
     bad = np.flatnonzero(blended & over[face_edge].any(1))
     torn_before = len(bad)
     beta_in = beta.copy()
@@ -761,37 +899,38 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         # a vertex moved before with the same weights would be moved to the same place
         redo = ~changed[S] | (b != prior).any(1)
         changed[S] = True
-        R, b = S[redo], b[redo]
-        with_rows(R)
-        i, p = np.nonzero(b > 0)  # each vertex's parts, ascending
+        R, b, prior = S[redo], b[redo], prior[redo]
+        i, p = np.nonzero((b > 0) | (prior > 0))  # the parts it follows and followed
         predict(R[i], p)
-        layer = np.arange(len(i)) - np.searchsorted(i, i)  # k-th part of its vertex
-        shifted = np.zeros(len(R), bool)
-        n = max(1, _EDGE_FRAMES_PER_SLICE // max(1, F))  # vertices per slice
-        for c in range(0, len(R), n):  # Σ_p β_p prediction_p, parts in ascending order
-            moved = np.zeros((min(n, len(R) - c), F, 3))
-            lo, hi = np.searchsorted(i, [c, c + n])
-            for j in range(int(layer[lo:hi].max(initial=-1)) + 1):
-                q = lo + np.flatnonzero(layer[lo:hi] == j)
-                moved[i[q] - c] += b[i[q], p[q]][:, None, None] * pred.take(slot[R[i[q]], p[q]])
-            rows = row[R[c : c + n]]
-            shifted[c : c + n] = (moved != pos.take(rows)).reshape(len(moved), -1).any(1)
-            pos.put(rows, moved)
-        shifted = R[shifted]
+        stale[R] = True  # placed when one of its edges is measured, or at the end
+        # how far each vertex can have moved: Σ_p |Δβ_p| |prediction_p - first prediction|
+        # (the weights sum to 1 before and after, so Σ_p Δβ_p c = 0 for any c; round-off
+        # of the sums and of the first-pass positions well inside _MOVE_ROUND_OFF)
+        moves = np.zeros(V)
+        moves[R] = np.bincount(i, np.abs(b[i, p] - prior[i, p]) * spread[slot[R[i], p]],
+                               minlength=len(R)) + _MOVE_ROUND_OFF  # fmt: skip
         # triangles may start or stop blending where weights changed; the edges of a vertex
-        # that moved are checked again when their triangle blends
+        # that moved are checked again when their triangle blends and the bound of their
+        # length reaches max_stretch
         t = incidence[S].indices
         blended[t] = blending(t)
-        known[vertex_edges[shifted].indices] = False
+        e = np.unique(vertex_edges[R].indices)
+        upper[e] += moves[ends[e, 0]] + moves[ends[e, 1]]
+        lower[e] -= moves[ends[e, 0]] + moves[ends[e, 1]]
+        under, still = upper[e] < reach[e], lower[e] > beyond[e]
+        known[e], over[e] = under | still, still
         check = np.zeros(E, bool)
         check[face_edge[blended]] = True
         check = np.flatnonzero(check & ~known)
-        over[check], known[check] = stretched(check), True
+        most = longest(check)
+        over[check], known[check], upper[check] = most > limit[check], True, np.sqrt(most)
+        lower[check] = upper[check]
         bad = np.flatnonzero(blended & over[face_edge].any(1))
     if len(bad) >= torn_before:  # no better: the weights as they were
         return beta_in, taken, 0, torn_before, len(bad)
     done = np.flatnonzero(changed)
     if len(done):
+        with_rows(done)
         for c in range(0, len(done), 256):
             rows = pos.take(row[done[c : c + 256]])
             verts[:, done[c : c + 256]] = rows.view(_XYZ)[..., 0].T[..., None].view(np.float64)
@@ -809,17 +948,23 @@ class _Rows:
         self.first_block = first_block
         self.n = 0
 
-    def append(self, rows: np.ndarray) -> np.ndarray:
-        """Store ``rows (F, k, 3)`` (frame-major, as :func:`deform_positions` returns them);
-        returns their indices ``(k,)``."""
-        k = rows.shape[1]
+    def append(self, rows: np.ndarray | None, *, frame_major: bool = True,
+               n_rows: int = 0) -> np.ndarray:  # fmt: skip
+        """Store ``rows (F, k, 3)`` (frame-major, as :func:`deform_positions` returns them)
+        or ``(k, F, 3)`` (``frame_major`` false), or reserve ``n_rows`` rows (``rows``
+        None, contents undefined until :meth:`put`); returns their indices ``(k,)``."""
+        k = n_rows if rows is None else rows.shape[1 if frame_major else 0]
         while self.n + k > self.starts[-1]:
             size = 2 * len(self.blocks[-1]) if self.blocks else self.first_block
             self.blocks.append(np.empty((size, *self.shape)))
             self.starts.append(self.starts[-1] + size)
         for b, block in enumerate(self.blocks):  # the blocks the new rows fall in
             a, z = max(self.n, self.starts[b]), min(self.n + k, self.starts[b + 1])
-            if a < z:  # (F, k) -> (k, F), moving whole xyz triplets (24 bytes) at a time
+            if a >= z or rows is None:
+                continue
+            if not frame_major:
+                block[a - self.starts[b] : z - self.starts[b]] = rows[a - self.n : z - self.n]
+            else:  # (F, k) -> (k, F), moving whole xyz triplets (24 bytes) at a time
                 into = block[a - self.starts[b] : z - self.starts[b]]
                 into.view(_XYZ)[..., 0] = rows[:, a - self.n : z - self.n].view(_XYZ)[..., 0].T
         self.n += k
@@ -828,14 +973,19 @@ class _Rows:
     def put(self, index: np.ndarray, values: np.ndarray) -> None:
         """Overwrite rows ``index (n,)`` with ``values (n, F, 3)``."""
         block = np.searchsorted(self.starts, index, side="right") - 1
+        if len(index) and block.min() == block.max():  # one block (the usual case)
+            self.blocks[block[0]][index - self.starts[block[0]]] = values
+            return
         for b in np.unique(block):
             sel = block == b
             self.blocks[b][index[sel] - self.starts[b]] = values[sel]
 
     def take(self, index: np.ndarray) -> np.ndarray:
         """Rows ``index (n,)`` as an ``(n, F, 3)`` array."""
-        out = np.empty((len(index), *self.shape))
         block = np.searchsorted(self.starts, index, side="right") - 1
+        if len(index) and block.min() == block.max():  # one block (the usual case): one copy
+            return self.blocks[block[0]][index - self.starts[block[0]]]
+        out = np.empty((len(index), *self.shape))
         for b in np.unique(block):
             sel = block == b
             out[sel] = self.blocks[b][index[sel] - self.starts[b]]
@@ -984,13 +1134,18 @@ def deform(
     fits = _fit_parts(models, x, mode=mode, min_quadratic_markers=min_quadratic_markers,
                       damping=quadratic_damping, ctx=ctx)
     V = mesh.vertices.shape[0]
-    verts = _deform_frames(models, fits, x.shape[0], mesh.vertices, binding.beta,
-                           residual=mode.endswith("residual"), chunk_frames=chunk_frames, ctx=ctx)
+    widen = max_blend_stretch is not None and len(mesh.faces) > 0
+    # the edges of the triangles that blend, measured while the frames are evaluated
+    watch, ends = _blending_edges(mesh, binding.beta) if widen else (None, None)
+    verts, longest = _deform_frames(
+        models, fits, x.shape[0], mesh.vertices, binding.beta, residual=mode.endswith("residual"),
+        chunk_frames=chunk_frames, ctx=ctx, edges=ends)
     beta, widened = binding.beta, {"steps": 0, "vertices": 0}
-    if max_blend_stretch is not None and len(mesh.faces):
+    if widen:
         beta, n_steps, n_changed, torn0, torn1 = _widen_blends(
             models, fits, mesh, binding.beta, verts, max_stretch=max_blend_stretch,
-            steps=blend_widening_steps, residual=mode.endswith("residual"))
+            steps=blend_widening_steps, residual=mode.endswith("residual"),
+            measured=(watch, longest))
         widened = {"steps": n_steps, "vertices": n_changed, "torn_before": torn0,
                    "torn_after": torn1 if n_changed else torn0}
         if torn0 and not n_changed:
