@@ -88,7 +88,7 @@ support_margin=None, clamp_margin=None, max_blend_stretch=None``:
   (``benchmarks/deform.py --quick``) is unchanged within a few hundredths of a
   millimetre.
 * **blends widened where they tear** (``max_blend_stretch`` 2.5; ``None`` = the
-  paper), ``blend_widening_steps`` 100: two parts' models
+  paper), ``blend_widening_reach`` 0.45 m: two parts' models
   disagree at a vertex between them (a part's rigid transform is a compromise
   away from its markers; on the demo's segmentation the rigid predictions of
   neighbouring parts differ by 48 mm at the median blend vertex and by up to
@@ -114,8 +114,15 @@ support_margin=None, clamp_margin=None, max_blend_stretch=None``:
   pyomeca 2,560 / 854 before this rule, 854 / 854 with it).  On the demo:
   ``quadratic_residual`` reweights 630 of 5,001 vertices in 87 steps and no
   edge stretches beyond 2.50×;
-  ``rigid`` 888 vertices in 31 steps (2.49×).  On the simulator's true mesh
-  (table 3, quick; seeds 0 / 1) no triangle stretches beyond 3× (before:
+  ``rigid`` 888 vertices in 31 steps (2.49×).  The widening's reach is a distance
+  over the surface (``blend_widening_reach``), not a step count: a step spreads a
+  blend about one edge, so the steps needed grow with the square of the mesh's
+  resolution (two parts sliding 15 cm apart: 7, 23, 55, 95 steps on 22, 11, 7.3,
+  5.5 mm edges).  With the former fixed 100 steps the graph's default 13,000-vertex
+  body on the shared captures stopped with triangles still stretched beyond 3×
+  (Qualisys 39, racing 503, pyomeca 314; 0 at 2,000 vertices); with a 0.45 m reach
+  (963 / 894 / 1,227 steps): 6 / 0 / 0, the 2,000-vertex runs unchanged.  On the
+  simulator's true mesh (table 3, quick; seeds 0 / 1) no triangle stretches beyond 3× (before:
   47 / 46 in quadratic + residual, 153 / 168 in rigid); the mean vertex error
   drops in rigid (7.10 → 6.70 / 7.11 → 6.85 mm) and quadratic (5.38 → 5.16 /
   5.48 → 5.34) and changes by −0.02 / +0.07 mm in quadratic + residual
@@ -700,6 +707,22 @@ _BOUND_MARGIN = 1e-9
 _MOVE_ROUND_OFF = 1e-12
 
 
+def widening_steps(mesh: Mesh, reach: float) -> int:
+    """Most diffusion steps of :func:`_widen_blends` for a blend to spread ``reach`` metres.
+
+    A step of :func:`~mocapflow.stages.skin.binding.blend_smoothing_operator` spreads a
+    blend about one edge, a random walk: ``k`` steps reach about ``sqrt(k)`` edges, so
+    ``ceil((reach / e)**2)`` with ``e`` the mean rest length of ``mesh``'s triangle edges.
+    """
+    f = np.asarray(mesh.faces, dtype=np.int64)
+    if not len(f) or reach <= 0:
+        return 0
+    v = mesh.vertices
+    e = float(np.mean([np.linalg.norm(v[f[:, (k + 1) % 3]] - v[f[:, k]], axis=1).mean()
+                       for k in range(3)]))
+    return int(np.ceil((reach / e) ** 2)) if e > 0 else 0
+
+
 def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta: np.ndarray,
                   verts: np.ndarray, *, max_stretch: float, steps: int, residual: bool,
                   measured: tuple[np.ndarray, np.ndarray] | None = None,
@@ -1041,7 +1064,7 @@ def deform(
     support_margin: float | None = 0.5,
     clamp_margin: float | None = 0.1,
     max_blend_stretch: float | None = 2.5,
-    blend_widening_steps: int = 100,
+    blend_widening_reach: float = 0.45,
     ctx: Context,
 ) -> dict[str, Any]:
     """Animate a detailed mesh from markers: rigid + quadratic + RBF residual per part.
@@ -1090,13 +1113,16 @@ def deform(
     max_blend_stretch : float or None
         Where the blend between parts stretches a mesh edge beyond this factor of
         its rest length in some frame, the weights ``β`` there are diffused over the
-        mesh (widening the blend) until it does not, or ``blend_widening_steps``
-        steps were taken (see the module docstring); ``None``: ``β`` as bound (the
+        mesh (widening the blend) until it does not, or the blend reached
+        ``blend_widening_reach`` (see the module docstring); ``None``: ``β`` as bound (the
         paper).  The default 2.5 removes the demo's torn triangles (40 -> 0 in
         ``quadratic_residual``).
-    blend_widening_steps : int
-        Most diffusion steps of ``max_blend_stretch`` (each widens a blend by about
-        one ring of mesh vertices).
+    blend_widening_reach : float
+        How far over the surface (metres) the widening may spread a blend: it takes
+        at most ``ceil((reach / e)**2)`` diffusion steps, ``e`` the mean rest edge
+        length (a step spreads a blend about one edge, so a mesh twice as fine needs
+        4x the steps for the same width): 110 steps on a 2,000-vertex body (43 mm
+        edges), 367 on 5,000 (23 mm), 986 on 13,000 (14 mm).
 
     Returns
     -------
@@ -1115,8 +1141,9 @@ def deform(
     if max_blend_stretch is not None and not max_blend_stretch > 1.0:
         raise DeformError(
             f"deform: max_blend_stretch must be > 1 (or null), got {max_blend_stretch}")
-    if blend_widening_steps < 0:
-        raise DeformError(f"deform: blend_widening_steps must be >= 0, got {blend_widening_steps}")
+    if not blend_widening_reach >= 0:
+        raise DeformError(
+            f"deform: blend_widening_reach must be >= 0 (metres), got {blend_widening_reach}")
     x = align_markers(markers, segmentation)
     sparse = (segmentation.attrs.get("density") or {}).get("suited") is False
     if sparse:  # below Park & Hodgins' density (segment warned once): rigid skinning
@@ -1144,7 +1171,7 @@ def deform(
     if widen:
         beta, n_steps, n_changed, torn0, torn1 = _widen_blends(
             models, fits, mesh, binding.beta, verts, max_stretch=max_blend_stretch,
-            steps=blend_widening_steps, residual=mode.endswith("residual"),
+            steps=widening_steps(mesh, blend_widening_reach), residual=mode.endswith("residual"),
             measured=(watch, longest))
         widened = {"steps": n_steps, "vertices": n_changed, "torn_before": torn0,
                    "torn_after": torn1 if n_changed else torn0}

@@ -95,19 +95,25 @@ def test_soft_clamp():
     assert not soft_clamp(u, np.zeros(5), 0.1)[1:].any()  # a rigid part: no displacement
 
 
-@pytest.fixture(scope="module")
-def sliding_parts():
+def _sliding(slide: float, mesh: tuple[int, int]) -> dict:
     """Two hard parts of a cylinder, markers split at y = 0.3 m: the upper part stays, the
-    lower one slides 15 cm sideways, so at the boundary the parts' predictions disagree by
-    up to 15 cm across a blend about one marker ring (5 cm) wide."""
+    lower one slides up to ``slide`` metres sideways, so at the boundary the parts'
+    predictions disagree by that much across a blend about one marker ring (5 cm) wide;
+    the detailed mesh a ``grid_cylinder(*mesh)``."""
     ref, faces = grid_cylinder(8, 13)
     parts = (ref[:, 1] >= 0.3).astype(int)
     seg = hard_segmentation(ref, parts, ["upper", "lower"], faces)
-    shift = np.linspace(0.0, 0.15, 20)
+    shift = np.linspace(0.0, slide, 20)
     pos = np.repeat(ref[None], len(shift), 0)
     pos[:, parts == 1, 0] += shift[:, None]
     return {"seg": seg, "markers": Markers(pos, seg.labels, 120.0), "shift": shift,
-            "mesh": Mesh(*grid_cylinder(16, 30))}  # fmt: skip
+            "mesh": Mesh(*grid_cylinder(*mesh))}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def sliding_parts():
+    """:func:`_sliding` by 15 cm, a 480-vertex mesh (22 mm edges)."""
+    return _sliding(0.15, (16, 30))
 
 
 @pytest.mark.parametrize("mode", ["rigid", "quadratic_residual"])
@@ -137,12 +143,30 @@ def test_blend_is_widened_where_parts_disagree(sliding_parts, mode):
     assert np.all(np.diff(beta[np.argsort(y), 1][::16]) >= -1e-6)  # still monotone along y
 
 
+@pytest.mark.parametrize("mesh", [(16, 30), (48, 90)])
+def test_blend_widening_reaches_as_far_on_a_finer_mesh(mesh):
+    """The same 30 cm slide on a mesh with 22 mm and with 7.3 mm edges: a diffusion step
+    spreads the blend about one edge, so a finer mesh needs (22 / 7.3)^2 ~ 9x the steps to
+    blend over the same width.  The widening's reach is a distance over the surface
+    (``blend_widening_reach``), not a step count: with a fixed 100 steps the finer mesh
+    stopped at 100 steps with 384 triangles still torn, the widening was dropped and an edge
+    stretched 22x (measured: 23 and 223 steps taken, stretch 2.49 and 2.48)."""
+    d = _sliding(0.3, mesh)
+    rest, faces = d["mesh"].vertices, d["mesh"].faces
+    out = deform(d["markers"], d["seg"], d["mesh"], mode="rigid", ctx=Context())
+    stretch = triangle_edge_lengths(out["mesh"].vertices, faces) / triangle_edge_lengths(rest,
+                                                                                         faces)
+    rep = out["report"]["blend_widening"]
+    assert rep["torn_before"] > 0 and rep["torn_after"] == 0, rep
+    assert stretch.max() <= 2.5 + 1e-9
+
+
 def test_blend_smoothing_operator_and_bad_params(sliding_parts):
     d = sliding_parts
     S = blend_smoothing_operator(d["mesh"].vertices, d["mesh"].faces)
     assert np.allclose(np.asarray(S.sum(1)).ravel(), 1.0) and np.allclose(S.diagonal(), 0.5)
     assert S.min() >= 0
-    for bad in ({"max_blend_stretch": 1.0}, {"blend_widening_steps": -1}):
+    for bad in ({"max_blend_stretch": 1.0}, {"blend_widening_reach": -1}):
         with pytest.raises(DeformError, match=next(iter(bad))):
             deform(d["markers"], d["seg"], d["mesh"], ctx=Context(), **bad)
 

@@ -19,6 +19,7 @@ from mocapflow.pipeline import Context
 from mocapflow.pipeline.cli import main
 from mocapflow.pipeline.codecs import decode
 from mocapflow.pipeline.store import Store
+from mocapflow.stages.metrics.mesh import stretched_triangles
 from mocapflow.stages.motion.axes import axis_vector
 from mocapflow.stages.skin.mesh_fit import template_mesh
 from mocapflow.stages.skin.render import offscreen_available
@@ -117,6 +118,19 @@ def test_blend_widening_never_tears_more(run, name):
     rep = decode(store.load("deform", by_node["deform"]["key"], "report"))["blend_widening"]
     assert rep["torn_after"] <= rep["torn_before"], rep
     assert (rep["vertices"] > 0) == (rep["torn_after"] < rep["torn_before"]), rep
+
+
+@pytest.mark.parametrize("name", sorted(FILES))
+def test_no_triangle_stretched_beyond_3x(run, name):
+    """Item 4's test on the real captures' deformed body: no triangle with an edge longer
+    than 3x its rest length in any frame (measured: 0 on all three at 2,000 vertices,
+    where the blend widening found 119 / 304 / 121 torn beyond 2.5x; at the graph's
+    default 13,000 vertices, too slow here, 6 / 0 / 0: see the deform module docstring)."""
+    doc, store = run
+    by_node = {t["node"]: t for t in _tasks(doc, name)}
+    rest = decode(store.load("fit_mesh", by_node["fit"]["key"], "mesh"))
+    mesh = decode(store.load("deform", by_node["deform"]["key"], "mesh"))
+    assert not stretched_triangles(mesh.vertices, rest.vertices, rest.faces).any()
 
 
 # --------------------------------------------------------------------------- merging (item 1)
