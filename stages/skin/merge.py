@@ -18,6 +18,7 @@ the whole procedure and where it goes beyond the paper.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from dataclasses import dataclass, field
 from typing import Any
@@ -106,15 +107,31 @@ def _is_run(T: np.ndarray) -> bool:
     return len(T) > 0 and int(T[-1]) - int(T[0]) + 1 == len(T)
 
 
+@functools.lru_cache(maxsize=4096)
+def _spread(n: int) -> np.ndarray:
+    """Up to 16 indices spread evenly over ``0..n-1`` (read-only ``(k,)`` int array): the
+    frames of a fragment the quick rival and screening tests look at."""
+    sub = np.unique(np.linspace(0, n - 1, min(n, 16)).round().astype(int))
+    sub.flags.writeable = False
+    return sub
+
+
 def _distances(frag: np.ndarray, T: np.ndarray, m: np.ndarray, E: np.ndarray):
     """Distances ``(|T|, len(m))`` of the fragment to predictions (NaN where none)."""
     return np.linalg.norm(frag[:, None] - E[T[:, None], m[None]], axis=-1)
 
 
+def _nan_mean(d: np.ndarray) -> np.ndarray:
+    """``np.nanmean(d, axis=0)`` (the same operations, so the same bits), quietly: NaN
+    for all-NaN columns."""
+    nan = np.isnan(d)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(nan, 0.0, d).sum(0) / (~nan).sum(0, dtype=np.intp)
+
+
 def _nan_stats(dn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return np.nanmax(dn, axis=0), np.nanmean(dn, axis=0)
+    """``(np.nanmax, np.nanmean)`` of ``dn`` over axis 0, quietly (NaN: all-NaN column)."""
+    return np.fmax.reduce(dn, axis=0), _nan_mean(dn)
 
 
 def _candidate_stats_dense(frag: np.ndarray, T: np.ndarray, cands: np.ndarray, E: np.ndarray):
@@ -242,11 +259,9 @@ def _judge_fragment(
     # as close to the fragment makes it ambiguous
     others = cands[cands != m]
     if len(others):
-        sub = np.unique(np.linspace(0, len(T) - 1, min(len(T), 16)).round().astype(int))
+        sub = _spread(len(T))
         da = np.linalg.norm(frag[sub][:, None] - E_all[T[sub][:, None], others[None]], axis=-1)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            da_mean = np.nanmean(da, axis=0)
+        da_mean = _nan_mean(da)
         ratio = np.full(len(others), AMBIGUITY_RATIO)
         if near is not None:
             ratio[near[m, others]] = max(near_ratio, AMBIGUITY_RATIO)
@@ -336,6 +351,7 @@ def continue_breaks(
     jump: float = BREAK_JUMP,
     clearance: float = BREAK_CLEARANCE,
     max_gap: int = MAX_BRIDGE,
+    visible: np.ndarray | None = None,
 ) -> list[tuple[int, int, float]]:
     """Merge fragments that continue a marker across a break or short gap (beyond §4.2).
 
@@ -373,6 +389,8 @@ def continue_breaks(
         Longest gap bridged, frames between the two end samples (:data:`MAX_BRIDGE`,
         :func:`bridge_frames` of the capture rate; 1: breaks without a lost frame
         only).
+    visible : (F, U) bool ndarray, optional
+        ``np.isfinite(fragments).all(-1)``, when the caller has it.
 
     Returns
     -------
@@ -386,43 +404,42 @@ def continue_breaks(
     F, U = fragments.shape[:2]
     M = X.shape[1]
     rigidity = np.where(neighbours >= 0, 1.0, 0.0) if rigidity is None else rigidity
-    fvis = np.isfinite(fragments).all(-1)
+    fvis = np.isfinite(fragments).all(-1) if visible is None else visible
     n_vis = fvis.sum(0)
     first = np.argmax(fvis, 0)
     last = F - 1 - np.argmax(fvis[::-1], 0)
     run = (n_vis > 0) & (last - first + 1 == n_vis)
     usable = np.isfinite(eps1)
-    frames = np.arange(F)[:, None]
+    steps = np.arange(1, max_gap + 1)
+    avail = np.isfinite(X).all(-1)  # kept up to date with the merges below
     done: list[tuple[int, int, float]] = []
     while True:
         todo = np.flatnonzero(run & (assigned < 0))
         if not len(todo):
             return done
-        avail = np.isfinite(X).all(-1)
         n_avail = np.concatenate([np.zeros((1, M), np.int32),
                                   np.cumsum(avail, 0, dtype=np.int32)])
-        prev = np.maximum.accumulate(np.where(avail, frames, -1), 0)  # last sample <= f
-        nxt = np.minimum.accumulate(np.where(avail, frames, F)[::-1], 0)[::-1]
         a, b = first[todo], last[todo]
         free = (n_avail[b + 1] == n_avail[a]) & usable  # (n, M)
-        unused = fvis & (assigned < 0)[None]
         pick = np.full(len(todo), -1)
         dist = np.full(len(todo), np.nan)
         for at, sign in ((a, -1), (b, 1)):
-            beyond = at + sign
-            inside = (beyond >= 0) & (beyond < F)
-            bc = np.clip(beyond, 0, F - 1)
-            end = np.where(sign < 0, prev[bc], nxt[bc])  # (n, M) the marker's gap end
-            gap = np.abs(end - at[:, None])
+            inside = (at + sign >= 0) & (at + sign < F)
+            # markers with a sample at most max_gap frames beyond the fragment's end
+            lo, hi = ((np.maximum(at - max_gap, 0), at) if sign < 0
+                      else (at + 1, np.minimum(at + max_gap + 1, F)))
+            ii, mm_ = np.nonzero(free & inside[:, None] & (n_avail[hi] > n_avail[lo]))
+            # the marker's gap end: its nearest sample beyond the fragment's end
+            f = at[ii, None] + sign * steps  # (k, max_gap)
+            seen = (f >= 0) & (f < F)
+            seen[seen] = avail[f[seen], np.broadcast_to(mm_[:, None], f.shape)[seen]]
+            end = at[ii] + sign * (1 + np.argmax(seen, 1))
             frag = fragments[at, todo]  # (n, 3)
-            endc = np.clip(end, 0, F - 1)
-            cand = (free & inside[:, None] & (end >= 0) & (end < F) & (gap <= max_gap)
-                    & (np.linalg.norm(X[endc, np.arange(M)] - frag[:, None], axis=-1)
-                       < BRIDGE_SCREEN))
-            ii, mm_ = np.nonzero(cand)
+            screen = np.linalg.norm(X[end, mm_] - frag[ii], axis=-1) < BRIDGE_SCREEN
+            ii, mm_, end = ii[screen], mm_[screen], end[screen]
             if not len(ii):
                 continue
-            pred = _carry(X, avail, endc[ii, mm_], at[ii], mm_, neighbours, rigidity)
+            pred = _carry(X, avail, end, at[ii], mm_, neighbours, rigidity)
             d = np.linalg.norm(pred - frag[ii], axis=-1)  # NaN: no fit
             d = np.where(np.isfinite(d), d, np.inf)
             # per fragment end: the closest candidate, and the next one
@@ -440,14 +457,16 @@ def continue_breaks(
                 continue
             # rivals seen in that frame: marker samples and other unmerged fragments
             t_h = at[i_h]
+            r = np.arange(len(i_h))
             with np.errstate(invalid="ignore"):
                 dm = np.linalg.norm(X[t_h] - p_h[:, None], axis=-1)  # (r, M)
-                dm[np.arange(len(i_h)), m_h] = np.inf
-                df = np.linalg.norm(fragments[t_h] - p_h[:, None], axis=-1)  # (r, U)
-                df = np.where(unused[t_h], df, np.inf)
-                df[np.arange(len(i_h)), todo[i_h]] = np.inf
-            rival = np.fmin(np.where(np.isfinite(dm), dm, np.inf).min(1),
-                            np.where(np.isfinite(df), df, np.inf).min(1))
+                dm[r, m_h] = np.inf
+                seen_u = fvis[t_h] & (assigned < 0)[None]  # (r, U)
+                seen_u[r, todo[i_h]] = False
+                rr, uu = np.nonzero(seen_u)
+                df = np.linalg.norm(fragments[t_h[rr], uu] - p_h[rr], axis=-1)
+            rival = np.where(np.isfinite(dm), dm, np.inf).min(1)
+            np.minimum.at(rival, rr, np.where(np.isfinite(df), df, np.inf))
             ok = (rival >= clearance * e1) & (rival >= AMBIGUITY_RATIO * d_h)
             for i, mi, di in zip(i_h[ok], m_h[ok], d_h[ok]):
                 if pick[i] == -2 or (pick[i] >= 0 and pick[i] != mi):
@@ -462,6 +481,7 @@ def continue_breaks(
             if np.isfinite(X[T, mi]).any():
                 continue  # another fragment of this pass took the marker there
             X[T, mi] = fragments[T, u]
+            avail[T, mi] = fvis[T, u]
             assigned[u] = mi
             done.append((u, mi, float(dist[i])))
         if len(done) == n_before:
@@ -477,7 +497,7 @@ class _MergeRun:
     each fragment (-1), ``verdict`` the last rejection of each unmerged fragment,
     ``merges`` / ``conflicts`` the report lists, ``dirty`` the frames whose data
     or predictions changed since the fragments there were judged, ``stale`` the
-    frames to predict again.
+    frames to predict again, ``visible`` ``(F, U)`` where each fragment has a sample.
     """
 
     X: np.ndarray
@@ -492,6 +512,7 @@ class _MergeRun:
     dirty: np.ndarray
     stale: np.ndarray
     reference: np.ndarray
+    visible: np.ndarray
     verdict: dict[int, dict[str, Any]] = field(default_factory=dict)
     merges: list[dict[str, Any]] = field(default_factory=list)
     conflicts: list[dict[str, Any]] = field(default_factory=list)
@@ -564,20 +585,25 @@ def _rival_fragment(fragments: np.ndarray, unmerged: np.ndarray, u: int, T: np.n
     (0.4 points of the real samples on the dynamic capture).
     """
     m = int(v["marker"])
-    rivals = np.flatnonzero(unmerged[T].any(0))
+    seen = unmerged[T[0]:T[-1] + 1] if _is_run(T) else unmerged[T]  # (|T|, U)
+    rivals = np.flatnonzero(seen.any(0))
     rivals = rivals[rivals != u]
     if not len(rivals):
         return v
     p = E_all[T, m]  # (|T|, 3)
-    d_r = np.linalg.norm(fragments[T][:, rivals] - p[:, None], axis=-1)  # NaN: not seen
-    d_u = np.linalg.norm(fragments[T, u] - p, axis=-1)[:, None]
-    both = np.isfinite(d_r) & np.isfinite(d_u)
+    d_u = np.linalg.norm(fragments[T, u] - p, axis=-1)  # NaN: not predicted
+    both = seen[:, rivals] & np.isfinite(d_u)[:, None]  # (|T|, R)
     n = both.sum(0)
+    enough = n >= max(1, int(np.ceil(0.5 * len(T))))
+    # distances where both are seen, for the rivals seen in enough frames; 0 elsewhere
+    cols = np.flatnonzero(enough)
+    t, r = np.nonzero(both[:, cols])
+    d_r = np.zeros(both.shape)
+    d_r[t, cols[r]] = np.linalg.norm(fragments[T[t], rivals[cols[r]]] - p[t], axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        mean_r = np.where(both, d_r, 0.0).sum(0) / n
-        mean_u = np.where(both, d_u, 0.0).sum(0) / n
-    close = ((n >= max(1, int(np.ceil(0.5 * len(T))))) & (mean_r < eps1[m])
-             & (mean_r < AMBIGUITY_RATIO * mean_u))
+        mean_r = d_r.sum(0) / n
+        mean_u = np.where(both, d_u[:, None], 0.0).sum(0) / n
+    close = enough & (mean_r < eps1[m]) & (mean_r < AMBIGUITY_RATIO * mean_u)
     if not close.any():
         return v
     k = int(np.argmin(np.where(close, mean_r, np.inf)))
@@ -591,7 +617,8 @@ def _rival_fragment(fragments: np.ndarray, unmerged: np.ndarray, u: int, T: np.n
 
 
 def _blind_rival(frag: np.ndarray, T: np.ndarray, v: dict[str, Any], free: np.ndarray,
-                 E_all: np.ndarray, reference: np.ndarray, labels: list[str]) -> dict[str, Any]:
+                 E_all: np.ndarray, reference: np.ndarray, labels: list[str],
+                 index_all: PredictionIndex | None = None) -> dict[str, Any]:
     """Refuse the merge verdict ``v`` of fragment ``frag`` (frames ``T``) when a marker
     missing in all its frames, but not predicted there, could be it (beyond §4.2).
 
@@ -610,7 +637,9 @@ def _blind_rival(frag: np.ndarray, T: np.ndarray, v: dict[str, Any], free: np.nd
 
     ``free`` ``(M,)`` bool: the markers missing in all of ``T`` (and usable);
     ``E_all`` ``(F, M, 3)``: every prediction; ``reference`` ``(M, 3)``: the
-    reference pose.  Returns ``v`` or an ambiguous rejection.
+    reference pose; ``index_all``, optional: a :class:`PredictionIndex` of ``E_all``
+    (counts for fragments over contiguous frames).  Returns ``v`` or an ambiguous
+    rejection.
 
     On the real PiG calibration cut into pieces (``btkdata_PiG_Calibration-
     FlatFoot-Hole.c3d``, head markers 123 mm apart, ``ε₁`` 62 mm) the fragment of
@@ -622,7 +651,10 @@ def _blind_rival(frag: np.ndarray, T: np.ndarray, v: dict[str, Any], free: np.nd
     others = others[others != m]
     if not len(others):
         return v
-    seen = np.isfinite(E_all[T[:, None], others[None]]).all(-1).sum(0)
+    if index_all is not None and _is_run(T):
+        seen = index_all.n_predicted[T[-1] + 1, others] - index_all.n_predicted[T[0], others]
+    else:
+        seen = np.isfinite(E_all[T[:, None], others[None]]).all(-1).sum(0)
     blind = others[seen < max(1, int(np.ceil(0.5 * len(T))))]
     with np.errstate(invalid="ignore"):
         D = np.linalg.norm(reference[blind] - reference[m], axis=-1)
@@ -650,7 +682,8 @@ def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarr
     """
     avail = np.isfinite(run.X).all(-1)
     index = PredictionIndex(avail, np.isfinite(E).all(-1))
-    unmerged = np.isfinite(run.fragments).all(-1) & (run.assigned < 0)[None]  # (F, U)
+    index_all = index if E_all is E else None  # built when a verdict first needs it
+    unmerged = run.visible & (run.assigned < 0)[None]  # (F, U)
     claims: dict[int, list[tuple[float, int, dict]]] = {}
     for u in todo:
         T = run.frames_of[u]
@@ -662,7 +695,10 @@ def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarr
                             run.labels, index, mean_tolerance=mean_tolerance, near=near,
                             near_ratio=near_ratio)
         if "marker" in v:
-            v = _blind_rival(run.fragments[T, u], T, v, free, E_all, run.reference, run.labels)
+            if index_all is None:
+                index_all = PredictionIndex(avail, np.isfinite(E_all).all(-1))
+            v = _blind_rival(run.fragments[T, u], T, v, free, E_all, run.reference, run.labels,
+                             index_all)
         if "marker" in v:
             v = _rival_fragment(run.fragments, unmerged, u, T, v, E_all, run.eps1,
                                 run.labels, run.flabels)
@@ -684,6 +720,7 @@ def _merge_claims(run: _MergeRun, claims: dict[int, list[tuple[float, int, dict]
     mm = 1000.0
     labels, flabels, frames_of = run.labels, run.flabels, run.frames_of
     n_new = 0
+    new_frames = [run.stale]
     for m, cl in claims.items():
         cl.sort(key=lambda c: c[0])
         taken = np.zeros(len(run.X), dtype=bool)
@@ -702,7 +739,7 @@ def _merge_claims(run: _MergeRun, claims: dict[int, list[tuple[float, int, dict]
             winner[u] = flabels[u]
             run.X[T, m] = run.fragments[T, u]
             run.dirty[T] = True
-            run.stale = np.union1d(run.stale, T)
+            new_frames.append(T)
             run.assigned[u] = m
             n_new += 1
             run.merges.append({
@@ -715,6 +752,7 @@ def _merge_claims(run: _MergeRun, claims: dict[int, list[tuple[float, int, dict]
                 "predictor": predictor,
                 "depth": depth,
             })
+    run.stale = np.unique(np.concatenate(new_frames))
     return n_new
 
 
@@ -728,12 +766,11 @@ def _merge_breaks(run: _MergeRun, surface: MarkerSurface, max_break: float, *,
     done = continue_breaks(run.X, run.fragments,
                            np.where(np.isfinite(run.dbar), run.eps1, np.nan), run.assigned,
                            surface.neighbours, rigidity=surface.rigidity, jump=max_break,
-                           max_gap=max_gap)
+                           max_gap=max_gap, visible=run.visible)
     for u, m, d in done:
         T = run.frames_of[u]
         run.verdict.pop(u, None)
         run.dirty[T] = True
-        run.stale = np.union1d(run.stale, T)
         run.merges.append({
             "fragment": run.flabels[u], "label": run.labels[m], "first_frame": int(T[0]),
             "last_frame": int(T[-1]), "n_frames": len(T), "entry_mm": round(d * mm, 2),
@@ -741,6 +778,8 @@ def _merge_breaks(run: _MergeRun, surface: MarkerSurface, max_break: float, *,
             "eps1_mm": round(float(run.eps1[m] * mm), 2),
             "eps2_mm": round(float(run.eps2[m] * mm), 2), "round": rnd,
             "jump_mm": round(d * mm, 2), "predictor": "continuity", "depth": "break"})
+    if done:
+        run.stale = np.unique(np.concatenate([run.stale] + [run.frames_of[u] for u, _, _ in done]))
     return len(done)
 
 
@@ -783,10 +822,12 @@ def _merge_rounds(
             E_all = E if competitors is None else np.where(np.isfinite(run.X), np.nan,
                                                            competitors)
         else:
-            Y = _predict_round(run, surface, fvis, todo, Y, E, E_all, key, min_support, ctx)
+            with ctx.timer("merge_predict"):
+                Y = _predict_round(run, surface, fvis, todo, Y, E, E_all, key, min_support, ctx)
         run.stale = np.zeros(0, dtype=np.int64)
-        claims = _judge_round(run, todo, E, E_all, mean_tolerance=mean_tolerance, near=near,
-                              near_ratio=near_ratio)
+        with ctx.timer("merge_judge"):
+            claims = _judge_round(run, todo, E, E_all, mean_tolerance=mean_tolerance,
+                                  near=near, near_ratio=near_ratio)
         run.dirty[:] = False
         n_new = _merge_claims(run, claims, rnd=rnd,
                               predictor="rigid" if predictions is None else "given", depth=key)
@@ -885,7 +926,9 @@ def merge_fragments(
         Capture rate (Hz): the bridge in frames (:func:`bridge_frames`); default
         :data:`MAX_BRIDGE` frames.
     ctx : Context, optional
-        For the parallel prediction (frame chunks through ``ctx.map``).
+        For the parallel prediction (frame chunks through ``ctx.map``), and its
+        timers: ``merge_continuity``, ``merge_predict``, ``merge_judge`` (seconds in
+        :func:`continue_breaks`, the rigid predictions, the judging).
 
     Returns
     -------
@@ -911,7 +954,7 @@ def merge_fragments(
         labels=surface.labels, dbar=dbar, eps1=eps1, eps2=eps2,
         assigned=np.full(U, -1, dtype=np.int64),
         dirty=np.ones(F, dtype=bool),  # frames whose predictions / data changed
-        stale=np.arange(F), reference=surface.reference,
+        stale=np.arange(F), reference=surface.reference, visible=fvis,
     )
     run.verdict = {u: {"reason": "empty fragment"} for u in range(U) if not len(run.frames_of[u])}
     given = predictions is not None
@@ -920,14 +963,16 @@ def merge_fragments(
     if near_ratio is None:
         near_ratio = PCA_NEAR_RATIO if given else AMBIGUITY_RATIO
     near = _near_markers(surface) if near_ratio > AMBIGUITY_RATIO else None
-    n_breaks = _merge_breaks(run, surface, max_break, rnd="break", max_gap=max_gap)
+    with ctx.timer("merge_continuity"):
+        n_breaks = _merge_breaks(run, surface, max_break, rnd="break", max_gap=max_gap)
     n_by_depth = _merge_rounds(run, surface, fvis, ["given"] if given else list(depths),
                                rounds_per_level=rounds_per_level, predictions=predictions,
                                competitors=competitors, min_support=min_support,
                                mean_tolerance=mean_tolerance, near=near, near_ratio=near_ratio,
                                ctx=ctx)
-    n_by_depth["break"] = n_breaks + _merge_breaks(run, surface, max_break, rnd="break",
-                                                   max_gap=max_gap)
+    with ctx.timer("merge_continuity"):
+        n_by_depth["break"] = n_breaks + _merge_breaks(run, surface, max_break, rnd="break",
+                                                       max_gap=max_gap)
     return run.X, run.assigned, {"merges": run.merges, "rejections": _rejections(run),
                                  "conflicts": run.conflicts, "merged_by_depth": n_by_depth}
 
@@ -979,7 +1024,7 @@ def _fill_candidates(frag: np.ndarray, T: np.ndarray, free: np.ndarray, E: np.nd
     """:class:`_Candidates` of one fragment (frames ``T``) against the estimates ``E``."""
     cands = np.flatnonzero(free)
     if len(cands):  # screen on a few frames: only near markers can be chosen or rivals
-        sub = np.unique(np.linspace(0, len(T) - 1, min(len(T), 16)).round().astype(int))
+        sub = _spread(len(T))
         ds = np.linalg.norm(frag[sub][:, None] - E[T[sub]][:, cands], axis=-1)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
