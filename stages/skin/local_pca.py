@@ -15,7 +15,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
-from mocapflow.stages.skin.predict import MIN_NEIGHBOURS, _apply, _apply_inv, _third_anchor
+from mocapflow.stages.skin.predict import (
+    MIN_NEIGHBOURS,
+    _apply,
+    _apply_inv,
+    _third_anchor,
+    gather_samples,
+)
 
 __all__ = [
     "BATCH_PAIRS",
@@ -157,7 +163,7 @@ def train_local_pca(
     ref_local = (reference[members] - origin) @ frame.T
     if len(idx) > max_frames:
         idx = idx[np.linspace(0, len(idx) - 1, max_frames).round().astype(int)]
-    Xt = X[idx][:, members]
+    Xt = X[idx][:, members]  # (its memory layout sets the fit's rounding)
     R, t = absolute_orientation_batch(np.broadcast_to(ref_local, Xt.shape), Xt,
                                       weights=np.broadcast_to(mw, Xt.shape[:2]))
     Z = _apply_inv(R, t, Xt).reshape(len(idx), 3 * n)  # P&H Eq. 5, in the local frame
@@ -334,7 +340,7 @@ def _estimate_block(models: list[LocalPCA], X: np.ndarray, vis: np.ndarray, tgt:
         empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
         return [empty] * nm
     w = vis[row, model_of] * mw[model_of]  # (P, n)
-    Xr = X[row[:, None], mem[model_of]]  # (P, n, 3)
+    Xr = gather_samples(X, row[:, None], mem[model_of])  # (P, n, 3)
     Xw = np.where(w[..., None] > 0, Xr, np.nan)
     shape = mean[model_of]
     R, t = absolute_orientation_batch(shape, Xw, weights=w)

@@ -34,6 +34,7 @@ from mocapflow.stages.skin.predict import (
     MIN_NEIGHBOURS,
     RIGID_ANCHOR,
     _predict_parallel,
+    gather_samples,
     local_targets,
 )
 from mocapflow.stages.skin.surface import MarkerSurface
@@ -175,7 +176,7 @@ def _candidate_stats(frag: np.ndarray, T: np.ndarray, cands: np.ndarray, E: np.n
     cc = np.flatnonzero(checkable)
     m_c = cands[cc]
     first = index.next_predicted[a, m_c]
-    d_entry = np.linalg.norm(frag[first - a] - E[first, m_c], axis=-1)
+    d_entry = np.linalg.norm(frag[first - a] - gather_samples(E, first, m_c), axis=-1)
     d_max = np.full(len(cc), np.nan)
     d_mean = np.full(len(cc), np.nan)
     near = np.flatnonzero(d_entry < eps1[m_c])
@@ -260,7 +261,8 @@ def _judge_fragment(
     others = cands[cands != m]
     if len(others):
         sub = _spread(len(T))
-        da = np.linalg.norm(frag[sub][:, None] - E_all[T[sub][:, None], others[None]], axis=-1)
+        da = np.linalg.norm(frag[sub][:, None]
+                            - gather_samples(E_all, T[sub][:, None], others[None]), axis=-1)
         da_mean = _nan_mean(da)
         ratio = np.full(len(others), AMBIGUITY_RATIO)
         if near is not None:
@@ -563,7 +565,8 @@ def _predict_round(run: _MergeRun, surface: MarkerSurface, fvis: np.ndarray, tod
 
 def _rival_fragment(fragments: np.ndarray, unmerged: np.ndarray, u: int, T: np.ndarray,
                     v: dict[str, Any], E_all: np.ndarray, eps1: np.ndarray,
-                    labels: list[str], flabels: list[str]) -> dict[str, Any]:
+                    labels: list[str], flabels: list[str],
+                    n_unmerged: np.ndarray | None = None) -> dict[str, Any]:
     """Refuse fragment ``u``'s merge verdict ``v`` when another unmerged fragment seen
     in its frames ``T`` could be the chosen marker as well (beyond §4.2).
 
@@ -573,8 +576,10 @@ def _rival_fragment(fragments: np.ndarray, unmerged: np.ndarray, u: int, T: np.n
     is an unmerged fragment ``r`` (``unmerged``, ``(F, U)`` bool) seen with a
     prediction (``E_all``, ``(F, M, 3)``) in at least half of ``u``'s frames, whose
     mean distance to the marker's prediction over those frames is below ``ε₁`` and
-    below :data:`AMBIGUITY_RATIO` times ``u``'s mean distance there.  Returns ``v``
-    or an ambiguous rejection.
+    below :data:`AMBIGUITY_RATIO` times ``u``'s mean distance there.  ``n_unmerged``,
+    optional ``(F + 1, U)``: cumulative counts of ``unmerged`` over frames (finds the
+    fragments seen in contiguous ``T`` without scanning them).  Returns ``v`` or an
+    ambiguous rejection.
 
     On the simulated 350-marker captures with labels stripped (``benchmarks/clean.py``
     table 1b, seed 1) the wrong merges this refuses were a 4-frame fragment
@@ -585,8 +590,12 @@ def _rival_fragment(fragments: np.ndarray, unmerged: np.ndarray, u: int, T: np.n
     (0.4 points of the real samples on the dynamic capture).
     """
     m = int(v["marker"])
-    seen = unmerged[T[0]:T[-1] + 1] if _is_run(T) else unmerged[T]  # (|T|, U)
-    rivals = np.flatnonzero(seen.any(0))
+    run_T = _is_run(T)
+    seen = unmerged[T[0]:T[-1] + 1] if run_T else unmerged[T]  # (|T|, U)
+    if run_T and n_unmerged is not None:
+        rivals = np.flatnonzero(n_unmerged[T[-1] + 1] != n_unmerged[T[0]])
+    else:
+        rivals = np.flatnonzero(seen.any(0))
     rivals = rivals[rivals != u]
     if not len(rivals):
         return v
@@ -599,7 +608,8 @@ def _rival_fragment(fragments: np.ndarray, unmerged: np.ndarray, u: int, T: np.n
     cols = np.flatnonzero(enough)
     t, r = np.nonzero(both[:, cols])
     d_r = np.zeros(both.shape)
-    d_r[t, cols[r]] = np.linalg.norm(fragments[T[t], rivals[cols[r]]] - p[t], axis=-1)
+    d_r[t, cols[r]] = np.linalg.norm(gather_samples(fragments, T[t], rivals[cols[r]]) - p[t],
+                                     axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean_r = d_r.sum(0) / n
         mean_u = np.where(both, d_u[:, None], 0.0).sum(0) / n
@@ -684,6 +694,7 @@ def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarr
     index = PredictionIndex(avail, np.isfinite(E).all(-1))
     index_all = index if E_all is E else None  # built when a verdict first needs it
     unmerged = run.visible & (run.assigned < 0)[None]  # (F, U)
+    n_unmerged = None  # its cumulative counts, built when a verdict first needs them
     claims: dict[int, list[tuple[float, int, dict]]] = {}
     for u in todo:
         T = run.frames_of[u]
@@ -700,8 +711,11 @@ def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarr
             v = _blind_rival(run.fragments[T, u], T, v, free, E_all, run.reference, run.labels,
                              index_all)
         if "marker" in v:
+            if n_unmerged is None:
+                n_unmerged = np.concatenate([np.zeros((1, unmerged.shape[1]), np.int32),
+                                             np.cumsum(unmerged, 0, dtype=np.int32)])
             v = _rival_fragment(run.fragments, unmerged, u, T, v, E_all, run.eps1,
-                                run.labels, run.flabels)
+                                run.labels, run.flabels, n_unmerged)
         if "marker" in v:
             claims.setdefault(v["marker"], []).append((v["mean"], u, v))
             run.verdict.pop(u, None)

@@ -14,6 +14,7 @@ import numpy as np
 
 from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
 from mocapflow.stages.motion.contacts import true_runs
+from mocapflow.stages.skin.predict import gather_samples
 
 #: Predictors of the wide-neighbourhood regression: the marker's most rigid
 #: nearby markers (smallest spread of their distance to it) visible through a gap.
@@ -160,7 +161,7 @@ def regress_gap(
         train = np.sort(train[near])
     n = len(train)
     frames = np.concatenate([train, gap])
-    P = X[frames[:, None], S[None]]
+    P = gather_samples(X, frames[:, None], S[None])
     local = np.broadcast_to(reference[S] - reference[marker], P.shape)
     R, t = absolute_orientation_batch(local, P)  # P ≈ local @ R.T + t per frame
     if not np.isfinite(R).all():
@@ -227,7 +228,7 @@ def choose_predictors(
     chosen: list[int] = []
     for j in candidates:
         new = cur & visible[:, j]
-        if new.sum() >= max(min_frames, frames_per_predictor * (len(chosen) + 1)):
+        if np.count_nonzero(new) >= max(min_frames, frames_per_predictor * (len(chosen) + 1)):
             chosen.append(int(j))
             cur = new
             if len(chosen) == n_predictors:
@@ -345,7 +346,8 @@ def regression_estimates(
 
 def _regress_chunk(item: tuple) -> tuple[np.ndarray, ...]:
     X, markers, holes, reference, kw = item
-    vis = np.isfinite(X).all(-1)
+    X = np.ascontiguousarray(X)  # regress_gap gathers from it as (F * M, 3) rows
+    vis = np.asfortranarray(np.isfinite(X).all(-1))  # one marker's frames contiguous
     ranking = predictor_ranking(X, reference, markers, pool=kw.pop("pool"))
     fs, ms, es = [], [], []
     for m, cand in zip(markers, ranking):
