@@ -18,7 +18,7 @@ import pytest
 import mocapflow.stages.skin.merge as cm
 from mocapflow.stages.skin.predict import gather_samples
 from mocapflow.stages.skin.regress import choose_predictors
-from tests.stages.skin.test_merge_equivalence import rival_loop
+from tests.stages.skin.test_merge_equivalence import rival_case, rival_loop
 
 
 @pytest.mark.parametrize("contiguous", [True, False])
@@ -45,21 +45,9 @@ def test_gather_samples_equals_two_array_indexing(contiguous):
 
 @pytest.mark.parametrize("seed", range(6))
 def test_rival_fragment_with_cumulative_counts_equals_the_scan(seed):
-    rng = np.random.default_rng(200 + seed)
-    F, U, M = 60, 25, 6
-    E_all = rng.normal(scale=0.02, size=(F, M, 3))
-    E_all[rng.random((F, M)) < 0.1] = np.nan
-    fragments = np.full((F, U, 3), np.nan)
-    for r in range(U):
-        a = int(rng.integers(0, F - 5))
-        b = int(rng.integers(a + 1, min(F, a + 40) + 1))
-        fragments[a:b, r] = (np.nan_to_num(E_all[a:b, r % M])
-                             + rng.normal(scale=rng.choice([0.002, 0.01]), size=(b - a, 3)))
-    unmerged = np.isfinite(fragments).all(-1) & (rng.random(U) < 0.9)[None]
+    fragments, unmerged, E_all, eps1, labels, flabels = rival_case(200 + seed)
+    U, M = fragments.shape[1], E_all.shape[1]
     n_unmerged = np.concatenate([np.zeros((1, U), np.int32), np.cumsum(unmerged, 0)])
-    eps1 = np.full(M, 0.012)
-    labels = [f"m{j}" for j in range(M)]
-    flabels = [f"*{r}" for r in range(U)]
     refused = 0
     for u in range(U):
         T = np.flatnonzero(np.isfinite(fragments[:, u]).all(-1))

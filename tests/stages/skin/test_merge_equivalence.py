@@ -95,22 +95,28 @@ def rival_loop(fragments, unmerged, u, T, m, E_all, eps1):
     return best
 
 
-@pytest.mark.parametrize("seed", range(8))
-def test_rival_fragment_equals_a_loop_over_rivals(seed):
-    rng = np.random.default_rng(100 + seed)
-    F, U, M = 60, 25, 6
+def rival_case(seed, F=60, U=25, M=6):
+    """Random fragments, each a contiguous piece near marker ``r % M``'s prediction:
+    ``fragments (F, U, 3)``, ``unmerged (F, U)``, ``E_all (F, M, 3)``, ``eps1 (M,)``,
+    marker and fragment labels."""
+    rng = np.random.default_rng(seed)
     E_all = rng.normal(scale=0.02, size=(F, M, 3))
     E_all[rng.random((F, M)) < 0.1] = np.nan
     fragments = np.full((F, U, 3), np.nan)
-    for r in range(U):  # contiguous pieces near marker r % M's prediction
+    for r in range(U):
         a = int(rng.integers(0, F - 5))
         b = int(rng.integers(a + 1, min(F, a + 40) + 1))
         fragments[a:b, r] = (np.nan_to_num(E_all[a:b, r % M])
                              + rng.normal(scale=rng.choice([0.002, 0.01]), size=(b - a, 3)))
     unmerged = np.isfinite(fragments).all(-1) & (rng.random(U) < 0.9)[None]
-    eps1 = np.full(M, 0.012)
-    labels = [f"m{j}" for j in range(M)]
-    flabels = [f"*{r}" for r in range(U)]
+    return (fragments, unmerged, E_all, np.full(M, 0.012), [f"m{j}" for j in range(M)],
+            [f"*{r}" for r in range(U)])
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_rival_fragment_equals_a_loop_over_rivals(seed):
+    fragments, unmerged, E_all, eps1, labels, flabels = rival_case(100 + seed)
+    U, M = fragments.shape[1], E_all.shape[1]
     seen = 0
     for u in range(U):
         T = np.flatnonzero(np.isfinite(fragments[:, u]).all(-1))

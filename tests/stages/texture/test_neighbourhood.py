@@ -80,3 +80,51 @@ def test_tables_hold_pair_distance_and_window_cost_is_the_same_with_them(view):
     assert window_cost(view, out, np.array([[-3, -2, -1, 0, 1, 2, 3]]), block, pw)[2][0]
     assert not window_cost(view, out, out, block, pw)[2][0]
     assert window_cost(view, out, out, block, pw)[0][0] == 0.0
+
+
+def test_rate_feature_table_gives_the_computed_norms(view, monkeypatch):
+    # known answer: rate features 3 and 4 apart on two axes are 5 apart
+    R = np.zeros((4, 1, 3))
+    R[2, 0] = [3.0, 0.0, 4.0]
+    small = LevelView(np.zeros((4, 1, 3)), R, spacing=1.0)
+    assert small.rate_norms()[2, 0, 0] == 5.0 and small.rate_norms()[0, 2, 0] == 5.0
+    rng = np.random.default_rng(0)
+    o0, o1, i0 = (rng.integers(0, view.n, 300) for _ in range(3))
+    i0 = np.minimum(i0, view.n - 2)
+    tabled = pair_distance(view, o0, o1, i0, i0 + 1)
+    monkeypatch.setattr(LevelView, "RATE_TABLE_NODES", 0)  # the computed path
+    plain = LevelView(view.P, view.R, view.spacing)
+    assert plain.rate_norms() is None
+    np.testing.assert_array_equal(tabled, pair_distance(plain, o0, o1, i0, i0 + 1))
+
+
+def test_children_tables_hold_exactly_what_a_coarser_search_reads(view):
+    n = view.n
+    T = pair_tables(view, out_of=False, children=True)
+    assert T.partial and T.out_of is None
+    full = pair_tables(view)
+    x, y = np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="ij")
+    same = (x - y) % 2 == 0
+    np.testing.assert_array_equal(T.verbatim[same], full.verbatim[same])
+    assert np.isnan(T.verbatim[~same]).all()
+    x, y = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    odd_even = (x % 2 == 1) & (y % 2 == 0)
+    np.testing.assert_array_equal(T.into[odd_even], full.into[odd_even])
+    assert np.isnan(T.into[~odd_even]).all()
+    # windows of children (a coarser level's finer windows) and arbitrary ones: the
+    # entries not tabulated are computed, the sums are those without tables
+    rng = np.random.default_rng(3)
+    W, m = 8, 400
+    par = rng.integers(0, n // 2, (m, W // 2))
+    par[:, 1:] = np.where(rng.random((m, W // 2 - 1)) < 0.5, par[:, :-1] + 1, par[:, 1:])
+    ov = (2 * par[:, :, None] + np.arange(2)[None, None, :]).reshape(m, W)
+    ov[rng.random((m, W)) < 0.1] = -1
+    ov[ov >= n] = -1
+    odd = rng.random(m) < 0.3  # some rows not made of children
+    ov[odd] = rng.integers(-1, n, (int(odd.sum()), W))
+    iv = 2 * rng.integers(-1, n // 2 + 1, m)[:, None] + np.arange(-3, 5)[None, :]
+    block = (np.arange(-3, 5) == 0) | (np.arange(-3, 5) == 1)
+    pw = np.exp(-0.5 * ((np.arange(W - 1) - 3.0) / 3) ** 2)
+    for a, b in zip(window_cost(view, ov, iv, block, pw),
+                    window_cost(view, ov, iv, block, pw, T)):
+        np.testing.assert_array_equal(a, b)
