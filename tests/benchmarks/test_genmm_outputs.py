@@ -18,7 +18,7 @@ from mocapflow.stages.metrics import quality as M
 from mocapflow.stages.motion.datatypes import Motion, Skeleton
 from mocapflow.stages.motion.rotations import quat_from_axis_angle
 
-BENCHMARKS = Path(__file__).resolve().parents[3] / "benchmarks"
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 if str(BENCHMARKS) not in sys.path:
     sys.path.insert(0, str(BENCHMARKS))
 
