@@ -468,6 +468,14 @@ def calibrate(path: str) -> int:
     return 0
 
 
+def _json_or_str(text: str):
+    """``--variant`` values: JSON (numbers, booleans, lists) or else the string itself."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="2 seeds, 2× rows only")
@@ -490,6 +498,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="extra rows of ours with this smooth_levels (every: each level "
                          "smoothed before the next finer one is refined from it, as the "
                          "thesis; finest: the output only)")
+    ap.add_argument("--variant", action="append", default=[], metavar="NAME:K=V,...",
+                    help="extra rows of ours with these synth params, e.g. "
+                         "'thesis smoothing:transition_blend=0,pose_weight=0' (values read "
+                         "as JSON, else as strings)")
     ap.add_argument("--no-speed", action="store_true",
                     help="skip the speed table (1,024 frames at 30 fps, 4,096 at 120 fps)")
     ap.add_argument("--calibrate", default=None, metavar="FILE",
@@ -518,6 +530,10 @@ def main(argv: list[str] | None = None) -> int:
         a, c, f = (float(x) for x in w.split("/"))
         variants[f"ours weights {w}"] = {"ancestor_weight": a, "current_weight": c,
                                         "finer_weight": f}
+    for spec in args.variant:
+        vname, _, kvs = spec.partition(":")
+        variants[f"ours {vname}"] = {k: _json_or_str(v) for k, v in
+                                     (kv.split("=", 1) for kv in kvs.split(",") if kv)}
     print(f"texture benchmark — {n_seeds} seeds ({len(genmm_seeds)} for the GenMM baseline), "
           f"{args.levels or levels_for_rate(30.0)} levels, 30 fps; {TARGETS}")
     print(
