@@ -47,8 +47,10 @@ Moradoff §3.5–3.7 neighbourhood distance  neighbourhood.window_cost (per slot
   candidate acceleration (children of     refine.LevelRefinement._candidate_lines,
   the parent's 3 best ±candidate_range)   search.LevelSearch.candidates
   pose term of a finest-level join (an    refine.LevelRefinement.line_costs and
-  addition, off by default:               ._pose_lines (neighbourhood.pose_distance)
-  SearchParams.pose_weight, pose_lines)
+  addition: SearchParams.pose_weight,     ._pose_lines (neighbourhood.pose_distance,
+  pose_lines, pose_span)                  6-D joint rotations)
+  max_run kept by the finer levels        refine.LevelRefinement._join_windows, ._rejoin
+                                          (._run_cap, ._verbatim_start)
   a front after a settled run (same       search.LevelSearch.after_run_costs (read by
   costs, tabulated once per level)        search.LevelSearch.fill and ._jump_earlier; row
                                           minima: .jump_costs)
@@ -61,6 +63,9 @@ Moradoff §3.7.2 graph path                graph.transition_costs, graph.transit
                                           graph._drawn_order); per gap: synth._graph_level
                                           (run limit less refinement's reach:
                                           synth._graph_run_limit)
+seams cross-faded between their two      smoothing.transition_blend (before the smoothing;
+input lines (an addition)                 the feet follow the mix: assemble._planted_velocity,
+                                          assemble._foot_ik)
 Moradoff §3.8 adaptive local smoothing    smoothing.adaptive_smoothing (with the input's floor
                                           and jerk limit: assemble._smooth_seams)
   after every level (``smooth_levels``)   assemble.smooth_level (a coarser level's output in its
@@ -123,9 +128,15 @@ Departures from the thesis (the module docstrings say why):
   leaves ``max_run`` + 5 % of the input (93 frames): 96 in seeds 0-4 (finest 86),
   over it in 4 of seeds 0-19 (up to 105; finest at most 91);
 * smoothing: a seam also fails the test while its jerk exceeds
-  ``jerk_tolerance`` × the input's p99 jerk (smoothing.seam_test); its frame
-  counts are the thesis' at 30 fps and scale with the synthesis rate
-  (smoothing.SMOOTHING_RATE).
+  ``jerk_tolerance`` × the input's p99 jerk (smoothing.seam_test, over the whole
+  cross-fade); its frame counts are the thesis' at 30 fps and scale with the
+  synthesis rate (smoothing.SMOOTHING_RATE);
+* seams are first cross-faded between the two input lines they join
+  (``transition_blend`` 0.33 s, smoothing.transition_blend): the Gaussian alone
+  low-passes the frames around a seam, which leaves the input's patch space
+  (GANimator local diversity); the search's pose term compares 6-D joint rotations
+  and is on (``pose_weight`` 0.03, ``pose_lines`` 2), with ``variety`` 0.45 and
+  ``max_run`` 0.25 — the measurements are in search.SearchParams.
 
 How refinement keeps the coarse plan (the drawn line tried first, joins
 ``MIN_RUN_FRAMES`` apart, no bridge of a few frames into the input's end) is

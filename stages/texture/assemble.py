@@ -6,7 +6,10 @@ input frame copied into each output frame) into a motion on the input skeleton:
 1. the joint rotations and root features (yaw rate, heading-frame velocity,
    height, translations) of each source frame are copied from level 0 of the
    pyramid (:func:`_input_features`);
-2. the seams are smoothed adaptively (:func:`_smooth_seams` →
+2. each seam is cross-faded between the two input lines it joins
+   (:func:`~mocapflow.stages.texture.smoothing.transition_blend`, ``transition_blend``
+   seconds; an addition to the thesis), then the seams are smoothed adaptively
+   (:func:`_smooth_seams` →
    :func:`~mocapflow.stages.texture.smoothing.adaptive_smoothing`, Moradoff
    §3.8); seam accelerations below ``ACCEL_FLOOR`` × the input's median
    acceleration pass the test, and — an addition to the thesis' test — seams
@@ -29,6 +32,7 @@ level's representation (``smooth_levels="every"`` of the ``synth`` stage).
 """
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -58,7 +62,10 @@ from mocapflow.stages.texture.root import (
     rotate_xz,
     toe_displacements,
 )
-from mocapflow.stages.texture.smoothing import adaptive_smoothing, rate_scale
+from mocapflow.stages.texture.smoothing import SMOOTHING_RATE, adaptive_smoothing, rate_scale
+from mocapflow.stages.texture.smoothing import (  # (the stage param has the name)
+    transition_blend as blend_transitions,
+)
 
 __all__ = ["ACCEL_FLOOR", "PATH_IK", "assemble_motion", "smooth_level"]
 
@@ -97,9 +104,11 @@ def _smooth_seams(
     jerk_tolerance: float | None,
     warn,
     world_in: np.ndarray,
+    jerk_reach: int = 1,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Adaptive smoothing of the seams with the input's acceleration floor and jerk limit
-    (``world_in``: the input's joint positions at ``rate``, :func:`motion_positions`).
+    (``world_in``: the input's joint positions at ``rate``, :func:`motion_positions`;
+    ``jerk_reach``: frames at 30 fps each side of a seam whose jerk is tested).
 
     Returns
     -------
@@ -127,6 +136,7 @@ def _smooth_seams(
         accel_floor=floor,
         max_widening=max_widening,
         jerk_limit=jerk_limit,
+        jerk_reach=jerk_reach,
     )
     failed = seams[~sm.passed]
     if failed.size:
@@ -225,21 +235,28 @@ def _input_contacts(motion: Motion, world: np.ndarray):
     return toes, foot_contacts(world, toes, motion.rate, height_threshold=h, speed_threshold=s)
 
 
-def _planted_velocity(pyramid, motion, rot, feat, src, loop, contacts) -> np.ndarray:
+def _planted_velocity(pyramid, motion, rot, feat, lines, weight, loop, contacts) -> np.ndarray:
     """Root velocities keeping the input's stance toes planted (see ``plant_feet``;
-    ``contacts``: :func:`_input_contacts`)."""
+    ``contacts``: :func:`_input_contacts`; ``lines``, ``weight``: the input frames mixed
+    at each output frame, :func:`~mocapflow.stages.texture.smoothing.transition_blend`:
+    a cross-faded frame's toes move by the same mix of the two lines' displacements and
+    are in contact where both lines are)."""
     if contacts is None:
         return feat[:, 1:3]
     toes, contact = contacts
+    L = lines.shape[0]
     lev = pyramid.levels[0]
     disp_in = toe_displacements(lev.yaw_rate, lev.velocity, lev.positions[:, toes][..., [0, 2]])
+    w = weight[:, None, None]
+    disp = (1.0 - w) * disp_in[lines[:, 0]] + w * disp_in[lines[:, 1]]
     J = motion.skeleton.n_joints
-    trans = feat[:, 4:].reshape(len(src), J, 3) if feat.shape[1] > 4 else None
-    root = np.zeros((len(src), 3))  # heading-free, as level_positions
+    trans = feat[:, 4:].reshape(L, J, 3) if feat.shape[1] > 4 else None
+    root = np.zeros((L, 3))  # heading-free, as level_positions
     root[:, 1] = feat[:, 3]
     local = chain_kinematics(motion.skeleton, rot, root, toes, translations=trans)[0][..., [0, 2]]
     # the planted root offset is smoothed over 2 frames at 30 fps, the same time at any rate
-    return plant_feet(feat[:, 0], feat[:, 1:3], local, src, disp_in, contact, cyclic=loop,
+    return plant_feet(feat[:, 0], feat[:, 1:3], local, np.arange(L), disp,
+                      contact[lines[:, 0]] & contact[lines[:, 1]], cyclic=loop,
                       smooth=2.0 * rate_scale(motion.rate))
 
 
@@ -320,9 +337,16 @@ def _output_motion(
     return Motion(motion.skeleton, root, rotations, motion.rate, trans, attrs)
 
 
-def _foot_ik(motion: Motion, out: Motion, src: np.ndarray, constrained, blended,
-             retargeted: bool = False, loop: bool = False, *, world: np.ndarray, contacts):
+def _foot_ik(motion: Motion, out: Motion, lines: np.ndarray, weight: np.ndarray, constrained,
+             blended, retargeted: bool = False, loop: bool = False, *, world: np.ndarray,
+             contacts):
     """Leg IK keeping every stance toe moving as in the input (see ``foot_corrections``).
+
+    ``lines``, ``weight``: the input frames mixed at each output frame and the weight of
+    the second (:func:`~mocapflow.stages.texture.smoothing.transition_blend`): a
+    cross-faded frame's toes move by the same mix of the two lines' steps, and are in
+    contact where both lines are.  ``blended``: frames a Gaussian pass changed (their
+    stance toes are kept still).
 
     ``retargeted``: the root follows a path (turned, stride paced), so the legs use
     the :data:`PATH_IK` weights; ``loop``: the corrections are periodic (the toes'
@@ -347,15 +371,18 @@ def _foot_ik(motion: Motion, out: Motion, src: np.ndarray, constrained, blended,
         step[-1] = step[-2]
     step_h = rotate_xz(step, -heading_in[:, None])
     heading_out, _ = heading_split(out.rotations[:, 0])
-    L = src.size
-    toe_step = rotate_xz(step_h[src], heading_out[:, None])
+    L = lines.shape[0]
+    w = weight[:, None, None]
+    toe_step = rotate_xz((1.0 - w) * step_h[lines[:, 0]] + w * step_h[lines[:, 1]],
+                         heading_out[:, None])
     toe_step[blended] = 0.0  # a blend of two stances keeps the stance foot still
     toes_out = chain_kinematics(out.skeleton, out.rotations, out.root_position, toes,
                                 translations=out.translations)[0][..., [0, 2]]
     fixed = np.zeros(L, dtype=bool)
     fixed[[int(j) for j in constrained]] = True
     weights = PATH_IK if retargeted else {}
-    corr = foot_corrections(toes_out, toe_step, contact_in[src], fixed=fixed,
+    contact = contact_in[lines[:, 0]] & contact_in[lines[:, 1]]
+    corr = foot_corrections(toes_out, toe_step, contact, fixed=fixed,
                             cyclic=loop, **weights)
     rot = apply_foot_ik(
         out.skeleton, out.rotations, out.root_position, chains, corr,
@@ -388,6 +415,7 @@ def assemble_motion(
     loop: bool = False,
     curve: PathCurve | None = None,
     smoothing: bool = True,
+    transition_blend: float = 0.0,
     gaussian_width: int = 5,
     accel_tolerance: float = 1.0,
     max_widening: int = 12,
@@ -414,6 +442,10 @@ def assemble_motion(
     curve : PathCurve, optional
         Path to follow.
     smoothing : bool
+    transition_blend : float
+        Seconds of the cross-fade of each seam between its two input lines before the
+        adaptive smoothing (:func:`~mocapflow.stages.texture.smoothing.transition_blend`;
+        0: none, the thesis).
     gaussian_width, accel_tolerance, max_widening :
         See :func:`~mocapflow.stages.texture.smoothing.adaptive_smoothing`.
     jerk_tolerance : float or None
@@ -437,8 +469,13 @@ def assemble_motion(
     L = src.size
     cons = list(constraints)
     rot_in, feat_in = _input_features(pyramid)
-    rot, feat = rot_in[src].copy(), feat_in[src].copy()
     seams = seams_from_source(src, cyclic=loop)
+    # the seams cross-faded between their input lines (frame t mixes lines[t] by weight[t])
+    rot, feat, lines, weight = blend_transitions(
+        rot_in, feat_in, src, seams, motion.rate,
+        duration=transition_blend if smoothing else 0.0, constrained=[j for _, j in cons],
+        cyclic=loop)
+    rot_faded = rot.copy()
     # the input's joint positions and toe contacts, once for the steps that need them
     world_in = motion_positions(motion) if (smoothing and seams.size) or plant or foot_ik \
         else None
@@ -459,20 +496,23 @@ def assemble_motion(
             jerk_tolerance=jerk_tolerance,
             warn=warn,
             world_in=world_in,
+            jerk_reach=1 + math.ceil(0.5 * transition_blend * SMOOTHING_RATE),
         )
         sm_report.update(widened)
 
     if plant:
-        feat[:, 1:3] = _planted_velocity(pyramid, motion, rot, feat, src, loop, contacts)
+        feat[:, 1:3] = _planted_velocity(pyramid, motion, rot, feat, lines, weight, loop,
+                                         contacts)
     heading, ground, path_info = _place_root(motion, feat, src, cons, curve, pyramid.rate,
                                              warn, loop)
     out = _output_motion(motion, rot, feat, heading, ground)
     ik_max = 0.0
     if foot_ik and L > 2:
-        blended = np.abs(rot - rot_in[src]).max(axis=(1, 2)) > 1e-9
+        blended = np.abs(rot - rot_faded).max(axis=(1, 2)) > 1e-9  # by the Gaussian
         # periodic corrections only where the ground positions wrap too (a loop on a
         # closed path); a loop in place of a path ends a lap away from its start
-        res = _foot_ik(motion, out, src, [j for _, j in cons], blended, curve is not None,
+        res = _foot_ik(motion, out, lines, weight, [j for _, j in cons], blended,
+                       curve is not None,
                        loop and curve is not None and curve.closed, world=world_in,
                        contacts=contacts)
         if res is not None:

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mocapflow.stages.motion.rotations import quat_to_6d
+
 __all__ = [
     "YAW_LEVER",
     "LevelView",
@@ -54,6 +56,11 @@ class LevelView:
         Fine frames between consecutive nodes (``2**l``).
     unit : float
         Cost unit: median per-slot distance between consecutive velocities.
+    rotations : (n, J, 6) float ndarray, optional
+        6-D rotations (:func:`~mocapflow.stages.motion.rotations.quat_to_6d`) of the
+        joints below the root, the pose :func:`pose_distance` compares (every bone's
+        orientation, leaves included: a hand or thumb turned shows on a skinned
+        character though no joint position moves); without them it compares ``P``.
     V : (n - 1, K, 3) float ndarray
         Input joint velocities ``P[i+1] - P[i]`` (derived).
     """
@@ -62,11 +69,14 @@ class LevelView:
     R: np.ndarray
     spacing: float
     unit: float = 1.0
+    rotations: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.V = np.diff(self.P, axis=0) if self.P.shape[0] > 1 else np.zeros_like(self.P)
-        #: (n, 3K) poses flattened, for :func:`pose_distance`
-        self.Pf = np.ascontiguousarray(self.P.reshape(self.P.shape[0], -1))
+        pose = self.P if self.rotations is None else self.rotations
+        #: (n, D) poses flattened and divided by √(joints), for :func:`pose_distance`
+        self.Pf = np.ascontiguousarray(pose.reshape(pose.shape[0], -1)
+                                       / np.sqrt(max(pose.shape[1], 1)))
         self._rate_norms: np.ndarray | None = None
 
     #: Largest level (nodes) whose :meth:`rate_norms` are tabulated (``n² E`` floats): a
@@ -104,7 +114,9 @@ def slot_distance(d: np.ndarray) -> np.ndarray:
 
 
 def pose_distance(view: LevelView, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """RMS over joints of the distance between the poses of nodes ``a`` and ``b``.
+    """RMS over joints of the distance between the poses of nodes ``a`` and ``b``: of
+    their 6-D rotations (``view.rotations``, as :func:`level_view` sets them), else of
+    their positions (metres).
 
     Parameters
     ----------
@@ -117,13 +129,13 @@ def pose_distance(view: LevelView, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     Returns
     -------
     (m, n_b) float ndarray
-        ``sqrt(mean_j ‖P[a, j] - P[b, j]‖²)`` (metres) of every pair, in Gram form
-        (one matrix product).
+        ``sqrt(mean_j ‖X[a, j] - X[b, j]‖²)`` of every pair (``X`` the rotations or
+        ``P``), in Gram form (one matrix product).
     """
-    X, K = view.Pf, view.P.shape[1]
+    X = view.Pf
     sq = np.einsum("ij,ij->i", X, X)
     d2 = sq[a][:, None] + sq[b][None, :] - 2.0 * (X[a] @ X[b].T)
-    return np.sqrt(np.maximum(d2, 0.0) / K)
+    return np.sqrt(np.maximum(d2, 0.0))
 
 
 def level_view(level, spacing: float) -> LevelView:
@@ -144,7 +156,8 @@ def level_view(level, spacing: float) -> LevelView:
     R[:, 0, 0] = level.velocity[:, 0]
     R[:, 0, 2] = level.velocity[:, 1]
     R[:, 1, 0] = level.yaw_rate * YAW_LEVER
-    view = LevelView(np.asarray(level.positions, dtype=np.float64), R, float(spacing))
+    view = LevelView(np.asarray(level.positions, dtype=np.float64), R, float(spacing),
+                     rotations=quat_to_6d(level.rotations[:, 1:]))
     if n >= 3:
         v = np.diff(view.P, axis=0) / spacing
         dv = np.linalg.norm(np.diff(v, axis=0), axis=-1)

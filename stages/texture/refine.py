@@ -27,9 +27,10 @@ Below the coarsest level the output of a level is derived from the level above
   its randomisation — survive refinement; as a last resort a join may replay a
   few nodes (a stall), rather than fail.  Joins are drawn within
   ``tolerance`` cost units (:meth:`LevelRefinement._draw_join`).
-* **pose term** (an addition, off by default: ``SearchParams.pose_weight``) — at
-  the finest level a join also costs how far apart in pose the two lines stay
-  within ``±POSE_SPAN_FRAMES`` frames (:meth:`LevelRefinement.line_costs`), and
+* **pose term** (an addition: ``SearchParams.pose_weight``) — at
+  the finest level a join also costs how far apart in pose (6-D joint rotations)
+  the two lines stay
+  within ``±SearchParams.pose_span`` frames (:meth:`LevelRefinement.line_costs`), and
   the ``pose_lines`` nearest lines are tried beside the drawn one
   (:meth:`LevelRefinement._pose_lines`; none that would leave the input before
   the run ends or run into the next run).
@@ -53,8 +54,9 @@ __all__ = ["MIN_RUN_FRAMES", "POSE_SPAN_FRAMES", "LevelRefinement", "verbatim_ru
 #: Shortest run (fine frames) refinement leaves between two transitions when it can.
 MIN_RUN_FRAMES = 12
 
-#: Half span (finest frames) over which :meth:`LevelRefinement._pose_lines` compares
-#: the two lines of a join: the half window of the local patch metric (15 frames).
+#: Half span (finest frames at 30 fps) over which :meth:`LevelRefinement.line_costs`
+#: compares the two lines of a join: the half window of the local patch metric (15
+#: frames); ``SearchParams.pose_span`` is this scaled with the synthesis rate.
 POSE_SPAN_FRAMES = 7
 
 
@@ -266,13 +268,24 @@ class LevelRefinement(LevelSearch):
             runs[k + 1] = [tr.a1, tr.b2]  # a previous join made the two runs one
             return prev_join
         last_run = k + 1 == len(runs) - 1 and not self.cyclic
-        window, fallback = self._join_windows(tr, prev_join, last_run=last_run)
+        start = self._verbatim_start(val, tr.b1)
+        window, fallback = self._join_windows(tr, prev_join, last_run=last_run,
+                                              run_start=start)
+        cap = self._run_cap()
+        merged_too_long = False
+        if cap is not None:  # the run a join that keeps the left line would make
+            end, lim = tr.b2, tr.b2 + (self.n if self.cyclic else self.n - 1 - tr.b2)
+            while end < lim and val[self._at(end + 1)] == at_join + (end + 1 - tr.a2):
+                end += 1  # (through the next run when it plays the same line)
+            merged_too_long = end + 1 - start > cap
         starts = self._candidate_lines(tr)
         near = self._pose_lines(tr)
         if near.size and k + 2 < len(runs):  # a pose line must not run into the next run
             a3 = runs[k + 2][0]
             nxt = int(val[self._at(a3)]) - (a3 - tr.a2)  # that run's line at a2
-            near = near[np.abs(near - nxt) >= self.p.slots]
+            # (clear of it by the span a new run plays: a line closer leaves the next join
+            # only a replay or a join beside a constraint)
+            near = near[np.abs(near - nxt) >= 2 * self.p.slots + 1]
         if near.size:  # (starts: np.unique's, already sorted and distinct)
             starts = np.union1d(starts, near)
         for lines, (m_lo, m_hi), strict, min_run, stall in self._join_attempts(
@@ -280,6 +293,10 @@ class LevelRefinement(LevelSearch):
         ):
             rows, keys, ms = self.join_costs(val, tr, lines, m_lo, m_hi, strict, min_run,
                                              allow_stall=stall)
+            if rows and merged_too_long:  # the left line continued: one run past max_run
+                keep = [i for i, (_, s_) in enumerate(ms) if s_ != at_join]
+                if keep:
+                    rows, keys, ms = ([x[i] for i in keep] for x in (rows, keys, ms))
             if rows:
                 break
         if not rows:
@@ -296,7 +313,8 @@ class LevelRefinement(LevelSearch):
 
     # ----------------------------------------------------------- join schedule
     def _join_windows(
-        self, tr: _Transition, prev_join: int | None, *, last_run: bool
+        self, tr: _Transition, prev_join: int | None, *, last_run: bool,
+        run_start: int | None = None,
     ) -> tuple[tuple[int, int], tuple[int, int]]:
         """Inclusive ranges of join positions: the scheduled one and the fallback.
 
@@ -307,8 +325,12 @@ class LevelRefinement(LevelSearch):
         the left line stays in the input;
         when it can be, it is narrowed so that the runs on both sides keep
         ``MIN_RUN_FRAMES`` (and more than ``slots`` nodes) — long enough to
-        smooth, no bridge of a few frames.  The fallback window reaches from
-        the left run's constraints to the right run's end (or first constraint).
+        smooth, no bridge of a few frames — and so that the left run (verbatim since
+        ``run_start``, default its first position) and the right run stay within
+        ``max_run`` (:meth:`_run_cap`; a left run already longer — the right line had
+        to fill a gap the left line could not — joins before the cap, outside the
+        schedule).  The fallback window reaches from the left run's constraints to the
+        right run's end (or first constraint).
         """
         S, w = self.p.slots, self.p.meeting_window
         a1, b1, a2, b2 = tr.a1, tr.b1, tr.a2, tr.b2
@@ -324,13 +346,44 @@ class LevelRefinement(LevelSearch):
         hi = min(hi, hi_left)
         # keep the runs on both sides long enough to smooth: no bridge of a few frames
         gap = max(S + 1, -(-MIN_RUN_FRAMES // 2**self.l))
-        lo_s = max(lo, (prev_join if prev_join is not None else a1) + gap)
+        start = prev_join if prev_join is not None else a1  # where the left run begins
+        lo_s = max(lo, start + gap)
         hi_s = hi if last_run else min(hi, b2 + 1 - gap)
         if lo_s <= hi_s:
             lo, hi = lo_s, hi_s
         lo_f = max([a1 + 1] + [x + 1 for x in tr.left_anchors])
         hi_f = min([b2, hi_left] + tr.right_anchors)
+        # and no longer than max_run (the coarsest level kept it; a join moved later at
+        # every finer level would lengthen the run by up to meeting_window nodes each)
+        cap = self._run_cap()
+        if cap is not None:
+            first = start if run_start is None else min(start, run_start)
+            end_left = first + cap  # the left run (verbatim since `first`) ends by here
+            if lo <= min(hi, end_left):
+                hi = min(hi, end_left)
+            elif lo_f <= end_left < lo:  # already too long: join earlier than scheduled
+                lo, hi = max(lo_f, end_left - w), end_left
+            if max(lo, b2 + 1 - cap) <= hi:  # the right run (up to its end as it stands)
+                lo = max(lo, b2 + 1 - cap)
         return (lo, hi), (lo_f, hi_f)
+
+    def _verbatim_start(self, val: np.ndarray, b: int) -> int:
+        """First position of the verbatim run (each node its predecessor's successor in
+        the input) that ends at position ``b`` — before the previous join when that join
+        kept the left line."""
+        lim = b - (self.n - 1 if self.cyclic else b)
+        u = b
+        while u > lim and val[self._at(u - 1)] >= 0 and \
+                val[self._at(u)] == val[self._at(u - 1)] + 1:
+            u -= 1
+        return u
+
+    def _run_cap(self) -> int | None:
+        """Longest run (nodes of this level) a join may leave: ``max_run`` of the input's
+        nodes here (at least ``2 slots``), None without a limit."""
+        if not 0 < self.p.max_run < 1:
+            return None
+        return max(2 * self.p.slots, int(self.p.max_run * self.view.n))
 
     def _candidate_lines(self, tr: _Transition) -> np.ndarray:
         """Input nodes the right run may play at ``a2`` (its line: ``s + (u - a2)``).
@@ -358,11 +411,11 @@ class LevelRefinement(LevelSearch):
         """How far apart the left line and right line ``s`` stay around a join at ``m``.
 
         The mean :func:`~mocapflow.stages.texture.neighbourhood.pose_distance`
-        (metres) between the left line's node ``L(u) = left_end + (u - b1)`` and
-        the right line's ``R_s(u) = s + (u - a2)`` over the output positions ``u``
-        within ``±POSE_SPAN_FRAMES`` of ``m`` where both are inside the input:
-        the frames a 15-frame patch around the join mixes from the two lines
-        (0 when they are one line).
+        (RMS over joints of the 6-D rotations) between the left line's node
+        ``L(u) = left_end + (u - b1)`` and the right line's ``R_s(u) = s + (u - a2)``
+        over the output positions ``u`` within ``±SearchParams.pose_span`` of ``m``
+        where both are inside the input: the frames a 15-frame patch around the join
+        mixes from the two lines (0 when they are one line).
 
         Parameters
         ----------
@@ -373,9 +426,9 @@ class LevelRefinement(LevelSearch):
         Returns
         -------
         (r,) float ndarray
-            ``inf`` where fewer than ``POSE_SPAN_FRAMES + 1`` positions compare.
+            ``inf`` where fewer than ``pose_span + 1`` positions compare.
         """
-        view, h = self.view, POSE_SPAN_FRAMES
+        view, h = self.view, self.p.pose_span
         n = view.n
         m, s = np.asarray(m, dtype=np.int64), np.asarray(s, dtype=np.int64)
         if m.size == 0:
@@ -504,7 +557,12 @@ class LevelRefinement(LevelSearch):
         c = self.cost_rows(ov, m, coherence=False, strict=strict, allow_stall=allow_stall)
         c = np.where(np.isnan(c), 0.0, c)
         if self._pose_term(tr):
-            c = c + self.p.pose_weight * self.line_costs(tr, m, ss)
+            # a join whose lines compare over too few frames (near the input's ends) is
+            # not ruled out by the pose term: it costs the largest pose term of the rest
+            pc = self.line_costs(tr, m, ss)
+            fin = np.isfinite(pc)
+            pc = np.where(fin, pc, pc[fin].max() if fin.any() else 0.0)
+            c = c + self.p.pose_weight * pc
         ok = np.isfinite(c)
         m, ss = m[ok].tolist(), ss[ok].tolist()
         keys = [s_ * 1_000_000 + mm for mm, s_ in zip(m, ss)]

@@ -114,12 +114,13 @@ class SearchParams:
     variety : float
         The knob of novelty, 0–1: at the coarsest level alternatives are drawn
         within the ``variety`` quantile of the input's own best-jump costs
-        (0: only the forced jumps; 0.3 default; 1: the thesis' plain draw
+        (0: only the forced jumps; 0.45 default; 1: the thesis' plain draw
         among the ``k_best``).
     max_run : float
-        Longest verbatim run at the coarsest level, as a fraction of the input
-        (0.3; refinement may lengthen it by a few frames); ``0`` or ``>= 1``
-        disables.
+        Longest verbatim run, as a fraction of the input (0.25): kept at the
+        coarsest level (one node of margin) and by the finer levels' joins
+        (:meth:`~mocapflow.stages.texture.refine.LevelRefinement._join_windows`,
+        ``_rejoin``); ``0`` or ``>= 1`` disables.
     usage_weight : float
         Windows (``variety`` window, at least one cost unit) added to a
         candidate's rank per time the input it would play next is already in
@@ -131,23 +132,42 @@ class SearchParams:
         Grow the two fronts of a gap alternately, one node each (the thesis);
         False: the left front fills its half first, then the right front.
     pose_weight : float
-        At the finest level a join also costs ``pose_weight`` × how far apart (mean
-        RMS joint distance, metres) the two lines it joins stay within ±7 frames
-        (:meth:`~mocapflow.stages.texture.refine.LevelRefinement.line_costs`), so
-        a transition joins lines whose poses AND velocities match around it and
-        smoothing has little to bridge.  0 (default): the thesis' velocity
-        neighbourhood only.  Measured (``benchmarks/texture.py``, 1,024 frames,
-        seeds 0-4, 0 -> 0.5 with ``pose_lines`` 4): GANimator local diversity
-        salsa 0.157 -> 0.104, walk 0.211 -> 0.160, figure-8 walk 0.175 -> 0.131
-        (1.01 / 1.21 / 0.78 × the GenMM baseline's), jerk and skate about equal,
-        but global diversity 0.165 -> 0.103, 0.192 -> 0.135, 0.164 -> 0.119 (below
-        the baseline's 0.108 / 0.162 / 0.210: the output is closer to a piecewise
-        copy), the nearest lines are reused (a 1-s block of the figure-8 walk
-        played 14 times in 1,024 graph-path frames) and the ±7 frames are not
-        scaled with the rate (120 fps seams over the input's jerk), so it is off.
+        At the finest level a join also costs ``pose_weight`` × how far apart in pose
+        (:func:`~mocapflow.stages.texture.neighbourhood.pose_distance`: RMS over the
+        joints of their 6-D rotations) the two lines it joins stay within
+        ``±pose_span`` frames (``LevelRefinement.line_costs`` in
+        :mod:`~mocapflow.stages.texture.refine`), so a transition joins lines whose
+        poses AND velocities match around it and smoothing has little to bridge.  Rotations,
+        not positions: a leaf joint's turn moves no joint position, yet it is a pose
+        (the walk ``cmu_131_02``'s right thumb jitters, and gave 52 % of its seams'
+        6-D discontinuity while the position-based search could not see it).  0: the
+        thesis' velocity neighbourhood only.
+
+        The defaults (0.03, with ``pose_lines`` 2, ``variety`` 0.45, ``max_run`` 0.25,
+        ``usage_weight`` 0.5 and the synth stage's ``transition_blend`` 0.33 s) were
+        the best of a random search of about 490 settings of these six (3 inputs ×
+        seeds 0-2, 1,024 frames at 30 fps; ``benchmarks/texture_defaults.py`` scores
+        any): the lowest local diversity among the settings whose global diversity
+        is at least the GenMM baseline's on all three inputs.  A stronger pose term
+        lowers local diversity and global diversity with it: ``texture_defaults.py
+        --setting '{"pose_weight": 0.2, "pose_lines": 4, "variety": 0.3, "max_run":
+        0.3, "usage_weight": 0.5}'`` gives local 0.090 / 0.115 / 0.110 on salsa /
+        walk / figure-8 walk (the baseline's 0.109 / 0.129 / 0.168) but global 0.085 /
+        0.105 / 0.102 (its 0.117 / 0.157 / 0.204); no setting had both local ≤ 1.2 ×
+        and global ≥ the baseline's on all three.  ``benchmarks/texture.py --seeds 5``
+        (1,024 frames from the first 512 input frames), the previous default values
+        (0, 4, 0.3, 0.3, 0.5, no cross-fade; on this code) -> these: global
+        0.164 -> 0.144, 0.185 -> 0.182, 0.167 -> 0.210 (baseline 0.108, 0.162,
+        0.210); local 0.158 -> 0.157, 0.217 -> 0.193, 0.180 -> 0.183 (baseline
+        0.104, 0.133, 0.169); jerk and skate ratios 0.94-1.02; coverage ≥ 0.98.
+    pose_span : int
+        Half span (finest frames) of the pose term's comparison of two lines
+        (:meth:`~mocapflow.stages.texture.refine.LevelRefinement.line_costs`): the half
+        window of the local patch metric, 7 frames at 30 fps; the ``synth`` stage scales
+        it with the synthesis rate (the same ¼ s at any rate).
     pose_lines : int
         With ``pose_weight``, each finest-level join also tries the ``pose_lines``
-        input lines nearest the left line in that sense (4)
+        input lines nearest the left line in that sense (2)
         (:meth:`~mocapflow.stages.texture.refine.LevelRefinement._pose_lines`),
         beside the line the coarser levels drew (0: only that line).
     """
@@ -160,13 +180,14 @@ class SearchParams:
     tolerance: float = 0.5
     meeting_window: int = 4
     coherence: float = 0.25
-    variety: float = 0.3
-    max_run: float = 0.3
+    variety: float = 0.45
+    max_run: float = 0.25
     usage_weight: float = 0.5
     relocate: int = 6
     alternate: bool = True
-    pose_weight: float = 0.0
-    pose_lines: int = 4
+    pose_weight: float = 0.03
+    pose_span: int = 7
+    pose_lines: int = 2
 
 
 def ahead_usage(counts: np.ndarray, span: int, side: int) -> np.ndarray:

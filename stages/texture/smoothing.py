@@ -16,6 +16,10 @@ sign-aligned, weighted sum, normalised) and on the root features; ``k`` widens
 by one per failing test until no discontinuity remains (or ``max_widening`` is
 reached).
 
+Before the test, :func:`transition_blend` (an addition) cross-fades each seam between
+the two input lines it joins; the jerk test then covers the whole fade
+(``jerk_reach``).
+
 Every frame count above is at 30 fps (:data:`SMOOTHING_RATE`, the thesis'
 rate); at a higher synthesis rate each scales by ``rate / 30`` (the Gaussian
 becomes a sampled one of the same width in seconds), so the smoothing and the
@@ -49,6 +53,7 @@ __all__ = [
     "gaussian_taps",
     "rate_scale",
     "seam_test",
+    "transition_blend",
 ]
 
 #: Frame rate at which the frame counts of the smoothing are stated (the thesis' 30
@@ -172,6 +177,113 @@ def _window(L: int, centre: float, inner: float, cyclic: bool, taper: float = _T
     return 0.5 * (1.0 + np.cos(np.pi * x))
 
 
+def _cycloidal_ramp(x: np.ndarray) -> np.ndarray:
+    """C² ramp from 0 (x ≤ 0) to 1 (x ≥ 1): ``x − sin(2πx) / 2π`` (the cycloidal cam
+    profile: zero rate and acceleration at both ends, and the lowest peak jerk of the
+    usual C² ramps, 4π² ≈ 39.5 against the quintic smoothstep's 60)."""
+    x = np.clip(x, 0.0, 1.0)
+    return x - np.sin(2.0 * np.pi * x) / (2.0 * np.pi)
+
+
+def transition_blend(
+    rotations_in: np.ndarray,
+    features_in: np.ndarray,
+    source_index: np.ndarray,
+    seams: np.ndarray,
+    rate: float,
+    *,
+    duration: float,
+    constrained: list[int] | np.ndarray = (),
+    cyclic: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Cross-fade each seam between the two input lines it joins (an addition to §3.8).
+
+    At a seam between output frames ``t - 1`` and ``t`` (sources ``a = s[t-1]`` and
+    ``b = s[t]``) the output before the seam is faded towards the frames that lead
+    into ``b`` in the input (``b - 1, b - 2, …``) and the output after it starts from
+    the frames that follow ``a`` in the input (``a + 1, a + 2, …``), with the C² weight
+    :func:`_cycloidal_ramp` rising from 0 to 1 across the window.  Every blended frame is a
+    mix of two input frames at the same offset from the seam, so the motion keeps the
+    input's detail (a Gaussian pass low-passes it) and its windows stay close to the
+    input's own (GANimator's local diversity); the adaptive smoothing then treats only
+    the seams that still fail its test.
+
+    Parameters
+    ----------
+    rotations_in : (F, J, 4) float ndarray
+        Input local rotations (root heading removed).
+    features_in : (F, D) float ndarray
+        Input root features ``[yaw_rate, vx, vz, height, translations…]``.
+    source_index : (L,) int ndarray
+        Input frame copied into each output frame.
+    seams : (S,) int ndarray
+        Seams between ``t - 1`` and ``t`` (``t = 0``: the loop wrap), ascending.
+    rate : float
+        Frames per second of ``source_index``.
+    duration : float
+        Seconds of a whole cross-fade (half before the seam, half after); shortened
+        where the input has no frames to continue a line, to half the distance to the
+        next seam, and so that no constrained frame is blended.  0 disables.
+    constrained : sequence of int
+        Output frames left as copied.
+    cyclic : bool
+        Loop mode (windows wrap around the output).
+
+    Returns
+    -------
+    rotations : (L, J, 4) float ndarray
+    features : (L, D) float ndarray
+    lines : (L, 2) int ndarray
+        The two input frames mixed at each output frame (both ``s[t]`` where no
+        cross-fade reaches).
+    weight : (L,) float ndarray
+        Weight of ``lines[:, 1]`` (0 where no cross-fade reaches).
+    """
+    src = np.asarray(source_index, dtype=np.int64)
+    L, F = src.size, rotations_in.shape[0]
+    rot = rotations_in[src].copy()
+    feat = features_in[src].copy()
+    lines = np.stack([src, src], axis=1)
+    weight = np.zeros(L)
+    seams = np.sort(np.asarray(seams, dtype=np.int64))
+    half = int(round(0.5 * duration * rate))
+    if half < 1 or seams.size == 0:
+        return rot, feat, lines, weight
+    cons = np.sort(np.asarray(constrained, dtype=np.int64))
+    S = seams.size
+    for n, t in enumerate(seams):
+        if cyclic:
+            gap_prev = (t - seams[n - 1]) % L or L
+            gap_next = (seams[(n + 1) % S] - t) % L or L
+        else:
+            gap_prev = t - seams[n - 1] if n else t
+            gap_next = seams[n + 1] - t if n + 1 < S else L - t
+        a, b = src[t - 1], src[t]
+        before = min(half, int(b), gap_prev // 2 if (cyclic or n) else gap_prev)
+        after = min(half, int(F - 1 - a), gap_next // 2 if (cyclic or n + 1 < S) else gap_next)
+        if cons.size:  # constrained frames keep their copies: the window stops short of them
+            d = (t - cons) % L if cyclic else t - cons
+            d_before = d[d >= 1] if not cyclic else d[(d >= 1) & (d <= L // 2)]
+            if d_before.size:
+                before = min(before, int(d_before.min()) - 1)
+            d = (cons - t) % L if cyclic else cons - t
+            d_after = d[d >= 0] if not cyclic else d[d <= L // 2]
+            if d_after.size:
+                after = min(after, int(d_after.min()))
+        if before + after < 2:
+            continue
+        u = np.arange(-before, after)  # offsets from the seam: frames t + u
+        w = _cycloidal_ramp((u + before + 0.5) / (before + after))
+        f = t + u
+        f = np.mod(f, L) if cyclic else f
+        line_a = np.where(u < 0, src[f], a + 1 + u)  # the line before the seam, continued
+        line_b = np.where(u < 0, b + u, src[f])  # the line after it, led into
+        rot[f] = _blend_quaternions(rotations_in[line_a], rotations_in[line_b], w)
+        feat[f] = (1.0 - w[:, None]) * features_in[line_a] + w[:, None] * features_in[line_b]
+        lines[f, 0], lines[f, 1], weight[f] = line_a, line_b, w
+    return rot, feat, lines, weight
+
+
 def seam_test(
     skeleton,
     rotations: np.ndarray,
@@ -184,6 +296,7 @@ def seam_test(
     accel_floor: float = 0.0,
     reference: np.ndarray | None = None,
     jerk_limit: float | None = None,
+    jerk_reach: int = 1,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Acceleration test at each seam.
 
@@ -208,6 +321,11 @@ def seam_test(
     jerk_limit : float, optional
         Largest mean joint jerk (m/s³) allowed at the three frames (at 30 fps)
         whose jerk stencil spans the seam; a seam above it fails as well.
+    jerk_reach : int
+        Frames (at 30 fps) on each side of the seam whose jerk is tested: 1, the
+        three frames above; more when the seam was cross-faded
+        (:func:`transition_blend`), to cover the fade (at most the test window's
+        ``_HALF - 2``); scaled with the rate as every frame count here.
 
     Returns
     -------
@@ -259,8 +377,9 @@ def seam_test(
         j = pos[:, 3:] - 3 * pos[:, 2:-1] + 3 * pos[:, 1:-2] - pos[:, :-3]
         j = np.sqrt(_row_sum(j * j)[..., 0]).mean(-1) * rate**3  # local frame f = index + 1
         j_ok = ok[:, 3:] & ok[:, :-3]
-        m = int(round(r)) - 1  # frames i-1, i, i+1 at 30 fps, widened with the rate
-        jerk = np.where(j_ok, j, np.nan)[:, i - 2 - m : i + 1 + m]
+        # frames i-R … i+R: R = 1 at 30 fps (i-1, i, i+1), widened with the rate and reach
+        R = min(max(int(jerk_reach), 1) * int(round(r)), half - 2)
+        jerk = np.where(j_ok, j, np.nan)[:, i - 1 - R : i + R]
         with np.errstate(invalid="ignore"):
             passed &= ~(np.nanmax(np.nan_to_num(jerk, nan=0.0), axis=1) > jerk_limit)
     return passed, seam_acc, ref_acc
@@ -328,6 +447,7 @@ def adaptive_smoothing(
     accel_floor: float = 0.0,
     max_widening: int = 12,
     jerk_limit: float | None = None,
+    jerk_reach: int = 1,
 ) -> SmoothingResult:
     """Smooth every seam that fails the acceleration test, widening until it passes.
 
@@ -355,6 +475,8 @@ def adaptive_smoothing(
         Largest ``k`` (passes; pass ``k`` smooths ``±k`` frames at 30 fps).
     jerk_limit : float, optional
         Seams whose jerk exceeds this (m/s³) fail too (see :func:`seam_test`).
+    jerk_reach : int
+        Frames (at 30 fps) each side of a seam whose jerk is tested (:func:`seam_test`).
 
     Returns
     -------
@@ -380,6 +502,7 @@ def adaptive_smoothing(
         accel_tolerance=accel_tolerance,
         accel_floor=accel_floor,
         jerk_limit=jerk_limit,
+        jerk_reach=jerk_reach,
     )
     if pinned:  # the whole track before a pass (else only the frames it smooths)
         before_rot, before_feat = rot.copy(), feat.copy()
@@ -427,6 +550,7 @@ def adaptive_smoothing(
                 accel_floor=accel_floor,
                 reference=ref[again],
                 jerk_limit=jerk_limit,
+        jerk_reach=jerk_reach,
             )
             passed, sa = passed.copy(), sa.copy()
             passed[again], sa[again] = p2, s2

@@ -68,7 +68,7 @@ from mocapflow.stages.texture.graph import (
 )
 from mocapflow.stages.texture.neighbourhood import LevelView, level_view, window_cost
 from mocapflow.stages.texture.pyramid import Pyramid, PyramidLevel
-from mocapflow.stages.texture.refine import LevelRefinement
+from mocapflow.stages.texture.refine import POSE_SPAN_FRAMES, LevelRefinement
 from mocapflow.stages.texture.root import PathCurve
 from mocapflow.stages.texture.search import (
     LevelResult,
@@ -77,6 +77,7 @@ from mocapflow.stages.texture.search import (
     SynthesisError,
     gaps_of,
 )
+from mocapflow.stages.texture.smoothing import rate_scale
 
 __all__ = [
     "ConstraintError",
@@ -554,16 +555,17 @@ def synth(
     finer_weight: float = 1.0,
     candidate_range: int = 4,
     k_best: int = 3,
-    variety: float = 0.3,
-    max_run: float = 0.3,
+    variety: float = 0.45,
+    max_run: float = 0.25,
     usage_weight: float = 0.5,
-    pose_weight: float = 0.0,
-    pose_lines: int = 4,
+    pose_weight: float = 0.03,
+    pose_lines: int = 2,
     tolerance: float = 0.5,
     meeting_window: int = 4,
     graph_threshold: float = 0.1,
     graph_slack: float = 0.5,
     smoothing: bool = True,
+    transition_blend: float = 0.33,
     smooth_levels: Literal["finest", "every"] = "finest",
     gaussian_width: int = 5,
     accel_tolerance: float = 1.0,
@@ -624,7 +626,7 @@ def synth(
     k_best : int
         Random choice among the k best at all but the finest level (2–3).
     variety : float
-        How new the arrangement is, 0–1 (default 0.3).  At the coarsest level
+        How new the arrangement is, 0–1 (default 0.45).  At the coarsest level
         jumps are drawn among the k best whose cost lies within the
         ``variety`` quantile of the input's own best-jump costs (about the
         share of moments a drawn jump may leave): 0 keeps only the jumps the
@@ -634,12 +636,14 @@ def synth(
         way (window: the quantile of the transition graph's own best-jump costs,
         :func:`~mocapflow.stages.texture.graph.jump_window`).
     max_run : float
-        Longest verbatim run as a fraction of the input (0.3): a run that long
-        must jump, where the jump fits best among its last positions.  0 (or
-        >= 1) disables.  graph_path keeps it in its search (less the few nodes
-        refinement may add; where the graph has too few edges for it, nodes without
-        a jump edge get their cheapest jump as one, and only where that is not
-        enough the shortest limit it can keep applies: raise ``graph_threshold``).
+        Longest verbatim run as a fraction of the input (0.25): a run that long
+        must jump, where the jump fits best among its last positions, and the finer
+        levels' joins keep it (``LevelRefinement._join_windows`` in
+        :mod:`~mocapflow.stages.texture.refine`).  0 (or >= 1) disables.  graph_path
+        keeps it in its search (less the few nodes refinement may add; where the graph
+        has too few edges for it, nodes without a jump edge get their cheapest jump as
+        one, and only where that is not enough the shortest limit it can keep applies:
+        raise ``graph_threshold``).
     usage_weight : float
         Preference for input material not used yet (coverage of the input): a
         candidate's rank rises by ``usage_weight`` draw windows per time the input
@@ -647,13 +651,14 @@ def synth(
         the same in graph_path's draw.  0 disables.
     pose_weight : float
         Finest-level joins also cost ``pose_weight`` × how far apart in pose the
-        two joined input lines stay around the seam (metres; 0, the thesis:
-        velocities only).  Raising it lowers local diversity and global diversity
-        together (measured in
-        :class:`~mocapflow.stages.texture.search.SearchParams`), so it is off.
+        two joined input lines stay around the seam (RMS over the joints of their
+        6-D rotations, leaves included; 0, the thesis: velocities only).  Raising it
+        lowers local diversity and global diversity together (measured in
+        :class:`~mocapflow.stages.texture.search.SearchParams`); the default 0.03
+        with ``variety`` 0.45 and ``max_run`` 0.25 is the balance measured there.
     pose_lines : int
         With ``pose_weight``, nearest input lines (in that pose sense) tried at each
-        finest-level join beside the one the coarser levels drew (4).
+        finest-level join beside the one the coarser levels drew (2).
     tolerance : float
         Cost units within which the k best joins are drawn below the coarsest level.
     meeting_window : int
@@ -666,6 +671,15 @@ def synth(
         DFS cost bound relative to the cheapest path.
     smoothing : bool
         Adaptive local smoothing (Moradoff §3.8).
+    transition_blend : float
+        Seconds of a cross-fade of every seam between the two input lines it joins,
+        before the adaptive smoothing (an addition to §3.8,
+        :func:`~mocapflow.stages.texture.smoothing.transition_blend`): each blended
+        frame mixes the frame that continues the left line with the frame that leads
+        into the right line, so the seam keeps the input's detail where a Gaussian
+        pass low-passes it, and only the seams that still fail the test are smoothed
+        (their jerk tested over the fade).  0: the thesis' smoothing alone.  Ignored
+        when ``smoothing`` is off.
     smooth_levels : {"finest", "every"}
         Levels smoothed: the finest only (the output motion), or, as the thesis,
         every level after its synthesis, in its own representation (joint rotations
@@ -737,6 +751,7 @@ def synth(
         candidate_range=candidate_range, k_best=k_best, tolerance=tolerance,
         meeting_window=meeting_window, variety=variety, max_run=max_run,
         usage_weight=usage_weight, pose_weight=pose_weight, pose_lines=pose_lines,
+        pose_span=max(1, round(POSE_SPAN_FRAMES * rate_scale(motion.rate))),
     )
     smooth_opts = dict(gaussian_width=gaussian_width, accel_tolerance=accel_tolerance,
                        max_widening=max_widening,
@@ -754,7 +769,8 @@ def synth(
     with ctx.timer("assemble"):
         out, assembly = assemble_motion(
             pyramid, motion, src, constraints=cons, loop=loop, curve=curve,
-            smoothing=smoothing, foot_ik=foot_ik, warn=ctx.warn, **smooth_opts,
+            smoothing=smoothing, transition_blend=transition_blend, foot_ik=foot_ik,
+            warn=ctx.warn, **smooth_opts,
         )
     out, assembly = _at_output_rate(out, assembly, motion.rate, source_rate, out_rate, cons,
                                     loop)

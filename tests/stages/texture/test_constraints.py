@@ -19,6 +19,7 @@ from mocapflow.pipeline import Context
 from mocapflow.stages.metrics import quality as M
 from mocapflow.stages.motion.ingest import ingest_bvh
 from mocapflow.stages.texture.pyramid import build_pyramid
+from mocapflow.stages.texture.search import SearchParams
 from mocapflow.stages.texture.synth import synth
 from tests.stages.texture.conftest import seeded_context
 
@@ -46,7 +47,16 @@ def salsa_runs(request, shared_data):
 def test_max_run_holds_with_constraints(salsa_runs):
     F, runs = salsa_runs
     longest = max(M.longest_verbatim_run(src) for src, _ in runs)
-    assert longest <= (0.3 + 0.05) * F  # max_run 0.3 plus 5 % of the input
+    assert longest <= (SearchParams().max_run + 0.05) * F, (longest, F)  # + 5 % of the input
+
+
+def test_finer_levels_keep_max_run(salsa_runs):
+    """The finer levels' joins keep ``max_run`` itself, not only the coarsest level:
+    before, a join moved later (or one that kept the left line through a short detour)
+    lengthened runs to 154 frames with ``max_run`` 0.22 (limit 123) on these takes."""
+    F, runs = salsa_runs
+    longest = max(M.longest_verbatim_run(src) for src, _ in runs)
+    assert longest <= SearchParams().max_run * F + 1, (longest, F)
 
 
 def test_every_reported_meeting_is_a_seam(salsa_runs):

@@ -51,7 +51,7 @@ def _two_fronts(s: LevelSearch, A: int, B: int, lo: int, hi: int, m0: int) -> np
 def test_meeting_minimises_the_summed_sequence_cost(pyr, A, B):
     """Known answer by brute force: every join position within the window and every
     input node there, scored by the whole gap's summed neighbourhood cost."""
-    s = _search(pyr, SearchParams(k_best=10_000))  # every node of each position competes
+    s = _search(pyr, SearchParams(k_best=10_000, max_run=0))  # every node competes; no run limit
     s.randomize = False  # take the cheapest (no seeded draw)
     lo, hi, m0, w = 10, 40, 25, s.p.meeting_window
     src0 = _two_fronts(s, A, B, lo, hi, m0)

@@ -72,13 +72,29 @@ def _skate_ratio(out, skate_in) -> float:
 
 
 def _steps(out) -> tuple[np.ndarray, np.ndarray]:
-    """Cyclic root steps: ground distance (m) and heading change (deg), ``t -> t + 1``,
-    the last one the wrap ``L - 1 -> 0``."""
+    """Cyclic root steps: ground distance (m) and signed heading change (deg), ``t -> t +
+    1``, the last one the wrap ``L - 1 -> 0``.  (Signed: the figure-8 starts at its
+    crossing, where the turn changes sides — e.g. -0.81, -0.00, +0.76 deg — and absolute
+    turns would make the wrap look like a dip.)"""
     g = out.root_position[:, [0, 2]]
     h, _ = heading_split(out.rotations[:, 0])
     dist = np.linalg.norm(np.roll(g, -1, axis=0) - g, axis=1)
-    turn = np.degrees(np.abs(np.angle(np.exp(1j * (np.roll(h, -1) - h)))))
+    turn = np.degrees(np.angle(np.exp(1j * (np.roll(h, -1) - h))))
     return dist, turn
+
+
+def _assert_ordinary_wrap(dist: np.ndarray, turn: np.ndarray) -> None:
+    """The wrap step (index -1) is the step its two neighbours give (their mean) within 1 cm
+    and 1 deg, and no rougher in that sense than the motion's roughest other step.
+
+    (Against the neighbours' mean, not the median of a few steps around it: along the
+    figure-8 the turn rate sweeps through extremes, e.g. -1.8, -4.0, [-4.5], -3.7, -2.6
+    deg, where a median is a poor guess of the next step; and not against the whole
+    motion's median: the path's curvature changes along it.)"""
+    for x, tol in ((dist, 0.01), (turn, 1.0)):
+        rough = np.abs(x - 0.5 * (np.roll(x, 1) + np.roll(x, -1)))  # cyclic: wrap at -1
+        assert rough[-1] <= tol, x[[-3, -2, -1, 0, 1]]
+        assert rough[-1] <= rough[:-1].max(), (rough[-1], rough[:-1].max())
 
 
 @pytest.fixture(scope="module")
@@ -96,13 +112,7 @@ def test_loop_on_closed_figure_eight_wraps_with_an_ordinary_step(loops):
         assert not warnings
         info = r["report"]["path"]
         assert info["laps"] == 1 and 0.75 <= info["pace"] <= 1.25
-        local = np.r_[-3, -2, 0, 1]  # the steps around the wrap (index -1)
-        assert abs(dist[-1] - np.median(dist[local])) <= 0.01, dist[local.tolist() + [-1]]
-        assert abs(turn[-1] - np.median(turn[local])) <= 1.0, turn[local.tolist() + [-1]]
-        ordinary_d = np.percentile(np.abs(dist[:-1] - np.median(dist)), 90)
-        ordinary_t = np.percentile(np.abs(turn[:-1] - np.median(turn)), 90)
-        assert abs(dist[-1] - np.median(dist)) <= ordinary_d
-        assert abs(turn[-1] - np.median(turn)) <= ordinary_t
+        _assert_ordinary_wrap(dist, turn)
 
 
 def test_loop_on_closed_figure_eight_stays_on_the_path_with_planted_feet(loops, skate_in):
@@ -151,9 +161,4 @@ def test_loop_exported_at_the_source_rate_wraps_with_an_ordinary_step(walk8):
     out = r["motion"]
     assert out.rate == 120.0 and out.n_frames == 4 * LENGTH  # the same duration, as a loop
     dist, turn = _steps(out)
-    local = np.r_[-3, -2, 0, 1]
-    assert abs(dist[-1] - np.median(dist[local])) <= 0.01, dist[local.tolist() + [-1]]
-    assert abs(turn[-1] - np.median(turn[local])) <= 1.0, turn[local.tolist() + [-1]]
-    for step in (dist, turn):
-        ordinary = np.percentile(np.abs(step[:-1] - np.median(step)), 90)
-        assert abs(step[-1] - np.median(step)) <= ordinary
+    _assert_ordinary_wrap(dist, turn)

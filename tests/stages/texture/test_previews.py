@@ -24,7 +24,7 @@ from tests.stages.texture.conftest import seeded_context
 
 RATE = 30.0
 CONSTRAINTS = [[20, 40], [100, 190]]  # input frames at the file's 120 fps, output at 30 fps
-PATH = [[0.0, 0.0], [0.0, 1.0]]
+PATH = [[0.0, 0.0], [0.0, 3.0]]
 VIDEO_STEP = 2
 
 
