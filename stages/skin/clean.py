@@ -119,6 +119,7 @@ from mocapflow.stages.skin.predict import (
     _chunks,
     _names,
     choose_reference_frame,
+    finite_rows,
     reference_pose,
 )
 from mocapflow.stages.skin.regress import REGRESSION_MIN_PREDICTORS, REGRESSION_PREDICTORS
@@ -206,11 +207,14 @@ def _smooth_runs(y: np.ndarray, starts: np.ndarray, stops: np.ndarray, lam: floa
     body = np.flatnonzero(~pad)  # the run samples, in order, in the padded array
     idx = src[body]
     out = y.copy()
-    for _ in range(iterations):
-        ext = out[src]
-        ext[pad] = 2 * out[anchor] - out[src[pad]]
+    mirror, at = src[pad], body - 2
+    for _ in range(iterations):  # np.take: the same rows as fancy indexing, faster
+        ext = np.take(out, src, axis=0)
+        ext[pad] = 2 * np.take(out, anchor, axis=0) - np.take(out, mirror, axis=0)
         d4 = ext[:-4] - 4 * ext[1:-3] + 6 * ext[2:-2] - 4 * ext[3:-1] + ext[4:]
-        out[idx] -= lam * d4[body - 2]
+        upd = np.take(out, idx, axis=0)
+        upd -= lam * np.take(d4, at, axis=0)
+        out[idx] = upd
     return out
 
 
@@ -348,7 +352,7 @@ class CleanError(ValueError):
 
 
 def _trajectory_count(positions: np.ndarray) -> int:
-    return int(np.isfinite(positions).all(-1).any(0).sum())
+    return int(finite_rows(positions).any(0).sum())
 
 
 def _check_params(positions: np.ndarray, *, alpha1: float, alpha2: float, variance: float,
@@ -439,7 +443,7 @@ def _pca_merge_rounds(
     ``mrep`` are updated in place.  Returns the merged positions ``(F, M, 3)``.
     """
     frags = markers.fragments
-    fvis = np.isfinite(frags).all(-1)  # (F, U), once: the fragments never change
+    fvis = finite_rows(frags)  # (F, U), once: the fragments never change
     models = None
     fill_cache: dict = {}  # the rounds' data differ only where fragments were merged
     for k in range(rounds):
@@ -493,7 +497,7 @@ def _fill_merge_rounds(
         left = np.flatnonzero(assigned < 0)
         if not len(left):
             break
-        waiting = np.isfinite(frags[:, left]).all(-1).any(1)
+        waiting = finite_rows(frags[:, left]).any(1)
         Xf, _ = fill_holes(X, surf, variance=variance, model=fill_model,
                            n_predictors=fill_predictors, frames=waiting, ctx=ctx)
         X, a2, rep = assign_fragments(
@@ -813,7 +817,7 @@ def clean(
 
 def _nearest_visible_pose(positions: np.ndarray, frame: int) -> np.ndarray:
     """``(M, 3)``: each marker where it is seen nearest in time to ``frame`` (NaN if never)."""
-    vis = np.isfinite(positions).all(-1)
+    vis = finite_rows(positions)
     dist = np.where(vis, np.abs(np.arange(len(positions)) - frame)[:, None], np.iinfo(np.int64).max)
     g = np.argmin(dist, axis=0)
     return positions[g, np.arange(positions.shape[1])]
@@ -846,12 +850,12 @@ def _clean_subject(markers: Markers, *, reference_frame: int | None, opts: dict[
                                    fill_model=o["fill_model"],
                                    fill_predictors=o["fill_predictors"],
                                    max_break=o["max_break"], ctx=ctx)
-    vis1 = np.isfinite(X).all(-1)
+    vis1 = finite_rows(X)
     with ctx.timer("fill"):
         Xf, finfo = _fill(X, surf, fill=fill, variance=o["variance"],
                           fill_model=o["fill_model"], fill_predictors=o["fill_predictors"],
                           ctx=ctx)
-    vis2 = np.isfinite(Xf).all(-1)
+    vis2 = finite_rows(Xf)
     status = _status(markers.visible, vis1, vis2)
     with ctx.timer("smooth"):
         Xs = smooth_local(Xf, surf, smooth_lambda=o["smooth_lambda"],

@@ -105,6 +105,7 @@ from mocapflow.stages.skin.predict import (
     MIN_NEIGHBOURS,
     RIGID_ANCHOR,
     _chunks,
+    finite_rows,
     rigid_estimates,
 )
 from mocapflow.stages.skin.regress import (
@@ -165,8 +166,8 @@ def _interpolate_interior(X: np.ndarray, measured: np.ndarray, holes: np.ndarray
                           support: int) -> int:
     """Cubic interpolation (in place) of interior holes still empty, from up to
     ``support`` measured samples on each side; returns the samples filled."""
-    obs = np.isfinite(measured).all(-1)
-    todo = holes & ~np.isfinite(X).all(-1)
+    obs = finite_rows(measured)
+    todo = holes & ~finite_rows(X)
     n = 0
     for m in np.flatnonzero(todo.any(0)):
         d = np.diff(np.concatenate([[0], todo[:, m].astype(np.int8), [0]]))
@@ -236,7 +237,7 @@ def _estimate_chunk(item: tuple) -> list[tuple[np.ndarray, ...]]:
 def _changed_samples(X: np.ndarray, todo: np.ndarray, X0: np.ndarray,
                      todo0: np.ndarray) -> np.ndarray:
     """``(F, M)`` bool: samples whose value, presence or target flag differ."""
-    a, b = np.isfinite(X).all(-1), np.isfinite(X0).all(-1)
+    a, b = finite_rows(X), finite_rows(X0)
     with np.errstate(invalid="ignore"):
         same = (X == X0).all(-1)
     return (a != b) | (a & ~same) | (todo != todo0)
@@ -360,7 +361,7 @@ def fill_holes(
     ctx = ctx or Context()
     X = positions.copy()
     F, M, _ = X.shape
-    obs = np.isfinite(X).all(-1)
+    obs = finite_rows(X)
     fillable, holes = _holes(obs, surface, frames)
     info: dict[str, Any] = {"filled_by_pass": [], "fillable": int(fillable.sum())}
     if not holes.any():
@@ -436,7 +437,7 @@ def _rigid_body_fill(positions: np.ndarray, holes: np.ndarray,
         Estimates at ``holes``, NaN elsewhere and where no 3 donors qualify.
     """
     F, M, _ = positions.shape
-    vis = np.isfinite(positions).all(-1)
+    vis = finite_rows(positions)
     out = np.full(positions.shape, np.nan)
     markers = np.flatnonzero(holes.any(0))
     src, tgt, anchor, frame, mark, wt = [], [], [], [], [], []
@@ -548,14 +549,14 @@ def fill_by_validated_blend(
         run[a:b, m] = r
     # the models that estimate the whole of a run are the ones its copies compare
     full = np.ones((len(BLEND_MODELS), len(runs)), dtype=bool)
-    reach = np.isfinite(est).all(-1) | ~holes[None]  # (K, F, M)
+    reach = finite_rows(est) | ~holes[None]  # (K, F, M)
     for r, (m, a, b) in enumerate(runs):
         full[:, r] = reach[:, a:b, m].all(1)
     errs, ok = _validation_errors(positions, holes, runs, surface, interpolate=interpolate,
                                   local=local, shifts=VALIDATION_SHIFTS[:n_shifts], ctx=ctx)
     wr = _blend_weights(_validation_mse(errs, ok, full))
     w = np.where(holes[None], wr[:, np.maximum(run, 0)], 0.0)  # (K, F, M)
-    have = np.isfinite(est).all(-1) & holes[None]  # (K, F, M)
+    have = finite_rows(est) & holes[None]  # (K, F, M)
     wf = np.where(have, w, 0.0)
     tot = wf.sum(0)
     blend = (np.nan_to_num(est) * wf[..., None]).sum(0) / np.maximum(tot, 1e-300)[..., None]
@@ -571,7 +572,7 @@ def _blend_members(X: np.ndarray, positions: np.ndarray, holes: np.ndarray,
                    surface: MarkerSurface, *, interpolate: int) -> np.ndarray:
     """``(K, F, M, 3)``: the estimates of :data:`BLEND_MODELS` at ``holes`` (NaN elsewhere
     and where a model cannot estimate), ``X`` being the local fill."""
-    low = whole_body_pca(X, np.isfinite(positions).all(-1), holes)
+    low = whole_body_pca(X, finite_rows(positions), holes)
     spl = np.full_like(positions, np.nan)
     _interpolate_interior(spl, positions, holes, interpolate)
     rig = _rigid_body_fill(positions, holes, surface.reference)
@@ -598,7 +599,7 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
         The copy has measured samples and the model estimated all of them.
     """
     F, M, _ = positions.shape
-    obs = np.isfinite(positions).all(-1)
+    obs = finite_rows(positions)
     n_runs = len(runs)
     K = len(BLEND_MODELS)
     mse = np.zeros((K, len(shifts), n_runs))
@@ -859,7 +860,7 @@ def fill_by_local_pca(
         Chunks for ``ctx.map``.
     ctx : Context
     """
-    todo0 = holes & ~np.isfinite(X).all(-1)
+    todo0 = holes & ~finite_rows(X)
     model_chunks = _pca_models(positions, surface, fillable, todo0, models,
                                after_regression=after_regression, variance=variance,
                                parts=parts, ctx=ctx)
@@ -874,7 +875,7 @@ def fill_by_local_pca(
         cache.clear()  # other models: nothing to re-use
         cache["models"] = [id(md) for md in all_models]
     for p in range(max_passes):
-        todo = holes & ~np.isfinite(X).all(-1)
+        todo = holes & ~finite_rows(X)
         if not todo.any():
             break
         key = (p, support, neighbour_weight)
@@ -897,7 +898,7 @@ def fill_by_local_pca(
             # holes no rigid neighbourhood can reach: the marker's own trajectory
             n_int = _interpolate_interior(X, positions, holes, interpolate)
             info["interpolated"] = n_int
-            fill_pass[(holes & np.isfinite(X).all(-1)) & (fill_pass == 0)] = -1
+            fill_pass[(holes & finite_rows(X)) & (fill_pass == 0)] = -1
             support = 0.0  # last resort: any 3 visible members
 
 
@@ -908,7 +909,7 @@ def fill_by_rigid_fit(X: np.ndarray, positions: np.ndarray, holes: np.ndarray,
     Only where the one-ring sees at least 3 observed markers (``observed``
     ``(F, M)``); writes into ``X`` (in place) and returns the samples filled.
     """
-    todo2 = holes & ~np.isfinite(X).all(-1)
+    todo2 = holes & ~finite_rows(X)
     nb = np.maximum(surface.neighbours, 0)
     seen = (observed[:, nb] & (surface.neighbours >= 0)[None]).sum(-1) >= MIN_NEIGHBOURS
     f2, m2 = np.nonzero(todo2 & seen)

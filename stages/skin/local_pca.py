@@ -20,6 +20,7 @@ from mocapflow.stages.skin.predict import (
     _apply,
     _apply_inv,
     _third_anchor,
+    finite_rows,
     gather_samples,
 )
 
@@ -80,6 +81,31 @@ class LocalPCA:
     n_train: int
 
 
+def _complete_rows(X: np.ndarray, frames: np.ndarray, members: np.ndarray) -> np.ndarray:
+    """``X[frames][:, members]``: the same values in the same memory layout, gathered
+    without copying every marker of ``frames`` first.
+
+    The layout is that of a C-ordered ``(n, L, 3)`` array seen as ``(L, n, 3)``
+    (strides ``(24, 24 L, 8)``), whatever the layout of ``X``; the rigid fit and
+    the local coordinates computed from it round by that layout, so it is kept.
+
+    Parameters
+    ----------
+    X : (F, M, 3) float ndarray
+    frames : (L,) int ndarray
+    members : (n,) int ndarray
+
+    Returns
+    -------
+    (L, n, 3) float ndarray
+    """
+    if X.flags.c_contiguous:
+        Y = gather_samples(X, frames[None, :], members[:, None])  # (n, L, 3)
+    else:  # X[:, cols] (a column selection) is C-contiguous seen as (M, F, 3)
+        Y = gather_samples(X.transpose(1, 0, 2), members[:, None], frames[None, :])
+    return Y.transpose(1, 0, 2)
+
+
 def train_local_pca(
     X: np.ndarray,
     marker: int,
@@ -138,7 +164,7 @@ def train_local_pca(
     members = np.concatenate([[marker], neighbours]).astype(np.int64)
     mw = np.concatenate([[1.0], np.ones(len(neighbours)) if weights is None else weights])
     ring, ring_w = members, mw
-    vis = np.isfinite(X[:, members]).all(-1)  # (F, n)
+    vis = finite_rows(X[:, members])  # (F, n)
     kind = "pca"
     complete = vis.all(1)
     while (complete.sum() < max(min_frames, frames_per_coordinate * 3 * len(members))
@@ -163,7 +189,7 @@ def train_local_pca(
     ref_local = (reference[members] - origin) @ frame.T
     if len(idx) > max_frames:
         idx = idx[np.linspace(0, len(idx) - 1, max_frames).round().astype(int)]
-    Xt = X[idx][:, members]  # (its memory layout sets the fit's rounding)
+    Xt = _complete_rows(X, idx, members)
     R, t = absolute_orientation_batch(np.broadcast_to(ref_local, Xt.shape), Xt,
                                       weights=np.broadcast_to(mw, Xt.shape[:2]))
     Z = _apply_inv(R, t, Xt).reshape(len(idx), 3 * n)  # P&H Eq. 5, in the local frame
@@ -275,7 +301,7 @@ def model_estimates_batch(
     for i, md in enumerate(models):
         n = len(md.members)
         mem[i, :n], real[i, :n], mw[i, :n], mean[i, :n] = md.members, True, md.weights, md.mean
-    vis_all = np.isfinite(X).all(-1)
+    vis_all = finite_rows(X)
     vis = vis_all[:, mem] & real[None]  # (F, m, n)
     tgt = targets[:, mem] & real[None] & ~vis
     if masks is not None:

@@ -34,6 +34,7 @@ from mocapflow.stages.skin.predict import (
     MIN_NEIGHBOURS,
     RIGID_ANCHOR,
     _predict_parallel,
+    finite_rows,
     gather_samples,
     local_targets,
 )
@@ -406,14 +407,14 @@ def continue_breaks(
     F, U = fragments.shape[:2]
     M = X.shape[1]
     rigidity = np.where(neighbours >= 0, 1.0, 0.0) if rigidity is None else rigidity
-    fvis = np.isfinite(fragments).all(-1) if visible is None else visible
+    fvis = finite_rows(fragments) if visible is None else visible
     n_vis = fvis.sum(0)
     first = np.argmax(fvis, 0)
     last = F - 1 - np.argmax(fvis[::-1], 0)
     run = (n_vis > 0) & (last - first + 1 == n_vis)
     usable = np.isfinite(eps1)
     steps = np.arange(1, max_gap + 1)
-    avail = np.isfinite(X).all(-1)  # kept up to date with the merges below
+    avail = finite_rows(X)  # kept up to date with the merges below
     done: list[tuple[int, int, float]] = []
     while True:
         todo = np.flatnonzero(run & (assigned < 0))
@@ -664,7 +665,7 @@ def _blind_rival(frag: np.ndarray, T: np.ndarray, v: dict[str, Any], free: np.nd
     if index_all is not None and _is_run(T):
         seen = index_all.n_predicted[T[-1] + 1, others] - index_all.n_predicted[T[0], others]
     else:
-        seen = np.isfinite(E_all[T[:, None], others[None]]).all(-1).sum(0)
+        seen = finite_rows(E_all[T[:, None], others[None]]).sum(0)
     blind = others[seen < max(1, int(np.ceil(0.5 * len(T))))]
     with np.errstate(invalid="ignore"):
         D = np.linalg.norm(reference[blind] - reference[m], axis=-1)
@@ -690,8 +691,8 @@ def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarr
     Rejections go to ``run.verdict`` (a new ambiguity also to ``run.conflicts``);
     returns the claims ``{marker: [(mean distance, fragment, verdict), ...]}``.
     """
-    avail = np.isfinite(run.X).all(-1)
-    index = PredictionIndex(avail, np.isfinite(E).all(-1))
+    avail = finite_rows(run.X)
+    index = PredictionIndex(avail, finite_rows(E))
     index_all = index if E_all is E else None  # built when a verdict first needs it
     unmerged = run.visible & (run.assigned < 0)[None]  # (F, U)
     n_unmerged = None  # its cumulative counts, built when a verdict first needs them
@@ -707,7 +708,7 @@ def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarr
                             near_ratio=near_ratio)
         if "marker" in v:
             if index_all is None:
-                index_all = PredictionIndex(avail, np.isfinite(E_all).all(-1))
+                index_all = PredictionIndex(avail, finite_rows(E_all))
             v = _blind_rival(run.fragments[T, u], T, v, free, E_all, run.reference, run.labels,
                              index_all)
         if "marker" in v:
@@ -959,7 +960,7 @@ def merge_fragments(
     max_gap = bridge_frames(rate)
     F = positions.shape[0]
     U = fragments.shape[1]
-    fvis = np.isfinite(fragments).all(-1)
+    fvis = finite_rows(fragments)
     dbar, eps1, eps2 = _tolerances(surface, alpha1, alpha2)
     run = _MergeRun(
         X=positions.copy(), fragments=fragments,
@@ -1221,7 +1222,7 @@ def assign_fragments(
     """
     F, U = fragments.shape[:2]
     X = positions.copy()
-    fvis = np.isfinite(fragments).all(-1)
+    fvis = finite_rows(fragments)
     frames_of = [np.flatnonzero(fvis[:, u]) for u in range(U)]
     flabels = list(fragment_labels or [f"*{u + 1}" for u in range(U)])
     labels = surface.labels
@@ -1255,7 +1256,7 @@ def assign_fragments(
 
     # the estimates are fixed: candidates are judged once, and only lose the markers
     # merges fill in their frames
-    avail = np.isfinite(X).all(-1)
+    avail = finite_rows(X)
     judged: dict[int, _Candidates] = {}
     for u in range(U):
         T = frames_of[u]
@@ -1266,7 +1267,7 @@ def assign_fragments(
         todo = [u for u in range(U) if assigned[u] < 0 and len(frames_of[u])]
         if not todo:
             break
-        avail = np.isfinite(X).all(-1)
+        avail = finite_rows(X)
         cand: dict[int, _Candidates] = {}
         for u in todo:
             c = judged[u]

@@ -46,6 +46,25 @@ def _apply_inv(R: np.ndarray, t: np.ndarray, x: np.ndarray) -> np.ndarray:
     return np.matmul(x - t[:, None], R)
 
 
+def finite_rows(X: np.ndarray) -> np.ndarray:
+    """``np.isfinite(X).all(-1)`` (the same booleans, in the same memory layout) of an
+    ``(..., 3)`` array, several times faster: the three coordinates' tests and-ed
+    instead of a reduction over a length-3 axis.
+
+    Parameters
+    ----------
+    X : (..., 3) float ndarray
+
+    Returns
+    -------
+    (...) bool ndarray
+    """
+    fin = np.isfinite(X)
+    if fin.shape[-1] != 3:
+        return fin.all(-1)
+    return fin[..., 0] & fin[..., 1] & fin[..., 2]
+
+
 def gather_samples(X: np.ndarray, frames: np.ndarray, markers: np.ndarray) -> np.ndarray:
     """``X[frames, markers]`` of an ``(F, M, 3)`` array for broadcastable integer index
     arrays (the same values).  A C-contiguous ``X`` is gathered as rows of
@@ -77,7 +96,7 @@ def choose_reference_frame(positions: np.ndarray) -> int:
     -------
     int
     """
-    return int(np.argmax(np.isfinite(positions).all(-1).sum(1)))
+    return int(np.argmax(finite_rows(positions).sum(1)))
 
 
 def reference_pose(
@@ -108,7 +127,7 @@ def reference_pose(
     unrecoverable : (K,) int ndarray
         Markers with no reference position.
     """
-    vis = np.isfinite(positions).all(-1)
+    vis = finite_rows(positions)
     ref = positions[frame].copy()
     carried: dict[int, int] = {}
     missing = np.flatnonzero(~vis[frame])
@@ -151,7 +170,7 @@ def _neighbour_fit(
     nbv = neighbours[markers] >= 0
     nb = np.maximum(neighbours[markers], 0)
     tgt = gather_samples(positions, frames[:, None], nb)
-    ok = nbv & (np.isfinite(tgt).all(-1) if available is None else available[frames[:, None], nb])
+    ok = nbv & (finite_rows(tgt) if available is None else available[frames[:, None], nb])
     w = ok * (1.0 if rigidity is None else rigidity[markers])
     R, t = absolute_orientation_batch(reference[nb], np.where(ok[..., None], tgt, np.nan),
                                       weights=w)
@@ -199,7 +218,7 @@ def local_targets(
         observed samples and for markers without reference position.
     """
     F, M, _ = positions.shape
-    vis = np.isfinite(positions).all(-1)
+    vis = finite_rows(positions)
     out = np.where(vis[..., None], np.nan, reference[None])
     if F < 2 or neighbours.shape[1] == 0:
         return out
@@ -217,7 +236,7 @@ def local_targets(
     Y[bf, bm] = y
     # per marker, for every frame: last / next boundary with a valid local coordinate
     frames = np.arange(F)
-    have = np.isfinite(Y).all(-1)
+    have = finite_rows(Y)
     last = np.where(have, frames[:, None], -1)
     last = np.maximum.accumulate(last, axis=0)
     nxt = np.where(have, frames[:, None], F)
@@ -283,7 +302,7 @@ def predict_missing(
     """
     F, M, _ = positions.shape
     X = positions.copy()
-    avail = np.isfinite(X).all(-1)
+    avail = finite_rows(X)
     est = np.full_like(X, np.nan)
     depth = np.where(avail, 0, -1)
     support = np.zeros(avail.shape)

@@ -14,7 +14,7 @@ import numpy as np
 
 from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
 from mocapflow.stages.motion.contacts import true_runs
-from mocapflow.stages.skin.predict import gather_samples
+from mocapflow.stages.skin.predict import finite_rows, gather_samples
 
 #: Predictors of the wide-neighbourhood regression: the marker's most rigid
 #: nearby markers (smallest spread of their distance to it) visible through a gap.
@@ -82,7 +82,7 @@ def predictor_ranking(
     """
     F = X.shape[0]
     sub = X[np.unique(np.linspace(0, F - 1, min(F, max_frames)).round().astype(int))]
-    vis = np.isfinite(sub).all(-1)
+    vis = finite_rows(sub)
     good = np.flatnonzero(np.isfinite(reference).all(1) & vis.any(0))
     need = max(3, int(min_frames * len(sub) / F))
     out = []
@@ -287,7 +287,7 @@ def regression_estimates(
     frames : (N,) int ndarray
     estimates : (N, 3) float ndarray
     """
-    vis = np.isfinite(X).all(-1) if visible is None else visible
+    vis = finite_rows(X) if visible is None else visible
     c = np.asarray(candidates, dtype=np.int64)
     span = max_train // 2 if max_span is None else max_span
     top = c[:2 * n_predictors]
@@ -347,7 +347,7 @@ def regression_estimates(
 def _regress_chunk(item: tuple) -> tuple[np.ndarray, ...]:
     X, markers, holes, reference, kw = item
     X = np.ascontiguousarray(X)  # regress_gap gathers from it as (F * M, 3) rows
-    vis = np.asfortranarray(np.isfinite(X).all(-1))  # one marker's frames contiguous
+    vis = np.asfortranarray(finite_rows(X))  # one marker's frames contiguous
     ranking = predictor_ranking(X, reference, markers, pool=kw.pop("pool"))
     fs, ms, es = [], [], []
     for m, cand in zip(markers, ranking):

@@ -53,14 +53,33 @@ def edge_stretch(positions: np.ndarray, pairs: np.ndarray, *, min_frames: int = 
         return out
     F = positions.shape[0]
     step = max(1, F // 400)  # 400 frames are plenty for a spread estimate
-    pos = positions[::step]
-    d = np.linalg.norm(pos[:, pairs[:, 0]] - pos[:, pairs[:, 1]], axis=-1)  # (F', P)
+    d = _pair_distances(positions[::step], pairs)  # (F', P)
     n = np.isfinite(d).sum(0)
     ok = n >= min_frames
     with _quiet():
         sd = np.nanstd(d[:, ok], axis=0)
     out[ok] = sd / np.maximum(_nanmedian_columns(d[:, ok]), 1e-12)
     return out
+
+
+def _pair_distances(positions: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(positions[:, pairs[:, 0]] - positions[:, pairs[:, 1]], axis=-1)``,
+    the same bits, about 2.5x faster: gathered per coordinate (planes of ``(F, P)``)
+    and summed in the norm's order, ``(x² + y²) + z²``.
+
+    Parameters
+    ----------
+    positions : (F, M, 3) float ndarray
+    pairs : (P, 2) int ndarray
+
+    Returns
+    -------
+    (F, P) float ndarray
+    """
+    planes = np.ascontiguousarray(positions.transpose(2, 0, 1))  # (3, F, M)
+    s = np.take(planes, pairs[:, 0], axis=2) - np.take(planes, pairs[:, 1], axis=2)
+    s *= s
+    return np.sqrt((s[0] + s[1]) + s[2])
 
 
 def _nanmedian_columns(d: np.ndarray) -> np.ndarray:

@@ -6,8 +6,10 @@
 contiguous frames from cumulative counts (``n_unmerged``); the regression's
 :func:`~mocapflow.stages.skin.regress.choose_predictors` runs on a column-major
 visibility array.  Each is checked here, bit for bit, against the plain form.
-(``X[idx][:, members]`` is not replaced: its result is not C-contiguous, and the
-rigid fit's sums over it round differently from a contiguous copy's.)
+(``X[idx][:, members]`` is not replaced by a contiguous gather: its result is not
+C-contiguous, and the rigid fit's sums over it round differently from a contiguous
+copy's; ``local_pca._complete_rows`` later gathers it in its own layout, see
+``test_clean_speed_pass3.py``.)
 """
 
 from __future__ import annotations
