@@ -145,10 +145,12 @@ class SearchParams:
 
         The defaults (0.03, with ``pose_lines`` 2, ``variety`` 0.45, ``max_run`` 0.25,
         ``usage_weight`` 0.5 and the synth stage's ``transition_blend`` 0.33 s) were
-        the best of a random search of about 490 settings of these six (3 inputs ×
-        seeds 0-2, 1,024 frames at 30 fps; ``benchmarks/texture_defaults.py`` scores
-        any): the lowest local diversity among the settings whose global diversity
-        is at least the GenMM baseline's on all three inputs.  A stronger pose term
+        the best of the last of several random searches (60 settings with ``max_run``
+        0.25; about 430 before it, on intermediate versions of this code, pointed
+        there), 3 inputs × seeds 0-2, 1,024 frames at 30 fps
+        (``benchmarks/texture_defaults.py`` scores any setting so): the lowest local
+        diversity among the settings whose global diversity is at least the GenMM
+        baseline's on all three inputs.  A stronger pose term
         lowers local diversity and global diversity with it: ``texture_defaults.py
         --setting '{"pose_weight": 0.2, "pose_lines": 4, "variety": 0.3, "max_run":
         0.3, "usage_weight": 0.5}'`` gives local 0.090 / 0.115 / 0.110 on salsa /
