@@ -10,9 +10,9 @@ so an absolute heading would only measure where the walk has turned to),
 output/input p99 jerk ratio
 overall and within ±5 frames of the seams, toe-skate ratio (input contact
 thresholds), longest verbatim run, number of seams.  Ours runs with the
-default search parameters (``variety`` 0.3: jumps drawn within the 30 %
-quantile of the input's own jump costs; ``max_run`` 0.3 of the input; foot IK)
-and with a higher ``variety``.
+default parameters (``variety`` 0.45: jumps drawn within the 45 % quantile of
+the input's own jump costs; ``max_run`` 0.25 of the input; seams cross-faded over
+0.33 s; foot IK) and with a higher ``variety``.
 
 Baselines, measured in the same run on the same inputs and seeds:
 
