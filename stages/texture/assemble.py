@@ -255,7 +255,7 @@ def _planted_velocity(pyramid, motion, rot, feat, lines, weight, loop, contacts)
     root[:, 1] = feat[:, 3]
     local = chain_kinematics(motion.skeleton, rot, root, toes, translations=trans)[0][..., [0, 2]]
     # the planted root offset is smoothed over 2 frames at 30 fps, the same time at any rate
-    return plant_feet(feat[:, 0], feat[:, 1:3], local, np.arange(L), disp,
+    return plant_feet(feat[:, 0], feat[:, 1:3], local, disp,
                       contact[lines[:, 0]] & contact[lines[:, 1]], cyclic=loop,
                       smooth=2.0 * rate_scale(motion.rate))
 

@@ -422,9 +422,8 @@ def plant_feet(
     yaw_rate: np.ndarray,
     velocity: np.ndarray,
     toe_local: np.ndarray,
-    source_index: np.ndarray,
-    source_displacement: np.ndarray,
-    source_contact: np.ndarray,
+    displacement: np.ndarray,
+    contact: np.ndarray,
     *,
     cyclic: bool = False,
     smooth: float = 2.0,
@@ -432,11 +431,10 @@ def plant_feet(
     """Root velocities that keep the stance toes moving as in the input.
 
     Smoothing a seam changes the pose; with the copied root velocity a toe in
-    contact would slide.  On every frame whose source frame (and the next
-    frame's source) has a toe in contact, the root velocity is chosen so that
-    the toe moves as it moved in the input at that source frame (the mean
-    correction when both toes are down).  Frames copied verbatim are left
-    unchanged.
+    contact would slide.  On every frame where a toe is in contact (and in the
+    next frame), the root velocity is chosen so that the toe moves as its
+    source moved in the input (the mean correction when both toes are down).
+    Frames copied verbatim are left unchanged.
 
     Parameters
     ----------
@@ -445,11 +443,12 @@ def plant_feet(
         Root velocities (heading frame) of the output.
     toe_local : (L, T, 2) float ndarray
         Output toe positions relative to the root, heading frame.
-    source_index : (L,) int ndarray
-    source_displacement : (F, T, 2) float ndarray
-        :func:`toe_displacements` of the input.
-    source_contact : (F, T) bool ndarray
-        Toe contacts of the input.
+    displacement : (L, T, 2) float ndarray
+        Per output frame, the toe displacement of its source in the input
+        (:func:`toe_displacements` of the input at the source frame; a mix of two
+        source frames where a seam is cross-faded).
+    contact : (L, T) bool ndarray
+        Per output frame, the input toe contacts of its source.
     cyclic : bool
     smooth : float
         Gaussian sigma (frames) applied to the accumulated root offset (the
@@ -459,13 +458,11 @@ def plant_feet(
     -------
     (L, 2) float ndarray
     """
-    src = np.asarray(source_index, dtype=np.int64)
-    nxt = np.roll(src, -1)
-    contact = source_contact[src] & source_contact[nxt]
+    contact = contact & np.roll(contact, -1, axis=0)
     if not cyclic:
         contact[-1] = False
     current = toe_displacements(yaw_rate, velocity, toe_local)
-    corr = source_displacement[src] - current  # (L, T, 2)
+    corr = displacement - current  # (L, T, 2)
     n = contact.sum(axis=1)
     mean = np.where(
         n[:, None] > 0,
