@@ -9,19 +9,9 @@ blended frames (float32 tolerance) on small random cases and on a tiny motion.
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-from tests.benchmarks.test_genmm_outputs import tiny_motion
-
-BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
-if str(BENCHMARKS) not in sys.path:
-    sys.path.insert(0, str(BENCHMARKS))
-
-from genmm_baseline import (  # noqa: E402
+from genmm_baseline import (  # (benchmarks/ on sys.path: conftest.py)
     GenMMParams,
     _blend,
     _normalised_nn,
@@ -35,6 +25,8 @@ from genmm_baseline import (  # noqa: E402
     nearest_released,
     unfold,
 )
+
+from tests.benchmarks.test_genmm_outputs import tiny_motion
 
 P = 5
 

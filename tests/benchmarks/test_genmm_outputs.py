@@ -8,25 +8,17 @@ patches, root speed kept, and GenMM's pyramid lengths.
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-from mocapflow.stages.metrics import quality as M
-from mocapflow.stages.motion.datatypes import Motion, Skeleton
-from mocapflow.stages.motion.rotations import quat_from_axis_angle
-
-BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
-if str(BENCHMARKS) not in sys.path:
-    sys.path.insert(0, str(BENCHMARKS))
-
-from genmm_baseline import (  # noqa: E402
+from genmm_baseline import (  # (benchmarks/ on sys.path: conftest.py)
     genmm_synthesize,
     pyramid_lengths,
     resample_linear,
 )
+
+from mocapflow.stages.metrics import quality as M
+from mocapflow.stages.motion.datatypes import Motion, Skeleton
+from mocapflow.stages.motion.rotations import quat_from_axis_angle
 
 F_IN, L_OUT = 150, 240
 
