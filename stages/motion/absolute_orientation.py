@@ -44,10 +44,13 @@ def _weighted_moments(
     w = np.where(ok, weights, 0.0)
     wsum = w.sum(-1)
     wn = w / np.where(wsum > 0, wsum, 1.0)[..., None]
-    P = np.where(ok[..., None], P, 0.0)
+    every = bool(ok.all())  # the common case: no row to zero (the same values)
+    if not every:
+        P = np.where(ok[..., None], P, 0.0)
     c = np.matmul(wn[:, None], P)  # (B, 1, 6) centroids
     P -= c
-    P[~ok] = 0.0
+    if not every:
+        P[~ok] = 0.0
     G = np.matmul((wn[..., None] * P).transpose(0, 2, 1), P)  # (B, 6, 6)
     return ok, c[:, 0, :3], c[:, 0, 3:], G[:, :3, 3:], G[:, :3, :3], G[:, 3:, 3:]
 
@@ -95,6 +98,8 @@ _MINOR_SIGN = np.array([(-1.0) ** (i + j) for i, j in _TRIU])
 _TRIU_I = np.array([i for i, _ in _TRIU])
 _TRIU_J = np.array([j for _, j in _TRIU])
 _TRIU_DIAG = np.flatnonzero(_TRIU_I == _TRIU_J)  # (0,0), (1,1), (2,2), (3,3)
+#: ``_TRIU_OF[j]``: the :data:`_TRIU` entries of column ``j`` of a symmetric 4×4 matrix.
+_TRIU_OF = np.array([[_TRIU.index((min(i, j), max(i, j))) for i in range(4)] for j in range(4)])
 
 
 def _cofactors(A: np.ndarray) -> np.ndarray:
@@ -113,13 +118,10 @@ def _adjugate_column(N: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, np.nda
     """
     A = N - lam[:, None, None] * np.eye(4)
     cof = _cofactors(A)
-    adj = np.empty_like(A)
-    adj[:, _TRIU_I, _TRIU_J] = cof
-    adj[:, _TRIU_J, _TRIU_I] = cof
     d = np.abs(cof[:, _TRIU_DIAG])
     col = np.argmax(d, axis=-1)
-    return (np.take_along_axis(adj, col[:, None, None], axis=2)[..., 0],
-            np.take_along_axis(d, col[:, None], axis=1)[:, 0])
+    rows = np.arange(len(A))
+    return cof[rows[:, None], _TRIU_OF[col]], d[rows, col]
 
 
 def _top_eigenvector(N: np.ndarray, bound: np.ndarray) -> np.ndarray:
@@ -186,10 +188,16 @@ def _horn_batch(
     n_ok = ok.sum(-1)
     tol2 = rel_tol**2
     degenerate = n_ok < 3
+    B = len(ok)
+    if not degenerate.any():  # the common case, without copies: the same values
+        degenerate = ~(_spread_ok(Css, tol2) & _spread_ok(Cxx, tol2))
+        if not degenerate.any():
+            bound = 0.5 * (np.trace(Css, axis1=1, axis2=2) + np.trace(Cxx, axis1=1, axis2=2))
+            R = quat_to_matrix(_top_eigenvector(_horn_matrix(M), bound))
+            return R, cx - np.matmul(R, cs[..., None])[..., 0], degenerate, n_ok
     live = np.flatnonzero(~degenerate)
     degenerate[live] = ~(_spread_ok(Css[live], tol2) & _spread_ok(Cxx[live], tol2))
     live = np.flatnonzero(~degenerate)
-    B = len(ok)
     R = np.full((B, 3, 3), np.nan)
     t = np.full((B, 3), np.nan)
     if len(live):

@@ -332,6 +332,46 @@ def test_horn_batch_matches_single_and_handles_nan():
     np.testing.assert_allclose(R_b[ok], Rs[ok], atol=0.05)
 
 
+
+def test_horn_batch_same_bits_with_or_without_unusable_sets():
+    """A batch whose sets are all usable (the common case in clean) is solved without the
+    masks and copies of the general path; every set's R and t must be the same bits as
+    when the batch also holds an unusable set (NaN rows, too few points, collinear)."""
+    rng = np.random.default_rng(3)
+    B, N = 64, 9
+    Rs = Q.quat_to_matrix(_rq(rng, B))
+    src = rng.standard_normal((B, N, 3)) * 0.1
+    tgt = np.einsum("bij,bnj->bni", Rs, src) + rng.standard_normal((B, 1, 3))
+    tgt += rng.normal(0, 1e-3, (B, N, 3))
+    w = rng.uniform(0.5, 2.0, (B, N))
+    R_fast, t_fast = AO.absolute_orientation_batch(src, tgt, weights=w)
+    bad_src = np.stack([src[0], np.outer(np.arange(N), [1.0, 2.0, 3.0]), src[1]])
+    bad_src[0, 2:] = np.nan  # too few points (2)
+    bad_src[2, 0] = np.nan  # one ignored row: usable, but the batch takes the masks
+    bad_tgt = np.stack([tgt[0], np.outer(np.arange(N), [1.0, 2.0, 3.0]) + 1.0, tgt[1]])
+    R_mix, t_mix = AO.absolute_orientation_batch(
+        np.concatenate([src, bad_src]), np.concatenate([tgt, bad_tgt]),
+        weights=np.concatenate([w, w[:3]]))
+    np.testing.assert_array_equal(R_mix[:B], R_fast)
+    np.testing.assert_array_equal(t_mix[:B], t_fast)
+    assert np.isnan(R_mix[B : B + 2]).all() and np.isfinite(R_mix[B + 2]).all()
+
+
+def test_adjugate_column_is_a_column_of_the_adjugate():
+    """:func:`_adjugate_column` reads one column of adj(N - λI) out of the ten cofactors of
+    the symmetric matrix: the column of the largest diagonal entry, as det · inverse."""
+    rng = np.random.default_rng(4)
+    M = rng.standard_normal((50, 3, 3))
+    N = AO._horn_matrix(M)
+    lam = rng.uniform(-1, 1, 50)
+    q, d = AO._adjugate_column(N, lam)
+    A = N - lam[:, None, None] * np.eye(4)
+    adj = np.linalg.inv(A) * np.linalg.det(A)[:, None, None]
+    col = np.argmax(np.abs(np.diagonal(adj, axis1=1, axis2=2)), axis=1)
+    np.testing.assert_allclose(q, adj[np.arange(50), :, col], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(d, np.abs(adj[np.arange(50), col, col]), rtol=1e-9)
+
+
 # --------------------------------------------------------------------------- resampling
 
 
