@@ -76,6 +76,15 @@ captures with ground truth, see ``benchmarks/clean.py``):
   :data:`~mocapflow.stages.skin.merge.ASSIGNMENT_RATIO` remains.  On the
   simulated 900-frame dynamic capture (seed 0) the merged share of the real
   fragments' samples goes from 76 % to 99.9 %, no wrong merge;
+* fragments left after that get a marker proposed by the markers' layout and are
+  judged again (``template_merge_rounds``; :func:`_template_merge_rounds`,
+  :func:`mocapflow.stages.skin.labelling.template_proposals`): where a limb lost
+  all its labels at once, every prediction of its markers comes from the trunk,
+  10-20 cm off, and none of its fragments passes the entry test; the layout of the
+  missing markers' estimates is matched to the fragments seen in a frame (ICP, a
+  thin-plate warp and a one-to-one assignment), the proposals are put in place, and
+  the fragments are judged with the usual tests against rigid predictions from
+  their neighbours, proposals included;
 * in the §4.3 average a neighbour's model weighs
   :data:`~mocapflow.stages.skin.fill.NEIGHBOUR_MODEL_WEIGHT` of the marker's own
   model (the paper: equal weights);
@@ -107,11 +116,18 @@ from mocapflow.stages.motion.datatypes import Markers
 from mocapflow.stages.skin.fill import fill_holes
 from mocapflow.stages.skin.labelling import (
     LabellingError,
+    fragment_frames,
     fragment_subjects,
     label_markers,
     subject_groups,
+    template_proposals,
 )
-from mocapflow.stages.skin.merge import BREAK_JUMP, assign_fragments, merge_fragments
+from mocapflow.stages.skin.merge import (
+    ASSIGN_MIN_FRAMES,
+    BREAK_JUMP,
+    assign_fragments,
+    merge_fragments,
+)
 from mocapflow.stages.skin.predict import (
     MIN_NEIGHBOURS,
     _apply,
@@ -121,6 +137,7 @@ from mocapflow.stages.skin.predict import (
     choose_reference_frame,
     finite_rows,
     reference_pose,
+    rigid_estimates,
 )
 from mocapflow.stages.skin.regress import REGRESSION_MIN_PREDICTORS, REGRESSION_PREDICTORS
 from mocapflow.stages.skin.surface import (
@@ -135,6 +152,7 @@ __all__ = [
     "MERGE_FILL_PASSES",
     "SMOOTH_FRAME_MIN_MEASURED",
     "STATUS",
+    "TEMPLATE_MIN_DURATION",
     "CleanError",
     "clean",
     "frame_weights",
@@ -164,6 +182,11 @@ SMOOTH_FRAME_MIN_MEASURED = 0.5
 
 #: Codes of the ``status`` array in the clean report.
 STATUS = {"missing": -1, "observed": 0, "merged": 1, "filled": 2}
+#: Fragments shorter than this (seconds; at least ``ASSIGN_MIN_FRAMES`` frames) are not
+#: judged by :func:`_template_merge_rounds`: its one wrong merge on the simulated
+#: captures (range of motion, labels stripped, seed 2) was a 4-frame fragment at
+#: 0.47 ε₁ from its prediction.
+TEMPLATE_MIN_DURATION = 0.1
 
 
 # --------------------------------------------------------------------------- smoothing (§4.4)
@@ -520,14 +543,88 @@ def _fill_merge_rounds(
     return X
 
 
+def _template_merge_rounds(
+    X: np.ndarray, assigned: np.ndarray, mrep: dict[str, Any], markers: Markers,
+    surf: MarkerSurface, *, alpha1: float, alpha2: float, variance: float, fill_model: str,
+    fill_predictors: int, rounds: int, max_break: float, ctx: Context,
+) -> np.ndarray:
+    """Step 2, beyond the paper: fragments left, proposed by the markers' layout and judged again.
+
+    Each round, on the fragments left that last at least :data:`TEMPLATE_MIN_DURATION`:
+    frames that together see them
+    (:func:`~mocapflow.stages.skin.labelling.fragment_frames`), the missing markers
+    estimated there by the hole filling (``fill_model``, those frames only), a
+    marker proposed for each fragment by matching the estimates' layout to the
+    fragments (:func:`~mocapflow.stages.skin.labelling.template_proposals`), the
+    proposals put in place (a sample two proposals claim stays out), and every
+    fragment left judged by the usual tests (:func:`merge_fragments` with given
+    predictions: ε₁ / ε₂, the mean, the ambiguity and rival tests) against the rigid
+    predictions (:func:`~mocapflow.stages.skin.predict.rigid_estimates`) of the
+    missing samples from their neighbours, the proposals among them; until a round
+    merges nothing.  A proposal is never merged on its own: a wrong one moves its
+    neighbours' predictions off, not onto, the fragments.  ``assigned`` and ``mrep``
+    are updated in place.  Returns the merged positions ``(F, M, 3)``.
+    """
+    frags = markers.fragments
+    rate = markers.rate or 0.0
+    shortest = max(ASSIGN_MIN_FRAMES, int(np.ceil(TEMPLATE_MIN_DURATION * rate)))
+    n_frames = finite_rows(frags).sum(0)
+    for k in range(rounds):
+        left = np.flatnonzero((assigned < 0) & (n_frames >= shortest))
+        if not len(left):
+            break
+        fl = frags[:, left]
+        fvis = finite_rows(fl)
+        frames = fragment_frames(fvis, min_frames=shortest)
+        if not len(frames):
+            break
+        at = np.zeros(len(X), dtype=bool)
+        at[frames] = True
+        Xf, _ = fill_holes(X, surf, variance=variance, model=fill_model,
+                           n_predictors=fill_predictors, frames=at, ctx=ctx)
+        proposal = template_proposals(X, fl, Xf, frames, min_frames=shortest)
+        if not (proposal >= 0).any():
+            break
+        Xt = X.copy()
+        claims = np.zeros(X.shape[:2], dtype=np.int64)
+        for u in np.flatnonzero(proposal >= 0):
+            claims[fvis[:, u], proposal[u]] += 1
+        for u in np.flatnonzero(proposal >= 0):
+            v = fvis[:, u] & (claims[:, proposal[u]] == 1)
+            Xt[v, proposal[u]] = fl[v, u]
+        f, m = np.nonzero(fvis.any(1)[:, None] & ~finite_rows(X))
+        E = np.full_like(X, np.nan)
+        E[f, m] = rigid_estimates(Xt, surf.reference, surf.neighbours, f, m,
+                                  rigidity=surf.rigidity)
+        X, a2, rep = merge_fragments(
+            X, fl, surf, alpha1=alpha1, alpha2=alpha2,
+            fragment_labels=[markers.fragment_labels[u] for u in left], predictions=E,
+            competitors=E, max_break=max_break, rate=markers.rate, ctx=ctx)
+        assigned[left[a2 >= 0]] = a2[a2 >= 0]
+        for mg in rep["merges"]:
+            mg["predictor"] = "template"
+            mg["round"] = f"template{k + 1}"
+        mrep["merges"] += rep["merges"]
+        mrep["conflicts"] += rep["conflicts"]
+        before = {r["fragment"]: r for r in mrep["rejections"]}  # (their reasons say more)
+        mrep["rejections"] = [{**r, **before.get(r["fragment"], {}),
+                               "template_reason": r["reason"]} for r in rep["rejections"]]
+        mrep["merged_by_depth"][f"template{k + 1}"] = len(rep["merges"])
+        if not rep["merges"]:
+            break
+    return X
+
+
 def _merge(
     markers: Markers, surf: MarkerSurface, *, merge: bool, alpha1: float, alpha2: float,
     variance: float, pca_rounds: int, ctx: Context, fill_rounds: int = 0,
+    template_rounds: int = 0,
     fill_model: str = "regression", fill_predictors: int = REGRESSION_PREDICTORS,
     max_break: float = BREAK_JUMP,
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
     """Step 2 (§4.2): fragments merged against rigid predictions, then the PCA rounds,
-    then the rounds against the final filling (:func:`_fill_merge_rounds`).
+    the rounds against the final filling (:func:`_fill_merge_rounds`) and the rounds
+    with the markers' layout (:func:`_template_merge_rounds`).
 
     Returns ``(positions (F, M, 3), assigned (U,) marker per fragment or -1,
     report)``.
@@ -537,7 +634,8 @@ def _merge(
     if not (merge and U):
         mrep = {"merges": [], "rejections": [], "conflicts": [], "merged_by_depth": {}}
         return P.copy(), np.full(U, -1, dtype=np.int64), mrep
-    ctx.progress(0, 1 + pca_rounds + fill_rounds, "merge passes")
+    total = 1 + pca_rounds + fill_rounds + template_rounds
+    ctx.progress(0, total, "merge passes")
     X, assigned, mrep = merge_fragments(
         P, frags, surf, alpha1=alpha1, alpha2=alpha2,
         fragment_labels=markers.fragment_labels, depths=(1,), max_break=max_break,
@@ -548,7 +646,10 @@ def _merge(
     X = _fill_merge_rounds(X, assigned, mrep, markers, surf, alpha1=alpha1, alpha2=alpha2,
                            variance=variance, fill_model=fill_model,
                            fill_predictors=fill_predictors, rounds=fill_rounds, ctx=ctx)
-    total = 1 + pca_rounds + fill_rounds
+    X = _template_merge_rounds(X, assigned, mrep, markers, surf, alpha1=alpha1, alpha2=alpha2,
+                               variance=variance, fill_model=fill_model,
+                               fill_predictors=fill_predictors, rounds=template_rounds,
+                               max_break=max_break, ctx=ctx)
     ctx.progress(total, total, "merge passes")
     return X, assigned, mrep
 
@@ -684,6 +785,7 @@ def clean(
     fill_predictors: int = REGRESSION_PREDICTORS,
     pca_merge_rounds: int = 3,
     fill_merge_rounds: int = 0,
+    template_merge_rounds: int = 8,
     max_break: float = BREAK_JUMP,
     subjects: Literal["auto", "none"] = "auto",
     subject_gap: float = 0.3,
@@ -735,6 +837,14 @@ def clean(
         captures it keeps 99-100 % of real samples with no wrong merge, but on a
         range-of-motion capture, whose fill is off by more than ε₁, it made 1-2
         wrong merges (seeds 2, 3), so it is off by default.
+    template_merge_rounds : int
+        Then, rounds in which each fragment still left gets a marker proposed by
+        matching the layout of the missing markers' estimates to the fragments seen
+        in a frame (:func:`~mocapflow.stages.skin.labelling.template_proposals`), and
+        every fragment left is judged again against rigid predictions made with the
+        proposals in place (:func:`_template_merge_rounds`); until a round merges
+        nothing (8; 0: off; none without ``fill``).  For a limb that lost all its
+        labels at once (no prediction reaches its fragments).
     max_break : float
         A fragment that picks up where a marker stopped, across a break or a gap of
         at most 8 frames, or 67 ms above 120 Hz
@@ -783,7 +893,7 @@ def clean(
             "surface": surface, "merge": merge, "fill": fill, "fill_model": fill_model,
             "fill_predictors": fill_predictors, "pca_merge_rounds": pca_merge_rounds,
             "fill_merge_rounds": fill_merge_rounds,
-            "max_break": max_break}
+            "template_merge_rounds": template_merge_rounds, "max_break": max_break}
     with ctx.timer("labelling"):
         try:
             markers, labelling = label_markers(markers, template=label_template,
@@ -847,6 +957,7 @@ def _clean_subject(markers: Markers, *, reference_frame: int | None, opts: dict[
                                    alpha2=o["alpha2"], variance=o["variance"],
                                    pca_rounds=o["pca_merge_rounds"] if fill else 0,
                                    fill_rounds=o["fill_merge_rounds"] if fill else 0,
+                                   template_rounds=o["template_merge_rounds"] if fill else 0,
                                    fill_model=o["fill_model"],
                                    fill_predictors=o["fill_predictors"],
                                    max_break=o["max_break"], ctx=ctx)

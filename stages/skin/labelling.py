@@ -3,7 +3,7 @@
 A raw dense capture is a set of unlabelled trajectory fragments.  In the paper the
 labels are the vertices of the marker surface built in the reference pose: every
 trajectory visible in the reference frame becomes a marker, every other
-fragment is joined to one of them by merging (§4.2).  Three helpers of the
+fragment is joined to one of them by merging (§4.2).  Helpers of the
 ``clean`` stage:
 
 * :func:`reference_labelling` — no labels at all: the frame where the most
@@ -15,6 +15,10 @@ fragment is joined to one of them by merging (§4.2).  Three helpers of the
   take's reference-frame trajectories are matched to it by
   :func:`match_template` (rigid search over headings + scaled ICP, then non-rigid
   ICP: a thin-plate-spline warp of the template and a one-to-one assignment);
+* :func:`template_proposals` (with :func:`fragment_frames`) — mid-take: a marker
+  proposed for each fragment that no prediction reaches (a limb that lost its
+  labels at once), by matching the layout of the missing markers' estimates to the
+  fragments seen in a frame; ``clean`` judges them again (``template_merge_rounds``);
 * :func:`subject_groups` / :func:`fragment_subjects` — several subjects in one
   take (C3D ``SUBJECTS:LABEL_PREFIXES``, ``Name:`` label prefixes, or groups of
   markers apart in space): ``clean`` cleans each subject on its own, so no
@@ -370,6 +374,109 @@ def label_markers(
         return out, {"method": "template", "template": Path(template).name, **info}
     out, info = reference_labelling(markers, reference_frame=reference_frame)
     return out, {"method": "reference_frame", **info}
+
+
+
+# --------------------------------------------------------------------------- mid-take labels
+
+#: Frames :func:`fragment_frames` picks at most per round of proposals.
+TEMPLATE_FRAMES = 12
+#: A missing marker is in a frame's template only within this many metres of a fragment
+#: seen there (the template is local: a limb's markers, not the whole body).
+TEMPLATE_RADIUS = 0.3
+
+
+def fragment_frames(visible: np.ndarray, *, min_frames: int = 3,
+                    frames: int = TEMPLATE_FRAMES) -> np.ndarray:
+    """Frames that together see the fragments: greedily, the frame seeing the most
+    fragments of at least ``min_frames`` frames that no frame picked before sees (at
+    least 4).
+
+    Parameters
+    ----------
+    visible : (F, U) bool ndarray
+        Where each fragment has a sample.
+    min_frames : int
+    frames : int
+        Most frames picked.
+
+    Returns
+    -------
+    (k,) int ndarray
+        Frames, in the order picked.
+    """
+    long = visible.sum(0) >= min_frames
+    seen = np.zeros(visible.shape[1], dtype=bool)
+    out: list[int] = []
+    for _ in range(frames):
+        count = (visible & (long & ~seen)[None]).sum(1)
+        f = int(np.argmax(count))
+        if count[f] < 4:
+            break
+        seen |= visible[f] & long
+        out.append(f)
+    return np.array(out, dtype=np.int64)
+
+
+def template_proposals(
+    positions: np.ndarray, fragments: np.ndarray, estimates: np.ndarray, frames: np.ndarray,
+    *, min_frames: int = 3, radius: float = TEMPLATE_RADIUS,
+) -> np.ndarray:
+    """Propose a marker for fragments that no prediction reaches, by the markers' layout.
+
+    Beyond §4.2 (the paper merged what was left by hand).  When a whole limb loses its
+    labels at once (on the simulated range of motion most of an arm's markers
+    reappear as new fragments after an occlusion, for the rest of the take), every
+    prediction of its markers comes from the trunk, 10–20 cm off, and no fragment
+    passes the entry test.  The layout of the missing markers still matches the
+    fragments' up to the limb's motion: in each of ``frames``, the estimates of the
+    markers missing there and within ``radius`` of a fragment are matched to the
+    fragments seen there (:func:`match_template`: scaled ICP from the estimates'
+    place, then a thin-plate warp and a one-to-one assignment).  A proposal is not
+    a merge: :func:`mocapflow.stages.skin.clean` judges the fragments again against
+    rigid predictions made with the proposals in place (``template_merge_rounds``).
+
+    Parameters
+    ----------
+    positions : (F, M, 3) float ndarray
+        Labelled and merged trajectories (NaN where missing).
+    fragments : (F, U, 3) float ndarray
+        Unmerged fragments.
+    estimates : (F, M, 3) float ndarray
+        Estimates of the missing samples in ``frames`` (e.g. the hole filling).
+    frames : (k,) int ndarray
+        Frames to match in (:func:`fragment_frames`).
+    min_frames : int
+        Shorter fragments get no proposal.
+    radius : float
+        Metres (:data:`TEMPLATE_RADIUS`).
+
+    Returns
+    -------
+    (U,) int ndarray
+        Proposed marker per fragment (the first frame that proposes one decides), -1
+        where none.  A marker is only proposed for a fragment if it is missing in all
+        the fragment's frames.
+    """
+    visible = np.isfinite(fragments).all(-1)
+    avail = np.isfinite(positions).all(-1)
+    long = visible.sum(0) >= min_frames
+    out = np.full(fragments.shape[1], -1, dtype=np.int64)
+    for f in frames:
+        us = np.flatnonzero(visible[f] & long)
+        miss = np.flatnonzero(~avail[f] & np.isfinite(estimates[f]).all(-1))
+        if len(us) < 4 or len(miss) < 4:
+            continue
+        pts = fragments[f, us]
+        miss = miss[cKDTree(pts).query(estimates[f, miss])[0] < radius]
+        if len(miss) < 4:
+            continue
+        match, _ = match_template(pts, estimates[f, miss], headings=1)
+        for i in np.flatnonzero((match >= 0) & (out[us] < 0)):
+            u, m = us[i], miss[match[i]]
+            if not avail[visible[:, u], m].any():
+                out[u] = m
+    return out
 
 
 # --------------------------------------------------------------------------- subjects
