@@ -378,9 +378,19 @@ def build_pyramid(
     binomial_filter(filter_size)
     coarse = -(-F // 2 ** (levels - 1))
     if coarse < MIN_COARSE_NODES:
+        if F < MIN_COARSE_NODES:
+            raise PyramidError(
+                f"motion of {F} frames is too short to synthesize from: it needs at least "
+                f"{MIN_COARSE_NODES} frames at the synthesis rate ({motion.rate:g} fps: "
+                f"{MIN_COARSE_NODES / motion.rate:.2f} s)"
+            )
+        usable = levels - 1
+        while usable > 1 and -(-F // 2 ** (usable - 1)) < MIN_COARSE_NODES:
+            usable -= 1
         raise PyramidError(
             f"motion of {F} frames is too short for {levels} levels: the coarsest level "
-            f"would have {coarse} nodes (need >= {MIN_COARSE_NODES}); use fewer levels"
+            f"would have {coarse} nodes (need >= {MIN_COARSE_NODES}); use at most "
+            f"{usable} level{'s' if usable > 1 else ''}"
         )
     rot = np.array(motion.rotations, dtype=np.float64)
     heading, rot[:, 0] = heading_split(rot[:, 0])

@@ -118,8 +118,13 @@ def test_too_short_or_bad_levels_raise_clear_errors(walk):
     short = walk.replace(
         root_position=walk.root_position[:30], rotations=walk.rotations[:30]
     )
-    with pytest.raises(PyramidError, match=r"30 frames is too short for 4 levels"):
+    with pytest.raises(PyramidError, match=r"30 frames is too short for 4 levels.*at most 3 lev"):
         build_pyramid(short, levels=4)
+    assert build_pyramid(short, levels=3).n_levels == 3  # the advice holds
+    tiny = walk.replace(root_position=walk.root_position[:3], rotations=walk.rotations[:3])
+    with pytest.raises(PyramidError, match=r"3 frames is too short to synthesize from: it needs "
+                                           r"at least 8 frames"):
+        build_pyramid(tiny, levels=1)
     with pytest.raises(PyramidError, match="levels must be >= 1"):
         build_pyramid(walk, levels=0)
 
