@@ -6,19 +6,27 @@ parameter section in pure Python with ezc3d's own rules and checks the data bloc
 it will read against the file size: ezc3d silently returns fewer frames for a
 truncated data block, and can hang, allocate without bound or crash the process
 on a corrupt parameter section, so a bad file must be rejected before it reaches
-it.  What ezc3d returns is checked too: labels must be UTF-8 text and, among the
-markers and fragments, unique; coordinates finite and within
-:data:`~mocapflow.stages.motion.formats.MAX_DISTANCE_M` of the origin; residuals
-finite.  Every failure is one :class:`C3DError` naming the file and the field.
+it.  What ezc3d returns is checked too: labels must be UTF-8 text; coordinates
+finite and within :data:`~mocapflow.stages.motion.formats.MAX_DISTANCE_M` of the
+origin; residuals finite.  Every failure is one :class:`C3DError` naming the file
+and the field.
 
 What :func:`read_c3d` makes of the points of a file
 ---------------------------------------------------
 * **missing**: a sample is missing when a coordinate is NaN or its residual is
-  negative; its position and residual become NaN.
+  negative, or (markers and fragments) when it is exactly ``(0, 0, 0)``, which
+  Vicon and others write for gaps; its position and residual become NaN.
 * **units**: ``POINT:UNITS`` (``mm``, ``cm``, ``m`` …) is converted to metres;
   the source unit stays in ``attrs["source_unit"]``.  Residuals are converted too.
+  A unit word or a cut of one that names one unit only (``mete``, ``millimeters``)
+  is read as that unit.
 * **labels**: ``POINT:LABELS``, ``LABELS2``, ``LABELS3`` … are joined, so files
-  with more than 255 points keep every label.
+  with more than 255 points keep every label.  Markers (and fragments) sharing a
+  label are joined into one trajectory when never visible in the same frame
+  (pieces of one marker), else the later ones are renamed ``LABEL_2``,
+  ``LABEL_3`` … (different markers whose names were cut).
+* **parameters of an undefined group** (a group id no group entry defines; ezc3d
+  files them under ``""``) are left out of ``attrs["c3d_parameters"]``.
 * **model outputs** are not markers: points listed in ``POINT:ANGLES``,
   ``FORCES``, ``MOMENTS``, ``POWERS``, ``SCALARS``, ``REACTIONS`` (and in any
   parameter named by ``POINT:TYPE_GROUPS``), points whose ``POINT:DESCRIPTIONS``
@@ -30,6 +38,9 @@ What :func:`read_c3d` makes of the points of a file
   ``attrs["excluded_points"]`` with the reason and their missing-frame count.
 * **unlabelled trajectories** (``*12`` style labels) go to ``fragments`` /
   ``fragment_labels``; they are not dropped.
+* **notes**: each departure from the file above (zeros read as missing, a unit
+  word read, labels joined or renamed, parameters left out) is one line of
+  ``attrs["read_notes"]`` (absent when there is none), for the ingest to warn with.
 """
 
 from __future__ import annotations
@@ -237,7 +248,9 @@ def read_c3d(path: str | os.PathLike) -> Markers:
         ``attrs``: ``source``, ``source_unit``, ``n_points`` (points in the file),
         ``excluded_points`` (list of ``{"label", "index", "kind", "reason",
         "missing"}``, ``missing`` = missing frames), ``fragment_missing``,
-        ``c3d_parameters`` (every group, see :func:`parameter_tree`); ``analogs
+        ``c3d_parameters`` (every group, see :func:`parameter_tree`), ``read_notes``
+        (list of one-line strings, only when the reader departed from the file, see
+        the module docstring); ``analogs
         (S, C)`` as ezc3d gives them (``(raw - ANALOG:OFFSET) x SCALE x GEN_SCALE``),
         ``None`` without analog channels.
 
@@ -249,8 +262,9 @@ def read_c3d(path: str | os.PathLike) -> Markers:
     path = Path(path)
     params, pts, res, analogs, first_frame, header_rate = _read_points(path)
     n_points = pts.shape[1]
+    notes: list[str] = []
     rate = _point_rate(params, header_rate, path)
-    unit, unit_assumed = _point_unit(params, path)
+    unit, unit_assumed = _point_unit(params, path, notes)
     k = UNIT_SCALE[unit]
     labels = _point_labels(params, n_points)
     _check_text(path, "POINT:LABELS", labels)
@@ -265,7 +279,11 @@ def read_c3d(path: str | os.PathLike) -> Markers:
         kind: [i for i, (kd, _) in enumerate(kinds) if kd == kind]
         for kind in ("marker", "fragment")
     }
-    mk, fr = idx["marker"], idx["fragment"]
+    _origin_is_missing(labels, idx["marker"] + idx["fragment"], xyz, r, missing, notes)
+    labels, joined = _shared_labels(
+        labels, descriptions, idx["marker"] + idx["fragment"], xyz, r, missing, notes
+    )
+    mk, fr = ([i for i in idx[kd] if i not in joined] for kd in ("marker", "fragment"))
     _check_kept(path, labels, mk + fr, xyz, r)
     attrs = {
         "source": path.name,
@@ -276,7 +294,13 @@ def read_c3d(path: str | os.PathLike) -> Markers:
     }
     if unit_assumed:
         attrs["unit_assumed"] = True
-    attrs["c3d_parameters"] = parameter_tree(params)
+    tree = parameter_tree(params)
+    if "" in tree:  # ezc3d's group for parameters of a group id the file never defines
+        orphans = ", ".join(tree.pop("")["parameters"])
+        notes.append(f"parameters of an undefined group skipped: {orphans}")
+    attrs["c3d_parameters"] = tree
+    if notes:
+        attrs["read_notes"] = notes
     return Markers(
         positions=_columns(xyz, mk),
         labels=[labels[i] for i in mk],
@@ -350,15 +374,8 @@ def _check_text(path: Path, field: str, values: list[str]) -> None:
 def _check_kept(
     path: Path, labels: list[str], kept: list[int], xyz: np.ndarray, r: np.ndarray
 ) -> None:
-    """The markers and fragments read: unique labels, finite coordinates within
-    :data:`MAX_DISTANCE_M`, finite residuals (``xyz (F, P, 3)`` metres, ``r (F, P)``)."""
-    seen: dict[str, int] = {}
-    for i in kept:
-        if labels[i] in seen:
-            raise _fail(
-                path, f"POINT:LABELS: {labels[i]!r} names points {seen[labels[i]] + 1} and {i + 1}"
-            )
-        seen[labels[i]] = i
+    """The markers and fragments read: finite coordinates within :data:`MAX_DISTANCE_M`,
+    finite residuals (``xyz (F, P, 3)`` metres, ``r (F, P)``)."""
     if not kept:
         return
     sel = xyz[:, kept] if len(kept) < xyz.shape[1] else xyz
@@ -378,16 +395,124 @@ def _check_kept(
         )
 
 
-def _point_unit(params: dict, path: Path) -> tuple[str, bool]:
-    """``POINT:UNITS`` lower-cased (a key of ``UNIT_SCALE``), and whether ``mm`` was assumed."""
+#: Unit words and their ``UNIT_SCALE`` key: a ``POINT:UNITS`` that is one of them, or
+#: a cut of 3 or more letters of words of one unit only (``mete``, ``mill``), is read so.
+_UNIT_WORDS: dict[str, str] = {
+    **{f"{p}{w}{s}": u for p, u in (("", "m"), ("milli", "mm"), ("centi", "cm"), ("deci", "dm"))
+       for w in ("meter", "metre") for s in ("", "s")},
+    "inch": "in", "inches": "in", "foot": "ft", "feet": "ft",
+}
+
+
+def _point_unit(params: dict, path: Path, notes: list[str]) -> tuple[str, bool]:
+    """``POINT:UNITS`` as a key of ``UNIT_SCALE``, and whether ``mm`` was assumed.
+
+    A unit word or an unambiguous cut of one (:data:`_UNIT_WORDS`) is read as its
+    key, with a line in ``notes``.
+    """
     units = _param(params, "POINT", "UNITS") or [""]
     unit = str(units[0]).strip().lower() if len(units) else ""
     unit_assumed = unit == ""
     if unit_assumed:
         unit = "mm"
     if unit not in UNIT_SCALE:
-        raise _fail(path, f"unsupported POINT:UNITS {unit!r} (known: {sorted(UNIT_SCALE)})")
+        keys = {u for w, u in _UNIT_WORDS.items() if w.startswith(unit)} if len(unit) > 2 else ()
+        if len(keys) != 1:
+            raise _fail(path, f"unsupported POINT:UNITS {unit!r} (known: {sorted(UNIT_SCALE)})")
+        (key,) = keys
+        notes.append(f"POINT:UNITS {unit!r} read as {key!r}")
+        unit = key
     return unit, unit_assumed
+
+
+def _origin_is_missing(
+    labels: list[str], kept: list[int], xyz: np.ndarray, r: np.ndarray, missing: np.ndarray,
+    notes: list[str],
+) -> None:
+    """Samples of the points ``kept`` exactly at ``(0, 0, 0)`` become missing, in place.
+
+    ``xyz (F, P, 3)``, ``r (F, P)``, ``missing (F, P)`` as :func:`_metre_samples`
+    returns them; a line in ``notes`` says how many samples and points.
+    """
+    if not kept:
+        return
+    v = _columns(xyz, kept)
+    zero = v[..., 0] == 0  # (F, K); NaN is never 0
+    if not zero.any():
+        return
+    zero &= (v[..., 1] == 0) & (v[..., 2] == 0)
+    if not zero.any():
+        return
+    f, j = np.nonzero(zero)
+    p = np.asarray(kept)[j]
+    xyz[f, p] = np.nan
+    r[f, p] = np.nan
+    missing[f, p] = True
+    n_pts = int(zero.any(axis=0).sum())
+    always = [labels[kept[i]] for i in np.flatnonzero(zero.all(axis=0))]
+    notes.append(
+        f"{f.size} samples of {n_pts} points exactly at (0, 0, 0) read as missing"
+        + (f"; at (0, 0, 0) in every frame: {', '.join(always)}" if always else "")
+    )
+
+
+def _shared_labels(
+    labels: list[str], descriptions: list[str], kept: list[int], xyz: np.ndarray,
+    r: np.ndarray, missing: np.ndarray, notes: list[str],
+) -> tuple[list[str], set[int]]:
+    """Give every point of ``kept`` its own label: join or rename points sharing one.
+
+    In file order, a point whose label an earlier point has is joined to the first
+    trajectory of that label it is never visible in the same frame with (pieces of
+    one marker): its samples are copied into that point's columns of ``xyz (F, P, 3)``,
+    ``r (F, P)`` and ``missing (F, P)`` (in place).  A point that overlaps every
+    trajectory of its label starts a new one, labelled ``LABEL_2``, ``LABEL_3`` …
+    (the first free name).  One line per shared label goes to ``notes``.
+
+    Returns
+    -------
+    labels : list of str
+        ``P`` labels, renamed ones changed.
+    joined : set of int
+        Points joined into another (no longer a trajectory of their own).
+    """
+    points: dict[str, list[int]] = {}
+    for i in kept:
+        points.setdefault(labels[i], []).append(i)
+    shared = {lb: ix for lb, ix in points.items() if len(ix) > 1}
+    if not shared:
+        return labels, set()
+    labels, taken, joined = list(labels), set(labels), set()
+    for lb, ix in shared.items():
+        heads: dict[int, list[int]] = {}  # first point of a trajectory -> points joined to it
+        for i in ix:
+            seen = ~missing[:, i]
+            h = next((h for h in heads if not (seen & ~missing[:, h]).any()), None)
+            if h is None:
+                heads[i] = []
+                continue
+            xyz[seen, h] = xyz[seen, i]
+            r[seen, h] = r[seen, i]
+            missing[seen, h] = False
+            heads[h].append(i)
+            joined.add(i)
+        what = []
+        for n, (h, more) in enumerate(heads.items()):
+            if more:
+                pts = ", ".join(str(i + 1) for i in [h, *more])
+                what.append(f"{pts} joined into one trajectory (never visible in the same frame)")
+            if n:
+                k = 2
+                while f"{lb}_{k}" in taken:
+                    k += 1
+                labels[h] = f"{lb}_{k}"
+                taken.add(labels[h])
+                desc = descriptions[h].strip() if h < len(descriptions) else ""
+                what.append(f"{h + 1}{f' ({desc!r})' if desc else ''} renamed {labels[h]!r} "
+                            f"(seen together with point {next(iter(heads)) + 1})")
+        notes.append(f"POINT:LABELS {lb!r} names points {', '.join(str(i + 1) for i in ix)}: "
+                     + "; ".join(what))
+    return labels, joined
 
 
 def _point_labels(params: dict, n_points: int) -> list[str]:
@@ -532,7 +657,7 @@ def _chars(values: list[str]) -> dict[str, Any]:
 _REWRITTEN = {
     "POINT": {"LABELS", "DESCRIPTIONS", "UNITS", "SCALE", "RATE", "USED", "FRAMES",
               "DATA_START"},
-    "ANALOG": {"LABELS", "USED"},
+    "ANALOG": {"LABELS", "USED", "RATE"},
 }
 _NUMBERED_RE = re.compile(r"^(LABELS|DESCRIPTIONS)\d+$")
 
@@ -628,13 +753,38 @@ def _parameters(
         analog["LABELS"] = _chars(
             src[:n_analogs] + [f"Channel_{i + 1}" for i in range(len(src), n_analogs)]
         )
-        if "RATE" not in analog:
-            analog["RATE"] = _numeric("float", [markers.rate * markers.analog_subframes])
+        analog["RATE"] = _numeric("float", [markers.rate * markers.analog_subframes])
     if "MANUFACTURER" not in groups:
         groups["MANUFACTURER"] = {"__METADATA__": {"DESCRIPTION": "", "IS_LOCKED": False},
                                   "SOFTWARE": _chars(["mocapflow"])}
     groups["MOCAPFLOW"] = _status_group(markers)
     return groups
+
+
+def _analog_rate_up(path: Path, rate: float, subframes: int) -> None:
+    """Make the ANALOG:RATE of a file ezc3d wrote say ``subframes`` samples per frame.
+
+    ezc3d writes ``subframes x POINT:RATE`` rounded to the nearest float32, and
+    readers (ezc3d, :func:`check_file`) take the whole part of ANALOG:RATE /
+    POINT:RATE, so with a non-integer rate they can read one analog sample per frame
+    fewer, and every frame after the first from the wrong bytes.  The value is then
+    moved up one float32 step, in place.
+    """
+    point = np.float32(rate)
+    buf = bytearray(path.read_bytes())
+    start = (buf[0] - 1) * 512
+    group = re.compile(rb"[\x06\xfa]([\x80-\xff])ANALOG", re.S).search(buf, start)
+    entry = group and re.compile(
+        rb"[\x04\xfc]" + bytes([256 - group[1][0]]) + rb"RATE..\x04([\x00\x01])", re.S
+    ).search(buf, start)
+    if not entry:  # pragma: no cover - ezc3d always writes ANALOG:RATE with analogs
+        return
+    at = entry.end() + entry[1][0]
+    analog = np.frombuffer(buf, "<f4", 1, at)[0]
+    if float(analog) / float(point) >= subframes:
+        return
+    buf[at : at + 4] = np.nextafter(analog, np.float32(np.inf)).astype("<f4").tobytes()
+    path.write_bytes(buf)
 
 
 def _status_group(markers: Markers) -> dict[str, Any]:
@@ -691,7 +841,9 @@ def write_c3d(markers: Markers, path: str | os.PathLike, *, unit: str = "mm") ->
     -----
     What is rewritten: POINT:LABELS (beyond 255 in ``LABELS2`` …, split by ezc3d),
     DESCRIPTIONS (the source's for labels it had, else empty), UNITS, SCALE, RATE,
-    USED, FRAMES; ANALOG:LABELS and USED; ``first_frame`` and the (possibly
+    USED, FRAMES; ANALOG:LABELS, USED and RATE (the point rate times the analog
+    samples per frame, whatever the source said; one float32 step up where readers
+    would count one sample per frame fewer); ``first_frame`` and the (possibly
     non-integer) rate are kept.  ANALOG:SCALE and GEN_SCALE are kept and the
     samples read back equal in the source units; ANALOG:OFFSET becomes 0 (ezc3d
     stores float samples with the offset applied).  Model-output points (ANGLES,
@@ -736,6 +888,8 @@ def write_c3d(markers: Markers, path: str | os.PathLike, *, unit: str = "mm") ->
         c["data"]["meta_points"] = {"residuals": resid.T[None].copy()}
         c["data"]["analogs"] = np.ascontiguousarray(analogs.T[None])
         c.write(tmp)
+        if analogs.shape[1] and markers.analog_subframes:
+            _analog_rate_up(Path(tmp), markers.rate, markers.analog_subframes)
         try:
             check_file(Path(tmp))  # what is written must pass the reader's own checks
         except C3DError as e:

@@ -123,7 +123,9 @@ def walk_parameters(
 
     Raises :class:`C3DError` when an entry runs past the section, does not end where
     its offset says the next one starts, has an invalid name, type, dimensions or
-    description length, or names an undefined group.
+    description length.  A parameter whose group id no group entry defines is left out
+    (ezc3d files it under a group named ``""``, which :func:`~.c3d.read_c3d` drops with
+    a note); ezc3d reads none of them.
     """
     try:
         return _walk(buf[:end], path, start, end, processor)
@@ -189,9 +191,8 @@ def _walk(
         raise _fail(path, "no POINT group in the parameter section")
     params: dict[str, _Param] = {}
     for gid, name, param in raw:
-        if gid not in groups:
-            raise _fail(path, f"parameter {name!r} belongs to undefined group id {gid}")
-        params[f"{groups[gid]}:{name}"] = param
+        if gid in groups:
+            params[f"{groups[gid]}:{name}"] = param
     return params, set(groups.values())
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import ezc3d
 import pytest
 
-from mocapflow.stages.motion.formats.c3d import write_c3d
+from mocapflow.stages.motion.formats.c3d import read_c3d, write_c3d
 from mocapflow.stages.motion.formats.c3d_check import C3DError, check_file
 
 from .test_c3d import _synthetic
@@ -72,3 +72,18 @@ def test_entries_must_chain_exactly_and_analog_lists_cover_the_channels(fuzz, tm
     (tmp_path / "used.c3d").write_bytes(bytes(buf))
     with pytest.raises(C3DError, match=r"ANALOG:SCALE has 38 entries for 200 analog channels"):
         check_file(tmp_path / "used.c3d")
+
+
+def test_parameters_of_an_undefined_group_are_skipped(fuzz, tmp_path):
+    # was: C3DError "parameter 'IS_STATIC' belongs to undefined group id 7" (btk_TYPE-2.C3D),
+    # which ezc3d reads
+    src = write_c3d(_synthetic(5, 30, seed=3), tmp_path / "ok.c3d")
+    buf = bytearray(src.read_bytes())
+    ents = {e["full"]: e for e in fuzz.c3d_entries(bytes(buf))}
+    buf[ents["MOCAPFLOW:SOFTWARE"]["pos"] + 1] = 77  # no group has id 77
+    (tmp_path / "orphan.c3d").write_bytes(bytes(buf))
+    assert check_file(tmp_path / "orphan.c3d") == check_file(src)
+    m, ref = read_c3d(tmp_path / "orphan.c3d"), read_c3d(src)
+    assert m.attrs["read_notes"] == ["parameters of an undefined group skipped: SOFTWARE"]
+    assert "SOFTWARE" not in m.attrs["c3d_parameters"]["MOCAPFLOW"]["parameters"]
+    assert (m.positions.tobytes(), m.labels) == (ref.positions.tobytes(), ref.labels)

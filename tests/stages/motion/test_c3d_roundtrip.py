@@ -175,6 +175,33 @@ def test_unfilled_samples_are_minus_one(c3d_dir, tmp_path):
     assert (r[st == 1] == 0).all()
 
 
+@pytest.mark.parametrize(("rate", "subframes", "source_rate"), [
+    (100.0, 1, 1.0),  # ktk_many_analogs.c3d: ANALOG:RATE 1 at 100 Hz
+    (69.9926, 11, None),  # 11 x rate rounds to a float32 that reads back as 10.99...
+    (119.88, 7, 839.16),
+])
+def test_analog_rate_is_the_point_rate_times_the_samples_per_frame(tmp_path, rate, subframes,
+                                                                   source_rate):
+    # was: ezc3d "Number of frames in the data set must match the analog rate X point
+    # frame" (the source's ANALOG:RATE kept), or a file read back with 10 samples per
+    # frame, so every point after the first frame from the wrong bytes
+    rng = np.random.default_rng(4)
+    F = 30
+    tree = {} if source_rate is None else {"ANALOG": {"description": "", "is_locked": False,
+            "parameters": {"RATE": {"type": "float", "description": "", "is_locked": False,
+                                    "dimension": [1], "value": [source_rate]}}}}
+    m = Markers(positions=rng.uniform(0.1, 1, (F, 3, 3)), labels=["A", "B", "C"], rate=rate,
+                analogs=rng.uniform(-1, 1, (F * subframes, 2)), attrs={"c3d_parameters": tree})
+    p = tmp_path / "analogs.c3d"
+    back = read_c3d(export_markers_c3d(m, p))
+    np.testing.assert_allclose(back.positions, m.positions, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(back.analogs, m.analogs, atol=1e-6, rtol=0)
+    params = ezc3d.c3d(str(p))["parameters"]
+    point, analog = (np.float32(params[g]["RATE"]["value"][0]) for g in ("POINT", "ANALOG"))
+    assert int(float(analog) / float(point)) == subframes
+    assert float(analog) == pytest.approx(rate * subframes, rel=1e-6)
+
+
 def test_trc_read_by_opensim(vicon):
     osim = pytest.importorskip("opensim", reason="opensim (OpenSim's TRC reader) not installed")
     _, cleaned, _, trc = vicon
