@@ -12,7 +12,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import re
 from pathlib import Path
 from typing import Any
 
@@ -21,6 +23,8 @@ import numpy as np
 from mocapflow.pipeline import Context, FilePath, stage
 from mocapflow.stages.motion.axes import (
     AxisError,
+    axis_vector,
+    data_axes,
     detect_forward,
     detect_up,
     frame_basis,
@@ -31,13 +35,19 @@ from mocapflow.stages.motion.formats.asf import read_amc, read_asf
 from mocapflow.stages.motion.formats.bvh import read_bvh
 from mocapflow.stages.motion.formats.c3d import read_c3d
 from mocapflow.stages.motion.formats.strokes import StrokesFileError, read_strokes_file
-from mocapflow.stages.motion.kinematics import resample_motion
+from mocapflow.stages.motion.kinematics import (
+    end_site_positions,
+    forward_kinematics,
+    resample_motion,
+)
+from mocapflow.stages.motion.rotations import quat_multiply, quat_rotate
 
 __all__ = [
     "MAX_RESAMPLED_SAMPLES",
     "MAX_UPSAMPLE",
     "IngestError",
     "amc_skeleton_path",
+    "bvh_axes",
     "gap_statistics",
     "ingest_amc",
     "ingest_bvh",
@@ -200,6 +210,8 @@ def ingest_c3d(path: FilePath, *, up: str = "auto", forward: str = "auto", ctx: 
     report = markers_report(markers)
     report.update(up=markers.attrs["up"], forward=markers.attrs["forward"],
                   axes=markers.attrs["axes_source"])
+    for note in markers.attrs.get("read_notes", []):  # what the reader repaired or skipped
+        ctx.warn(f"{Path(path).name}: {note}")
     if report["never_seen"]:
         ctx.warn(f"{Path(path).name}: markers never seen: {', '.join(report['never_seen'])}")
     src = markers.attrs["axes_source"]
@@ -246,10 +258,183 @@ def _resampled(motion: Motion, rate: float | None, path: str) -> Motion:
     return resample_motion(motion, rate)
 
 
+#: Joint names that mark the head and the feet (case-insensitive), for the up axis.
+_HEAD_NAME = re.compile(r"head", re.IGNORECASE)
+_FOOT_NAME = re.compile(r"foot|toe|ankle", re.IGNORECASE)
+#: Left -> right joint name spellings (``LeftUpLeg``, ``LHipJoint``, ``thigh_l``), for facing.
+_LEFT_RIGHT = ((r"left", "right"), (r"Left", "Right"), (r"LEFT", "RIGHT"),
+               (r"^L(?=[A-Z_])", "R"), (r"_l$", "_r"), (r"_L$", "_R"))
+#: Most frames the up-axis evidence is computed on (evenly spread over the take).
+_AXES_FRAMES = 240
+
+
+def _static_root_dropped(motion: Motion) -> tuple[Motion, str | None]:
+    """``motion`` without a static root joint whose only child carries the travel.
+
+    When the root's position is constant and its rotation the identity over the
+    take (to 1e-9), it has one child joint, no End Site, and that child has
+    position channels that move (Bandai-Namco: ``joint_Root`` never moves, ``Hips``
+    walks), the child becomes the root: its root position is the old root's plus the
+    child's translation (rotated by the old root's, folded in exactly), its offset
+    the old root's position plus its own.  Joint world positions are unchanged.
+
+    Parameters
+    ----------
+    motion : Motion
+        ``F`` frames of ``J`` joints, as :func:`read_bvh` gives them.
+
+    Returns
+    -------
+    motion : Motion
+        The re-rooted motion (``attrs["dropped_root"]``: the old root's name), or
+        ``motion`` itself.
+    message : str or None
+        One line naming both joints when the root was dropped.
+    """
+    sk, F = motion.skeleton, motion.n_frames
+    children = np.flatnonzero(sk.parents == 0)
+    q0 = motion.rotations[:, 0]
+    if (F < 2 or motion.translations is None or len(children) != 1 or (sk.end_parents == 0).any()
+            or np.ptp(motion.root_position, axis=0).max() > 1e-9
+            or (1.0 - np.abs(q0[:, 0])).max() > 1e-9):
+        return motion, None
+    c = int(children[0])  # 1: joints are in depth-first order
+    moving = [j for j in range(1, sk.n_joints)
+              if any(ch.endswith("position") for ch in sk.channels[j])
+              and np.ptp(motion.translations[:, j], axis=0).max() > 1e-9]
+    if moving != [c]:
+        return motion, None
+    keep = np.arange(1, sk.n_joints)
+    root_position = motion.root_position + quat_rotate(q0, motion.translations[:, c])
+    rotations = motion.rotations[:, keep].copy()
+    rotations[:, 0] = quat_multiply(q0, rotations[:, 0])
+    translations = motion.translations[:, keep].copy()
+    translations[:, 0] = root_position
+    offsets = sk.offsets[keep].copy()
+    offsets[0] += motion.root_position[0]
+    skeleton = dataclasses.replace(
+        sk, names=sk.names[1:], parents=np.maximum(sk.parents[keep] - 1, -1),
+        offsets=offsets, channels=sk.channels[1:], end_parents=sk.end_parents - 1)
+    has_pos = [any(ch.endswith("position") for ch in chans) for chans in skeleton.channels]
+    out = motion.replace(skeleton=skeleton, root_position=root_position, rotations=rotations,
+                         translations=translations if any(has_pos[1:]) else None,
+                         attrs={**motion.attrs, "dropped_root": sk.names[0]})
+    return out, (f"root joint {sk.names[0]!r} never moves and its child {sk.names[c]!r} carries "
+                 f"the travel: {sk.names[c]!r} is the root, {sk.names[0]!r} is dropped")
+
+
+def bvh_axes(motion: Motion, *, up: str = "auto", forward: str = "auto"
+             ) -> tuple[str, str, dict[str, Any]]:
+    """The up axis and facing of a BVH motion: BVH's Y up unless the motion clearly says Z.
+
+    Evidence, from the world positions of the joints and End Sites over the take (at most
+    :data:`_AXES_FRAMES` frames): the head-over-feet vector (joints named ``head`` minus
+    those named ``foot`` / ``toe`` / ``ankle``, median over frames; clear when its largest
+    axis is >= 2x the others), and the body's long axis signed by the floor
+    (:func:`~mocapflow.stages.motion.axes.data_axes`; clear when it is >= 1.3x the
+    next and the floor, coordinate 0, bounds the body along it).  The clear ones must
+    agree; ``+z`` / ``-z`` is taken then, anything else keeps ``+y``.  The facing of
+    a Z-up motion: ``left x up`` with ``left`` the median left-minus-right joint
+    vector (``Left``/``Right``, ``L``/``R`` prefix, ``_l``/``_r`` suffix pairs), else
+    ``-y`` for ``+z`` (Blender's front) and ``+y`` for ``-z``; Y up faces ``+z``.
+
+    Parameters
+    ----------
+    motion : Motion
+    up, forward : str
+        ``"auto"`` or a signed axis used as given.
+
+    Returns
+    -------
+    up, forward : str
+        Signed axis names (:data:`~mocapflow.stages.motion.axes.AXES`).
+    source : dict
+        ``up`` (``"param"``, ``"names+data"``, ``"names"``, ``"data"``, ``"convention"``),
+        ``up_confidence`` (``"high"``, or ``"low"`` with a ``note`` saying why),
+        ``forward`` (``"param"``, ``"names"``, ``"convention"``).
+
+    Raises
+    ------
+    AxisError
+        A bad axis name, or ``forward`` along ``up``.
+    """
+    sk = motion.skeleton
+    pos = pts = None
+    if up == "auto" or forward == "auto":
+        idx = np.unique(np.linspace(0, motion.n_frames - 1, _AXES_FRAMES).astype(int))
+        tr = None if motion.translations is None else motion.translations[idx]
+        pos, grot = forward_kinematics(sk, motion.rotations[idx], motion.root_position[idx],
+                                       translations=tr)
+        pts = np.concatenate([pos, end_site_positions(sk, pos, grot)], axis=1)
+    if up != "auto":
+        up, source = parse_axis(up, name="ingest_bvh.up"), {"up": "param", "up_confidence": "high"}
+    else:
+        up, source = _bvh_up(sk.names, pos, pts)
+    if forward != "auto":
+        forward, source["forward"] = parse_axis(forward, name="ingest_bvh.forward"), "param"
+    elif up[1] == "y":
+        forward, source["forward"] = ("+z" if up == "+y" else "-z"), "convention"
+    else:
+        forward, source["forward"] = _facing(sk.names, pos, up)
+    frame_basis(up, forward)
+    return up, forward, source
+
+
+def _bvh_up(names: list[str], pos: np.ndarray, pts: np.ndarray) -> tuple[str, dict[str, Any]]:
+    """The up axis of :func:`bvh_axes` from joint positions ``pos (F, J, 3)`` and joint and
+    End Site positions ``pts (F, N, 3)``; with its ``source`` dict."""
+    votes: dict[str, str] = {}
+    head = [j for j, n in enumerate(names) if _HEAD_NAME.search(n)]
+    feet = [j for j, n in enumerate(names) if _FOOT_NAME.search(n)]
+    if head and feet:
+        v = np.median(pos[:, head].mean(1) - pos[:, feet].mean(1), axis=0)
+        a = np.sort(np.abs(v))
+        k = int(np.argmax(np.abs(v)))
+        if a[2] >= 2.0 * a[1] and a[2] > 0:
+            votes["names"] = f"{'+' if v[k] > 0 else '-'}{'xyz'[k]}"
+    d = data_axes(pts)
+    if d["long_axis"] is not None:
+        k = d["long_axis"]
+        if d["long_ratio"] >= 1.3 and d["floor_sign"][k]:
+            votes["data"] = f"{'+' if d['floor_sign'][k] > 0 else '-'}{'xyz'[k]}"
+    said = set(votes.values())
+    if len(said) == 1 and (found := next(iter(said))) in ("+y", "+z", "-z"):
+        return found, {"up": "+".join(votes), "up_confidence": "high"}
+    if len(said) > 1:
+        why = "the head-over-feet axis ({names}) and the body's long axis ({data}) disagree"
+    elif said:
+        why = f"the motion says {next(iter(said))} up (only +y, +z or -z are taken)"
+    else:
+        why = ("no head and foot joint names, and the body's long axis over the take is "
+               "not clear (or not bounded by a floor at 0)")
+    return "+y", {"up": "convention", "up_confidence": "low", "note": why.format(**votes)}
+
+
+def _facing(names: list[str], pos: np.ndarray, up: str) -> tuple[str, str]:
+    """The facing of :func:`bvh_axes` for an up axis other than Y, with its source."""
+    index = {n: j for j, n in enumerate(names)}
+    pairs = []
+    for n, j in index.items():
+        for pattern, right in _LEFT_RIGHT:
+            other = re.sub(pattern, right, n, count=1)
+            if other != n and other in index:
+                pairs.append((j, index[other]))
+                break
+    upv = axis_vector(up)
+    if pairs:
+        left_idx, right_idx = np.array(pairs).T
+        left = np.median((pos[:, left_idx] - pos[:, right_idx]).mean(1), axis=0)
+        f = np.cross(left, upv)
+        if np.linalg.norm(f) > 1e-9:
+            k = int(np.argmax(np.abs(f)))
+            return f"{'+' if f[k] > 0 else '-'}{'xyz'[k]}", "names"
+    return ("-" if upv.sum() > 0 else "+") + "xy"[int(up[1] == "x")], "convention"
+
+
 @stage("ingest_bvh", outputs=("motion",))
 def ingest_bvh(
-    path: FilePath, *, rate: float | None = None, unit: str = "auto", up: str = "+y",
-    forward: str = "+z", ctx: Context
+    path: FilePath, *, rate: float | None = None, unit: str = "auto", up: str = "auto",
+    forward: str = "auto", ctx: Context
 ) -> dict:
     """Read a BVH file into a motion (metres), optionally resampled to ``rate``.
 
@@ -263,22 +448,33 @@ def ingest_bvh(
         Length unit of the file (``"auto"`` guesses it from the skeleton size).
     up, forward : str
         The file's vertical axis and the direction its character faces, stored in
-        ``motion.attrs["up"]`` / ``["forward"]``: BVH's convention is Y up, facing
-        +Z; give e.g. ``up: +z, forward: -y`` for a file exported Z-up.
+        ``motion.attrs["up"]`` / ``["forward"]`` (``["axes_source"]``: what decided,
+        see :func:`bvh_axes`).  ``"auto"``: BVH's convention, Y up facing +Z, unless
+        the motion clearly says Z up (then facing by the left/right joints, else
+        ``-y``); one warning when the evidence is weak.  Or a signed axis, e.g.
+        ``up: +z, forward: -y`` for a file exported Z-up.
 
     Returns
     -------
     dict
         ``motion``: :class:`Motion` with ``root_position (F, 3)``, ``rotations (F, J, 4)``.
+        A static root joint whose one child carries the travel is dropped (that
+        child becomes the root, one warning; see :func:`_static_root_dropped`).
     """
+    name = Path(path).name
+    motion, dropped = _static_root_dropped(read_bvh(path, unit=unit))
+    if dropped:
+        ctx.warn(f"{name}: {dropped}")
     try:
-        axes = {"up": parse_axis(up, name="ingest_bvh.up"),
-                "forward": parse_axis(forward, name="ingest_bvh.forward")}
-        frame_basis(axes["up"], axes["forward"])
+        up_axis, fwd, source = bvh_axes(motion, up=up, forward=forward)
     except AxisError as e:
         raise IngestError(f"{path}: {e}") from None
-    motion = _resampled(read_bvh(path, unit=unit), rate, path)
-    return {"motion": motion.replace(attrs={**motion.attrs, **axes})}
+    if source.get("note"):
+        ctx.warn(f"{name}: up axis +y (BVH's convention) kept, the evidence is weak: "
+                 f"{source['note']}; set ingest.up (+z, -y ...) if it is wrong")
+    motion = motion.replace(attrs={**motion.attrs, "up": up_axis, "forward": fwd,
+                                   "axes_source": source})
+    return {"motion": _resampled(motion, rate, path)}
 
 
 def amc_skeleton_path(amc: str | Path) -> Path:

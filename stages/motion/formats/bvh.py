@@ -4,7 +4,9 @@ Reading
 -------
 Any per-joint channel layout is accepted: position channels on any joint
 (non-root ones go to :attr:`Motion.translations`), 0-3 rotation channels in any
-order, End Sites, tabs, CRLF/CR line ends, scientific notation.  Rotations
+order, channel names in any letter case (``ZPosition``), End Sites (named ones,
+``End Site NAME``, too: the name is dropped), tabs, CRLF/CR line ends, scientific
+notation.  Writing uses the canonical spelling (``Zposition``, ``End Site``).  Rotations
 follow the BVH convention ``R = R_first @ R_second @ R_third`` for the rotation
 channels in file order (intrinsic), angles in degrees, and are stored as unit
 quaternions made sign-continuous along frames.  Where the root has position
@@ -59,7 +61,9 @@ BVH_UNITS: dict[str, float] = dict(UNIT_SCALE)
 _AUTO_UNITS = ("m", "dm", "cmu", "in", "cm", "mm")
 _TYPICAL_HEIGHT_M = 1.7
 
-_CHANNELS = {f"{a}{k}": f"{a.upper()}{k}" for a in "xyzXYZ" for k in ("position", "rotation")}
+#: Channel names, lower case (read case-insensitively, as Blender does) -> the canonical
+#: spelling written back (``ZPosition`` -> ``Zposition``).
+_CHANNELS = {f"{a}{k}": f"{a.upper()}{k}" for a in "xyz" for k in ("position", "rotation")}
 
 #: Deepest joint nesting :func:`read_bvh` accepts (real skeletons nest 5-30 deep).
 MAX_DEPTH = 256
@@ -163,6 +167,7 @@ def _parse_hierarchy(tk: _Tokens) -> tuple[list[_Joint], list[tuple[int, np.ndar
             site = tk.next("'Site'")
             if site[0].upper() != "SITE":
                 raise tk.error(f"expected 'End Site', found 'End {site[0]}'", site[1])
+            _name_on_line(tk, site[1])  # "End Site NAME": the name is dropped (as Blender)
             tk.expect("{", f"End Site of {name!r}")
             ends.append((j, _parse_offset(tk, f"End Site of {name!r}")))
             tk.expect("}", f"End Site of {name!r}")
@@ -178,14 +183,21 @@ def _parse_hierarchy(tk: _Tokens) -> tuple[list[_Joint], list[tuple[int, np.ndar
     return joints, ends
 
 
-def _joint_name(tk: _Tokens, line: int) -> str:
+def _name_on_line(tk: _Tokens, line: int) -> str:
+    """The rest of ``line`` up to a final ``{`` (left in the stream): ``JOINT name {``,
+    ``End Site NAME {``."""
     words = tk.rest_of_line(line)
-    if words and words[-1] == "{":  # "JOINT name {" on one line
+    if words and words[-1] == "{":
         tk.i -= 1
         words = words[:-1]
-    if not words:
-        raise tk.error("JOINT without a name", line)
     return " ".join(words)
+
+
+def _joint_name(tk: _Tokens, line: int) -> str:
+    name = _name_on_line(tk, line)
+    if not name:
+        raise tk.error("JOINT without a name", line)
+    return name
 
 
 def _parse_offset(tk: _Tokens, what: str) -> np.ndarray:
@@ -226,12 +238,12 @@ def _parse_channels(tk: _Tokens, joint: _Joint) -> None:
         )
     for _ in range(int(n)):
         ch, ch_line = tk.next(f"a channel name of joint {name!r}")
-        if ch not in _CHANNELS:
+        if ch.lower() not in _CHANNELS:
             raise tk.error(
                 f"unknown channel {ch!r} of joint {name!r} (expected X/Y/Z position or rotation)",
                 ch_line,
             )
-        joint.channels.append(_CHANNELS[ch])
+        joint.channels.append(_CHANNELS[ch.lower()])
     rot = "".join(c[0] for c in joint.channels if c.endswith("rotation"))
     if len(set(rot)) != len(rot):
         raise tk.error(

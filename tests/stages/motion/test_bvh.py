@@ -333,3 +333,26 @@ def test_non_finite_huge_and_duplicate_fields_name_the_line(tmp_path, edit, patt
     p = _write(tmp_path, "bad.bvh", [ln.replace(*edit) for ln in _lines()])
     with pytest.raises(BVHError, match=r"bad\.bvh" + pattern):
         read_bvh(p, unit="cm")
+
+
+def test_channel_names_any_case_and_named_end_sites_read_as_blender_does(tmp_path):
+    """``ZPosition`` / ``ZRotation`` and ``End Site NAME`` (Blender reads both) read like the
+    canonical file; writing gives the canonical spelling back."""
+    text = SYNTHETIC
+    for old, new in [("Xposition Yposition Zposition", "XPOSITION yPosition ZPosition"),
+                     ("CHANNELS 1 Zrotation", "CHANNELS 1 ZRotation"),
+                     ("\t\t\tEnd Site\r\n", "\t\t\tEnd Site HingeTip\r\n"),
+                     ("\t\tEnd Site\r\n\t\t{", "\t\tEnd Site Foot {")]:
+        assert text.count(old) == 1
+        text = text.replace(old, new)
+    (tmp_path / "cased.bvh").write_text(text)
+    (tmp_path / "ref.bvh").write_text(SYNTHETIC)
+    m = read_bvh(tmp_path / "cased.bvh", unit="cm")
+    ref = read_bvh(tmp_path / "ref.bvh", unit="cm")
+    assert m.skeleton.channels == ref.skeleton.channels
+    assert m.skeleton.channels[0][3:] == ["Xposition", "Yposition", "Zposition"]
+    np.testing.assert_array_equal(m.skeleton.end_offsets, [[0.05, 0, 0], [0, -0.4, 0]])
+    np.testing.assert_array_equal(_world(m), _world(ref))
+    out = write_bvh(m, tmp_path / "out.bvh").read_text()
+    assert "Zposition" in out and "ZPosition" not in out and "HingeTip" not in out
+    assert out.count("End Site\n") == 2

@@ -149,7 +149,7 @@ def test_param_validation():
     spec = get_stage("ingest_amc")
     assert validate_params(spec, {}) == {"asf": None, "rate": None}
     assert validate_params(get_stage("ingest_bvh"), {"rate": 30}) == {
-        "rate": 30.0, "unit": "auto", "up": "+y", "forward": "+z"}
+        "rate": 30.0, "unit": "auto", "up": "auto", "forward": "auto"}
     assert get_stage("ingest_strokes_set").outputs == ("examples",)
 
 
@@ -229,3 +229,151 @@ def test_default_asf_beside_the_amc_is_part_of_the_cache_key(tmp_path):
     with open(tmp_path / "cmu_11.asf", "a") as f:
         f.write("# an edit to the skeleton file\n")
     assert statuses() == ["computed"]
+
+
+# --------------------------------------------------------------------------- BVH axes, static root
+
+
+def _walk(F: int = 40) -> Motion:
+    """A Y-up walk facing +Z: hips at 0.9 m travelling 1 m along +z, legs swinging."""
+    from mocapflow.stages.motion.datatypes import Skeleton
+    from mocapflow.stages.motion.rotations import quat_from_axis_angle
+
+    names = ["Hips", "Spine", "Head", "LeftUpLeg", "LeftFoot", "RightUpLeg", "RightFoot"]
+    offsets = [[0, 0, 0], [0, 0.3, 0], [0, 0.4, 0], [0.1, 0, 0], [0, -0.85, 0],
+               [-0.1, 0, 0], [0, -0.85, 0]]
+    rot3, root6 = ["Zrotation", "Xrotation", "Yrotation"], ["Xposition", "Yposition", "Zposition"]
+    sk = Skeleton(names=names, parents=[-1, 0, 1, 0, 3, 0, 5], offsets=offsets,
+                  channels=[root6 + rot3] + [rot3] * 6, end_parents=[2, 4, 6],
+                  end_offsets=[[0, 0.15, 0], [0, -0.05, 0.12], [0, -0.05, 0.12]])
+    t = np.arange(F) / 30.0
+    swing = 0.4 * np.sin(2 * np.pi * t)
+    rot = np.zeros((F, 7, 4))
+    rot[..., 0] = 1.0
+    rot[:, 3] = quat_from_axis_angle(np.array([1.0, 0, 0]), swing)
+    rot[:, 5] = quat_from_axis_angle(np.array([1.0, 0, 0]), -swing)
+    root = np.stack([0 * t, 0.9 + 0.02 * np.cos(4 * np.pi * t), t * 30 / F], axis=1)
+    return Motion(skeleton=sk, root_position=root, rotations=rot, rate=30.0,
+                  attrs={"source_scale": 0.01})
+
+
+def _to_z_up(m: Motion, *, offsets_too: bool) -> Motion:
+    """The same take exported Z-up (+90 deg about X: y -> z, z -> -y); either every offset
+    and rotation turned (Blender), or only the root (a converted take, Y-up rest pose)."""
+    from dataclasses import replace
+
+    from mocapflow.stages.motion.rotations import quat_from_axis_angle, quat_inverse, quat_multiply
+
+    q = quat_from_axis_angle(np.array([1.0, 0, 0]), np.pi / 2)
+    Q = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    rot = m.rotations.copy()
+    rot[:, 0] = quat_multiply(q, rot[:, 0])
+    sk = m.skeleton
+    if offsets_too:
+        rot[:, 0] = quat_multiply(rot[:, 0], quat_inverse(q))
+        rot[:, 1:] = quat_multiply(quat_multiply(q, rot[:, 1:]), quat_inverse(q))
+        sk = replace(sk, offsets=sk.offsets @ Q.T, end_offsets=sk.end_offsets @ Q.T)
+    return m.replace(skeleton=sk, rotations=rot, root_position=m.root_position @ Q.T)
+
+
+@pytest.mark.parametrize("layout", ["y_up", "z_up_blender", "z_up_root_turned"])
+def test_ingest_bvh_up_auto_detects_y_and_z_up(tmp_path, layout):
+    from mocapflow.stages.motion.formats.bvh import write_bvh
+    from mocapflow.stages.motion.kinematics import motion_positions
+
+    walk = _walk()
+    m = walk if layout == "y_up" else _to_z_up(walk, offsets_too=layout == "z_up_blender")
+    Q = np.eye(3) if layout == "y_up" else np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
+    np.testing.assert_allclose(motion_positions(m), motion_positions(walk) @ Q.T, atol=1e-12)
+    c = ctx()
+    got = ingest_bvh(str(write_bvh(m, tmp_path / f"{layout}.bvh")), ctx=c)["motion"]
+    want = ("+y", "+z") if layout == "y_up" else ("+z", "-y")
+    assert (got.attrs["up"], got.attrs["forward"]) == want
+    assert got.attrs["axes_source"]["up_confidence"] == "high" and not c.warnings
+    given = ingest_bvh(str(tmp_path / f"{layout}.bvh"), up=want[0], ctx=ctx())["motion"]
+    assert given.attrs["forward"] == want[1]  # forward detected for a given up
+    assert given.attrs["axes_source"]["up"] == "param"
+
+
+def test_ingest_bvh_up_auto_keeps_y_and_warns_once_on_weak_evidence(tmp_path):
+    p = tmp_path / "stick.bvh"  # two joints, no names that say head or feet, no floor
+    p.write_text("HIERARCHY\nROOT A\n{\nOFFSET 0 0 0\nCHANNELS 6 Xposition Yposition Zposition "
+                 "Zrotation Xrotation Yrotation\nJOINT B\n{\nOFFSET 0 0 100\nCHANNELS 3 Zrotation "
+                 "Xrotation Yrotation\nEnd Site\n{\nOFFSET 0 0 70\n}\n}\n}\nMOTION\nFrames: 2\n"
+                 "Frame Time: 0.1\n0 500 300 0 0 0 0 0 0\n1 500 300 0 0 0 0 0 0\n")
+    c = ctx()
+    m = ingest_bvh(str(p), ctx=c)["motion"]
+    assert (m.attrs["up"], m.attrs["forward"]) == ("+y", "+z")
+    assert m.attrs["axes_source"]["up_confidence"] == "low"
+    assert len(c.warnings) == 1 and "up axis +y (BVH's convention) kept" in c.warnings[0]
+
+
+STATIC_ROOT = """HIERARCHY
+ROOT joint_Root
+{
+  OFFSET 1 2 3
+  CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation
+  JOINT Hips
+  {
+    OFFSET 0 90 0
+    CHANNELS 6 Xposition Yposition Zposition Zrotation Xrotation Yrotation
+    JOINT Spine
+    {
+      OFFSET 0 10 0
+      CHANNELS 3 Zrotation Xrotation Yrotation
+      End Site
+      {
+        OFFSET 0 50 0
+      }
+    }
+    JOINT LeftFoot
+    {
+      OFFSET 10 -80 0
+      CHANNELS 3 Zrotation Xrotation Yrotation
+      End Site
+      {
+        OFFSET 0 0 10
+      }
+    }
+  }
+}
+MOTION
+Frames: 3
+Frame Time: 0.0333333
+5 0 7 0 0 0 0 90 0 10 20 30 5 0 0 -20 0 0
+5 0 7 0 0 0 0 91 40 15 25 35 6 0 0 -10 0 0
+5 0 7 0 0 0 3 92 80 20 30 40 7 0 0 0 0 0
+"""
+
+
+def test_ingest_bvh_drops_a_static_root_whose_child_travels(tmp_path):
+    from mocapflow.stages.motion.formats.bvh import read_bvh, write_bvh
+    from mocapflow.stages.motion.kinematics import end_site_positions, forward_kinematics
+
+    def world(m):
+        pos, grot = forward_kinematics(m.skeleton, m.rotations, m.root_position,
+                                       translations=m.translations)
+        return pos, end_site_positions(m.skeleton, pos, grot)
+
+    p = tmp_path / "bandai_layout.bvh"
+    p.write_text(STATIC_ROOT)
+    c = ctx()
+    m = ingest_bvh(str(p), up="+y", ctx=c)["motion"]
+    assert m.skeleton.names == ["Hips", "Spine", "LeftFoot"]
+    assert list(m.skeleton.parents) == [-1, 0, 0] and m.attrs["dropped_root"] == "joint_Root"
+    assert c.warnings == ["bandai_layout.bvh: root joint 'joint_Root' never moves and its child "
+                          "'Hips' carries the travel: 'Hips' is the root, 'joint_Root' is dropped"]
+    # the hips' world position is the static root's position plus its channels (cm -> m)
+    np.testing.assert_allclose(m.root_position * 100, [[5, 90, 7], [5, 91, 47], [8, 92, 87]],
+                               atol=1e-12)
+    ref = read_bvh(p)
+    (pos, ends), (ref_pos, ref_ends) = world(m), world(ref)
+    np.testing.assert_allclose(pos, ref_pos[:, 1:], atol=1e-9)  # every other joint unchanged
+    np.testing.assert_allclose(ends, ref_ends, atol=1e-9)
+    back = ingest_bvh(str(write_bvh(m, tmp_path / "back.bvh")), up="+y", ctx=ctx())["motion"]
+    assert back.skeleton.names == m.skeleton.names
+    np.testing.assert_allclose(world(back)[0], pos, atol=1e-8)
+    # a root that moves (or turns) is kept
+    p.write_text(STATIC_ROOT.replace("\n5 0 7 0 0 0 3 92", "\n5 0 8 0 0 0 3 92"))
+    kept = ingest_bvh(str(p), up="+y", ctx=(c := ctx()))["motion"]
+    assert kept.skeleton.names[0] == "joint_Root" and not c.warnings
