@@ -195,11 +195,16 @@ def bind_mesh(
         for unit, scale in (("decimetres", 10.0), ("centimetres", 100.0), ("millimetres", 1000.0)):
             if 0.7 * scale < ratio < 1.4 * scale:
                 hint = f"; the mesh looks {scale:g}x too large: is it in {unit}?"
+        if not hint and 1.4 <= ratio < 7.0:
+            hint = ("; the markers cover only part of the body (an upper-body or partial "
+                    "marker set?): a whole-body mesh cannot follow them - give a mesh of the "
+                    "part they cover")
         raise DeformError(
             f"{name} does not overlap the marker surface: only {overlap:.0%} of its "
             f"{len(V)} vertices lie within {limit * 1000:.0f} mm of it (median distance "
             f"{np.median(dist) * 1000:.0f} mm; mesh extent {ext_v:.3g} m, marker extent "
-            f"{ext_m:.3g} m){hint}; fit the mesh to the markers first (stage fit_mesh)"
+            f"{ext_m:.3g} m){hint}" + ("" if hint.startswith("; the markers") else
+                                        "; fit the mesh to the markers first (stage fit_mesh)")
         )
     alpha = segmentation.weights
     beta = np.einsum("vc,vcp->vp", bary, alpha[faces[tri]])

@@ -327,6 +327,15 @@ def test_mesh_not_overlapping_is_an_error(limb):
     with pytest.raises(DeformError, match="does not overlap"):
         moved = limb["mesh"].vertices + [1.0, 0, 0]
         deform(limb["markers"], limb["seg"], Mesh(moved, limb["mesh"].faces), ctx=Context())
+    # a mesh that runs on far beyond the markers (found on kineticstoolkit's seated
+    # racing static trial, markers on the upper body only): said so, not "fit it first"
+    v = limb["mesh"].vertices
+    axis = int(np.argmax(np.ptp(v, axis=0)))
+    longer = v.copy()
+    longer[:, axis] = v[:, axis].min() + 3.0 * (v[:, axis] - v[:, axis].min())
+    with pytest.raises(DeformError, match=r"cover only part of the body") as err:
+        deform(limb["markers"], limb["seg"], Mesh(longer, limb["mesh"].faces), ctx=Context())
+    assert "fit the mesh to the markers first" not in str(err.value)
     with pytest.raises(DeformError, match="lacks 1 markers.*M005"):
         mk = limb["markers"]
         keep = [i for i in range(mk.n_markers) if i != 5]
