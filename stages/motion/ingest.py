@@ -219,7 +219,8 @@ def ingest_c3d(path: FilePath, *, up: str = "auto", forward: str = "auto", ctx: 
         ctx.warn(f"{Path(path).name}: up axis: {src['note']}")
     if src["up_confidence"] == "low":
         ctx.warn(f"{Path(path).name}: up axis {markers.attrs['up']} guessed from the data "
-                 "with little evidence; set ingest.up (x, y, z, +z, -y ...) if it is wrong")
+                 "with little evidence; set ingest.up (x, y, z, +z, -y ...; in the skin graph "
+                 "params.up, which its range-of-motion trial reads too) if it is wrong")
     return {"markers": markers, "report": report}
 
 

@@ -30,7 +30,8 @@ __all__ = ["ingest_rom", "match_labels", "match_markers"]
 
 
 @stage("ingest_rom", outputs=("markers", "report"), file_overrides={"path": "rom"})
-def ingest_rom(path: FilePath, *, rom: FilePath | None = None, ctx: Context) -> dict[str, Any]:
+def ingest_rom(path: FilePath, *, rom: FilePath | None = None, up: str = "auto",
+               forward: str = "auto", ctx: Context) -> dict[str, Any]:
     """Read the range-of-motion trial: the ``rom`` C3D, or the part itself without one.
 
     Parameters
@@ -40,6 +41,10 @@ def ingest_rom(path: FilePath, *, rom: FilePath | None = None, ctx: Context) -> 
         passes the ``rom`` file here instead and runs the node once.
     rom : FilePath, optional
         A range-of-motion capture of the same subject and marker set.
+    up, forward : str
+        The file's up axis and facing, as for
+        :func:`~mocapflow.stages.motion.ingest.ingest_c3d` (``"auto"``: found from the
+        file); give the trial's (``ingest``'s) when it had to be set by hand.
 
     Returns
     -------
@@ -50,7 +55,7 @@ def ingest_rom(path: FilePath, *, rom: FilePath | None = None, ctx: Context) -> 
         :func:`mocapflow.stages.motion.ingest.markers_report`).
     """
     source = path if rom is None else rom
-    out = ingest_c3d(source, ctx=ctx)
+    out = ingest_c3d(source, up=up, forward=forward, ctx=ctx)
     if rom is None:
         note = (f"no range-of-motion trial given (param rom): the trial "
                 f"{Path(path).name} is segmented from itself")

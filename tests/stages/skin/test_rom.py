@@ -199,3 +199,9 @@ def test_ingest_rom_reports_its_source(captures):
     rom = ingest_rom(str(files["run"]), rom=str(files["rom"]), ctx=Context())
     assert rom["report"]["segmented_from"] == "rom"
     assert rom["markers"].n_markers == read_c3d(files["rom"]).n_markers == SMALL["n_markers"] - 3
+    # the up axis set by hand reaches the ROM trial too (it had no up param: a two-subject
+    # take whose up was guessed wrong could be fixed for the trial only)
+    auto = ingest_rom(str(files["run"]), rom=str(files["rom"]), ctx=Context())["report"]
+    flipped = "+x" if auto["up"][1] != "x" else "+y"
+    forced = ingest_rom(str(files["run"]), rom=str(files["rom"]), up=flipped, ctx=Context())
+    assert forced["report"]["up"] == flipped and forced["markers"].attrs["up"] == flipped
