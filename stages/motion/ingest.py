@@ -143,6 +143,21 @@ def markers_report(markers: Markers) -> dict[str, Any]:
     }
 
 
+#: Markers a ``Name:`` label prefix needs to count as a subject in :func:`markers_axes`.
+SUBJECT_MARKERS = 10
+
+
+def _largest_subject(labels: list[str]) -> np.ndarray | None:
+    """Columns of the largest subject when ``Name:`` prefixes name two or more subjects
+    of at least :data:`SUBJECT_MARKERS` markers each (Vicon / Motive multi-subject
+    takes), else None."""
+    prefix = np.array([lb.split(":", 1)[0] if ":" in lb else "" for lb in labels])
+    names, counts = np.unique(prefix[prefix != ""], return_counts=True)
+    if (counts >= SUBJECT_MARKERS).sum() < 2:
+        return None
+    return np.flatnonzero(prefix == names[np.argmax(counts)])
+
+
 def markers_axes(markers: Markers, *, up: str = "auto", forward: str = "auto"
                  ) -> tuple[Markers, dict[str, Any]]:
     """Markers with their up axis and facing direction in ``attrs`` (``up``, ``forward``,
@@ -158,15 +173,24 @@ def markers_axes(markers: Markers, *, up: str = "auto", forward: str = "auto"
     -------
     markers : Markers
     evidence : dict
-        What decided: ``up`` and ``forward`` evidence (see :func:`detect_up`).
+        What decided: ``up`` and ``forward`` evidence (see :func:`detect_up`).  With
+        two or more subjects named by ``Name:`` label prefixes, the largest one's
+        markers decide (``up["subject"]``): subjects standing metres apart made their
+        spread the long axis (kineticstoolkit's two-player tennis serve, Z up, read +y).
     """
     tree = markers.attrs.get("c3d_parameters") or {}
     screen = tree.get("POINT", {}).get("parameters", {}).get("Y_SCREEN", {}).get("value")
-    both = markers.positions
-    if markers.fragments.shape[1]:
-        both = np.concatenate([markers.positions, markers.fragments], axis=1)
+    one = _largest_subject(markers.labels)
+    if one is not None:  # several subjects apart: their spread is not a body's extent
+        both, labels = markers.positions[:, one], [markers.labels[i] for i in one]
+    else:
+        both, labels = markers.positions, markers.labels
+        if markers.fragments.shape[1]:
+            both = np.concatenate([markers.positions, markers.fragments], axis=1)
     up_axis, up_ev = detect_up(both, y_screen=str(screen[0]) if screen else None, up=up)
-    fwd, fwd_ev = detect_forward(markers.positions, markers.labels, up=up_axis, forward=forward)
+    fwd, fwd_ev = detect_forward(both[:, :len(labels)], labels, up=up_axis, forward=forward)
+    if one is not None:
+        up_ev["subject"] = labels[0].split(":", 1)[0]
     source = {"up": up_ev["source"], "up_confidence": up_ev["confidence"],
               "forward": fwd_ev["source"]}
     if up_ev.get("note"):

@@ -58,6 +58,28 @@ def test_up_axis_of_the_real_files(shared_data, name):
         assert detect_up(both)[0] == "+y"
 
 
+
+def test_two_subjects_apart_are_not_one_tall_body(shared_data):
+    """Two subjects 3 m apart, named by label prefixes (kineticstoolkit's two-player
+    tennis serve, Z up, was read +y: their spread along y beat a body's height); the
+    largest subject's markers decide, as one subject alone does."""
+    from mocapflow.stages.motion.ingest import markers_axes  # noqa: PLC0415
+
+    m = read_c3d(shared_data / "c3d" / "ezc3d-testFiles_Qualisys.c3d")
+    attrs = {k: v for k, v in m.attrs.items() if k != "c3d_parameters"}  # no Y_SCREEN
+    P = np.concatenate([m.positions, m.positions + [0.0, 3.0, 0.0]], axis=1)
+    two = m.replace(positions=P, labels=[f"A:{lb}" for lb in m.labels]
+                    + [f"B:{lb}" for lb in m.labels],
+                    fragments=np.zeros((m.n_frames, 0, 3)), fragment_labels=[], attrs=attrs,
+                    residuals=None)
+    alone = m.replace(fragments=np.zeros((m.n_frames, 0, 3)), fragment_labels=[],
+                      attrs=attrs)
+    got, ev = markers_axes(two)
+    assert got.attrs["up"] == markers_axes(alone)[0].attrs["up"] == "+z"
+    assert ev["up"]["subject"] == "A"
+    assert detect_up(P)[0] != "+z"  # all markers at once: the spread wins
+
+
 def test_facing_from_landmarks_travel_and_params(shared_data):
     m = read_c3d(shared_data / "c3d" / "btkdata_PiG_Calibration-FlatFoot-Hole.c3d")
     fwd, ev = detect_forward(m.positions, m.labels, up="+z")
