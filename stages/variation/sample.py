@@ -450,6 +450,15 @@ class Sampler:
             zp, zc = zc, mean + (sigma * kappa) * std * eps
             yield (zc * sd + m, mean * sd + m) if predicted else zc * sd + m
 
+    def _cycle_hint(self) -> str:
+        """What the input clips were, for a model that does not cycle."""
+        clips = self.model.clips
+        n = clips.lengths
+        return (f" (it learnt from {len(n)} clip(s) of {int(n.min())}-{int(n.max())} frames, "
+                f"{n.min() / clips.rate:.2f}-{n.max() / clips.rate:.2f} s: a cycle cut from a "
+                "short take may be a single step; give takes of several cycles, or "
+                "clips.cut: none)")
+
     @property
     def cycle_limit(self) -> int:
         """Frames a stream may run without its cycle phase passing 0 (3 of the longest input)."""
@@ -535,7 +544,7 @@ class Sampler:
             if np.any(start < 0):
                 raise SampleError(
                     f"the cycle phase of {int((start < 0).sum())} stream(s) did not pass 0 "
-                    f"within {limit} frames: the model does not cycle")
+                    f"within {limit} frames: the model does not cycle{self._cycle_hint()}")
             end = start + length
             if one_cycle:
                 end = self._cycle_ends(gen, xs, ms, start, limit)
@@ -589,7 +598,7 @@ class Sampler:
             if late.any():
                 raise SampleError(
                     f"the cycle phase of {int(late.sum())} stream(s) did not pass 0 again "
-                    f"within {limit} frames: the model does not cycle")
+                    f"within {limit} frames: the model does not cycle{self._cycle_hint()}")
         return end
 
     def cycles(
@@ -633,7 +642,7 @@ class Sampler:
             ms.append(mu[0])
             if len(xs) - (cuts[-1] if cuts else 0) > limit:
                 raise SampleError(f"the stream's cycle phase did not pass 0 within {limit} "
-                                  "frames: the model does not cycle")
+                                  f"frames: the model does not cycle{self._cycle_hint()}")
         X, M = np.stack(xs), np.stack(ms)
         return ([X[a:b] for a, b in itertools.pairwise(cuts)],
                 [M[a:b] for a, b in itertools.pairwise(cuts)], cuts[0])

@@ -152,6 +152,14 @@ def test_default_variants_are_whole_cycles_with_the_inputs_timing(walk_model):
         assert not np.any(s.passes_zero(ph[:-1], ph[1:]))  # no pass inside the cycle
     with pytest.raises(SampleError, match="one_cycle"):
         s.run(np.random.default_rng(2), count=1, length=10, one_cycle=True)
+    # a model whose phase never passes 0 says what it learnt from (npybvh's 0.62 s run was
+    # cut into two single steps of 17-18 frames, and the error gave no hint)
+    never = Sampler(model)
+    never.passes_zero = lambda prev, ph: np.zeros(np.shape(ph), dtype=bool)
+    n = c.lengths
+    with pytest.raises(SampleError, match=rf"does not cycle \(it learnt from {len(n)} clip\(s\) "
+                                          rf"of {n.min()}-{n.max()} frames.*clips.cut: none"):
+        never.run(np.random.default_rng(2), count=1, length=10, start_at_phase=True)
     kw = dict(count=10, sigma=1.0, noise_time=0.1)
     v = sample(model, **kw, ctx=Context(rng=np.random.default_rng(5)))["variants"]
     assert len(set(v.lengths.tolist())) > 1 and v.attrs["time_warp"]
