@@ -241,7 +241,7 @@ def ingest_c3d(path: FilePath, *, up: str = "auto", forward: str = "auto", ctx: 
     src = markers.attrs["axes_source"]
     if src.get("note"):
         ctx.warn(f"{Path(path).name}: up axis: {src['note']}")
-    if src["up_confidence"] == "low":
+    if src["up_confidence"] == "low" and markers.n_markers + markers.fragments.shape[1]:
         ctx.warn(f"{Path(path).name}: up axis {markers.attrs['up']} guessed from the data "
                  "with little evidence; set ingest.up (x, y, z, +z, -y ...; in the skin graph "
                  "params.up, which its range-of-motion trial reads too) if it is wrong")

@@ -18,6 +18,8 @@ the whole body reconstructs a marker from distant ones as much as from near ones
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 __all__ = ["WHOLE_BODY_MARKER_WEIGHT", "WHOLE_BODY_SIGMA", "WHOLE_BODY_VARIANCE",
@@ -95,7 +97,9 @@ def whole_body_pca(
     F, M, _ = filled.shape
     out = np.full(filled.shape, np.nan)
     fin = np.isfinite(filled).all(-1)  # (F, M)
-    centroid = np.nanmean(np.where(fin[..., None], filled, np.nan), axis=1)  # (F, 3)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():  # a frame with no
+        warnings.simplefilter("ignore", RuntimeWarning)  # marker: NaN centroid, unused
+        centroid = np.nanmean(np.where(fin[..., None], filled, np.nan), axis=1)  # (F, 3)
     for i in np.flatnonzero((holes & fin).any(0)):
         h = holes[:, i] & fin[:, i]
         # the markers filled wherever this one is to be estimated; frames where all are

@@ -154,7 +154,8 @@ def match_markers(
     if extra:
         ctx.warn(
             f"{len(extra)} markers of the trial are not in the segmentation (absent from the "
-            f"range-of-motion trial or off its marker surface) and are left out: "
+            f"trial it was made from, off its marker surface, or kept apart as objects) and "
+            f"are left out: "
             f"{_name_list(extra)}"
         )
     F = markers.n_frames

@@ -297,7 +297,8 @@ def read_c3d(path: str | os.PathLike) -> Markers:
     tree = parameter_tree(params)
     if "" in tree:  # ezc3d's group for parameters of a group id the file never defines
         orphans = ", ".join(tree.pop("")["parameters"])
-        notes.append(f"parameters of an undefined group skipped: {orphans}")
+        if orphans:  # (an unnamed group with no parameter is dropped silently)
+            notes.append(f"parameters of an undefined group skipped: {orphans}")
     attrs["c3d_parameters"] = tree
     if notes:
         attrs["read_notes"] = notes
