@@ -456,6 +456,21 @@ def _facing(names: list[str], pos: np.ndarray, up: str) -> tuple[str, str]:
     return ("-" if upv.sum() > 0 else "+") + "xy"[int(up[1] == "x")], "convention"
 
 
+#: A BVH skeleton with fewer joints is no whole body: ``unit="auto"`` (a 1.7 m body) then
+#: warns (a 1-joint camera track read as metres sat 2.5 km away; pybvh's 2- and 4-joint
+#: test files as decimetres and CMU units; every body in the shared and scouted files
+#: has 22-60 joints).
+BODY_JOINTS = 5
+
+
+def _rest_height(skeleton) -> float:
+    """Largest extent (metres) of the rest pose's joints."""
+    pos = np.zeros_like(skeleton.offsets)
+    for j in range(1, skeleton.n_joints):
+        pos[j] = pos[skeleton.parents[j]] + skeleton.offsets[j]
+    return float(np.ptp(pos, axis=0).max()) if skeleton.n_joints > 1 else 0.0
+
+
 @stage("ingest_bvh", outputs=("motion",))
 def ingest_bvh(
     path: FilePath, *, rate: float | None = None, unit: str = "auto", up: str = "auto",
@@ -490,6 +505,11 @@ def ingest_bvh(
     motion, dropped = _static_root_dropped(read_bvh(path, unit=unit))
     if dropped:
         ctx.warn(f"{name}: {dropped}")
+    if unit == "auto" and motion.skeleton.n_joints < BODY_JOINTS:
+        ctx.warn(f"{name}: unit {motion.attrs['source_unit']!r} guessed from a skeleton of "
+                 f"{motion.skeleton.n_joints} joint(s), which says little about size "
+                 f"(rest pose {_rest_height(motion.skeleton):.3g} m across in that unit); "
+                 "set ingest.unit (m, cm, mm, in ...) if it is wrong")
     try:
         up_axis, fwd, source = bvh_axes(motion, up=up, forward=forward)
     except AxisError as e:

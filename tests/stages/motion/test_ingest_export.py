@@ -302,7 +302,7 @@ def test_ingest_bvh_up_auto_keeps_y_and_warns_once_on_weak_evidence(tmp_path):
                  "Xrotation Yrotation\nEnd Site\n{\nOFFSET 0 0 70\n}\n}\n}\nMOTION\nFrames: 2\n"
                  "Frame Time: 0.1\n0 500 300 0 0 0 0 0 0\n1 500 300 0 0 0 0 0 0\n")
     c = ctx()
-    m = ingest_bvh(str(p), ctx=c)["motion"]
+    m = ingest_bvh(str(p), unit="cm", ctx=c)["motion"]  # (auto: a 2-joint unit warning too)
     assert (m.attrs["up"], m.attrs["forward"]) == ("+y", "+z")
     assert m.attrs["axes_source"]["up_confidence"] == "low"
     assert len(c.warnings) == 1 and "up axis +y (BVH's convention) kept" in c.warnings[0]
@@ -358,7 +358,7 @@ def test_ingest_bvh_drops_a_static_root_whose_child_travels(tmp_path):
     p = tmp_path / "bandai_layout.bvh"
     p.write_text(STATIC_ROOT)
     c = ctx()
-    m = ingest_bvh(str(p), up="+y", ctx=c)["motion"]
+    m = ingest_bvh(str(p), up="+y", unit="cm", ctx=c)["motion"]
     assert m.skeleton.names == ["Hips", "Spine", "LeftFoot"]
     assert list(m.skeleton.parents) == [-1, 0, 0] and m.attrs["dropped_root"] == "joint_Root"
     assert c.warnings == ["bandai_layout.bvh: root joint 'joint_Root' never moves and its child "
@@ -366,7 +366,7 @@ def test_ingest_bvh_drops_a_static_root_whose_child_travels(tmp_path):
     # the hips' world position is the static root's position plus its channels (cm -> m)
     np.testing.assert_allclose(m.root_position * 100, [[5, 90, 7], [5, 91, 47], [8, 92, 87]],
                                atol=1e-12)
-    ref = read_bvh(p)
+    ref = read_bvh(p, unit="cm")
     (pos, ends), (ref_pos, ref_ends) = world(m), world(ref)
     np.testing.assert_allclose(pos, ref_pos[:, 1:], atol=1e-9)  # every other joint unchanged
     np.testing.assert_allclose(ends, ref_ends, atol=1e-9)
@@ -375,5 +375,22 @@ def test_ingest_bvh_drops_a_static_root_whose_child_travels(tmp_path):
     np.testing.assert_allclose(world(back)[0], pos, atol=1e-8)
     # a root that moves (or turns) is kept
     p.write_text(STATIC_ROOT.replace("\n5 0 7 0 0 0 3 92", "\n5 0 8 0 0 0 3 92"))
-    kept = ingest_bvh(str(p), up="+y", ctx=(c := ctx()))["motion"]
+    kept = ingest_bvh(str(p), up="+y", unit="cm", ctx=(c := ctx()))["motion"]
     assert kept.skeleton.names[0] == "joint_Root" and not c.warnings
+
+
+def test_ingest_bvh_warns_when_few_joints_decide_the_unit(tmp_path):
+    """unit auto assumes a 1.7 m body: a skeleton of a few joints (a camera track, a test
+    rig) says little about size, so the guess is said, with the way to set it."""
+    p = tmp_path / "rig.bvh"
+    p.write_text("HIERARCHY\nROOT Cam\n{\n  OFFSET 0 0 0\n  CHANNELS 6 Xposition Yposition "
+                 "Zposition Zrotation Xrotation Yrotation\n  End Site\n  {\n    OFFSET 0 0 1\n"
+                 "  }\n}\nMOTION\nFrames: 2\nFrame Time: 0.04\n0 150 300 0 0 0\n"
+                 "1 150 300 0 0 0\n")
+    ctx = Context()
+    ingest_bvh(str(p), ctx=ctx)
+    assert [w for w in ctx.warnings if "unit" in w and "1 joint(s)" in w and "ingest.unit" in w]
+    quiet = Context()
+    ingest_bvh(str(p), unit="cm", ctx=quiet)
+    assert not [w for w in quiet.warnings if "ingest.unit" in w]
+
