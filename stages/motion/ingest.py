@@ -32,7 +32,7 @@ from mocapflow.stages.motion.axes import (
 )
 from mocapflow.stages.motion.datatypes import Markers, Motion, StrokesSet
 from mocapflow.stages.motion.formats.asf import read_amc, read_asf
-from mocapflow.stages.motion.formats.bvh import read_bvh
+from mocapflow.stages.motion.formats.bvh import read_bvh, rest_extent
 from mocapflow.stages.motion.formats.c3d import read_c3d
 from mocapflow.stages.motion.formats.strokes import StrokesFileError, read_strokes_file
 from mocapflow.stages.motion.kinematics import (
@@ -463,14 +463,6 @@ def _facing(names: list[str], pos: np.ndarray, up: str) -> tuple[str, str]:
 BODY_JOINTS = 5
 
 
-def _rest_height(skeleton) -> float:
-    """Largest extent (metres) of the rest pose's joints."""
-    pos = np.zeros_like(skeleton.offsets)
-    for j in range(1, skeleton.n_joints):
-        pos[j] = pos[skeleton.parents[j]] + skeleton.offsets[j]
-    return float(np.ptp(pos, axis=0).max()) if skeleton.n_joints > 1 else 0.0
-
-
 @stage("ingest_bvh", outputs=("motion",))
 def ingest_bvh(
     path: FilePath, *, rate: float | None = None, unit: str = "auto", up: str = "auto",
@@ -508,7 +500,7 @@ def ingest_bvh(
     if unit == "auto" and motion.skeleton.n_joints < BODY_JOINTS:
         ctx.warn(f"{name}: unit {motion.attrs['source_unit']!r} guessed from a skeleton of "
                  f"{motion.skeleton.n_joints} joint(s), which says little about size "
-                 f"(rest pose {_rest_height(motion.skeleton):.3g} m across in that unit); "
+                 f"(rest pose {rest_extent(motion.skeleton):.3g} m across in that unit); "
                  "set ingest.unit (m, cm, mm, in ...) if it is wrong")
     try:
         up_axis, fwd, source = bvh_axes(motion, up=up, forward=forward)

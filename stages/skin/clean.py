@@ -453,6 +453,26 @@ def _marker_surface(
     return surf, few
 
 
+def _record_round(mrep: dict[str, Any], rep: dict[str, Any], assigned: np.ndarray,
+                  left: np.ndarray, a2: np.ndarray, depth: str, *,
+                  reason: str | None = None) -> None:
+    """A round over the fragments ``left`` into the merge report (in place): their
+    markers ``a2`` (-1: none) into ``assigned``, the round's merges and conflicts added,
+    its merge count under ``depth``.  The rejections become the round's; with
+    ``reason``, a fragment's earlier verdict stays its reason (it says more: entry
+    distance, nearest marker) and the round's comes with it under that key."""
+    assigned[left[a2 >= 0]] = a2[a2 >= 0]
+    mrep["merges"] += rep["merges"]
+    mrep["conflicts"] += rep["conflicts"]
+    if reason is None:
+        mrep["rejections"] = rep["rejections"]
+    else:
+        before = {r["fragment"]: r for r in mrep["rejections"]}
+        mrep["rejections"] = [{**r, **before.get(r["fragment"], {}), reason: r["reason"]}
+                              for r in rep["rejections"]]
+    mrep["merged_by_depth"][depth] = len(rep["merges"])
+
+
 def _pca_merge_rounds(
     X: np.ndarray, assigned: np.ndarray, mrep: dict[str, Any], markers: Markers,
     surf: MarkerSurface, *, alpha1: float, alpha2: float, variance: float, rounds: int,
@@ -487,14 +507,10 @@ def _pca_merge_rounds(
             fragment_labels=[markers.fragment_labels[u] for u in left], predictions=direct,
             competitors=Xf, max_break=max_break, rate=markers.rate, ctx=ctx,
         )
-        assigned[left[a2 >= 0]] = a2[a2 >= 0]
         for mg in rep2["merges"]:
             mg["predictor"] = "pca"
             mg["round"] = f"pca{k + 1}"
-        mrep["merges"] += rep2["merges"]
-        mrep["conflicts"] += rep2["conflicts"]
-        mrep["rejections"] = rep2["rejections"]
-        mrep["merged_by_depth"][f"pca{k + 1}"] = len(rep2["merges"])
+        _record_round(mrep, rep2, assigned, left, a2, f"pca{k + 1}")
         if not rep2["merges"]:
             break
     return X
@@ -526,18 +542,9 @@ def _fill_merge_rounds(
         X, a2, rep = assign_fragments(
             X, frags[:, left], surf, Xf, alpha1=alpha1, alpha2=alpha2,
             fragment_labels=[markers.fragment_labels[u] for u in left])
-        assigned[left[a2 >= 0]] = a2[a2 >= 0]
         for mg in rep["merges"]:
             mg["round"] = f"fill{k + 1}.{mg['round']}"
-        mrep["merges"] += rep["merges"]
-        mrep["conflicts"] += rep["conflicts"]
-        # the earlier verdict stays the reason (it says more: entry distance, nearest
-        # marker), the verdict against the fill comes with it
-        before = {r["fragment"]: r for r in mrep["rejections"]}
-        mrep["rejections"] = [
-            {**r, **before.get(r["fragment"], {}), "fill_reason": r["reason"]}
-            for r in rep["rejections"]]
-        mrep["merged_by_depth"][f"fill{k + 1}"] = len(rep["merges"])
+        _record_round(mrep, rep, assigned, left, a2, f"fill{k + 1}", reason="fill_reason")
         if not rep["merges"]:
             break
     return X
@@ -600,16 +607,11 @@ def _template_merge_rounds(
             X, fl, surf, alpha1=alpha1, alpha2=alpha2,
             fragment_labels=[markers.fragment_labels[u] for u in left], predictions=E,
             competitors=E, max_break=max_break, rate=markers.rate, ctx=ctx)
-        assigned[left[a2 >= 0]] = a2[a2 >= 0]
         for mg in rep["merges"]:
             mg["predictor"] = "template"
             mg["round"] = f"template{k + 1}"
-        mrep["merges"] += rep["merges"]
-        mrep["conflicts"] += rep["conflicts"]
-        before = {r["fragment"]: r for r in mrep["rejections"]}  # (their reasons say more)
-        mrep["rejections"] = [{**r, **before.get(r["fragment"], {}),
-                               "template_reason": r["reason"]} for r in rep["rejections"]]
-        mrep["merged_by_depth"][f"template{k + 1}"] = len(rep["merges"])
+        _record_round(mrep, rep, assigned, left, a2, f"template{k + 1}",
+                      reason="template_reason")
         if not rep["merges"]:
             break
     return X

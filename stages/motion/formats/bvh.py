@@ -51,7 +51,7 @@ from mocapflow.stages.motion.rotations import (
     quat_to_euler,
 )
 
-__all__ = ["BVH_UNITS", "BVHError", "guess_unit", "read_bvh", "write_bvh"]
+__all__ = ["BVH_UNITS", "BVHError", "guess_unit", "read_bvh", "rest_extent", "write_bvh"]
 
 #: Metres per file unit for the units ``read_bvh`` understands (``unit=``): those of
 #: :data:`~mocapflow.stages.motion.datatypes.UNIT_SCALE`, ``cmu`` included.
@@ -276,6 +276,13 @@ def _rest_extent(parents: np.ndarray, offsets: np.ndarray, ends: list[tuple[int,
     pts = [pos] + [pos[p][None] + o[None] for p, o in ends]
     pts = np.concatenate(pts, axis=0)
     return float(np.max(pts.max(0) - pts.min(0)))
+
+
+def rest_extent(skeleton: Skeleton) -> float:
+    """Largest extent of ``skeleton``'s rest pose, joints and End Sites, in its length
+    unit (the quantity :func:`guess_unit` judges)."""
+    return _rest_extent(skeleton.parents, skeleton.offsets,
+                        list(zip(skeleton.end_parents, skeleton.end_offsets)))
 
 
 def guess_unit(extent: float) -> str:
