@@ -130,6 +130,7 @@ __all__ = [
     "BLEND_MODELS",
     "BLEND_POWER",
     "RIGID_BODY_POOL",
+    "SPLINE_MIN_SUPPORT_SHARE",
     "VALIDATION_SHIFTS",
     "WHOLE_BODY_MAX_MARKERS",
 ]
@@ -155,6 +156,13 @@ VALIDATION_SHIFTS = (-1, 1, -2, 2)
 #: Weights of :func:`fill_by_validated_blend`: ∝ (mean squared validation error)^-p.
 BLEND_POWER = 2.0
 
+#: The spline estimate of :func:`fill_by_validated_blend` needs measured samples on
+#: each side of a hole at least this share of its length (up to ``interpolate``): a
+#: cubic through the 4 samples left before a 0.5 s hole near the start of the PiG
+#: calibration swung 17-169 mm off (the validation copies, moved into the take, had
+#: full support and gave it the weight).
+SPLINE_MIN_SUPPORT_SHARE = 0.2
+
 #: The estimates :func:`fill_by_validated_blend` weighs, in order.
 BLEND_MODELS = ("local", "whole_body", "spline", "rigid_body", "rigid_nearest")
 
@@ -163,9 +171,11 @@ BLEND_MODELS = ("local", "whole_body", "spline", "rigid_body", "rigid_nearest")
 
 
 def _interpolate_interior(X: np.ndarray, measured: np.ndarray, holes: np.ndarray,
-                          support: int) -> int:
+                          support: int, min_support_share: float = 0.0) -> int:
     """Cubic interpolation (in place) of interior holes still empty, from up to
-    ``support`` measured samples on each side; returns the samples filled."""
+    ``support`` measured samples on each side; a hole with fewer than 2, or fewer than
+    ``min_support_share`` of its length (at most ``support``), on a side is left empty.
+    Returns the samples filled."""
     obs = finite_rows(measured)
     todo = holes & ~finite_rows(X)
     n = 0
@@ -174,8 +184,9 @@ def _interpolate_interior(X: np.ndarray, measured: np.ndarray, holes: np.ndarray
         for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)):
             left = np.flatnonzero(obs[:a, m])[-support:]
             right = b + np.flatnonzero(obs[b:, m])[:support]
-            if len(left) < 2 or len(right) < 2:
-                continue  # an edge hole: nothing to interpolate between
+            need = max(2, min(support, int(np.ceil(min_support_share * (b - a)))))
+            if len(left) < need or len(right) < need:
+                continue  # an edge hole: nothing (or too little) to interpolate between
             idx = np.concatenate([left, right])
             X[a:b, m] = CubicSpline(idx, measured[idx, m], axis=0)(np.arange(a, b))
             n += b - a
@@ -501,7 +512,9 @@ def fill_by_validated_blend(
     whole-body PCA trained on the take completed by it
     (:func:`~mocapflow.stages.skin.lowrank.whole_body_pca`, Gløersen &
     Federolf R2 without complete frames); for interior holes, a cubic spline
-    in time through ``interpolate`` measured samples each side; and the
+    in time through ``interpolate`` measured samples each side (a hole with
+    fewer than :data:`SPLINE_MIN_SUPPORT_SHARE` of its length on a side has
+    none); and the
     rigid-body fill from 3 donors (:func:`_rigid_body_fill`), the most rigid
     nearby markers and the 3 nearest (Vicon's choice).  Which is best
     depends on the capture, the marker, the gap's length and what else is
@@ -574,7 +587,8 @@ def _blend_members(X: np.ndarray, positions: np.ndarray, holes: np.ndarray,
     and where a model cannot estimate), ``X`` being the local fill."""
     low = whole_body_pca(X, finite_rows(positions), holes)
     spl = np.full_like(positions, np.nan)
-    _interpolate_interior(spl, positions, holes, interpolate)
+    _interpolate_interior(spl, positions, holes, interpolate,
+                          min_support_share=SPLINE_MIN_SUPPORT_SHARE)
     rig = _rigid_body_fill(positions, holes, surface.reference)
     near = _rigid_body_fill(positions, holes, surface.reference, donors="nearest")
     return np.stack([np.where(holes[..., None], X, np.nan), low, spl, rig, near])
