@@ -35,9 +35,12 @@ One run prints:
    distance, % unfilled, % of the samples with >= 3 visible neighbours left
    unfilled (ours must be 0), seconds per run, and ours ÷ each baseline.
    Simulated data are scored against the true positions, real files against
-   the deleted measurements.  The baselines fill only the gaps that contain
-   deleted samples (their other fills are independent of these and unscored);
-   ours cleans the whole capture, so its seconds include every real hole too.
+   the deleted measurements.  Each method's mean is over the samples it filled;
+   the issue-15 summary per real file also compares ours with every baseline on
+   the samples that baseline filled (a spline leaves a gap at the take's edge).
+   The baselines fill only the gaps that contain deleted samples (their other
+   fills are independent of these and unscored); ours cleans the whole
+   capture, so its seconds include every real hole too.
 4. **Throughput**: 350 markers x 1000 frames cleaned (merge + fill + smooth),
    in one process and with 2 worker processes behind ``ctx.map``.
 5. **The real fragmented file** ``btkdata_PiG_Calibration-FlatFoot-Hole.c3d``:
