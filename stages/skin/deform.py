@@ -129,11 +129,14 @@ support_margin=None, clamp_margin=None, max_blend_stretch=None``:
   (3.68 → 3.66 / 3.65 → 3.72).  Cost: on the throughput body of
   ``benchmarks/deform.py --throughput`` (13,000 vertices, 900 frames)
   ``quadratic_residual`` reweights 2,619 vertices in 60 steps and runs at about
-  470 frames per CPU-second against about 1,000 without widening in the same
-  (loaded) run, ``rigid`` (2,709 vertices, 92 steps) at about 580 against 2,300
-  (table 4 has both rows; before the edges' length bounds, the positions computed
-  only where measured and the first check made during the evaluation pass: 350 and
-  270; before the checks were made incremental: 200).
+  550 frames per CPU-second against about 1,050 without widening in the same
+  (loaded) run, ``rigid`` (2,709 vertices, 92 steps) at about 720 against 2,700
+  (table 4 has both rows; before the products were made one CSR kernel call per
+  chunk and the widening's predictions and positions sparse products over its
+  stores, issue 15: 430 / 920 and 560 / 2,500 in the same runs; before the edges'
+  length bounds, the positions computed only where measured and the first check
+  made during the evaluation pass: 350 and 270; before the checks were made
+  incremental: 200).
   Held-out markers (``benchmarks/deform.py`` table 2) are points without
   triangles, so they are not affected; table 3 (the simulator's true mesh)
   measures it.  Not fixed by this: triangles that turn over against the rigid
@@ -159,12 +162,18 @@ Implementation notes (none changes the method):
 * all parts and frames are evaluated as one linear map
   ``vertices(f) = H · C(f)`` (``H``: β-weighted local coordinates, monomials
   and kernel values of the vertex-part pairs, built once; ``C``: per-frame part
-  coefficients), done as two sparse products per chunk of frames (non-rigid,
-  clamped, then rigid; 16 frames of a 13,000-vertex mesh, all frames of a few
-  hundred vertices: the work arrays stay a few MB, and the chunking changes no
-  bit) into reused work arrays; ``β`` is folded into ``H``
+  coefficients), done as one sparse product per chunk of frames (the non-rigid
+  rows, clamped, stacked above the rigid ones; 16 frames of a 13,000-vertex mesh:
+  the work arrays stay a few MB, and the chunking changes no bit) by scipy's CSR
+  kernel called directly into reused work arrays (``A @ X`` would allocate and
+  copy its result and pay scipy's checks on every call); ``β`` is folded into ``H``
   because the clamp commutes with a positive scale, and only the few entries
-  beyond their bound are clamped;
+  beyond their bound are clamped.  ``H``'s rows are built from arrays (no sparse
+  stacking), the blending edges' lengths are taken during that pass by one more
+  sparse product (end minus start), and the widening's predictions, positions
+  and edge vectors are sparse products over its stores of rows (all frames at
+  once; :meth:`_Rows.combine`), each adding its terms in the order the plain sums
+  did: the same bits as before (issue 15);
 * **bit-reproducible**: every vertex's result is computed by operations whose
   rounding does not depend on which other vertices, frames or parts are computed
   in the same call, nor on BLAS or its thread count: ``H``'s rows come from their
@@ -221,6 +230,16 @@ from mocapflow.stages.skin.parts import (
 )
 from mocapflow.stages.skin.segmentation import Segmentation
 
+try:  # scipy's CSR kernel, the one ``A @ X`` calls: y += A x, row by row, terms in stored order
+    from scipy.sparse._sparsetools import csr_matvecs
+except ImportError:  # pragma: no cover - a private module; the same bits through ``A @ X``
+
+    def csr_matvecs(n_row, n_col, n_vecs, indptr, indices, data, x, y):  # noqa: D103
+        # each call here adds at most one term to a row that is not zero (_Rows.combine),
+        # so adding the product afterwards rounds as adding inside the kernel
+        A = sp.csr_matrix((data, indices, indptr), shape=(n_row, n_col))
+        y += (A @ x.reshape(n_col, n_vecs)).ravel()
+
 __all__ = [
     "VertexOperator",
     "align_markers",
@@ -239,10 +258,11 @@ __all__ = [
 class VertexOperator:
     """Sparse rows with ``vertices(f) = Σ_pairs (R_pair + N_pair) @ C(f)`` (P&H Eq. 8–9).
 
-    Built once per mesh, segmentation and ``β``; every frame is then two sparse
-    products.  One row per vertex-part pair, ordered by layer (layer ``k``: each
-    vertex's ``k``-th part, vertices ascending; layer 0 holds every vertex with a
-    part), so the pairs are summed into the vertices layer by layer.  Every entry of a
+    Built once per mesh, segmentation and ``β``; every chunk of frames is then one
+    sparse product (the non-rigid rows stacked above the rigid ones).  One row per
+    vertex-part pair, ordered by layer (layer ``k``: each vertex's ``k``-th part,
+    vertices ascending; layer 0 holds every vertex with a part), so the pairs are
+    summed into the vertices layer by layer.  Every entry of a
     row depends only on its vertex and part, and a sparse row times a dense matrix
     adds its terms in column order, one row at a time: a vertex's result never
     depends on which other vertices are evaluated with it, on BLAS, or on its thread
@@ -310,7 +330,7 @@ def vertex_operator(models: list[PartModel], n_vertices: int, *, residual: bool,
         Include the RBF kernel columns.
     rest : (n_vertices, 3) float ndarray, optional
         Rest vertices, with ``beta``: the pairs are ``β > 0`` and every row is computed
-        here from its own vertex alone.  Omitted: the models' own vertex arrays
+        here from its own vertex alone (:func:`_pair_rows`).  Omitted: the models' own vertex arrays
         (:func:`~mocapflow.stages.skin.parts.prepare_part` with ``vertices``).
     beta : (n_vertices, P) float ndarray, optional
         Vertex weights, with ``rest``.
@@ -323,15 +343,27 @@ def vertex_operator(models: list[PartModel], n_vertices: int, *, residual: bool,
         raise ValueError("vertex_operator: give rest and beta together")
     sizes = [14 + (len(m.members) if residual else 0) for m in models]
     offsets = np.cumsum([0, *sizes])
+    if rest is not None:  # every row from its own vertex, straight in (layer, vertex) order
+        pair_vertex, pair_part = np.nonzero(beta[:, : len(models)] > 0)  # by vertex, then part
+        rank = np.arange(len(pair_vertex)) - np.searchsorted(pair_vertex, pair_vertex)
+        order = np.lexsort((pair_vertex, rank))  # by layer, then vertex
+        pair_vertex, pair_part, rank = pair_vertex[order], pair_part[order], rank[order]
+        pair_beta = beta[pair_vertex, pair_part]
+        R, N = _pair_rows(models, offsets, rest, pair_vertex, pair_part, pair_beta,
+                          residual=residual)  # fmt: skip
+        by_part = np.argsort(pair_part, kind="stable")  # each part's vertices ascending
+        cut = np.searchsorted(pair_part[by_part], np.arange(len(models) + 1))
+        verts = [np.sort(pair_vertex[by_part[a:b]]) for a, b in zip(cut, cut[1:])]
+        betas = [beta[v, q] for q, v in enumerate(verts)]
+        counts = np.bincount(rank, minlength=1) if len(rank) else np.zeros(0, np.int64)
+        starts = np.cumsum([0, *counts])
+        layers = [(pair_vertex[a:b], int(a)) for a, b in zip(starts, starts[1:])]
+        return VertexOperator(verts, betas, R, N, pair_part, pair_beta, offsets, n_vertices,
+                              [m.clamp_margin for m in models], layers)  # fmt: skip
     verts, betas, rigid, nonrigid = [], [], [], []
-    for p, m in enumerate(models):
-        if rest is None:
-            v, b, local = m.vertices, m.beta, m.vertex_local
-            basis, kernel = m.vertex_basis, m.vertex_kernel if residual else None
-        else:
-            v = np.flatnonzero(beta[:, p] > 0)
-            b, local = beta[v, p], _part_local(m, rest[v])
-            basis, kernel = m.basis(local), m.kernel_rows(local) if residual else None
+    for p, m in enumerate(models):  # the models' own vertex arrays
+        v, b, local = m.vertices, m.beta, m.vertex_local
+        basis, kernel = m.vertex_basis, m.vertex_kernel if residual else None
         one = np.ones((len(v), 1))
         dense = sp.csr_matrix(np.concatenate([basis, one], axis=1) * b[:, None])
         if kernel is not None and kernel.shape[1]:
@@ -420,33 +452,51 @@ _VALUES_PER_PRODUCT = 800_000
 _XYZ = np.dtype((np.void, 24))  # one vertex position (3 float64) as one item
 
 
-def _clamp_weighted(u: np.ndarray, beta: np.ndarray, bound: np.ndarray,
-                    margin: np.ndarray) -> None:  # fmt: skip
-    """Soft-clamp β-weighted displacements ``u (N, 3f)`` in place at ``β × bound (N, f)``.
+def _clamp_weighted(u: np.ndarray, beta: np.ndarray, part: np.ndarray, deviation: np.ndarray,
+                    margin: np.ndarray, *, beta_squared: np.ndarray | None = None,
+                    deviation_squared: np.ndarray | None = None,
+                    work: np.ndarray | None = None) -> None:  # fmt: skip
+    """Soft-clamp β-weighted displacements ``u (N, 3f)`` in place at ``β × bound``, the
+    bound of row ``i`` in frame ``j`` being ``deviation[part[i], j]`` (``deviation (P, f)``).
 
     Equal to ``β soft_clamp(u / β, bound)`` (the clamp commutes with a positive
     scale); only the entries beyond the bound (few) go through
     :func:`~mocapflow.stages.skin.parts.soft_clamp` (``margin (N,)`` per row).
+    ``beta_squared (N,)``, ``deviation_squared (P, f)``: ``β²`` and ``deviation²`` when
+    already computed; ``work``: an ``(N, 3f)`` scratch array.
     """
-    sq = np.square(u)
+    sq = np.square(u, out=work)
     r2 = sq[:, 0::3] + sq[:, 1::3]
     r2 += sq[:, 2::3]  # (N, f): |β R u|²
-    r2 /= np.square(beta)[:, None]
-    over = r2 > np.square(bound)
+    r2 /= (np.square(beta) if beta_squared is None else beta_squared)[:, None]
+    over = r2 > (np.square(deviation) if deviation_squared is None else deviation_squared)[part]
     if over.any():
         i, j = np.nonzero(over)
         u3 = u.reshape(len(u), -1, 3)
-        u3[i, j] = soft_clamp(u3[i, j], beta[i] * bound[i, j], margin[i])
+        u3[i, j] = soft_clamp(u3[i, j], beta[i] * deviation[part[i], j], margin[i])
 
 
 def _sparse_product(A: sp.csr_matrix, X: np.ndarray, out: np.ndarray) -> None:
-    """``out[:] = A @ X`` for ``X (K, n)`` and ``out (N, n)``: scipy's CSR kernel adds
+    """``out[:] = A @ X`` for C-contiguous ``X (K, n)`` and ``out (N, n)``, by scipy's CSR
+    kernel (the one ``A @ X`` calls, without its fresh result array and copy): it adds
     each row's terms in column order, one row at a time, so a row's value does not
     depend on the other rows."""
+    if not out.flags.c_contiguous or out.shape != (A.shape[0], X.shape[1]) or (
+            A.shape[1] != X.shape[0]):  # the kernel writes through raw pointers
+        raise ValueError(f"_sparse_product: {A.shape} @ {X.shape} into {out.shape}")
+    out.fill(0.0)
     if A.nnz:
-        out[...] = A @ X
-    else:
-        out.fill(0.0)
+        csr_matvecs(A.shape[0], A.shape[1], X.shape[1], A.indptr, A.indices, A.data,
+                    X.ravel(), out.ravel())  # fmt: skip
+
+
+def _stacked_rows(top: sp.csr_matrix, bottom: sp.csr_matrix) -> sp.csr_matrix:
+    """The rows of ``top`` above those of ``bottom`` (same columns), as one CSR matrix built
+    from their arrays (each row's terms as they are)."""
+    indptr = np.concatenate([top.indptr, bottom.indptr[1:] + top.indptr[-1]])
+    return sp.csr_matrix((np.concatenate([top.data, bottom.data]),
+                          np.concatenate([top.indices, bottom.indices]), indptr),
+                         shape=(top.shape[0] + bottom.shape[0], top.shape[1]))  # fmt: skip
 
 
 def deform_positions(
@@ -456,10 +506,10 @@ def deform_positions(
     """Blend every part's moved vertices with their weights ``β`` (P&H Eq. 8–9).
 
     Per chunk of frames: one sparse product for the non-rigid displacements of all
-    vertex-part pairs (clamped per part), one for the rigid transforms; then each
-    vertex's pairs are summed layer by layer (:class:`VertexOperator`).  Bit-for-bit
-    the same whichever vertices, frames or parts are evaluated together, with any
-    BLAS and thread count.
+    vertex-part pairs (clamped per part) and the rigid transforms (their rows stacked);
+    then rigid + non-rigid per pair, and each vertex's pairs summed layer by layer
+    (:class:`VertexOperator`).  Bit-for-bit the same whichever vertices, frames or parts
+    are evaluated together, with any BLAS and thread count.
 
     Parameters
     ----------
@@ -490,13 +540,32 @@ def _frame_major(models: list[PartModel], fits: list[PartFit], n_vertices: int,
     out = np.empty((F, n_vertices, 3))
     edges = np.zeros((0, 2), np.int64) if edges is None else edges
     most = np.zeros(len(edges))
+    along = _edge_vectors(edges, n_vertices)
+    work = np.empty(0)
     for a, b, X in _blended_chunks(models, fits, n_vertices, operator, residual=residual):
         # (V, f, 3) -> (f, V, 3), moving whole xyz triplets (24 bytes) at a time
         out[a:b].view(_XYZ)[..., 0] = X.view(_XYZ).T
         if len(edges):
-            d = (X[edges[:, 1]] - X[edges[:, 0]]).reshape(len(edges), b - a, 3)
-            np.maximum(most, _squared_lengths(d).max(1), out=most)
+            if work.shape != (len(edges), X.shape[1]):
+                work = np.empty((len(edges), X.shape[1]))
+            _sparse_product(along, X, work)  # (E, 3f): end minus start
+            np.square(work, out=work)
+            length = work[:, 0::3] + work[:, 1::3]
+            length += work[:, 2::3]  # (E, f): as _squared_lengths
+            np.maximum(most, length.max(1), out=most)
     return out, most
+
+
+def _edge_vectors(edges: np.ndarray, n_vertices: int) -> sp.csr_matrix:
+    """``(E, V)`` rows with ``-1`` at each edge's first vertex and ``1`` at its second:
+    times positions ``(V, n)`` the edge vectors ``x[second] - x[first]``, the same bits
+    as the subtraction (``0 - a + b`` or ``0 + b - a``, whichever vertex comes first)."""
+    E = len(edges)
+    M = sp.csr_matrix((np.repeat([[-1.0, 1.0]], E, axis=0).ravel(),
+                       (np.repeat(np.arange(E), 2), np.asarray(edges).ravel())),
+                      shape=(E, n_vertices))  # fmt: skip
+    M.sort_indices()
+    return M
 
 
 def _squared_lengths(d: np.ndarray) -> np.ndarray:
@@ -542,29 +611,38 @@ def _blended_chunks(models: list[PartModel], fits: list[PartFit], n_vertices: in
     if len(pairs):
         deviation = np.stack([f.marker_deviation if c else np.zeros(F)
                               for f, c in zip(fits, clamped)])  # fmt: skip
-        margin = np.array([m or 0.0 for m in operator.clamp_margins])[operator.pair_part[pairs]]
+        deviation_squared = np.square(deviation)
+        part = operator.pair_part[pairs]
+        margin = np.array([m or 0.0 for m in operator.clamp_margins])[part]
         beta = operator.pair_beta[pairs]
+        beta_squared = np.square(beta)
     layers = operator.layers
     complete = bool(layers) and len(layers[0][0]) == n_vertices  # every vertex has a part
-    # work arrays reused by every chunk (fresh pages cost more than the products here)
+    # one product per chunk: the non-rigid rows (β R u, the non-rigid displacements) stacked
+    # above the rigid ones (β (R v̄ + d), the rigid transforms), into work arrays reused by
+    # every chunk (fresh pages cost more than the products here)
     N = operator.rigid.shape[0]
+    rows = _stacked_rows(operator.nonrigid, operator.rigid) if nonrigid else operator.rigid
     n = max(1, min(F, _VALUES_PER_PRODUCT // (3 * max(1, N))))  # frames per product
-    Y_full, U_full = np.empty((N, 3 * n)), np.empty((N, 3 * n) if nonrigid else (0, 0))
+    Z_full = np.empty((rows.shape[0], 3 * n))
+    work_full = np.empty((len(pairs), 3 * n))
     for a in range(0, F, n):
         b = min(F, a + n)
         Cc = np.ascontiguousarray(C[:, a:b]).reshape(K, 3 * (b - a))
         full = b - a == n
-        Y = Y_full if full else np.empty((N, 3 * (b - a)))
-        _sparse_product(operator.rigid, Cc, Y)  # β (R v̄ + d): the rigid transforms
+        Z = Z_full if full else np.empty((rows.shape[0], 3 * (b - a)))
+        _sparse_product(rows, Cc, Z)
+        Y = Z[N:] if nonrigid else Z
         if nonrigid:
-            U = U_full if full else np.empty((N, 3 * (b - a)))
-            _sparse_product(operator.nonrigid, Cc, U)  # β R u: the non-rigid displacements
-            if len(pairs) == len(U):  # every part clamps (the default): in place
-                _clamp_weighted(U, beta, deviation[operator.pair_part, a:b], margin)
-            elif len(pairs):
-                Up = U[pairs]
-                _clamp_weighted(Up, beta, deviation[operator.pair_part[pairs], a:b], margin)
-                U[pairs] = Up
+            U = Z[:N]
+            if len(pairs):
+                Up = U if len(pairs) == N else U[pairs]  # every part clamps (the default)
+                _clamp_weighted(Up, beta, part, deviation[:, a:b], margin,
+                                beta_squared=beta_squared,
+                                deviation_squared=deviation_squared[:, a:b],
+                                work=work_full if full else None)  # fmt: skip
+                if len(pairs) < N:
+                    U[pairs] = Up
             Y += U
         # sum each vertex's pairs, layer by layer (layer 0: vertices 0..V-1 when complete)
         if complete:
@@ -795,69 +873,88 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         new[v[row[v] < 0]] = True
         fresh = np.flatnonzero(new & ~stale)  # still at their first-pass positions
         if len(fresh):
-            row[fresh] = pos.append(verts[:, fresh])
-        new = np.flatnonzero(new & stale)  # placed below
+            row[fresh] = pos.append(None, n_rows=len(fresh))
+            for lo, hi, into in pos.segments(row[fresh]):  # (F, k) -> (k, F), 32 frames a time
+                into = into.reshape(hi - lo, F, 3).view(_XYZ)[..., 0]
+                for f in range(0, F, 32):
+                    into[:, f : f + 32] = verts[f : f + 32].view(_XYZ)[:, fresh[lo:hi], 0].T
+        new = np.flatnonzero(new & stale)  # placed below, straight into their new rows
         if len(new):
             row[new] = pos.append(None, n_rows=len(new))
+            place(new)
         place(np.flatnonzero(np.isin(np.arange(V), v) & stale) if len(v) else v)
 
-    # each part's frame_coefficients (a group's are its parts' concatenated) and whether
-    # its model alone has non-rigid terms (deform_positions adds them then)
-    blocks = [frame_coefficients([m], [f], residual=residual) for m, f in zip(models, fits)]
-    nonrigid = np.array([bool(c[4:].any()) for c in blocks], bool)
+    # every part's frame_coefficients (K, 3F), whether its model has non-rigid terms
+    # (deform_positions adds them then) and its clamp (bound per frame, margin)
+    C = frame_coefficients(models, fits, residual=residual).reshape(-1, 3 * F)
+    offsets = np.cumsum([0, *[14 + (len(m.members) if residual else 0) for m in models]])
+    nonrigid = np.array([bool(C[o + 4 : z].any()) for o, z in zip(offsets, offsets[1:])], bool)
+    clamped = np.array([m.clamp_margin is not None for m in models], bool)
+    margins = np.array([m.clamp_margin or 0.0 for m in models])
+    deviation = np.stack([f.marker_deviation if c else np.zeros(F)
+                          for f, c in zip(fits, clamped)]) if P else np.zeros((0, F))  # fmt: skip
+    deviation_squared = np.square(deviation)
+    n_rows = max(1, _EDGE_FRAMES_PER_SLICE // max(1, F))  # rows per product: a few MB
+    scratch = np.empty((2, n_rows, 3 * F))  # results of those products, reused
 
     def predict(v: np.ndarray, p: np.ndarray) -> None:
         """Give pairs ``(v, p)`` a row of ``pred``: part ``p``'s model alone at vertex ``v``
-        (β = 1), by the same row-by-row products (one call per kind of part)."""
+        (β = 1), by the row-by-row products of :func:`deform_positions` (the rigid rows
+        straight into the store, the clamped non-rigid ones added)."""
         nonlocal spread
         key = np.unique(v[slot[v, p] < 0] * P + p[slot[v, p] < 0])
         v, p = key // P, key % P
         if not len(key):
             return
-        for kind in (False, True):
-            sel = nonrigid[p] == kind
-            if not sel.any():
-                continue
-            parts, col = np.unique(p[sel], return_inverse=True)
-            one = np.zeros((int(sel.sum()), len(parts)))
-            one[np.arange(len(one)), col] = 1.0
-            group = [models[q] for q in parts]
-            op = vertex_operator(group, len(one), residual=residual, rest=rest[v[sel]], beta=one)
-            moved = np.empty((len(one), F, 3))  # vertex-major, as pred keeps them
-            C = np.concatenate([blocks[q] for q in parts])
-            for a, b, X in _blended_chunks(group, [fits[q] for q in parts], len(one), op,
-                                           residual=residual, coefficients=C):  # fmt: skip
-                moved[:, a:b] = X.reshape(len(one), b - a, 3)
-            slot[v[sel], p[sel]] = pred.append(moved, frame_major=False)
-        new = slot[v, p]  # consecutive from len(spread)
+        new = pred.append(None, n_rows=len(key))
+        slot[v, p] = new
+        rigid, nonrigid_rows = _pair_rows(models, offsets, rest, v, p, residual=residual)
+        bent = np.flatnonzero(nonrigid[p])  # pairs whose part has non-rigid terms
+        for lo, hi, into in pred.segments(new):  # (hi - lo, 3F) views of the store
+            _sparse_product(_row_block(rigid, lo, hi), C, into)
+        for c in range(0, len(bent), n_rows):
+            q = bent[c : c + n_rows]
+            U = scratch[1][: len(q)]
+            _sparse_product(nonrigid_rows[q], C, U)  # rows as they are
+            cl = np.flatnonzero(clamped[p[q]])
+            if len(cl):
+                Uc = U if len(cl) == len(q) else U[cl]
+                one = np.ones(len(cl))
+                _clamp_weighted(Uc, one, p[q[cl]], deviation, margins[p[q[cl]]],
+                                beta_squared=one, deviation_squared=deviation_squared)
+                if len(cl) < len(q):
+                    U[cl] = Uc
+            for lo, hi, into in pred.segments(new):  # rigid + non-rigid, in the store
+                sel = (q >= lo) & (q < hi)
+                into[q[sel] - lo] += U[sel]
         u, at = np.unique(v, return_index=True)
         first[u[first[u] < 0]] = new[at[first[u] < 0]]
         far = np.empty(len(new))
-        n = max(1, _EDGE_FRAMES_PER_SLICE // max(1, F))
-        for c in range(0, len(new), n):
-            d = pred.take(new[c : c + n]) - pred.take(first[v[c : c + n]])
-            far[c : c + n] = np.sqrt(_squared_lengths(d).max(1))
-        spread = np.concatenate([spread, far[np.argsort(new)]])
+        for c in range(0, len(new), n_rows):
+            d = _row_differences(first[v[c : c + n_rows]], new[c : c + n_rows], pred,
+                                 scratch[0])  # fmt: skip
+            far[c : c + n_rows] = np.sqrt(_squared_lengths(d).max(1))
+        spread = np.concatenate([spread, far])
 
     def place(R: np.ndarray) -> None:
         """Rows of ``pos`` for vertices ``R`` (ascending, with rows): ``Σ_p β_p prediction_p``,
-        parts in ascending order."""
+        parts in ascending order (:meth:`_Rows.combine`)."""
         b = beta[R]
-        i, p = np.nonzero(b > 0)  # each vertex's parts, ascending
-        layer = np.arange(len(i)) - np.searchsorted(i, i)  # k-th part of its vertex
-        n = max(1, _EDGE_FRAMES_PER_SLICE // max(1, F))  # vertices per slice
-        for c in range(0, len(R), n):
-            lo, hi = np.searchsorted(i, [c, c + n])
-            moved = None  # layer 0 holds each vertex's first part, vertices in order
-            for j in range(int(layer[lo:hi].max(initial=-1)) + 1):
-                q = lo + np.flatnonzero(layer[lo:hi] == j)
-                term = pred.take(slot[R[i[q]], p[q]])
-                term *= b[i[q], p[q]][:, None, None]
-                if moved is None:
-                    moved = term
-                else:
-                    moved[i[q] - c] += term
-            pos.put(row[R[c : c + n]], moved)
+        for c in range(0, len(R), n_rows):
+            i, p = np.nonzero(b[c : c + n_rows] > 0)  # each vertex's parts, ascending
+            layer = np.arange(len(i)) - np.searchsorted(i, i)  # k-th part of its vertex
+            index = np.full((min(n_rows, len(R) - c), P), -1, np.int64)
+            weights = np.zeros(index.shape)
+            index[i, layer], weights[i, layer] = slot[R[c + i], p], b[c + i, p]
+            L = int(layer.max(initial=-1)) + 1
+            rows = row[R[c : c + n_rows]]
+            if np.all(np.diff(rows) == 1):  # consecutive rows: straight into the store
+                for lo, hi, into in pos.segments(rows):
+                    pred.combine(index[lo:hi, :L], weights[lo:hi, :L], into)
+                continue
+            moved = scratch[0][: len(index)]
+            pred.combine(index[:, :L], weights[:, :L], moved)
+            pos.put(rows, moved)
         stale[R] = False
 
     def blending(t: np.ndarray) -> np.ndarray:
@@ -868,10 +965,10 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         """The largest squared length of edges ``e`` over the frames (current positions)."""
         with_rows(ends[e].ravel())
         out = np.empty(len(e))
-        n = max(1, _EDGE_FRAMES_PER_SLICE // max(1, F))
-        for i in range(0, len(e), n):
-            a, b = row[ends[e[i : i + n]].T]
-            out[i : i + n] = _squared_lengths(pos.take(b) - pos.take(a)).max(1)
+        for i in range(0, len(e), n_rows):
+            a, b = row[ends[e[i : i + n_rows]].T]
+            d = _row_differences(a, b, pos, scratch[0])
+            out[i : i + n_rows] = _squared_lengths(d).max(1)
         return out
 
     # only triangles whose corners blend differently can tear: start from their edges,
@@ -960,6 +1057,62 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     return beta, taken, len(done), torn_before, len(bad)
 
 
+def _row_block(A: sp.csr_matrix, a: int, b: int) -> sp.csr_matrix:
+    """Rows ``a..b-1`` of ``A`` (its arrays' slices, each row's terms in their order)."""
+    lo, hi = A.indptr[a], A.indptr[b]
+    return sp.csr_matrix((A.data[lo:hi], A.indices[lo:hi], A.indptr[a : b + 1] - lo),
+                         shape=(b - a, A.shape[1]))  # fmt: skip
+
+
+def _row_differences(a: np.ndarray, b: np.ndarray, store: _Rows,
+                     work: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    """``store`` rows ``b`` minus rows ``a`` (``(k,)`` each) as ``(k, F, 3)``, by
+    :meth:`_Rows.combine` (``0 - a + b``: the bits of the subtraction); in the first
+    ``k`` rows of ``work (n >= k, 3 F)`` when given."""
+    out = np.empty((len(a), 3 * store.shape[0])) if work is None else work[: len(a)]
+    store.combine(np.stack([a, b], 1), np.tile([-1.0, 1.0], (len(a), 1)), out)
+    return out.reshape(len(a), *store.shape)
+
+
+def _pair_rows(models: list[PartModel], offsets: np.ndarray, rest: np.ndarray, v: np.ndarray,
+               p: np.ndarray, beta: np.ndarray | None = None, *,
+               residual: bool) -> tuple[sp.csr_matrix, sp.csr_matrix]:  # fmt: skip
+    """The rows of :func:`vertex_operator` (rigid, non-rigid) of vertex-part pairs ``(v, p)``
+    (``(k,)`` each) with weights ``beta (k,)`` (default 1), at the columns of all parts'
+    :func:`frame_coefficients` (``offsets (P + 1,)``): every row from its own vertex alone
+    (``β`` times its local position, monomials, 1 and kernel values; the zeros of the
+    first three left out), each row's terms in column order, built from arrays (one pass
+    per part, no sparse stacking)."""
+    k, K = len(v), int(offsets[-1])
+    rows, cols, vals = [[], []], [[], []], [[], []]  # rigid, non-rigid
+    for q in np.unique(p):
+        sel = np.flatnonzero(p == q)
+        m, o = models[q], int(offsets[q])
+        local = _part_local(m, rest[v[sel]])
+        one = np.ones((len(sel), 1))
+        for r, dense, at in ((0, np.concatenate([local, one], 1), o),
+                             (1, np.concatenate([m.basis(local), one], 1), o + 4)):
+            i, j = np.nonzero(dense)  # as a sparse matrix of the dense block keeps them
+            rows[r].append(sel[i])
+            cols[r].append(at + j)
+            vals[r].append(dense[i, j] if beta is None else dense[i, j] * beta[sel[i]])
+        if residual:
+            kernel = sp.csr_matrix(m.kernel_rows(local))
+            i = np.repeat(np.arange(len(sel)), np.diff(kernel.indptr))
+            rows[1].append(sel[i])
+            cols[1].append(o + 14 + kernel.indices)
+            vals[1].append(kernel.data if beta is None else kernel.data * beta[sel[i]])
+    out = []
+    for r in range(2):
+        i = np.concatenate(rows[r]) if rows[r] else np.zeros(0, np.int64)
+        j = np.concatenate(cols[r]) if cols[r] else np.zeros(0, np.int64)
+        order = np.lexsort((j, i))  # each row's terms in column order
+        out.append(sp.csr_matrix(
+            (np.concatenate(vals[r])[order] if vals[r] else np.zeros(0), j[order],
+             np.searchsorted(i[order], np.arange(k + 1))), shape=(k, K)))  # fmt: skip
+    return out[0], out[1]
+
+
 class _Rows:
     """A growing store of ``(F, 3)`` rows in blocks, each twice the size of the one before
     (nothing is copied when it grows; a block's unused rows are never touched)."""
@@ -994,7 +1147,8 @@ class _Rows:
         return np.arange(self.n - k, self.n)
 
     def put(self, index: np.ndarray, values: np.ndarray) -> None:
-        """Overwrite rows ``index (n,)`` with ``values (n, F, 3)``."""
+        """Overwrite rows ``index (n,)`` with ``values (n, F, 3)`` (or ``(n, 3 F)``)."""
+        values = values.reshape(len(index), *self.shape)
         block = np.searchsorted(self.starts, index, side="right") - 1
         if len(index) and block.min() == block.max():  # one block (the usual case)
             self.blocks[block[0]][index - self.starts[block[0]]] = values
@@ -1013,6 +1167,30 @@ class _Rows:
             sel = block == b
             out[sel] = self.blocks[b][index[sel] - self.starts[b]]
         return out
+
+    def segments(self, index: np.ndarray):
+        """The consecutive rows ``index (k,)`` (as :meth:`append` returns them) block by
+        block: yields ``(a, b, rows)``, ``rows`` the ``(b - a, 3 F)`` view of ``index[a:b]``."""
+        lo, hi = int(index[0]), int(index[-1]) + 1
+        for b, block in enumerate(self.blocks):
+            a, z = max(lo, self.starts[b]), min(hi, self.starts[b + 1])
+            if a < z:
+                view = block[a - self.starts[b] : z - self.starts[b]]
+                yield a - lo, z - lo, view.reshape(z - a, -1)
+
+    def combine(self, index: np.ndarray, weights: np.ndarray, out: np.ndarray) -> None:
+        """``out (k, 3 F)`` = ``Σ_l weights[:, l] × row index[:, l]`` (``(k, L)`` each; index
+        -1: no term), the terms added in ``l`` order: one sparse product per term and block,
+        each adding to ``out`` (``0 + w_0 x_0 + w_1 x_1 ...``, the bits of the plain sum)."""
+        out.fill(0.0)
+        block = np.searchsorted(self.starts, index, side="right") - 1
+        for j in range(index.shape[1]):
+            for b in np.unique(block[index[:, j] >= 0, j]):
+                has = (index[:, j] >= 0) & (block[:, j] == b)
+                csr_matvecs(len(out), len(self.blocks[b]), out.shape[1],
+                            np.concatenate([[0], np.cumsum(has)]),
+                            index[has, j] - self.starts[b], weights[has, j],
+                            self.blocks[b].ravel(), out.ravel())  # fmt: skip
 
 
 def _deform_report(models: list[PartModel], fits: list[PartFit], x: np.ndarray,

@@ -21,13 +21,14 @@ from mocapflow.stages.skin.deform import (
     _blending_edges,
     _frame_major,
     _longest_edges,
+    _part_local,
     _Rows,
     _widen_blends,
     deform,
     deform_positions,
     vertex_operator,
 )
-from mocapflow.stages.skin.parts import fit_part, prepare_part
+from mocapflow.stages.skin.parts import fit_part, prepare_part, soft_clamp
 from mocapflow.stages.skin.segment import segment
 from tests.stages.skin.conftest import limb_capture
 
@@ -136,3 +137,121 @@ def test_rows_store_takes_vertex_major_rows():
         kept.append(rows.transpose(1, 0, 2) if frame_major else rows)
     kept = np.concatenate(kept)
     assert store.take(np.arange(len(kept))).tobytes() == kept.tobytes()
+
+
+# ----------------------------------------------------------------- sparse products (issue 15)
+
+
+def test_main_pass_makes_one_sparse_product_per_chunk_with_the_bits_of_scipy(limb_fits,
+                                                                            monkeypatch):
+    """The evaluation pass calls scipy's CSR kernel once per chunk of frames (the non-rigid
+    rows stacked above the rigid ones, written into a reused array) and gives the bytes of
+    the former two ``A @ X`` products per chunk: rigid + clamped non-rigid, layer by layer."""
+    L = limb_fits
+    op, V = L["op"], len(L["mesh"].vertices)
+    calls = []
+    kernel = deform_module.csr_matvecs
+    monkeypatch.setattr(deform_module, "csr_matvecs",
+                        lambda *a: calls.append(a[0]) or kernel(*a))  # fmt: skip
+    monkeypatch.setattr(deform_module, "_VALUES_PER_PRODUCT", 7 * 3 * op.rigid.shape[0])
+    got = deform_positions(L["models"], L["fits"], V, op, residual=True)
+    assert calls == [2 * op.rigid.shape[0]] * 9  # 60 frames, 7 a chunk: 9 products
+    C = deform_module.frame_coefficients(L["models"], L["fits"], residual=True)
+    want = np.empty_like(got)
+    pair_beta = op.pair_beta
+    for f in range(C.shape[1]):  # the former path, one frame at a time: A @ X of scipy
+        Y = op.rigid @ C[:, f]
+        U = op.nonrigid @ C[:, f]
+        bound = np.array([L["fits"][p].marker_deviation[f] for p in op.pair_part])
+        r = np.sqrt(np.sum(np.square(U), 1) / np.square(pair_beta))
+        over = np.flatnonzero(np.square(r) > np.square(bound))
+        if len(over):
+            U[over] = soft_clamp(U[over], pair_beta[over] * bound[over], 0.1)
+        Y += U
+        X = Y[:V].copy()
+        for v, first in op.layers[1:]:
+            X[v] += Y[first : first + len(v)]
+        want[f] = X
+    assert got.tobytes() == want.tobytes()
+
+
+def test_operator_rows_built_from_arrays_equal_the_sparse_stacking(limb_fits):
+    """vertex_operator from rest vertices and β (rows built from arrays, in layer order)
+    equals the one from the models' own vertex arrays given the same local coordinates
+    (scipy's sparse stacking, as the rest path was built before): the same rows, entries,
+    pairs and layers, bit for bit."""
+    L = limb_fits
+    mesh, beta, seg = L["mesh"], L["beta"], L["seg"]
+    V = len(mesh.vertices)
+    bound = [prepare_part(seg, p, vertices=mesh.vertices, beta=beta) for p in range(seg.n_parts)]
+    for m in bound:  # local coordinates as the rest path computes them (no BLAS product)
+        m.vertex_local = _part_local(m, mesh.vertices[m.vertices])
+        m.vertex_basis, m.vertex_kernel = m.basis(m.vertex_local), m.kernel_rows(m.vertex_local)
+    for residual in (True, False):
+        want = vertex_operator(bound, V, residual=residual)
+        got = vertex_operator(L["models"], V, residual=residual, rest=mesh.vertices, beta=beta)
+        for a, b in ((got.rigid, want.rigid), (got.nonrigid, want.nonrigid)):
+            assert a.shape == b.shape and a.nnz == b.nnz > 0
+            assert np.array_equal(a.indptr, b.indptr) and np.array_equal(a.indices, b.indices)
+            assert a.data.tobytes() == b.data.tobytes()
+        assert np.array_equal(got.pair_part, want.pair_part)
+        assert got.pair_beta.tobytes() == want.pair_beta.tobytes()
+        assert len(got.layers) == len(want.layers) == 2  # some vertices follow two parts
+        for (v, first), (w, start) in zip(got.layers, want.layers):
+            assert first == start and np.array_equal(v, w)
+        for a, b in zip(got.vertices + got.beta, want.vertices + want.beta):
+            assert a.tobytes() == b.tobytes()
+
+
+def test_rows_store_combines_rows_across_blocks_as_the_plain_sum():
+    """_Rows.combine adds ``w_0 x_0 + w_1 x_1 + ...`` in that order over rows in different
+    blocks (-1: no term), the bytes of the plain NumPy sum; _row_differences are the bytes
+    of the subtraction, and _edge_vectors' product those of ``x[b] - x[a]`` either way round."""
+    combine, differences = deform_module._Rows.combine, deform_module._row_differences
+    rng = np.random.default_rng(3)
+    store = _Rows(4, first_block=2)
+    for k in (3, 5, 9):  # blocks of 2, 4, 8 rows: the rows straddle them
+        store.append(rng.standard_normal((4, k, 3)))
+    rows = store.take(np.arange(store.n))  # (17, 4, 3)
+    index = rng.integers(0, store.n, (6, 3))
+    index[1, 2] = index[4, 1:] = -1
+    weights = rng.uniform(0.1, 1.0, index.shape)
+    got = np.empty((6, 12))
+    combine(store, index, weights, got)
+    want = weights[:, 0, None, None] * rows[index[:, 0]]
+    for j in (1, 2):
+        has = index[:, j] >= 0
+        want[has] += weights[has, j, None, None] * rows[index[has, j]]
+    assert got.tobytes() == want.reshape(6, 12).tobytes()
+    assert np.array_equal(got[4], (weights[4, 0] * rows[index[4, 0]]).ravel())
+    a, b = np.array([0, 16, 5]), np.array([9, 2, 5])
+    assert differences(a, b, store).tobytes() == (rows[b] - rows[a]).tobytes()
+    X = rng.standard_normal((7, 6))
+    edges = np.array([[0, 3], [5, 1], [6, 2]])
+    out = np.empty((3, 6))
+    deform_module._sparse_product(deform_module._edge_vectors(edges, 7), X, out)
+    assert out.tobytes() == (X[edges[:, 1]] - X[edges[:, 0]]).tobytes()
+
+
+def test_widening_with_a_rigid_part_among_bending_ones_matches_the_direct_loop(limb_fits):
+    """A part without non-rigid terms (too few markers: rigid) next to quadratic ones: the
+    widening's predictions (the rigid rows for every pair, the non-rigid rows only for the
+    pairs of bending parts, clamped) give the bytes of the plain loop of test_deform."""
+    from tests.stages.skin.test_deform import _widen_blends_directly
+
+    L = limb_fits
+    mesh, V, x = L["mesh"], len(L["mesh"].vertices), L["d"]["markers"].positions
+    models = [prepare_part(L["seg"], p) for p in range(L["seg"].n_parts)]
+    models[0].quadratic = False  # rigid: no non-rigid coefficient (quadratic mode)
+    fits = [fit_part(m, x[:, m.members], mode="quadratic") for m in models]
+    assert not fits[0].A.any() and all(f.A.any() for f in fits[1:])
+    op = vertex_operator(models, V, residual=False, rest=mesh.vertices, beta=L["beta"])
+    verts = deform_positions(models, fits, V, op, residual=False)
+    kw = {"max_stretch": 1.3, "steps": 100, "residual": False}
+    want_beta, want_verts, *want = _widen_blends_directly(models, fits, mesh, L["beta"], verts,
+                                                          **kw)  # fmt: skip
+    got_verts = verts.copy()
+    got_beta, *got = _widen_blends(models, fits, mesh, L["beta"], got_verts, **kw)
+    assert got == want and want[1] > 10 and want[3] < want[2]  # widened: fewer torn
+    assert got_beta.tobytes() == want_beta.tobytes()
+    assert got_verts.tobytes() == want_verts.tobytes()
