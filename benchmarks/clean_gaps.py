@@ -275,11 +275,13 @@ def result_rows(r: dict, data: str | None = None) -> list[dict]:
 def same_sample_ratios(common: list[dict]) -> dict[str, float]:
     """Ours' mean error over the samples each baseline filled ÷ that baseline's mean
     error (the same samples), pooled over the repetitions ``common`` (``{method: row}``
-    per repetition, one mask); empty when a row lacks ``filled`` / ``err_um``."""
+    per repetition, one mask; a baseline that failed on one is left out); empty when a
+    row lacks ``filled`` / ``err_um``."""
     num: dict = collections.defaultdict(float)
     cnt: dict = collections.defaultdict(int)
     base: dict = collections.defaultdict(float)
     base_n: dict = collections.defaultdict(int)
+    failed: set = set()
     for ms in common:
         ours = ms.get("ours")
         if ours is None or "err_um" not in ours:
@@ -288,7 +290,10 @@ def same_sample_ratios(common: list[dict]) -> dict[str, float]:
         for name, row in ms.items():
             if name == "ours":
                 continue
-            if "filled" not in row or row["status"] != "ok":
+            if row["status"] != "ok":  # failed (G&F without a complete frame): no ratio
+                failed.add(name)
+                continue
+            if "filled" not in row:
                 return {}
             f = np.unpackbits(np.frombuffer(bytes.fromhex(row["filled"]), np.uint8))[:len(e)]
             f = f.astype(bool) & (e >= 0)
@@ -297,7 +302,7 @@ def same_sample_ratios(common: list[dict]) -> dict[str, float]:
             base[name] += float(row["sum_err"])
             base_n[name] += int(row["n_err"])
     return {n: (num[n] / cnt[n]) / (base[n] / base_n[n]) for n in num
-            if cnt[n] and base[n] > 0}
+            if n not in failed and cnt[n] and base[n] > 0}
 
 
 def row_key(row: dict) -> tuple:

@@ -28,6 +28,9 @@ def test_ours_is_compared_on_the_samples_the_baseline_filled():
     # over its own samples ours' mean is 4.8 mm vs 1 mm; over the spline's, 4/3 mm vs 1 mm
     assert np.isclose(got["cubic spline"], (0.004 / 3) / 0.001, rtol=1e-6)
     assert np.isclose(rows[0]["ours"]["sum_err"] / rows[0]["ours"]["n_err"], 0.0048)
+    # a baseline that failed on a repetition is left out (the criteria skip it too)
+    rows[1]["cubic spline"]["status"] = "failed: no complete frame"
+    assert same_sample_ratios(rows) == {}
     # rows written before the fields existed give no same-sample ratio
     del rows[1]["ours"]["err_um"]
     assert same_sample_ratios(rows) == {}
