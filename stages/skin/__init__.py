@@ -111,9 +111,11 @@ Departures from the paper (each module docstring says why, with measurements):
   at the part markers' deviation from rigid (``clamp_margin``, parts.soft_clamp);
   β diffused over the mesh where a blend between parts would stretch an edge
   beyond ``max_blend_stretch`` (2.5; deform._widen_blends,
-  binding.blend_smoothing_operator); the paper exactly: ``beta_sharpness=1,
+  binding.blend_smoothing_operator); with ``unflip`` (the graph's config) the
+  vertices of triangles turned over against the rigid mode pulled back
+  (deform.unflip_triangles); the paper exactly: ``beta_sharpness=1,
   quadratic_damping=0, residual_kernel="cubic_bspline", support_margin=None,
-  clamp_margin=None, max_blend_stretch=None``.
+  clamp_margin=None, max_blend_stretch=None`` (and ``unflip`` false).
 """
 
 #: The modules of this family that register stages, codecs or exporters, each with

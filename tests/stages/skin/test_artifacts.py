@@ -16,7 +16,7 @@ from mocapflow.stages.metrics.mesh import (
 )
 from mocapflow.stages.motion.datatypes import Markers, Mesh
 from mocapflow.stages.skin.binding import DeformError, blend_smoothing_operator
-from mocapflow.stages.skin.deform import deform
+from mocapflow.stages.skin.deform import deform, unflip_triangles
 from mocapflow.stages.skin.parts import fit_part, prepare_part, soft_clamp
 from tests.stages.skin.conftest import deform_limb, grid_cylinder
 from tests.stages.skin.test_deform import hard_segmentation, one_part_segmentation
@@ -212,16 +212,42 @@ def test_demo_mesh_has_no_stretched_triangles(demo_run):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=(
-    "issue 15 item 4 not met on the demo capture: measured (quick demo, 120 frames, 5,001 "
-    "vertices, template legs apart 12 degrees) 344 triangles flipped vs the rigid mode at "
-    "some frame with the blend widening (max_blend_stretch=2.5, the default; 376 without); "
-    "the residual turns most (rigid_residual 353, quadratic alone 64; thin-plate residual "
-    "318), on the upper arms, chest and thighs; the rigid mode is no truth there: against "
-    "the simulator's true surface (closest true triangle within 20 mm, every 4th frame) "
-    "rigid faces the wrong way on 806 triangles, quadratic_residual on 538, 175 of them "
-    "among its 344 flips (the demo's skin graph re-run in process, seed 0)"))  # fmt: skip
 def test_demo_mesh_has_no_flipped_triangles(demo_run):
-    """Item 4 on the demo's own deformed body: no triangle flipped against the rigid mode."""
+    """Item 4 on the demo's own deformed body: no triangle flipped against the rigid mode
+    (the graph's ``deform.unflip``; without it 344 triangles flipped at some frame, quick
+    demo, 120 frames, 5,001 vertices: the residual turns most, on the upper arms, chest
+    and thighs)."""
     _, flipped = _demo_artifacts(demo_run)
     assert not flipped.any(), int(flipped.sum())
+
+
+def flat_grid(n: int = 7) -> tuple[np.ndarray, np.ndarray]:
+    """An ``n x n`` grid in the plane z = 0 (10 cm spacing) and its triangles (T, 3)."""
+    ij = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), -1).reshape(-1, 2)
+    verts = np.column_stack([0.1 * ij, np.zeros(len(ij))])
+    k = np.arange(n * n).reshape(n, n)
+    a, b, c, d = k[:-1, :-1].ravel(), k[1:, :-1].ravel(), k[1:, 1:].ravel(), k[:-1, 1:].ravel()
+    return verts, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+def test_unflip_triangles_pulls_a_turned_over_patch_back():
+    verts, faces = flat_grid()
+    ref = np.repeat(verts[None], 3, axis=0)
+    moved = ref.copy()
+    moved[:, :, 2] += 0.01 * np.arange(3)[:, None]  # a lift: turns nothing over
+    moved[1, 24, :2] += [0.16, 0.05]  # frame 1: the centre vertex pushed across its fan
+    flips = flipped_triangles(moved[1:2], ref[1:2], faces)
+    assert flips.sum() >= 2
+    out, rep = unflip_triangles(moved, ref, faces)
+    assert rep["flipped_before"] == flips.sum() and rep["flipped_after"] == 0, rep
+    assert not flipped_triangles(out, ref, faces).any()
+    assert rep["frames"] == 1
+    np.testing.assert_array_equal(out[[0, 2]], moved[[0, 2]])  # frames with no flip untouched
+    # the pushed vertex goes at least half way back (one round here); vertices beyond the
+    # pull's 4 rings stay
+    assert np.linalg.norm(out[1, 24] - ref[1, 24]) <= 0.5 * np.linalg.norm(
+        moved[1, 24] - ref[1, 24]) + 1e-12
+    far = np.linalg.norm(verts[:, :2] - verts[24, :2], axis=1) > 0.55
+    np.testing.assert_array_equal(out[1, far], moved[1, far])
+    with pytest.raises(ValueError, match="decay"):
+        unflip_triangles(moved, ref, faces, decay=1.0)
