@@ -121,7 +121,11 @@ support_margin=None, clamp_margin=None, max_blend_stretch=None``:
   5.5 mm edges).  With the former fixed 100 steps the graph's default 13,000-vertex
   body on the shared captures stopped with triangles still stretched beyond 3×
   (Qualisys 39, racing 503, pyomeca 314; 0 at 2,000 vertices); with a 0.45 m reach
-  (963 / 894 / 1,227 steps): 6 / 0 / 0, the 2,000-vertex runs unchanged.  On the
+  (963 / 894 / 1,227 steps): 6 / 0 / 0, the 2,000-vertex runs unchanged (a 0.6 m
+  reach: 4 / 0 / 0).  The last ones were slivers of the decimated template (rest
+  edges of 4-7 mm beside 12-98 mm ones, at the hips); with the template's triangles
+  evened out (``template_mesh(relax=5)``) 0 / 0 / 0, in 216 / 303 / 207 steps, and
+  none left torn beyond ``max_blend_stretch`` (592 / 1,281 / 637 found).  On the
   simulator's true mesh (table 3, quick; seeds 0 / 1) no triangle stretches beyond 3× (before:
   47 / 46 in quadratic + residual, 153 / 168 in rigid); the mean vertex error
   drops in rigid (7.10 → 6.70 / 7.11 → 6.85 mm) and quadratic (5.38 → 5.16 /

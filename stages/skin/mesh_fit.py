@@ -45,6 +45,13 @@ __all__ = [
 
 # --------------------------------------------------------------------------- detailed mesh fitting
 
+#: ``fit_mesh`` refuses an alignment whose axis scales (singular values of the affine
+#: map) are more than this many times apart: a template squashed onto markers that
+#: are not on a body like it (a flat sheet of markers: 0 along its normal), which
+#: the distance test alone can pass (the sheet's p90 114.7 mm under its 116 mm
+#: spacing with the evened-out 1,500-vertex template).
+MAX_AXIS_SCALE_RATIO = 3.0
+
 
 def similarity_transform(
     source: np.ndarray, target: np.ndarray, *, weights: np.ndarray | None = None
@@ -580,6 +587,13 @@ def fit_mesh(
             f"the marker spacing {spacing * 1000:.0f} mm (different pose, facing or body?); "
             "give landmarks"
         )
+    sv = info["axis_scales"]
+    if min(sv) < max(sv) / MAX_AXIS_SCALE_RATIO:
+        raise DeformError(
+            "fit_mesh: template does not match the markers: the alignment squashed it "
+            f"(axis scales {', '.join(f'{v:.3g}' for v in sv)}, more than "
+            f"{MAX_AXIS_SCALE_RATIO:g}x apart: not a body like the template?); give landmarks"
+        )
     if abs(np.log(info["scale"])) > np.log(1.25):
         ctx.warn(f"template scaled by {info['scale']:.3g} to fit the markers")
     report = {**info, "vertices": int(len(V)), "marker_spacing_mm": spacing * 1000,
@@ -627,6 +641,7 @@ def template_mesh(
     *,
     body_mesh: FilePath | None = None,
     n_vertices: int = 13000,
+    relax: int = 5,
     pose: Literal["rest", "bind"] = "rest",
     leg_abduction: float = 12.0,
     ctx: Context,
@@ -641,6 +656,15 @@ def template_mesh(
         a procedural body around the procedural CMU skeleton.
     n_vertices : int
         Vertex count of the procedural body.
+    relax : int
+        Rounds of :func:`~mocapflow.stages.motion.simulate.capsules.relax_surface`
+        evening out the procedural body's decimated triangles (0: as decimated).  A
+        sliver is what a deformation stretches first: through the skin graph to
+        ``deform`` on ``ezc3d-testFiles_Qualisys.c3d`` (13,000 vertices, rigid
+        skinning) 6 triangles had an edge stretched beyond 3× (rest edges of 4–7 mm
+        beside 12–98 mm ones) as decimated, 0 relaxed.  The fit is unchanged
+        (``benchmarks/fit_mesh.py``'s ``allen`` rows, seeds 3–5: 1.89 mm mean either
+        way).
     pose : {"rest", "bind"}
         ``rest``: posed by its rig into the rest pose of the procedural CMU
         skeleton (T-pose, arms out; with the default ``leg_abduction`` the
@@ -666,7 +690,7 @@ def template_mesh(
     if body_mesh is not None:
         body = load_makehuman_body(body_mesh)
     else:
-        body = procedural_body(procedural_skeleton(), n_vertices=n_vertices)
+        body = procedural_body(procedural_skeleton(), n_vertices=n_vertices, relax=relax)
     J = body.skeleton.n_joints
     if pose == "rest":
         sk = procedural_skeleton()
