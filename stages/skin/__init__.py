@@ -27,6 +27,9 @@ the paper lives in one function (modules of this package):
   in the same frames (beyond the paper)
   a missing marker with no prediction    merge._blind_rival
   near the chosen one (beyond the paper)
+  a missing marker near the chosen one   merge._swap_rival
+  with the chosen one seen as another
+  unmerged fragment (beyond the paper)
   continuity across a break or short     merge.continue_breaks (carried by the
   gap (beyond the paper)                 neighbours' rigid motion: merge._carry;
                                          longest gap: merge.bridge_frames)

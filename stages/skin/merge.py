@@ -8,12 +8,14 @@ against ``ε₁ = α₁·d̄``, the tube ``ε₂ = α₂·d̄`` over the fragmen
 distance and the ambiguity tests; :func:`_tolerances`; beyond the paper, an
 unmerged fragment in the same frames as close to the prediction makes the merge
 ambiguous: :func:`_rival_fragment`, and so does a missing marker without a prediction
-close enough to the chosen one: :func:`_blind_rival`), and the claims merged, closest
-first (:func:`_merge_claims`).  Before and after the rounds, fragments
-that continue a marker's trajectory across a break or a gap of at most
-:func:`bridge_frames` (8 frames, 67 ms above 120 Hz) are merged by
-continuity (:func:`continue_breaks`, beyond the paper).  See :mod:`mocapflow.stages.skin.clean` for
-the whole procedure and where it goes beyond the paper.
+close enough to the chosen one: :func:`_blind_rival`, or a missing marker close enough
+with the chosen one seen as another unmerged fragment where the swap puts it:
+:func:`_swap_rival`), and the claims merged, closest first (:func:`_merge_claims`).
+Before and after the rounds, fragments that continue a marker's trajectory across a
+break or a gap of at most :func:`bridge_frames` (8 frames, 67 ms above 120 Hz) are
+merged by continuity (:func:`continue_breaks`, beyond the paper).  See
+:mod:`mocapflow.stages.skin.clean` for the whole procedure and where it goes beyond
+the paper.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from mocapflow.stages.motion.absolute_orientation import absolute_orientation_ba
 from mocapflow.stages.skin.predict import (
     MIN_NEIGHBOURS,
     RIGID_ANCHOR,
+    _neighbour_fit,
     _predict_parallel,
     finite_rows,
     gather_samples,
@@ -500,7 +503,8 @@ class _MergeRun:
     each fragment (-1), ``verdict`` the last rejection of each unmerged fragment,
     ``merges`` / ``conflicts`` the report lists, ``dirty`` the frames whose data
     or predictions changed since the fragments there were judged, ``stale`` the
-    frames to predict again, ``visible`` ``(F, U)`` where each fragment has a sample.
+    frames to predict again, ``visible`` ``(F, U)`` where each fragment has a sample,
+    ``reference``, ``neighbours``, ``rigidity`` the surface's (:func:`_swap_rival`).
     """
 
     X: np.ndarray
@@ -516,6 +520,8 @@ class _MergeRun:
     stale: np.ndarray
     reference: np.ndarray
     visible: np.ndarray
+    neighbours: np.ndarray
+    rigidity: np.ndarray | None
     verdict: dict[int, dict[str, Any]] = field(default_factory=dict)
     merges: list[dict[str, Any]] = field(default_factory=list)
     conflicts: list[dict[str, Any]] = field(default_factory=list)
@@ -683,6 +689,102 @@ def _blind_rival(frag: np.ndarray, T: np.ndarray, v: dict[str, Any], free: np.nd
                          "reference_mm": round(float(D[k] * mm), 2)}}
 
 
+def _swap_rival(fragments: np.ndarray, unmerged: np.ndarray, u: int, T: np.ndarray,
+                v: dict[str, Any], free: np.ndarray, X: np.ndarray, E_all: np.ndarray,
+                reference: np.ndarray, neighbours: np.ndarray, rigidity: np.ndarray | None,
+                eps1: np.ndarray, labels: list[str], flabels: list[str],
+                n_unmerged: np.ndarray | None = None) -> dict[str, Any]:
+    """Refuse fragment ``u``'s merge verdict ``v`` (marker ``m``) when the fragment may be
+    a marker ``r`` near ``m`` with ``m`` itself seen as another unmerged fragment ``g``
+    (beyond §4.2).
+
+    Where the neighbourhood of ``m`` bends (a limb at the end of its range of motion),
+    ``m``'s prediction may lie near ``r``'s trajectory and ``r``'s own prediction far off:
+    the ambiguity test then sees no rival.  The swap is taken as a rival when:
+
+    - ``r`` is missing in all of ``T`` and close to ``m``: ``D = |ref[r] − ref[m]| <
+      (1 + AMBIGUITY_RATIO) δ``, ``δ`` the fragment's mean distance to ``m``'s prediction
+      (the bound of :func:`_blind_rival`: were the fragment ``r``, the prediction would be
+      off by at least ``|D − δ|``, less than :data:`AMBIGUITY_RATIO` times ``δ``);
+    - an unmerged fragment ``g``, seen in at least half of ``T``, lies where ``m``
+      would be were the fragment ``r``: ``f + R (ref[m] − ref[r])``, ``R`` the rotation
+      of the rigid fit (Horn, rigidity weights) of ``m``'s neighbours from the reference
+      pose onto the frame (measured, else predicted: ``X`` with ``E_all``), within ``ε₁``
+      on average over the frames of :func:`_spread` where both fragments are seen (the
+      rotation is surer than the prediction's translation where the neighbourhood
+      bends);
+    - and the chosen labelling cannot place ``g``: for every marker ``s`` missing in all
+      of ``T`` (``free``, ``(M,)`` bool; ``s ≠ m``), ``g`` lies at least
+      :data:`AMBIGUITY_RATIO` times farther from ``f + R (ref[s] − ref[m])``.  (On a
+      regular layout ``g`` is often ``m``'s neighbour on the far side from ``r``, as
+      far from the fragment as ``r`` is: the chosen labelling places it too.)
+
+    ``f`` is the fragment's sample in a frame; ``fragments`` ``(F, U, 3)``, ``T`` its
+    frames; ``X`` ``(F, M, 3)`` the positions, ``E_all`` every prediction;
+    ``reference`` ``(M, 3)``, ``neighbours`` / ``rigidity`` ``(M, K)`` the surface's;
+    ``unmerged`` and ``n_unmerged`` as in :func:`_rival_fragment`.  Returns ``v`` or an
+    ambiguous rejection (``conflict`` with ``swap_mm``: the distance of ``g``).
+
+    On the simulated 350-marker range-of-motion capture with labels stripped
+    (``benchmarks/clean.py`` table 1b, seed 4) the fragment of L155 over frames 782–899
+    went to L298 in the first rigid round, 19.5 mm (0.69 ε₁) from L298's prediction
+    (itself 57.9 mm off), L155 56.6 mm from L298 in the reference pose and its own
+    prediction 113 mm off; L298 was the unmerged fragment 11.8 mm (0.42 ε₁) from where
+    the swap puts it, more than 3 times farther from where the chosen labelling puts any
+    free marker.  Refused, the later rounds merged the fragment into L155 and L298's
+    into L298 (2 wrong merges -> 0, with the continuation of the wrong one; kept share
+    98.48 -> 98.84 %); the 17 other Tables 1 / 1b runs (seeds 2-4) did not change.
+    """
+    m = int(v["marker"])
+    delta = float(v["mean"])
+    others = np.flatnonzero(free)
+    others = others[others != m]
+    with np.errstate(invalid="ignore"):
+        D = np.linalg.norm(reference[others] - reference[m], axis=-1)
+        near = others[D < (1.0 + AMBIGUITY_RATIO) * delta]
+    if not len(near):
+        return v
+    if _is_run(T) and n_unmerged is not None:
+        rivals = np.flatnonzero(n_unmerged[T[-1] + 1] - n_unmerged[T[0]]
+                                >= max(1, int(np.ceil(0.5 * len(T)))))
+    else:
+        rivals = np.flatnonzero(unmerged[T].sum(0) >= max(1, int(np.ceil(0.5 * len(T)))))
+    rivals = rivals[rivals != u]
+    if not len(rivals):
+        return v
+    Ts = T[_spread(len(T))]
+    Xs = np.where(finite_rows(X[Ts])[..., None], X[Ts], E_all[Ts])  # (k, M, 3)
+    R, _ = _neighbour_fit(Xs, reference, neighbours, rigidity, np.arange(len(Ts)),
+                          np.full(len(Ts), m))  # (k, 3, 3)
+    rel = gather_samples(fragments, Ts[:, None], rivals[None]) - fragments[Ts, u][:, None]
+
+    def misfit(g: np.ndarray, markers: np.ndarray, sign: float) -> np.ndarray:
+        """``(len(g), len(markers))`` mean distance of ``rel[:, g]`` to ``sign·R (ref[markers]
+        − ref[m])`` over the spread frames (NaN: never both seen with a fit)."""
+        w = sign * np.einsum("kij,nj->kni", R, reference[markers] - reference[m])
+        d = np.linalg.norm(rel[:, g, None] - w[:, None], axis=-1)  # (k, len(g), len(markers))
+        return _nan_mean(d.reshape(len(Ts), -1)).reshape(len(g), len(markers))
+
+    swap = misfit(np.arange(len(rivals)), near, -1.0)  # g is m, the fragment r
+    with np.errstate(invalid="ignore"):
+        gi, ri = np.nonzero(swap < eps1[m])
+    if not len(gi):
+        return v
+    hit = np.unique(gi)
+    placed = dict(zip(hit.tolist(), np.fmin.reduce(misfit(hit, others, 1.0), axis=1)))
+    for i, j in sorted(zip(gi.tolist(), ri.tolist()), key=lambda c: swap[c]):
+        if not placed[i] < AMBIGUITY_RATIO * swap[i, j]:
+            mm = 1000.0
+            g, r = int(rivals[i]), int(near[j])
+            return {"reason": f"ambiguous: {labels[m]} at {delta * mm:.1f} mm, or {labels[r]} "
+                              f"with {labels[m]} the fragment {flabels[g]} "
+                              f"({swap[i, j] * mm:.1f} mm from the place of the swap)",
+                    "conflict": {"labels": [labels[m], labels[r]], "fragments": [flabels[g]],
+                                 "mean_mm": [round(delta * mm, 2)],
+                                 "swap_mm": round(float(swap[i, j] * mm), 2)}}
+    return v
+
+
 def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarray, *,
                  mean_tolerance: float, near: np.ndarray | None,
                  near_ratio: float) -> dict[int, list[tuple[float, int, dict]]]:
@@ -717,6 +819,10 @@ def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarr
                                              np.cumsum(unmerged, 0, dtype=np.int32)])
             v = _rival_fragment(run.fragments, unmerged, u, T, v, E_all, run.eps1,
                                 run.labels, run.flabels, n_unmerged)
+        if "marker" in v:
+            v = _swap_rival(run.fragments, unmerged, u, T, v, free, run.X, E_all,
+                            run.reference, run.neighbours, run.rigidity, run.eps1, run.labels,
+                            run.flabels, n_unmerged)
         if "marker" in v:
             claims.setdefault(v["marker"], []).append((v["mean"], u, v))
             run.verdict.pop(u, None)
@@ -970,6 +1076,7 @@ def merge_fragments(
         assigned=np.full(U, -1, dtype=np.int64),
         dirty=np.ones(F, dtype=bool),  # frames whose predictions / data changed
         stale=np.arange(F), reference=surface.reference, visible=fvis,
+        neighbours=surface.neighbours, rigidity=surface.rigidity,
     )
     run.verdict = {u: {"reason": "empty fragment"} for u in range(U) if not len(run.frames_of[u])}
     given = predictions is not None
