@@ -129,6 +129,8 @@ __all__ = [
     "fill_holes",
     "BLEND_MODELS",
     "BLEND_POWER",
+    "RIGID_DISAGREEMENT_SHARE",
+    "RIGID_MODELS",
     "RIGID_BODY_POOL",
     "SPLINE_MIN_SUPPORT_SHARE",
     "VALIDATION_SHIFTS",
@@ -165,6 +167,29 @@ SPLINE_MIN_SUPPORT_SHARE = 0.2
 
 #: The estimates :func:`fill_by_validated_blend` weighs, in order.
 BLEND_MODELS = ("local", "whole_body", "spline", "rigid_body", "rigid_nearest")
+
+#: Indices in :data:`BLEND_MODELS` of the rigid-body fills.
+RIGID_MODELS = (3, 4)
+
+#: A rigid-body fill's blend weight comes from a validation error of at least this
+#: share of how far its two carries (from before and from after the gap) disagree,
+#: root mean square over the run (:func:`fill_by_validated_blend`): the marker's
+#: motion against its donors between the gap's two ends.  The carries assume the
+#: marker rigid with its donors; where it moves against them within the gap,
+#: copies of the gap at other times (where it may not) vouch for them wrongly.
+#: With the carries blended linearly the error is the part of that motion that is
+#: not linear in time: on the real PiG calibration (gap protocol, 0.5 s, 10 %,
+#: clustered, mask seed 104) the whole head (LFHD, RFHD, LBHD, RBHD) is gone for
+#: 0.5 s while it turns against the trunk: carries 56-70 mm apart, the rigid-body
+#: fills 15-18 mm off (about a quarter), validated at 0.5-0.6 mm, so they had half
+#: the weight.  Tried instead and dropped: scaling their validation error by the
+#: ratio of the squared disagreement in the gap to that in its copies (gap
+#: protocol, PiG + Qualisys seeds 100-109 and 200-209, Eb015pr / pyomeca / racing
+#: 200-204: as good or worse in every file, e.g. Qualisys worst ratio 1.15 against
+#: 1.07); stacking the members (non-negative weights minimising the blend's own
+#: validation error, ridge 0.1: PiG 15 -> 13 of 18 within 5 %); a sharper
+#: ``BLEND_POWER`` 3 or 4 (Qualisys 10 -> 10 and 9 of 12, worst 1.07 -> 1.17, 1.24).
+RIGID_DISAGREEMENT_SHARE = 0.25
 
 
 # --------------------------------------------------------------------------- PCA fill (§4.3)
@@ -430,7 +455,8 @@ def _shifted_runs(runs: list[tuple[int, int, int]], shape: tuple[int, int],
 
 def _rigid_body_fill(positions: np.ndarray, holes: np.ndarray,
                      reference: np.ndarray, *,
-                     donors: Literal["rigid", "nearest"] = "rigid") -> np.ndarray:
+                     donors: Literal["rigid", "nearest"] = "rigid",
+                     disagreement: np.ndarray | None = None) -> np.ndarray:
     """Rigid-body estimates of the holes from 3 donors (as Vicon's rigid-body fill).
 
     Per run of holes, 3 donors measured through it and at the marker's last /
@@ -442,6 +468,10 @@ def _rigid_body_fill(positions: np.ndarray, holes: np.ndarray,
     ``"nearest"``: the nearest in the reference pose (Vicon's choice, the
     better one when a segment's cluster is the nearest markers).
 
+    ``disagreement``, optional ``(F, M)`` float array: set to the distance between the
+    two carries (from before and from after the gap) at the holes carried from both,
+    NaN elsewhere (how far the marker moves against its donors within the gap).
+
     Returns
     -------
     (F, M, 3) float ndarray
@@ -451,7 +481,7 @@ def _rigid_body_fill(positions: np.ndarray, holes: np.ndarray,
     vis = finite_rows(positions)
     out = np.full(positions.shape, np.nan)
     markers = np.flatnonzero(holes.any(0))
-    src, tgt, anchor, frame, mark, wt = [], [], [], [], [], []
+    src, tgt, anchor, frame, mark, wt, side = [], [], [], [], [], [], []
     if donors == "nearest":
         known = np.isfinite(reference).all(1)
         dist = np.linalg.norm(reference[markers, None] - reference[None], axis=-1)
@@ -481,6 +511,9 @@ def _rigid_body_fill(positions: np.ndarray, holes: np.ndarray,
                 frame.append(np.arange(a, b))
                 mark.append(np.full(b - a, m))
                 wt.append(np.ones(b - a) if len(anchors) == 1 else (1 - s if f < a else s))
+                side.append(np.full(b - a, 0.0 if len(anchors) == 1 else (1.0 if f < a else -1.0)))
+    if disagreement is not None:
+        disagreement[:] = np.nan
     if not src:
         return out
     R, t = absolute_orientation_batch(np.concatenate(src), np.concatenate(tgt))
@@ -491,6 +524,14 @@ def _rigid_body_fill(positions: np.ndarray, holes: np.ndarray,
     got = np.zeros((F, M), dtype=bool)
     got[f, m] = True
     out[got] = acc[got]
+    if disagreement is not None:
+        sd = np.concatenate(side)
+        two = sd != 0
+        diff = np.zeros((F, M, 3))
+        np.add.at(diff, (f[two], m[two]), e[two] * sd[two, None])
+        both = np.zeros((F, M), dtype=bool)
+        both[f[two], m[two]] = True
+        disagreement[both] = np.linalg.norm(diff[both], axis=-1)
     return out
 
 
@@ -528,8 +569,11 @@ def fill_by_validated_blend(
     (:func:`_validation_mse`: a copy moved onto the take's edge, where a
     spline cannot reach, no longer shuts the spline out of the run), and its
     estimates are averaged with weights ∝ (mean squared error on those
-    copies)^-:data:`BLEND_POWER`; a run with no copy scored keeps the local
-    fill.
+    copies)^-:data:`BLEND_POWER`, a rigid-body fill's (:data:`RIGID_MODELS`)
+    error taken as at least :data:`RIGID_DISAGREEMENT_SHARE` of how far its
+    carries from before and after the gap disagree (the marker moving against
+    its donors there, which the copies need not see); a run with no copy
+    scored keeps the local fill.
 
     Parameters
     ----------
@@ -555,7 +599,9 @@ def fill_by_validated_blend(
         Mean weight of each of :data:`BLEND_MODELS` over the filled holes.
     """
     F, M, _ = X.shape
-    est = _blend_members(X, positions, holes, surface, interpolate=interpolate)
+    disagreement = {k: np.full(holes.shape, np.nan) for k in RIGID_MODELS}
+    est = _blend_members(X, positions, holes, surface, interpolate=interpolate,
+                         disagreement=disagreement)
     runs = _runs(holes)
     run = np.full((F, M), -1, dtype=np.int64)
     for r, (m, a, b) in enumerate(runs):
@@ -567,7 +613,12 @@ def fill_by_validated_blend(
         full[:, r] = reach[:, a:b, m].all(1)
     errs, ok = _validation_errors(positions, holes, runs, surface, interpolate=interpolate,
                                   local=local, shifts=VALIDATION_SHIFTS[:n_shifts], ctx=ctx)
-    wr = _blend_weights(_validation_mse(errs, ok, full))
+    mse = _validation_mse(errs, ok, full)
+    for k, dis in disagreement.items():  # the rigid-body fills: at least what moved in the gap
+        d2 = np.array([np.nanmean(dis[a:b, m] ** 2) if np.isfinite(dis[a:b, m]).any() else 0.0
+                       for m, a, b in runs])
+        mse[k] = np.fmax(mse[k], RIGID_DISAGREEMENT_SHARE ** 2 * d2)
+    wr = _blend_weights(mse)
     w = np.where(holes[None], wr[:, np.maximum(run, 0)], 0.0)  # (K, F, M)
     have = finite_rows(est) & holes[None]  # (K, F, M)
     wf = np.where(have, w, 0.0)
@@ -582,15 +633,21 @@ def fill_by_validated_blend(
 
 
 def _blend_members(X: np.ndarray, positions: np.ndarray, holes: np.ndarray,
-                   surface: MarkerSurface, *, interpolate: int) -> np.ndarray:
+                   surface: MarkerSurface, *, interpolate: int,
+                   disagreement: dict[int, np.ndarray] | None = None) -> np.ndarray:
     """``(K, F, M, 3)``: the estimates of :data:`BLEND_MODELS` at ``holes`` (NaN elsewhere
-    and where a model cannot estimate), ``X`` being the local fill."""
+    and where a model cannot estimate), ``X`` being the local fill; ``disagreement``,
+    optional ``{model index: (F, M) array}``: the rigid-body fills' (filled in, see
+    :func:`_rigid_body_fill`)."""
+    dis = disagreement or {}
     low = whole_body_pca(X, finite_rows(positions), holes)
     spl = np.full_like(positions, np.nan)
     _interpolate_interior(spl, positions, holes, interpolate,
                           min_support_share=SPLINE_MIN_SUPPORT_SHARE)
-    rig = _rigid_body_fill(positions, holes, surface.reference)
-    near = _rigid_body_fill(positions, holes, surface.reference, donors="nearest")
+    rig = _rigid_body_fill(positions, holes, surface.reference,
+                           disagreement=dis.get(BLEND_MODELS.index("rigid_body")))
+    near = _rigid_body_fill(positions, holes, surface.reference, donors="nearest",
+                            disagreement=dis.get(BLEND_MODELS.index("rigid_nearest")))
     return np.stack([np.where(holes[..., None], X, np.nan), low, spl, rig, near])
 
 
