@@ -614,10 +614,7 @@ def fill_by_validated_blend(
     errs, ok = _validation_errors(positions, holes, runs, surface, interpolate=interpolate,
                                   local=local, shifts=VALIDATION_SHIFTS[:n_shifts], ctx=ctx)
     mse = _validation_mse(errs, ok, full)
-    for k, dis in disagreement.items():  # the rigid-body fills: at least what moved in the gap
-        d2 = np.array([np.nanmean(dis[a:b, m] ** 2) if np.isfinite(dis[a:b, m]).any() else 0.0
-                       for m, a, b in runs])
-        mse[k] = np.fmax(mse[k], RIGID_DISAGREEMENT_SHARE ** 2 * d2)
+    _floor_rigid_errors(mse, disagreement, runs)
     wr = _blend_weights(mse)
     w = np.where(holes[None], wr[:, np.maximum(run, 0)], 0.0)  # (K, F, M)
     have = finite_rows(est) & holes[None]  # (K, F, M)
@@ -630,6 +627,18 @@ def fill_by_validated_blend(
     share = wf[:, sel] / tot[sel]
     return out, {n: float(share[k].mean()) if sel.any() else 0.0
                  for k, n in enumerate(BLEND_MODELS)}
+
+
+def _floor_rigid_errors(mse: np.ndarray, disagreement: dict[int, np.ndarray],
+                        runs: list[tuple[int, int, int]]) -> None:
+    """Raise the validation errors ``mse`` ``(K, R)`` of the rigid-body fills, in place, to
+    :data:`RIGID_DISAGREEMENT_SHARE`² × the mean squared disagreement of their carries over
+    each run (``disagreement``: ``{model index: (F, M)}``, :func:`_rigid_body_fill`).  A
+    model not scored on a run (NaN) stays unscored."""
+    for k, dis in disagreement.items():
+        d2 = np.array([np.nanmean(dis[a:b, m] ** 2) if np.isfinite(dis[a:b, m]).any() else 0.0
+                       for m, a, b in runs])
+        mse[k] = np.maximum(mse[k], RIGID_DISAGREEMENT_SHARE ** 2 * d2)  # NaN stays NaN
 
 
 def _blend_members(X: np.ndarray, positions: np.ndarray, holes: np.ndarray,
