@@ -168,8 +168,8 @@ SPLINE_MIN_SUPPORT_SHARE = 0.2
 #: The estimates :func:`fill_by_validated_blend` weighs, in order.
 BLEND_MODELS = ("local", "whole_body", "spline", "rigid_body", "rigid_nearest")
 
-#: Indices in :data:`BLEND_MODELS` of the rigid-body fills.
-RIGID_MODELS = (3, 4)
+#: Indices in :data:`BLEND_MODELS` of the rigid-body fills (most rigid, nearest donors).
+RIGID_MODELS = (BLEND_MODELS.index("rigid_body"), BLEND_MODELS.index("rigid_nearest"))
 
 #: A rigid-body fill's blend weight comes from a validation error of at least this
 #: share of how far its two carries (from before and from after the gap) disagree,
@@ -614,7 +614,7 @@ def fill_by_validated_blend(
     errs, ok = _validation_errors(positions, holes, runs, surface, interpolate=interpolate,
                                   local=local, shifts=VALIDATION_SHIFTS[:n_shifts], ctx=ctx)
     mse = _validation_mse(errs, ok, full)
-    _floor_rigid_errors(mse, disagreement, runs)
+    _floor_rigid_errors(mse, disagreement, run)
     wr = _blend_weights(mse)
     w = np.where(holes[None], wr[:, np.maximum(run, 0)], 0.0)  # (K, F, M)
     have = finite_rows(est) & holes[None]  # (K, F, M)
@@ -630,14 +630,17 @@ def fill_by_validated_blend(
 
 
 def _floor_rigid_errors(mse: np.ndarray, disagreement: dict[int, np.ndarray],
-                        runs: list[tuple[int, int, int]]) -> None:
+                        run: np.ndarray) -> None:
     """Raise the validation errors ``mse`` ``(K, R)`` of the rigid-body fills, in place, to
     :data:`RIGID_DISAGREEMENT_SHARE`² × the mean squared disagreement of their carries over
-    each run (``disagreement``: ``{model index: (F, M)}``, :func:`_rigid_body_fill`).  A
-    model not scored on a run (NaN) stays unscored."""
+    each run (``disagreement``: ``{model index: (F, M)}``, :func:`_rigid_body_fill`; ``run``
+    ``(F, M)``: the run of each hole, -1 elsewhere).  A model not scored on a run (NaN)
+    stays unscored; a run carried from one side only is not raised."""
+    R = mse.shape[1]
     for k, dis in disagreement.items():
-        d2 = np.array([np.nanmean(dis[a:b, m] ** 2) if np.isfinite(dis[a:b, m]).any() else 0.0
-                       for m, a, b in runs])
+        at = (run >= 0) & np.isfinite(dis)
+        n = np.bincount(run[at], minlength=R)
+        d2 = np.bincount(run[at], weights=dis[at] ** 2, minlength=R) / np.maximum(n, 1)
         mse[k] = np.maximum(mse[k], RIGID_DISAGREEMENT_SHARE ** 2 * d2)  # NaN stays NaN
 
 
@@ -654,9 +657,9 @@ def _blend_members(X: np.ndarray, positions: np.ndarray, holes: np.ndarray,
     _interpolate_interior(spl, positions, holes, interpolate,
                           min_support_share=SPLINE_MIN_SUPPORT_SHARE)
     rig = _rigid_body_fill(positions, holes, surface.reference,
-                           disagreement=dis.get(BLEND_MODELS.index("rigid_body")))
+                           disagreement=dis.get(RIGID_MODELS[0]))
     near = _rigid_body_fill(positions, holes, surface.reference, donors="nearest",
-                            disagreement=dis.get(BLEND_MODELS.index("rigid_nearest")))
+                            disagreement=dis.get(RIGID_MODELS[1]))
     return np.stack([np.where(holes[..., None], X, np.nan), low, spl, rig, near])
 
 

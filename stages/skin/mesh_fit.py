@@ -22,7 +22,7 @@ from mocapflow.pipeline import Context, FilePath, stage
 from mocapflow.stages.motion.absolute_orientation import absolute_orientation
 from mocapflow.stages.motion.axes import frame_basis
 from mocapflow.stages.motion.datatypes import Mesh, Motion
-from mocapflow.stages.motion.geometry import vertex_normals
+from mocapflow.stages.motion.geometry import mesh_laplacian, vertex_normals
 from mocapflow.stages.motion.rotations import quat_from_axis_angle, quat_identity
 from mocapflow.stages.motion.simulate.body import Body, skin, skinning_transforms
 from mocapflow.stages.motion.simulate.capsules import procedural_body
@@ -81,28 +81,6 @@ def similarity_transform(
     var = float(w @ np.sum(S**2, 1))
     s = float(np.sum(sv * np.diag(E)) / var) if var > 0 else 1.0
     return s, R, mt - s * R @ ms
-
-
-def mesh_laplacian(n_vertices: int, faces: np.ndarray) -> sp.csr_matrix:
-    """Uniform graph Laplacian ``L = I - D⁻¹A`` of a triangle mesh.
-
-    Parameters
-    ----------
-    n_vertices : int
-    faces : (T, 3) int ndarray
-
-    Returns
-    -------
-    (V, V) scipy.sparse.csr_matrix
-        Isolated vertices get a zero row.
-    """
-    i = np.concatenate([faces[:, 0], faces[:, 1], faces[:, 2]])
-    j = np.concatenate([faces[:, 1], faces[:, 2], faces[:, 0]])
-    A = sp.coo_matrix((np.ones(i.size), (i, j)), shape=(n_vertices, n_vertices)).tocsr()
-    A = ((A + A.T) > 0).astype(np.float64)
-    deg = np.asarray(A.sum(1)).ravel()
-    inv = np.where(deg > 0, 1.0 / np.maximum(deg, 1), 0.0)
-    return (sp.diags((deg > 0).astype(float)) - sp.diags(inv) @ A).tocsr()
 
 
 def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:

@@ -22,7 +22,7 @@ import re
 import numpy as np
 
 from mocapflow.stages.motion.datatypes import Skeleton
-from mocapflow.stages.motion.geometry import vertex_normals
+from mocapflow.stages.motion.geometry import mesh_laplacian, vertex_normals
 from mocapflow.stages.motion.simulate.body import (
     Body,
     BodyError,
@@ -324,17 +324,12 @@ def relax_surface(vertices: np.ndarray, faces: np.ndarray, caps: Capsules, *,
     -------
     (V, 3) float ndarray
     """
-    import scipy.sparse as sp  # noqa: PLC0415
-
     v = np.array(vertices, dtype=np.float64)
     f = np.asarray(faces)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    A = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(len(v),) * 2).tocsr()
-    A = ((A + A.T) > 0).astype(np.float64)  # each undirected edge once per end
-    deg = np.maximum(np.asarray(A.sum(1)).ravel(), 1.0)[:, None]
+    L = mesh_laplacian(len(v), f)  # L v: a vertex minus the mean of its neighbours
     for _ in range(rounds):
         n = vertex_normals(v, f)
-        d = A @ v / deg - v
+        d = -(L @ v)
         v = v + step * (d - np.einsum("ij,ij->i", d, n)[:, None] * n)
         v = v - capsule_sdf(v, caps, blend=blend)[:, None] * _sdf_gradient(v, caps, blend)
     return v

@@ -293,16 +293,22 @@ def test_rigid_floor_keeps_unscored_models_out():
     was not scored (NaN: no copy estimated) an error, and so a weight: with the floor as
     ``np.fmax`` an unscored rigid fill on a run whose carries agree got error 0 and all
     the weight (the simulated 120-marker walk's fill error 2.7 -> 8.4 mm mean)."""
-    runs = [(0, 2, 6), (1, 2, 6), (0, 8, 10)]
+    holes = np.zeros((12, 2), bool)
+    holes[2:6, :] = holes[8:10, 0] = True
+    runs = _runs(holes)
+    assert runs == [(0, 2, 6), (0, 8, 10), (1, 2, 6)]
+    run = np.full(holes.shape, -1)
+    for r, (m, a, b) in enumerate(runs):
+        run[a:b, m] = r
     dis = np.full((12, 2), np.nan)
-    dis[2:6, 0] = 0.02  # run 0: carries 20 mm apart; run 1: none from both ends
-    mse = np.array([[1e-6, 1e-6, 1e-6]] * 3 + [[1e-6, np.nan, 2e-4], [np.nan, 1e-6, 1e-6]])
-    fill._floor_rigid_errors(mse, {3: dis, 4: dis.copy()}, runs)
-    np.testing.assert_allclose(mse[3], [0.25**2 * 0.02**2, np.nan, 2e-4])
+    dis[2:6, 0] = 0.02  # run 0: carries 20 mm apart; runs 1, 2: none from both ends
+    mse = np.array([[1e-6, 1e-6, 1e-6]] * 3 + [[1e-6, 2e-4, np.nan], [np.nan, 1e-6, 1e-6]])
+    fill._floor_rigid_errors(mse, {3: dis, 4: dis.copy()}, run)
+    np.testing.assert_allclose(mse[3], [0.25**2 * 0.02**2, 2e-4, np.nan])
     assert np.isnan(mse[4, 0]) and mse[4, 1] == 1e-6 and mse[4, 2] == 1e-6
     np.testing.assert_array_equal(mse[:3], 1e-6)
     w = fill._blend_weights(mse)
-    assert w[4, 0] == 0 and w[3, 1] == 0
+    assert w[4, 0] == 0 and w[3, 2] == 0
 
 
 def test_a_head_turning_in_its_gap_is_not_left_to_the_rigid_body_fills(pig_calibration):
