@@ -1287,7 +1287,7 @@ def unflip_triangles(vertices: np.ndarray, reference: np.ndarray, faces: np.ndar
     F, V, _ = out.shape
     faces = np.asarray(faces)
     # each vertex's ring neighbours, padded with itself: (V, largest degree)
-    edges = np.unique(np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+    edges = mesh_edges(faces, V)[0]
     head = np.concatenate([edges[:, 0], edges[:, 1], np.arange(V)])
     tail = np.concatenate([edges[:, 1], edges[:, 0], np.arange(V)])
     order = np.argsort(head, kind="stable")
