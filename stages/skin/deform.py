@@ -133,14 +133,22 @@ support_margin=None, clamp_margin=None, max_blend_stretch=None``:
   (3.68 → 3.66 / 3.65 → 3.72).  Cost: on the throughput body of
   ``benchmarks/deform.py --throughput`` (13,000 vertices, 900 frames)
   ``quadratic_residual`` reweights 2,619 vertices in 60 steps and runs at about
-  550 frames per CPU-second against about 1,050 without widening in the same
-  (loaded) run, ``rigid`` (2,709 vertices, 92 steps) at about 720 against 2,700
-  (table 4 has both rows; before the products were made one CSR kernel call per
-  chunk and the widening's predictions and positions sparse products over its
-  stores, issue 15: 430 / 920 and 560 / 2,500 in the same runs; before the edges'
-  length bounds, the positions computed only where measured and the first check
-  made during the evaluation pass: 350 and 270; before the checks were made
-  incremental: 200).
+  670 frames per CPU-second against about 1,100 without widening in the same
+  (loaded) run, ``rigid`` (2,709 vertices, 92 steps) at about 820 against 2,900
+  (table 4 has both rows; before the frame coefficients were shared by the two
+  passes, the widening's predictions written straight into their store, its final
+  positions straight into the output and the clamp tested only near its bound,
+  issue 15: 620 and 670 in the same session, the rows without widening unchanged;
+  before the products were made one CSR kernel call per chunk and the widening's
+  predictions and positions sparse products over its stores: 430 / 920 and
+  560 / 2,500 in the same runs; before the edges' length bounds, the positions
+  computed only where measured and the first check made during the evaluation
+  pass: 350 and 270; before the checks were made incremental: 200).  What is left
+  is mostly the evaluation pass's one sparse product per chunk (about 0.27 CPU-s
+  of the 1.35 here, the rows' terms added in order for the bit-reproducibility
+  below), the widening's predictions over all frames (about 0.25) and its
+  measurements (about 0.2), and the set-up (binding, part fits, operator, report:
+  about 0.3).
   Held-out markers (``benchmarks/deform.py`` table 2) are points without
   triangles, so they are not affected; table 3 (the simulator's true mesh)
   measures it.  Not fixed by this: triangles that turn over against the rigid
@@ -187,7 +195,9 @@ Implementation notes (none changes the method):
   sparse product (end minus start), and the widening's predictions, positions
   and edge vectors are sparse products over its stores of rows (all frames at
   once; :meth:`_Rows.combine`), each adding its terms in the order the plain sums
-  did: the same bits as before (issue 15);
+  did: the same bits as before (issue 15).  The frame coefficients are computed once
+  for both passes, and the clamp's test ``|u|² / β² > bound²`` is made only on the
+  entries whose ``|u|²`` comes within 10⁻⁹ of ``β² bound²`` (the same entries);
 * **bit-reproducible**: every vertex's result is computed by operations whose
   rounding does not depend on which other vertices, frames or parts are computed
   in the same call, nor on BLAS or its thread count: ``H``'s rows come from their
@@ -477,17 +487,27 @@ def _clamp_weighted(u: np.ndarray, beta: np.ndarray, part: np.ndarray, deviation
 
     Equal to ``β soft_clamp(u / β, bound)`` (the clamp commutes with a positive
     scale); only the entries beyond the bound (few) go through
-    :func:`~mocapflow.stages.skin.parts.soft_clamp` (``margin (N,)`` per row).
+    :func:`~mocapflow.stages.skin.parts.soft_clamp` (``margin (N,)`` per row).  An entry
+    is beyond it when ``|u|² / β² > deviation²``; that test is made only where
+    ``|u|² > β² deviation² (1 - 10⁻⁹)`` (a superset: the two sides differ by a few
+    roundings), the same entries as testing all of them.
     ``beta_squared (N,)``, ``deviation_squared (P, f)``: ``β²`` and ``deviation²`` when
     already computed; ``work``: an ``(N, 3f)`` scratch array.
     """
+    b2 = np.square(beta) if beta_squared is None else beta_squared
+    d2 = np.square(deviation) if deviation_squared is None else deviation_squared
     sq = np.square(u, out=work)
     r2 = sq[:, 0::3] + sq[:, 1::3]
     r2 += sq[:, 2::3]  # (N, f): |β R u|²
-    r2 /= (np.square(beta) if beta_squared is None else beta_squared)[:, None]
-    over = r2 > (np.square(deviation) if deviation_squared is None else deviation_squared)[part]
+    near = (d2 * (1.0 - 1e-9))[part]
+    near *= b2[:, None]
+    near = np.flatnonzero(r2 > near)  # the candidates, flat
+    if not len(near):
+        return
+    i, j = np.divmod(near, r2.shape[1])
+    over = r2.ravel()[near] / b2[i] > d2[part[i], j]
     if over.any():
-        i, j = np.nonzero(over)
+        i, j = i[over], j[over]
         u3 = u.reshape(len(u), -1, 3)
         u3[i, j] = soft_clamp(u3[i, j], beta[i] * deviation[part[i], j], margin[i])
 
@@ -548,17 +568,20 @@ def deform_positions(
 
 def _frame_major(models: list[PartModel], fits: list[PartFit], n_vertices: int,
                  operator: VertexOperator | None = None, *, residual: bool | None = None,
-                 edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                 edges: np.ndarray | None = None, coefficients: np.ndarray | None = None,
+                 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """:func:`deform_positions` ``(F, V, 3)``, and the largest squared length over the frames
     of ``edges (E, 2)`` (vertex pairs; ``(E,)``, empty without), measured on each chunk of
-    frames while it is at hand (the same numbers as :func:`_longest_edges` of the result)."""
+    frames while it is at hand (the same numbers as :func:`_longest_edges` of the result).
+    ``coefficients``: the models' :func:`frame_coefficients` when already computed."""
     F = fits[0].R.shape[0] if fits else 0
     out = np.empty((F, n_vertices, 3))
     edges = np.zeros((0, 2), np.int64) if edges is None else edges
     most = np.zeros(len(edges))
     along = _edge_vectors(edges, n_vertices)
     work = np.empty(0)
-    for a, b, X in _blended_chunks(models, fits, n_vertices, operator, residual=residual):
+    for a, b, X in _blended_chunks(models, fits, n_vertices, operator, residual=residual,
+                                   coefficients=coefficients):  # fmt: skip
         # (V, f, 3) -> (f, V, 3), moving whole xyz triplets (24 bytes) at a time
         out[a:b].view(_XYZ)[..., 0] = X.view(_XYZ).T
         if len(edges):
@@ -568,7 +591,8 @@ def _frame_major(models: list[PartModel], fits: list[PartFit], n_vertices: int,
             np.square(work, out=work)
             length = work[:, 0::3] + work[:, 1::3]
             length += work[:, 2::3]  # (E, f): as _squared_lengths
-            np.maximum(most, length.max(1), out=most)
+            for j in range(length.shape[1]):  # frame by frame (a max over a short axis is slow)
+                np.maximum(most, length[:, j], out=most)
     return out, most
 
 
@@ -749,18 +773,21 @@ def _fallback_hint(message: str) -> str | None:
 
 def _deform_frames(models: list[PartModel], fits: list[PartFit], n_frames: int,
                    rest: np.ndarray, beta: np.ndarray, *, residual: bool, chunk_frames: int,
-                   ctx: Context,
-                   edges: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                   ctx: Context, edges: np.ndarray | None = None,
+                   coefficients: np.ndarray | None = None,
+                   ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """The blended vertices ``(F, V, 3)`` of ``rest (V, 3)`` with weights ``beta (V, P)``
     (P&H Eq. 8–9): in one in-process pass, or in frame chunks of ``chunk_frames`` on the
     executor's workers (the same bits either way); and the largest squared length over the
-    frames of ``edges (E, 2)`` (:func:`_longest_edges`; empty without)."""
+    frames of ``edges (E, 2)`` (:func:`_longest_edges`; empty without).  ``coefficients``:
+    the models' :func:`frame_coefficients` when already computed (in-process pass)."""
     F, V = n_frames, len(rest)
     edges = np.zeros((0, 2), np.int64) if edges is None else edges
     operator = vertex_operator(models, V, residual=residual, rest=rest, beta=beta)
     bounds = list(range(0, F, max(1, chunk_frames))) + [F]
     if ctx.mapper is None or len(bounds) <= 2:  # in-process: one pass, no copies
-        return _frame_major(models, fits, V, operator, residual=residual, edges=edges)
+        return _frame_major(models, fits, V, operator, residual=residual, edges=edges,
+                            coefficients=coefficients)  # fmt: skip
     light = [_without_vertices(m) for m in models]
     chunks = [
         (light, [_slice_fit(f, slice(a, b)) for f in fits], V, operator, residual)
@@ -774,7 +801,8 @@ def _deform_frames(models: list[PartModel], fits: list[PartFit], n_frames: int,
 
 def _blending(beta: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """Whether the corners of triangles ``faces (T, 3)`` blend differently (``β (V, P)``)."""
-    return np.ptp(beta[faces], axis=1).max(1) > 0
+    b = beta[faces]  # (T, 3, P)
+    return ((b[:, 0] != b[:, 1]) | (b[:, 0] != b[:, 2])).any(1)
 
 
 def _blending_edges(mesh: Mesh, beta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -820,6 +848,7 @@ def widening_steps(mesh: Mesh, reach: float) -> int:
 def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta: np.ndarray,
                   verts: np.ndarray, *, max_stretch: float, steps: int, residual: bool,
                   measured: tuple[np.ndarray, np.ndarray] | None = None,
+                  coefficients: np.ndarray | None = None,
                   ) -> tuple[np.ndarray, int, int, int, int]:  # fmt: skip
     """Widen the blend between parts where it tears the surface (P&H Eq. 9's ``β``).
 
@@ -852,7 +881,8 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     taken, the number of vertices whose weights were diffused (0 when nothing
     changed), and the torn triangles before and after.  ``measured``: the edges of the
     triangles that blend (:func:`_blending_edges`) and their largest squared lengths over
-    ``verts``' frames, when already measured (:func:`_deform_frames`).
+    ``verts``' frames, when already measured (:func:`_deform_frames`); ``coefficients``:
+    the models' :func:`frame_coefficients` when already computed.
     """
     faces = np.asarray(mesh.faces, dtype=np.int64)
     rest = mesh.vertices
@@ -902,7 +932,8 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
 
     # every part's frame_coefficients (K, 3F), whether its model has non-rigid terms
     # (deform_positions adds them then) and its clamp (bound per frame, margin)
-    C = frame_coefficients(models, fits, residual=residual).reshape(-1, 3 * F)
+    C = (frame_coefficients(models, fits, residual=residual) if coefficients is None
+         else coefficients).reshape(-1, 3 * F)  # fmt: skip
     offsets = np.cumsum([0, *[14 + (len(m.members) if residual else 0) for m in models]])
     nonrigid = np.array([bool(C[o + 4 : z].any()) for o, z in zip(offsets, offsets[1:])], bool)
     clamped = np.array([m.clamp_margin is not None for m in models], bool)
@@ -925,36 +956,47 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         new = pred.append(None, n_rows=len(key))
         slot[v, p] = new
         rigid, nonrigid_rows = _pair_rows(models, offsets, rest, v, p, residual=residual)
-        bent = np.flatnonzero(nonrigid[p])  # pairs whose part has non-rigid terms
-        for lo, hi, into in pred.segments(new):  # (hi - lo, 3F) views of the store
-            _sparse_product(_row_block(rigid, lo, hi), C, into)
-        for c in range(0, len(bent), n_rows):
-            q = bent[c : c + n_rows]
-            U = scratch[1][: len(q)]
-            _sparse_product(nonrigid_rows[q], C, U)  # rows as they are
-            cl = np.flatnonzero(clamped[p[q]])
-            if len(cl):
-                Uc = U if len(cl) == len(q) else U[cl]
-                one = np.ones(len(cl))
-                _clamp_weighted(Uc, one, p[q[cl]], deviation, margins[p[q[cl]]],
-                                beta_squared=one, deviation_squared=deviation_squared)
-                if len(cl) < len(q):
-                    U[cl] = Uc
-            for lo, hi, into in pred.segments(new):  # rigid + non-rigid, in the store
-                sel = (q >= lo) & (q < hi)
-                into[q[sel] - lo] += U[sel]
-        u, at = np.unique(v, return_index=True)
+        u, at = np.unique(v, return_index=True)  # a vertex's first new pair comes first
         first[u[first[u] < 0]] = new[at[first[u] < 0]]
         far = np.empty(len(new))
-        for c in range(0, len(new), n_rows):
-            d = _row_differences(first[v[c : c + n_rows]], new[c : c + n_rows], pred,
-                                 scratch[0])  # fmt: skip
-            far[c : c + n_rows] = np.sqrt(_squared_lengths(d).max(1))
+        for lo, hi, into in pred.segments(new):  # (hi - lo, 3F) views of the store
+            for c in range(lo, hi, n_rows):  # rows c..z-1, straight into the store
+                z = min(hi, c + n_rows)
+                rows = into[c - lo : z - lo]
+                _sparse_product(_row_block(rigid, c, z), C, rows)
+                bent = np.flatnonzero(nonrigid[p[c:z]])  # pairs whose part has non-rigid terms
+                if len(bent):
+                    U = scratch[1][: len(bent)]
+                    every = len(bent) == z - c
+                    _sparse_product(_row_block(nonrigid_rows, c, z) if every else
+                                    nonrigid_rows[c + bent], C, U)  # fmt: skip
+                    cl = np.flatnonzero(clamped[p[c + bent]])
+                    if len(cl):
+                        Uc = U if len(cl) == len(bent) else U[cl]
+                        one = np.ones(len(cl))
+                        _clamp_weighted(Uc, one, p[c + bent[cl]], deviation,
+                                        margins[p[c + bent[cl]]], beta_squared=one,
+                                        deviation_squared=deviation_squared,
+                                        work=scratch[0][: len(cl)])  # fmt: skip
+                        if len(cl) < len(bent):
+                            U[cl] = Uc
+                    if every:
+                        rows += U  # rigid + non-rigid
+                    else:
+                        rows[bent] += U
+                # how far each prediction lies from its vertex's first (computed by now;
+                # 0 for the first itself)
+                other = np.flatnonzero(first[v[c:z]] != new[c:z])
+                far[c:z] = 0.0
+                if len(other):
+                    d = _row_differences(first[v[c + other]], new[c + other], pred, scratch[0])
+                    far[c + other] = np.sqrt(_squared_lengths(d).max(1))
         spread = np.concatenate([spread, far])
 
-    def place(R: np.ndarray) -> None:
+    def place(R: np.ndarray, *, final: bool = False) -> None:
         """Rows of ``pos`` for vertices ``R`` (ascending, with rows): ``Σ_p β_p prediction_p``,
-        parts in ascending order (:meth:`_Rows.combine`)."""
+        parts in ascending order (:meth:`_Rows.combine`); ``final``: into ``verts`` instead
+        (``R`` need no rows)."""
         b = beta[R]
         for c in range(0, len(R), n_rows):
             i, p = np.nonzero(b[c : c + n_rows] > 0)  # each vertex's parts, ascending
@@ -963,6 +1005,11 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
             weights = np.zeros(index.shape)
             index[i, layer], weights[i, layer] = slot[R[c + i], p], b[c + i, p]
             L = int(layer.max(initial=-1)) + 1
+            if final:  # (k, F) -> (F, k), moving whole xyz triplets (24 bytes) at a time
+                moved = scratch[0][: len(index)]
+                pred.combine(index[:, :L], weights[:, :L], moved)
+                verts[:, R[c : c + n_rows]] = moved.view(_XYZ).T[..., None].view(np.float64)
+                continue
             rows = row[R[c : c + n_rows]]
             if np.all(np.diff(rows) == 1):  # consecutive rows: straight into the store
                 for lo, hi, into in pos.segments(rows):
@@ -1065,11 +1112,11 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     if len(bad) >= torn_before:  # no better: the weights as they were
         return beta_in, taken, 0, torn_before, len(bad)
     done = np.flatnonzero(changed)
-    if len(done):
-        with_rows(done)
-        for c in range(0, len(done), 256):
-            rows = pos.take(row[done[c : c + 256]])
-            verts[:, done[c : c + 256]] = rows.view(_XYZ)[..., 0].T[..., None].view(np.float64)
+    kept = done[(row[done] >= 0) & ~stale[done]]  # their rows of pos hold their positions
+    for c in range(0, len(kept), 256):
+        rows = pos.take(row[kept[c : c + 256]])
+        verts[:, kept[c : c + 256]] = rows.view(_XYZ)[..., 0].T[..., None].view(np.float64)
+    place(done[(row[done] < 0) | stale[done]], final=True)  # the others, straight into verts
     return beta, taken, len(done), torn_before, len(bad)
 
 
@@ -1454,15 +1501,17 @@ def deform(
     widen = max_blend_stretch is not None and len(mesh.faces) > 0
     # the edges of the triangles that blend, measured while the frames are evaluated
     watch, ends = _blending_edges(mesh, binding.beta) if widen else (None, None)
+    residual = mode.endswith("residual")
+    C = frame_coefficients(models, fits, residual=residual)  # shared by both passes
     verts, longest = _deform_frames(
-        models, fits, x.shape[0], mesh.vertices, binding.beta, residual=mode.endswith("residual"),
-        chunk_frames=chunk_frames, ctx=ctx, edges=ends)
+        models, fits, x.shape[0], mesh.vertices, binding.beta, residual=residual,
+        chunk_frames=chunk_frames, ctx=ctx, edges=ends, coefficients=C)
     beta, widened = binding.beta, {"steps": 0, "vertices": 0}
     if widen:
         beta, n_steps, n_changed, torn0, torn1 = _widen_blends(
             models, fits, mesh, binding.beta, verts, max_stretch=max_blend_stretch,
-            steps=widening_steps(mesh, blend_widening_reach), residual=mode.endswith("residual"),
-            measured=(watch, longest))
+            steps=widening_steps(mesh, blend_widening_reach), residual=residual,
+            measured=(watch, longest), coefficients=C)
         widened = {"steps": n_steps, "vertices": n_changed, "torn_before": torn0,
                    "torn_after": torn1 if n_changed else torn0}
         if torn0 and not n_changed:

@@ -255,3 +255,46 @@ def test_widening_with_a_rigid_part_among_bending_ones_matches_the_direct_loop(l
     assert got == want and want[1] > 10 and want[3] < want[2]  # widened: fewer torn
     assert got_beta.tobytes() == want_beta.tobytes()
     assert got_verts.tobytes() == want_verts.tobytes()
+
+
+def test_stage_computes_the_frame_coefficients_once(limb_fits, monkeypatch):
+    """The evaluation pass and the widening share one frame_coefficients (issue 15: the
+    widening computed them again), with the same bytes and report as before."""
+    d, seg, mesh = limb_fits["d"], limb_fits["seg"], limb_fits["mesh"]
+    want = deform(d["markers"], seg, mesh, max_blend_stretch=1.3, ctx=Context())
+    calls = []
+    coefficients = deform_module.frame_coefficients
+    monkeypatch.setattr(deform_module, "frame_coefficients",
+                        lambda *a, **k: calls.append(1) or coefficients(*a, **k))  # fmt: skip
+    got = deform(d["markers"], seg, mesh, max_blend_stretch=1.3, ctx=Context())
+    assert got["report"]["blend_widening"]["vertices"] > 10  # the widening ran
+    assert len(calls) == 1
+    assert got["report"] == want["report"]
+    assert got["mesh"].vertices.tobytes() == want["mesh"].vertices.tobytes()
+
+
+def test_clamp_tests_only_near_entries_and_clamps_the_same_ones():
+    """_clamp_weighted tests ``|u|² / β² > deviation²`` only where ``|u|²`` comes near
+    ``β² deviation²``: with entries at the bound and one ulp beyond it, the result is
+    ``β soft_clamp(u / β, bound)`` entry by entry (the plain rule), bit for bit."""
+    rng = np.random.default_rng(11)
+    N, f, P = 40, 6, 3
+    part = rng.integers(0, P, N)
+    beta = rng.uniform(0.05, 1.0, N)
+    deviation = rng.uniform(0.01, 0.05, (P, f))
+    direction = rng.standard_normal((N, f, 3))
+    direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
+    length = deviation[part] * rng.uniform(0.5, 1.5, (N, f))
+    length[::4, 0] = deviation[part[::4], 0]  # at the bound
+    length[1::4, 1] = np.nextafter(deviation[part[1::4], 1], 1.0)  # just beyond it
+    u = (beta[:, None, None] * length[..., None] * direction).reshape(N, 3 * f)
+    margin = np.full(N, 0.1)
+    want = u.reshape(N, f, 3).copy()
+    r2 = (np.square(want[..., 0]) + np.square(want[..., 1])) + np.square(want[..., 2])
+    over = r2 / np.square(beta)[:, None] > np.square(deviation)[part]
+    i, j = np.nonzero(over)
+    want[i, j] = soft_clamp(want[i, j], beta[i] * deviation[part[i], j], margin[i])
+    got = u.copy()
+    deform_module._clamp_weighted(got, beta, part, deviation, margin)
+    assert 0 < over.sum() < over.size
+    assert got.tobytes() == want.reshape(N, 3 * f).tobytes()
