@@ -93,15 +93,24 @@ class PredictionIndex:
         Samples with data (a marker is a candidate only if missing in all frames).
     predicted : (F, M) bool ndarray
         Samples with a (trusted) prediction.
+    like : PredictionIndex, optional
+        An index of the same ``available`` (its counts are shared, not counted again).
     """
 
-    def __init__(self, available: np.ndarray, predicted: np.ndarray) -> None:
-        F, M = predicted.shape
-        zero = np.zeros((1, M), dtype=np.int32)
-        self.n_available = np.concatenate([zero, np.cumsum(available, 0, dtype=np.int32)])
+    def __init__(self, available: np.ndarray, predicted: np.ndarray,
+                 like: PredictionIndex | None = None) -> None:
+        zero = np.zeros((1, predicted.shape[1]), dtype=np.int32)
+        self.n_available = (like.n_available if like is not None else
+                            np.concatenate([zero, np.cumsum(available, 0, dtype=np.int32)]))
         self.n_predicted = np.concatenate([zero, np.cumsum(predicted, 0, dtype=np.int32)])
-        nxt = np.where(predicted, np.arange(F)[:, None], F)
-        self.next_predicted = np.minimum.accumulate(nxt[::-1], axis=0)[::-1]
+        self._predicted = predicted
+
+    @functools.cached_property
+    def next_predicted(self) -> np.ndarray:
+        """``(F, M)`` int: the first frame at or after each with a prediction (``F``: none)."""
+        F = len(self._predicted)
+        nxt = np.where(self._predicted, np.arange(F)[:, None], F)
+        return np.minimum.accumulate(nxt[::-1], axis=0)[::-1]
 
     def free(self, first: int, last: int) -> np.ndarray:
         """``(M,)`` bool: markers without data in frames ``first..last``."""
@@ -121,17 +130,28 @@ def _spread(n: int) -> np.ndarray:
     return sub
 
 
+def _nonzero(a: np.ndarray) -> np.ndarray:
+    """``np.flatnonzero`` of a 1-D array, without its wrappers (the hot loops call it)."""
+    return a.nonzero()[0]
+
+
+def _norm(x: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(x, axis=-1)`` of a real array (the same operations, so the same
+    bits) without its checks: the hot loops call it on small arrays."""
+    return np.sqrt(np.add.reduce(x * x, axis=-1))
+
+
 def _distances(frag: np.ndarray, T: np.ndarray, m: np.ndarray, E: np.ndarray):
     """Distances ``(|T|, len(m))`` of the fragment to predictions (NaN where none)."""
-    return np.linalg.norm(frag[:, None] - E[T[:, None], m[None]], axis=-1)
+    return _norm(frag[:, None] - E[T[:, None], m[None]])
 
 
 def _nan_mean(d: np.ndarray) -> np.ndarray:
     """``np.nanmean(d, axis=0)`` (the same operations, so the same bits), quietly: NaN
     for all-NaN columns."""
     nan = np.isnan(d)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(nan, 0.0, d).sum(0) / (~nan).sum(0, dtype=np.intp)
+    n = (~nan).sum(0, dtype=np.intp)
+    return np.divide(np.where(nan, 0.0, d).sum(0), n, out=np.full(n.shape, np.nan), where=n > 0)
 
 
 def _nan_stats(dn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -143,55 +163,137 @@ def _candidate_stats_dense(frag: np.ndarray, T: np.ndarray, cands: np.ndarray, E
     """Entry, max and mean distance of the fragment to every candidate's predictions.
 
     Returns ``None`` when no candidate has predictions in at least half of the
-    fragment's frames, else ``(cc, d_entry, d_max, d_mean, column)``: indices
-    into ``cands`` of the checkable candidates, their ``(C,)`` statistics, and
-    ``column(c)`` the ``(|T|,)`` distances (NaN where not predicted).
+    fragment's frames, else ``(m_c, d_entry, d_max, d_mean, column)``: the
+    checkable candidates (a subset of ``cands``, in its order), their ``(C,)``
+    statistics, and ``column(c)`` the ``(|T|,)`` distances to ``m_c[c]`` (NaN where
+    not predicted).
     """
     d = _distances(frag, T, cands, E)  # (|T|, C)
     have = np.isfinite(d)
     checkable = have.sum(0) >= max(1, int(np.ceil(0.5 * len(T))))
     if not checkable.any():
         return None
-    cc = np.flatnonzero(checkable)
+    cc = _nonzero(checkable)
     dc, hc = d[:, cc], have[:, cc]
     first = np.argmax(hc, axis=0)
     d_entry = dc[first, np.arange(len(cc))]
     dn = np.where(hc, dc, np.nan)
     d_max, d_mean = _nan_stats(dn)
-    return cc, d_entry, d_max, d_mean, lambda c: dn[:, c]
+    return cands[cc], d_entry, d_max, d_mean, lambda c: dn[:, c]
 
 
 def _candidate_stats(frag: np.ndarray, T: np.ndarray, cands: np.ndarray, E: np.ndarray,
-                     eps1: np.ndarray, index: PredictionIndex):
+                     eps1: np.ndarray, index: PredictionIndex,
+                     entry: tuple[np.ndarray, np.ndarray] | None = None):
     """:func:`_candidate_stats_dense` for a fragment over contiguous frames ``T``.
 
-    Counts and entry samples come from ``index``; the whole-fragment statistics
-    are computed only for candidates that pass the entry test (``d_entry <
-    ε₁``, a condition of every merge and of the later rejection reasons), the
-    others get NaN.  Same values as the dense version.
+    Counts and entry samples come from ``index`` (or ``entry``: the checkable
+    candidates and their entry distances, already found by :func:`_entry_screen`);
+    the whole-fragment statistics are computed only for candidates that pass the
+    entry test (``d_entry < ε₁``, a condition of every merge and of the later
+    rejection reasons), the others get NaN.  Same values as the dense version.
     """
     if not _is_run(T):
         return _candidate_stats_dense(frag, T, cands, E)
     a, b = int(T[0]), int(T[-1])
-    count = index.n_predicted[b + 1, cands] - index.n_predicted[a, cands]
-    checkable = count >= max(1, int(np.ceil(0.5 * len(T))))
-    if not checkable.any():
-        return None
-    cc = np.flatnonzero(checkable)
-    m_c = cands[cc]
-    first = index.next_predicted[a, m_c]
-    d_entry = np.linalg.norm(frag[first - a] - gather_samples(E, first, m_c), axis=-1)
-    d_max = np.full(len(cc), np.nan)
-    d_mean = np.full(len(cc), np.nan)
-    near = np.flatnonzero(d_entry < eps1[m_c])
+    if entry is not None:
+        m_c, d_entry = entry
+    else:
+        count = index.n_predicted[b + 1, cands] - index.n_predicted[a, cands]
+        checkable = count >= max(1, int(np.ceil(0.5 * len(T))))
+        if not checkable.any():
+            return None
+        m_c = cands[_nonzero(checkable)]
+        first = index.next_predicted[a, m_c]
+        d_entry = _norm(frag[first - a] - gather_samples(E, first, m_c))
+    d_max = np.full(len(m_c), np.nan)
+    d_mean = np.full(len(m_c), np.nan)
+    near = _nonzero(d_entry < eps1[m_c])
     if len(near):
-        d = np.linalg.norm(frag[:, None] - E[a:b + 1, m_c[near]], axis=-1)
+        d = _norm(frag[:, None] - E[a:b + 1, m_c[near]])
         d_max[near], d_mean[near] = _nan_stats(d)
 
     def column(c: int) -> np.ndarray:
-        return np.linalg.norm(frag - E[a:b + 1, m_c[c]], axis=-1)
+        return _norm(frag - E[a:b + 1, m_c[c]])
 
-    return cc, d_entry, d_max, d_mean, column
+    return m_c, d_entry, d_max, d_mean, column
+
+
+#: The verdicts :func:`_judge_fragment` and its batched screen :func:`_entry_screen` share.
+OVERLAPS_EVERY_MARKER = "overlaps every marker (no marker is missing in all its frames)"
+NO_PREDICTION = (f"no prediction: candidate markers have fewer than {MIN_NEIGHBOURS} "
+                 "reliable neighbours in its frames")
+
+
+def _entry_rejection(d_entry: float, eps1: float, label: str) -> dict[str, Any]:
+    """The verdict on a fragment whose nearest candidate ``label`` (relative to ε₁) is
+    ``d_entry`` (m) from it at its first predicted frame, beyond ``eps1``."""
+    mm = 1000.0
+    return {"reason": f"entry {d_entry * mm:.1f} mm from the prediction of nearest marker "
+                      f"{label} > eps1 {eps1 * mm:.1f} mm",
+            "nearest": label, "entry_mm": round(float(d_entry * mm), 2)}
+
+
+def _entry_screen(fragments: np.ndarray, frames_of: list[np.ndarray], us: list[int],
+                  index: PredictionIndex, E: np.ndarray, eps1: np.ndarray, usable: np.ndarray,
+                  labels: list[str]) -> tuple[np.ndarray, dict[int, tuple], dict[int, dict]]:
+    """:func:`_judge_fragment`'s first tests for many fragments over contiguous frames at once.
+
+    For fragments ``us`` (``(n,)``, each over contiguous frames), the markers missing
+    in all their frames (and ``usable``), the candidates predicted (``index``) in at
+    least half of them, and the entry distance of each candidate (its first
+    predicted sample in ``E`` to the fragment's sample there).  A fragment no
+    candidate of which passes the entry test (``< ε₁``) gets its verdict here, the
+    one :func:`_judge_fragment` gives it (the same values, from one gather for all).
+
+    Returns
+    -------
+    free : (n, M) bool ndarray
+        The markers missing in all of each fragment's frames, ``usable`` ones only.
+    entries : dict
+        ``{fragment: (markers, distances)}`` for the fragments with a candidate within
+        ``ε₁`` (:func:`_judge_fragment` decides them): their checkable candidates in
+        increasing order and the ``(C,)`` entry distances.
+    verdicts : dict
+        ``{fragment: verdict}`` for the others.
+    """
+    us_a = np.asarray(us, dtype=np.intp)
+    a = np.array([frames_of[u][0] for u in us], dtype=np.intp)
+    b = np.array([frames_of[u][-1] for u in us], dtype=np.intp)
+    free = (index.n_available[b + 1] == index.n_available[a]) & usable  # (n, M)
+    need = np.maximum(1, np.ceil(0.5 * (b - a + 1)).astype(np.intp))
+    checkable = free & (index.n_predicted[b + 1] - index.n_predicted[a] >= need[:, None])
+    ii, mm_ = np.nonzero(checkable)  # per fragment, markers in increasing order
+    first = index.next_predicted[a[ii], mm_]
+    d_entry = _norm(gather_samples(fragments, first, us_a[ii]) - gather_samples(E, first, mm_))
+    e1 = eps1[mm_]
+    entered = np.zeros(len(us), dtype=bool)
+    entered[ii[d_entry < e1]] = True
+    bounds = np.searchsorted(ii, np.arange(len(us) + 1))
+    entries = {us[i]: (mm_[bounds[i]:bounds[i + 1]], d_entry[bounds[i]:bounds[i + 1]])
+               for i in _nonzero(entered)}
+    verdicts: dict[int, dict[str, Any]] = {}
+    # the nearest candidate (relative to ε₁) of each fragment: its first minimum, as
+    # np.argmin (the first NaN if any)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = d_entry / e1
+    rel = np.where(np.isnan(rel), -np.inf, rel)
+    has = _nonzero(bounds[1:] > bounds[:-1])  # fragments with a checkable candidate
+    low = np.full(len(us), np.inf)
+    low[has] = np.minimum.reduceat(rel, bounds[has]) if len(has) else low[has]
+    at_low = _nonzero(rel == low[ii])
+    at_low = at_low[np.r_[True, ii[at_low][1:] != ii[at_low][:-1]]] if len(at_low) else at_low
+    nearest = dict(zip(ii[at_low].tolist(), at_low.tolist()))
+    for i in _nonzero(~entered):
+        u = us[i]
+        k = nearest.get(int(i))
+        if k is not None:
+            verdicts[u] = _entry_rejection(d_entry[k], e1[k], labels[int(mm_[k])])
+        elif free[i].any():
+            verdicts[u] = {"reason": NO_PREDICTION}
+        else:
+            verdicts[u] = {"reason": OVERLAPS_EVERY_MARKER}
+    return free, entries, verdicts
 
 
 def _judge_fragment(
@@ -208,6 +310,7 @@ def _judge_fragment(
     mean_tolerance: float = 1.0,
     near: np.ndarray | None = None,
     near_ratio: float = AMBIGUITY_RATIO,
+    entry: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Decide one fragment against the predictions of the markers missing in all its frames.
 
@@ -217,22 +320,21 @@ def _judge_fragment(
     for fragments shorter than :data:`ASSIGN_MIN_FRAMES`).  ``near`` (``(M, M)`` bool,
     markers close to each other in the reference pose): other missing markers
     near the chosen one are rivals unless ``near_ratio`` times farther (instead
-    of :data:`AMBIGUITY_RATIO`).
+    of :data:`AMBIGUITY_RATIO`).  ``entry`` (with ``index``): the checkable candidates
+    and their ``(C,)`` entry distances when :func:`_entry_screen` has them.
 
     Returns ``{"marker", "entry", "max", "mean"}`` for a merge, else
     ``{"reason", ...}`` (and ``"conflict"`` for ambiguities).
     """
     mm = 1000.0
-    cands = np.flatnonzero(free)
+    cands = _nonzero(free)
     if len(cands) == 0:
-        return {"reason": "overlaps every marker (no marker is missing in all its frames)"}
-    stats = (_candidate_stats(frag, T, cands, E, eps1, index) if index is not None
+        return {"reason": OVERLAPS_EVERY_MARKER}
+    stats = (_candidate_stats(frag, T, cands, E, eps1, index, entry) if index is not None
              else _candidate_stats_dense(frag, T, cands, E))
     if stats is None:
-        return {"reason": f"no prediction: candidate markers have fewer than {MIN_NEIGHBOURS} "
-                          "reliable neighbours in its frames"}
-    cc, d_entry, d_max, d_mean, column = stats
-    m_c = cands[cc]
+        return {"reason": NO_PREDICTION}
+    m_c, d_entry, d_max, d_mean, column = stats
     e1, e2 = eps1[m_c], eps2[m_c]
     if len(T) < ASSIGN_MIN_FRAMES:
         mean_tolerance = min(mean_tolerance, SHORT_MEAN_TOLERANCE)
@@ -241,9 +343,8 @@ def _judge_fragment(
         c = int(np.argmin(d_entry / e1))
         m = int(m_c[c])
         if d_entry[c] >= e1[c]:
-            why = (f"entry {d_entry[c] * mm:.1f} mm from the prediction of nearest marker "
-                   f"{labels[m]} > eps1 {e1[c] * mm:.1f} mm")
-        elif d_max[c] < e2[c]:
+            return _entry_rejection(d_entry[c], e1[c], labels[m])
+        if d_max[c] < e2[c]:
             why = (f"mean distance {d_mean[c] * mm:.1f} mm to the prediction of {labels[m]} "
                    f"> {mean_tolerance:g} eps1 {mean_tolerance * e1[c] * mm:.1f} mm")
         else:
@@ -251,7 +352,7 @@ def _judge_fragment(
             why = (f"leaves the eps2 tube of {labels[m]}: {d_max[c] * mm:.1f} mm > "
                    f"{e2[c] * mm:.1f} mm at frame {bad}")
         return {"reason": why, "nearest": labels[m], "entry_mm": round(float(d_entry[c] * mm), 2)}
-    okc = np.flatnonzero(ok)
+    okc = _nonzero(ok)
     okc = okc[np.argsort(d_mean[okc])]
     c0 = okc[0]
     m = int(m_c[c0])
@@ -265,15 +366,14 @@ def _judge_fragment(
     others = cands[cands != m]
     if len(others):
         sub = _spread(len(T))
-        da = np.linalg.norm(frag[sub][:, None]
-                            - gather_samples(E_all, T[sub][:, None], others[None]), axis=-1)
+        da = _norm(frag[sub][:, None] - gather_samples(E_all, T[sub][:, None], others[None]))
         da_mean = _nan_mean(da)
         ratio = np.full(len(others), AMBIGUITY_RATIO)
         if near is not None:
             ratio[near[m, others]] = max(near_ratio, AMBIGUITY_RATIO)
         rel = da_mean / ratio
-        if np.isfinite(rel).any() and np.nanmin(rel) < d_mean[c0]:
-            k = int(np.nanargmin(rel))
+        if np.fmin.reduce(rel) < d_mean[c0]:  # the nearest with an estimate (NaN: none)
+            k = int(np.argmin(np.where(np.isnan(rel), np.inf, rel)))
             rival = labels[int(others[k])]
             return {"reason": f"ambiguous: {labels[m]} at {d_mean[c0] * mm:.1f} mm, {rival} at "
                               f"{da_mean[k] * mm:.1f} mm",
@@ -371,7 +471,9 @@ def continue_breaks(
     unmerged fragment sample of that frame lies at least ``clearance · ε₁`` and
     :data:`AMBIGUITY_RATIO` times farther, and ``u``'s two ends do not continue
     different markers.  Repeated until nothing merges (each merge gives the next
-    fragment a marker end to continue).  The gap ends are measurements a few
+    fragment a marker end to continue); a repeat looks again only at the fragments
+    within ``max_gap`` frames of a merge of the pass before (all a verdict reads
+    lies there, so the others' stays the same).  The gap ends are measurements a few
     frames away, so this holds where predictions from far-off data (the rigid
     rounds' local targets, the hole filling) are off.
 
@@ -419,12 +521,19 @@ def continue_breaks(
     steps = np.arange(1, max_gap + 1)
     avail = finite_rows(X)  # kept up to date with the merges below
     done: list[tuple[int, int, float]] = []
+    merged_at = None  # (F,) frames the last pass merged into (None: the first pass)
+    # cumulative counts of avail over frames, kept up to date with the merges below
+    n_avail = np.concatenate([np.zeros((1, M), np.int32), np.cumsum(avail, 0, dtype=np.int32)])
     while True:
-        todo = np.flatnonzero(run & (assigned < 0))
+        todo = _nonzero(run & (assigned < 0))
+        if merged_at is not None:
+            # a fragment's verdict reads its frames and max_gap frames on either side
+            n_merged = np.concatenate([[0], np.cumsum(merged_at)])
+            near_merge = (n_merged[np.minimum(last[todo] + max_gap, F - 1) + 1]
+                          > n_merged[np.maximum(first[todo] - max_gap, 0)])
+            todo = todo[near_merge]
         if not len(todo):
             return done
-        n_avail = np.concatenate([np.zeros((1, M), np.int32),
-                                  np.cumsum(avail, 0, dtype=np.int32)])
         a, b = first[todo], last[todo]
         free = (n_avail[b + 1] == n_avail[a]) & usable  # (n, M)
         pick = np.full(len(todo), -1)
@@ -440,18 +549,18 @@ def continue_breaks(
             seen = (f >= 0) & (f < F)
             seen[seen] = avail[f[seen], np.broadcast_to(mm_[:, None], f.shape)[seen]]
             end = at[ii] + sign * (1 + np.argmax(seen, 1))
-            frag = fragments[at, todo]  # (n, 3)
-            screen = np.linalg.norm(X[end, mm_] - frag[ii], axis=-1) < BRIDGE_SCREEN
+            frag = gather_samples(fragments, at, todo)  # (n, 3)
+            screen = _norm(X[end, mm_] - frag[ii]) < BRIDGE_SCREEN
             ii, mm_, end = ii[screen], mm_[screen], end[screen]
             if not len(ii):
                 continue
             pred = _carry(X, avail, end, at[ii], mm_, neighbours, rigidity)
-            d = np.linalg.norm(pred - frag[ii], axis=-1)  # NaN: no fit
+            d = _norm(pred - frag[ii])  # NaN: no fit
             d = np.where(np.isfinite(d), d, np.inf)
             # per fragment end: the closest candidate, and the next one
             order = np.lexsort((d, ii))
             ii, mm_, d, pred = ii[order], mm_[order], d[order], pred[order]
-            head = np.flatnonzero(np.r_[True, ii[1:] != ii[:-1]])
+            head = _nonzero(np.r_[True, ii[1:] != ii[:-1]])
             second = np.full(len(head), np.inf)
             has2 = (head + 1 < len(ii)) & (np.r_[head[1:], len(ii)] > head + 1)
             second[has2] = d[head[has2] + 1]
@@ -465,12 +574,12 @@ def continue_breaks(
             t_h = at[i_h]
             r = np.arange(len(i_h))
             with np.errstate(invalid="ignore"):
-                dm = np.linalg.norm(X[t_h] - p_h[:, None], axis=-1)  # (r, M)
+                dm = _norm(X[t_h] - p_h[:, None])  # (r, M)
                 dm[r, m_h] = np.inf
                 seen_u = fvis[t_h] & (assigned < 0)[None]  # (r, U)
                 seen_u[r, todo[i_h]] = False
                 rr, uu = np.nonzero(seen_u)
-                df = np.linalg.norm(fragments[t_h[rr], uu] - p_h[rr], axis=-1)
+                df = _norm(fragments[t_h[rr], uu] - p_h[rr])
             rival = np.where(np.isfinite(dm), dm, np.inf).min(1)
             np.minimum.at(rival, rr, np.where(np.isfinite(df), df, np.inf))
             ok = (rival >= clearance * e1) & (rival >= AMBIGUITY_RATIO * d_h)
@@ -481,13 +590,18 @@ def continue_breaks(
                     pick[i] = mi
                     dist[i] = di if np.isnan(dist[i]) else max(dist[i], di)
         n_before = len(done)
-        for i in np.flatnonzero(pick >= 0):
+        merged_at = np.zeros(F, dtype=bool)
+        for i in _nonzero(pick >= 0):
             u, mi = int(todo[i]), int(pick[i])
             T = slice(int(a[i]), int(b[i]) + 1)
             if np.isfinite(X[T, mi]).any():
                 continue  # another fragment of this pass took the marker there
             X[T, mi] = fragments[T, u]
-            avail[T, mi] = fvis[T, u]
+            avail[T, mi] = True  # u is seen in all of T
+            merged_at[T] = True
+            n_avail[T.start + 1:T.stop + 1, mi] += np.arange(1, T.stop - T.start + 1,
+                                                             dtype=np.int32)
+            n_avail[T.stop + 1:, mi] += T.stop - T.start
             assigned[u] = mi
             done.append((u, mi, float(dist[i])))
         if len(done) == n_before:
@@ -539,7 +653,7 @@ def _near_markers(surface: MarkerSurface) -> np.ndarray:
     """``(M, M)`` bool: markers within :data:`NEAR_RADIUS` mean neighbour distances of
     each other in the reference pose."""
     ref = surface.reference
-    gap = np.linalg.norm(ref[:, None] - ref[None], axis=-1)
+    gap = _norm(ref[:, None] - ref[None])
     with np.errstate(invalid="ignore"):
         return gap < NEAR_RADIUS * surface.mean_distance[:, None]
 
@@ -557,7 +671,7 @@ def _predict_round(run: _MergeRun, surface: MarkerSurface, fvis: np.ndarray, tod
     Y_new = local_targets(run.X, surface.reference, surface.neighbours,
                           rigidity=surface.rigidity)
     changed = ~((Y_new == Y) | (np.isnan(Y_new) & np.isnan(Y))).all((1, 2))
-    frames = np.union1d(run.stale, np.flatnonzero(changed))
+    frames = np.union1d(run.stale, _nonzero(changed))
     # predictions are only read in the frames of fragments still unmerged
     frames = frames[fvis[frames][:, todo].any(1)]
     if len(frames):
@@ -585,8 +699,8 @@ def _rival_fragment(fragments: np.ndarray, unmerged: np.ndarray, u: int, T: np.n
     mean distance to the marker's prediction over those frames is below ``ε₁`` and
     below :data:`AMBIGUITY_RATIO` times ``u``'s mean distance there.  ``n_unmerged``,
     optional ``(F + 1, U)``: cumulative counts of ``unmerged`` over frames (finds the
-    fragments seen in contiguous ``T`` without scanning them).  Returns ``v`` or an
-    ambiguous rejection.
+    fragments seen in contiguous ``T``, and in how many of its frames, without
+    scanning them).  Returns ``v`` or an ambiguous rejection.
 
     On the simulated 350-marker captures with labels stripped (``benchmarks/clean.py``
     table 1b, seed 1) the wrong merges this refuses were a 4-frame fragment
@@ -600,35 +714,43 @@ def _rival_fragment(fragments: np.ndarray, unmerged: np.ndarray, u: int, T: np.n
     run_T = _is_run(T)
     seen = unmerged[T[0]:T[-1] + 1] if run_T else unmerged[T]  # (|T|, U)
     if run_T and n_unmerged is not None:
-        rivals = np.flatnonzero(n_unmerged[T[-1] + 1] != n_unmerged[T[0]])
+        rivals = _nonzero(n_unmerged[T[-1] + 1] != n_unmerged[T[0]])
     else:
-        rivals = np.flatnonzero(seen.any(0))
+        rivals = _nonzero(seen.any(0))
     rivals = rivals[rivals != u]
     if not len(rivals):
         return v
     p = E_all[T, m]  # (|T|, 3)
-    d_u = np.linalg.norm(fragments[T, u] - p, axis=-1)  # NaN: not predicted
-    both = seen[:, rivals] & np.isfinite(d_u)[:, None]  # (|T|, R)
-    n = both.sum(0)
-    enough = n >= max(1, int(np.ceil(0.5 * len(T))))
-    # distances where both are seen, for the rivals seen in enough frames; 0 elsewhere
-    cols = np.flatnonzero(enough)
-    t, r = np.nonzero(both[:, cols])
-    d_r = np.zeros(both.shape)
-    d_r[t, cols[r]] = np.linalg.norm(gather_samples(fragments, T[t], rivals[cols[r]]) - p[t],
-                                     axis=-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean_r = d_r.sum(0) / n
-        mean_u = np.where(both, d_u[:, None], 0.0).sum(0) / n
-    close = enough & (mean_r < eps1[m]) & (mean_r < AMBIGUITY_RATIO * mean_u)
+    d_u = _norm(fragments[T, u] - p)  # NaN: not predicted
+    have = np.isfinite(d_u)
+    if run_T and n_unmerged is not None and have.all():
+        n = (n_unmerged[T[-1] + 1] - n_unmerged[T[0]])[rivals]  # frames both are seen
+    else:
+        n = (seen[:, rivals] & have[:, None]).sum(0)
+    cols = _nonzero(n >= max(1, int(np.ceil(0.5 * len(T)))))  # seen in enough frames
+    if not len(cols):
+        return v
+    # their distances where both are seen (0 elsewhere), summed over frames as numpy sums
+    # the columns of a table of all rivals: one by one (a single column is summed
+    # pairwise, so a lone column of several rivals is doubled)
+    if len(cols) == 1 and len(rivals) > 1:
+        cols = np.r_[cols, cols]
+    both = seen[:, rivals[cols]] & have[:, None]  # (|T|, C)
+    g = (fragments[T[0]:T[-1] + 1, rivals[cols]] if run_T
+         else fragments[T[:, None], rivals[cols][None]])  # (|T|, C, 3)
+    d_r = np.where(both, _norm(g - p[:, None]), 0.0)
+    mean_r = d_r.sum(0) / n[cols]  # n >= 1 there
+    mean_u = np.where(both, d_u[:, None], 0.0).sum(0) / n[cols]
+    close = (mean_r < eps1[m]) & (mean_r < AMBIGUITY_RATIO * mean_u)
     if not close.any():
         return v
     k = int(np.argmin(np.where(close, mean_r, np.inf)))
+    r = int(rivals[cols[k]])
     mm = 1000.0
-    return {"reason": f"ambiguous: fragment {flabels[int(rivals[k])]} in the same frames at "
+    return {"reason": f"ambiguous: fragment {flabels[r]} in the same frames at "
                       f"{mean_r[k] * mm:.1f} mm of the prediction of {labels[m]}, this one at "
                       f"{mean_u[k] * mm:.1f} mm",
-            "conflict": {"labels": [labels[m]], "fragments": [flabels[int(rivals[k])]],
+            "conflict": {"labels": [labels[m]], "fragments": [flabels[r]],
                          "mean_mm": [round(float(mean_u[k] * mm), 2),
                                      round(float(mean_r[k] * mm), 2)]}}
 
@@ -664,7 +786,7 @@ def _blind_rival(frag: np.ndarray, T: np.ndarray, v: dict[str, Any], free: np.nd
     torso while the head turned), RFHD free there but with no prediction.
     """
     m = int(v["marker"])
-    others = np.flatnonzero(free)
+    others = _nonzero(free)
     others = others[others != m]
     if not len(others):
         return v
@@ -674,7 +796,7 @@ def _blind_rival(frag: np.ndarray, T: np.ndarray, v: dict[str, Any], free: np.nd
         seen = finite_rows(E_all[T[:, None], others[None]]).sum(0)
     blind = others[seen < max(1, int(np.ceil(0.5 * len(T))))]
     with np.errstate(invalid="ignore"):
-        D = np.linalg.norm(reference[blind] - reference[m], axis=-1)
+        D = _norm(reference[blind] - reference[m])
         close = D < (1.0 + AMBIGUITY_RATIO) * v["mean"]
     if not close.any():
         return v
@@ -737,18 +859,18 @@ def _swap_rival(fragments: np.ndarray, unmerged: np.ndarray, u: int, T: np.ndarr
     """
     m = int(v["marker"])
     delta = float(v["mean"])
-    others = np.flatnonzero(free)
+    others = _nonzero(free)
     others = others[others != m]
     with np.errstate(invalid="ignore"):
-        D = np.linalg.norm(reference[others] - reference[m], axis=-1)
+        D = _norm(reference[others] - reference[m])
         near = others[D < (1.0 + AMBIGUITY_RATIO) * delta]
     if not len(near):
         return v
     if _is_run(T) and n_unmerged is not None:
-        rivals = np.flatnonzero(n_unmerged[T[-1] + 1] - n_unmerged[T[0]]
+        rivals = _nonzero(n_unmerged[T[-1] + 1] - n_unmerged[T[0]]
                                 >= max(1, int(np.ceil(0.5 * len(T)))))
     else:
-        rivals = np.flatnonzero(unmerged[T].sum(0) >= max(1, int(np.ceil(0.5 * len(T)))))
+        rivals = _nonzero(unmerged[T].sum(0) >= max(1, int(np.ceil(0.5 * len(T)))))
     rivals = rivals[rivals != u]
     if not len(rivals):
         return v
@@ -762,7 +884,7 @@ def _swap_rival(fragments: np.ndarray, unmerged: np.ndarray, u: int, T: np.ndarr
         """``(len(g), len(markers))`` mean distance of ``rel[:, g]`` to ``sign·R (ref[markers]
         − ref[m])`` over the spread frames (NaN: never both seen with a fit)."""
         w = sign * np.einsum("kij,nj->kni", R, reference[markers] - reference[m])
-        d = np.linalg.norm(rel[:, g, None] - w[:, None], axis=-1)  # (k, len(g), len(markers))
+        d = _norm(rel[:, g, None] - w[:, None])  # (k, len(g), len(markers))
         return _nan_mean(d.reshape(len(Ts), -1)).reshape(len(g), len(markers))
 
     swap = misfit(np.arange(len(rivals)), near, -1.0)  # g is m, the fragment r
@@ -790,6 +912,8 @@ def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarr
                  near_ratio: float) -> dict[int, list[tuple[float, int, dict]]]:
     """Judge every unmerged fragment whose frames changed (:func:`_judge_fragment`).
 
+    Fragments over contiguous frames pass the entry test together first
+    (:func:`_entry_screen`: those with no candidate within ``ε₁`` are decided there).
     Rejections go to ``run.verdict`` (a new ambiguity also to ``run.conflicts``);
     returns the claims ``{marker: [(mean distance, fragment, verdict), ...]}``.
     """
@@ -798,21 +922,30 @@ def _judge_round(run: _MergeRun, todo: list[int], E: np.ndarray, E_all: np.ndarr
     index_all = index if E_all is E else None  # built when a verdict first needs it
     unmerged = run.visible & (run.assigned < 0)[None]  # (F, U)
     n_unmerged = None  # its cumulative counts, built when a verdict first needs them
+    usable = np.isfinite(run.dbar)
+    # nothing changed in the frames of a fragment judged before: its verdict stands
+    todo = [u for u in todo if u not in run.verdict or run.dirty[run.frames_of[u]].any()]
+    runs = [u for u in todo if _is_run(run.frames_of[u])]
+    free_of, entries, screened = _entry_screen(run.fragments, run.frames_of, runs, index, E,
+                                               run.eps1, usable, run.labels)
+    row = {u: i for i, u in enumerate(runs)}
     claims: dict[int, list[tuple[float, int, dict]]] = {}
     for u in todo:
         T = run.frames_of[u]
-        if u in run.verdict and not run.dirty[T].any():
-            continue  # nothing it depends on changed
-        free = index.free(T[0], T[-1]) if _is_run(T) else ~avail[T].any(0)
-        free &= np.isfinite(run.dbar)
-        v = _judge_fragment(run.fragments[T, u], T, free, E, E_all, run.eps1, run.eps2,
-                            run.labels, index, mean_tolerance=mean_tolerance, near=near,
-                            near_ratio=near_ratio)
+        if u in screened:
+            v = screened[u]
+        else:
+            if u in row:  # contiguous frames: a view of the samples
+                free, frag = free_of[row[u]], run.fragments[T[0]:T[-1] + 1, u]
+            else:
+                free, frag = ~avail[T].any(0) & usable, run.fragments[T, u]
+            v = _judge_fragment(frag, T, free, E, E_all, run.eps1, run.eps2, run.labels, index,
+                                mean_tolerance=mean_tolerance, near=near, near_ratio=near_ratio,
+                                entry=entries.get(u))
         if "marker" in v:
             if index_all is None:
-                index_all = PredictionIndex(avail, finite_rows(E_all))
-            v = _blind_rival(run.fragments[T, u], T, v, free, E_all, run.reference, run.labels,
-                             index_all)
+                index_all = PredictionIndex(avail, finite_rows(E_all), like=index)
+            v = _blind_rival(frag, T, v, free, E_all, run.reference, run.labels, index_all)
         if "marker" in v:
             if n_unmerged is None:
                 n_unmerged = np.concatenate([np.zeros((1, unmerged.shape[1]), np.int32),
@@ -1410,7 +1543,7 @@ def assign_fragments(
                 verdict[u] = {"reason": f"no filled marker within {ratio:g} eps1 (of the "
                                         "markers missing in all its frames)"
                               if (~avail[frames_of[u]].any(0) & usable).any() else
-                              "overlaps every marker (no marker is missing in all its frames)"}
+                              OVERLAPS_EVERY_MARKER}
         decided = []
         window = _windows(rest, cand, lo, hi, ratio)
         for u in rest:
