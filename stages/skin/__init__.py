@@ -101,9 +101,9 @@ Departures from the paper (each module docstring says why, with measurements):
   weighs fill.NEIGHBOUR_MODEL_WEIGHT (0.1) in the §4.3 average; interior holes no
   model reaches are interpolated in time, then rigidly predicted
   (fill.fill_by_rigid_fit);
-* smoothing: measured and filled runs apart, measurements moved by at most
-  clean.MAX_CORRECTION_SIGMA noise deviations, rarely measured neighbours out of
-  the frames (clean.frame_weights);
+* smoothing: measured runs only (filled samples keep the fill's estimate),
+  measurements moved by at most clean.MAX_CORRECTION_SIGMA noise deviations,
+  rarely measured neighbours out of the frames (clean.frame_weights);
 * segmentation: the clean-up of the clusters is automatic (``merge_rms``,
   ``min_part_markers``, ``n_parts``; the paper adjusted its parts by hand), the
   Gaussian width is relative to each marker's best fit unless ``sigma`` is set;

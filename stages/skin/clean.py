@@ -41,7 +41,8 @@ one place:
    and leaves to these passes only what it cannot reach.
 4. **smoothing** (§4.4) — :func:`smooth_local`: each trajectory is expressed in
    its local frame over time, smoothed by ``x ← x − λ Δ⁴x``
-   (``smooth_iterations`` times), and moved back to global coordinates.
+   (``smooth_iterations`` times), and moved back to global coordinates (its
+   measured samples: the filled ones are left as filled, see below).
 
 Nothing is invented: a marker never visible, or with fewer than 3 surface
 neighbours, keeps its NaNs (warning naming it, listed in the report).
@@ -99,8 +100,14 @@ captures with ground truth, see ``benchmarks/clean.py``):
   markers, in the motion) it gives mean 0.004 of the mean neighbour distance
   and max 0.036 over the paper's regions (abdomen, elbow, thigh, knee);
   ``fill_model="pca"`` is the paper's model;
-* the smoother treats runs of measured and of filled samples separately and
-  moves a measurement by at most :data:`MAX_CORRECTION_SIGMA` noise deviations.
+* the smoother smooths runs of measured samples only and moves a measurement by
+  at most :data:`MAX_CORRECTION_SIGMA` noise deviations; filled samples keep the
+  fill's estimate.  A filled run smoothed in its local frame takes up the frame's
+  own jitter (on a sparse capture the one-ring spans joints and objects), with no
+  noise to remove: on the real ``ktk_kinematics_racing_full.c3d`` a 0.18 s gap of
+  ``NAR`` came out 1.3 mm from the truth after the fill and 8.1 mm (max 36 mm)
+  after smoothing it, a 0.5 s gap of ``WheelchairRearL`` 0.4 -> 1.7 mm
+  (``tests/stages/skin/test_fill_blend.py::test_filled_runs_keep_the_fill``).
 """
 
 from __future__ import annotations
@@ -175,9 +182,10 @@ MERGE_FILL_PASSES = 4
 #: A neighbour measured in fewer than this share of the frames does not define
 #: the smoothing frame of a marker (while 3 others do): its estimates elsewhere
 #: may be centimetres off, and its rigidity, judged from the few frames it
-#: shares with the marker, looks high.  A marker seen only in the calibration
-#: pose made a shoulder marker's filled gap 4.7 mm worse after smoothing
-#: (Table 2 max 0.078 -> 0.021 with this rule; means unchanged).
+#: shares with the marker, looks high.  (Found when filled runs were smoothed too:
+#: a marker seen only in the calibration pose made a shoulder marker's filled gap
+#: 4.7 mm worse; now such a frame bends measured samples, by at most
+#: :data:`MAX_CORRECTION_SIGMA` noise deviations.)
 SMOOTH_FRAME_MIN_MEASURED = 0.5
 
 #: Codes of the ``status`` array in the clean report.
@@ -254,31 +262,29 @@ def _smooth_chunk(item: tuple) -> tuple[np.ndarray, np.ndarray]:
         R, t = absolute_orientation_batch(src, X[:, nb], weights=w)
         y = _apply_inv(R, t, X[:, m])
         ok = np.isfinite(y).all(1)
-        # runs of measured samples and runs of filled ones are smoothed separately:
-        # estimates never drag measurements
+        # runs of measured samples are smoothed; filled samples keep the fill's
+        # estimate (the frame's jitter is all smoothing would add to them)
         meas = np.ones(F, dtype=bool) if measured is None else measured[:, m]
-        kind = np.where(ok, 1 + meas, 0)
-        cut = np.flatnonzero(np.diff(kind) != 0) + 1
+        kind = ok & meas
+        cut = np.flatnonzero(np.diff(kind.view(np.int8)) != 0) + 1
         a, b = np.r_[0, cut], np.r_[cut, F]
-        fits.append((R, t, ok, meas, kind, a, b))
+        fits.append((R, t, kind, a, b))
         ys_all.append(y)
-        runs.append((a[kind[a] > 0] + c * F, b[kind[a] > 0] + c * F))
+        runs.append((a[kind[a]] + c * F, b[kind[a]] + c * F))
     # every marker's runs in one vectorised smoothing
     Y = np.concatenate(ys_all) if ys_all else np.zeros((0, 3))
     YS = _smooth_runs(Y, np.concatenate([r[0] for r in runs]).astype(np.int64),
                       np.concatenate([r[1] for r in runs]).astype(np.int64), lam, iterations)
-    for c, (R, t, ok, meas, kind, a_, b_) in enumerate(fits):
+    for c, (R, t, kind, a_, b_) in enumerate(fits):
         y, ys = Y[c * F:(c + 1) * F], YS[c * F:(c + 1) * F]
-        d4 = [np.diff(y[a:b], n=4, axis=0) for a, b in zip(a_, b_)
-              if kind[a] == 2 and b - a >= 5]
+        d4 = [np.diff(y[a:b], n=4, axis=0) for a, b in zip(a_, b_) if kind[a] and b - a >= 5]
         if d4:  # measurements move by at most MAX_CORRECTION_SIGMA noise deviations
             k = MAX_CORRECTION_SIGMA
             dd = np.concatenate(d4)
             sigma = 1.4826 * np.median(np.abs(dd - np.median(dd, 0)), 0) / np.sqrt(70.0)
-            corr = ys - y
-            ys = np.where(meas[:, None], y + np.clip(corr, -k * sigma, k * sigma), ys)
-        xs = _apply(R, t, ys)
-        out[ok, c] = xs[ok]
+            ys = y + np.clip(ys - y, -k * sigma, k * sigma)
+            xs = _apply(R, t, ys)
+            out[kind, c] = xs[kind]
     return markers, out
 
 
@@ -324,11 +330,12 @@ def smooth_local(
     one-ring's reference positions per frame, neighbours weighted by rigidity;
     neighbours measured in few frames left out, :func:`frame_weights`),
     smoothed with ``x ← x − λ Δ⁴x`` iterated, and moved back to global
-    coordinates.  Runs of measured samples and runs of filled samples are
-    smoothed separately (estimates never drag measurements), and a measured
-    sample moves by at most :data:`MAX_CORRECTION_SIGMA` noise deviations.
-    Frames whose local frame cannot be fitted keep their sample unsmoothed;
-    runs shorter than 5 frames are left as they are.
+    coordinates.  Only runs of measured samples are smoothed (estimates never
+    drag measurements, and a filled sample keeps the fill's estimate: smoothing it
+    in the local frame would only add the frame's jitter), and a measured sample
+    moves by at most :data:`MAX_CORRECTION_SIGMA` noise deviations.  Frames whose
+    local frame cannot be fitted keep their sample unsmoothed; runs shorter than 5
+    frames are left as they are.
 
     Parameters
     ----------
@@ -339,8 +346,8 @@ def smooth_local(
     smooth_iterations : int
     measured : (F, M) bool ndarray, optional
         Samples that were measured (observed or merged), as opposed to filled:
-        their runs are smoothed apart from the filled runs and their corrections
-        are bounded.  Default: every available sample counts as measured.
+        only their runs are smoothed, and their corrections are bounded.  Default:
+        every available sample counts as measured.
     ctx : Context, optional
 
     Returns

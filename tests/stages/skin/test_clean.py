@@ -250,7 +250,10 @@ def test_smoothing_in_the_local_frame_keeps_fast_rigid_motion():
 
 def test_smoothing_frame_leaves_out_a_rarely_measured_neighbour():
     """A neighbour measured in few frames and badly estimated elsewhere (here
-    jumping by 7 cm) must not bend the frame a filled run is smoothed in."""
+    jumping by 7 cm) must not bend the frame the marker's measurements are smoothed
+    in; the marker's own filled run is left as the fill made it (smoothing it in the
+    local frame only adds the frame's jitter: issue 15, the real racing capture in
+    test_fill_blend.py::test_filled_runs_keep_the_fill)."""
     P, rest = rigid_capture(F=200)
     rng = np.random.default_rng(6)
     X = P + rng.normal(0, NOISE, P.shape)
@@ -266,13 +269,16 @@ def test_smoothing_frame_leaves_out_a_rarely_measured_neighbour():
     k = int(np.flatnonzero(surf.neighbours[m] == bad)[0])
     assert w[m, k] == 0 and (w[m][surf.neighbours[m] >= 0] > 0).sum() == len(ring) - 1
     out = smooth_local(X, surf, measured=measured)
-    err = np.linalg.norm(out[80:140, m] - P[80:140, m], axis=-1)
-    assert err.max() < 1.2e-3  # noise level (0.3 mm), not the neighbour's 7 cm jump
-    # without the rule the jump leaks into the smoothed run
+    np.testing.assert_array_equal(out[80:140, m], X[80:140, m])  # the fill, untouched
+    raw = np.linalg.norm(X[140:, m] - P[140:, m], axis=-1).mean()
+    err = np.linalg.norm(out[140:, m] - P[140:, m], axis=-1).mean()
+    assert err < 0.8 * raw  # measurements after the jump: noise removed (0.33 vs 0.48 mm)
+    # without the rule the jump bends the frame (each correction is still bounded by
+    # MAX_CORRECTION_SIGMA noise deviations: 0.42 mm)
     keep_all = surf.rigidity
     _, leak = _smooth_chunk((X, np.array([m]), surf.neighbours[[m]], keep_all[[m]],
                              surf.reference, 0.1, 10, measured))
-    assert np.linalg.norm(leak[80:140, 0] - P[80:140, m], axis=-1).max() > 2 * err.max()
+    assert np.linalg.norm(leak[140:, 0] - P[140:, m], axis=-1).mean() > 1.15 * err
     # a marker with only 3 neighbours keeps them all
     few = np.array([[1, 2, 3, -1]])
     np.testing.assert_array_equal(
