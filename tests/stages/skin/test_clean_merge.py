@@ -202,13 +202,20 @@ def judge_case(seed, F=60, M=40):
     return rng, E, avail, eps1, eps2
 
 
+def judge_setup(seed):
+    """:func:`judge_case` with what judging needs beside it: ``E_all`` (every prediction,
+    random where ``E`` has none), marker labels and the :class:`PredictionIndex`."""
+    rng, E, avail, eps1, eps2 = judge_case(seed)
+    E_all = np.where(np.isfinite(E), E, rng.normal(size=E.shape))
+    labels = [f"M{m}" for m in range(E.shape[1])]
+    index = cm.PredictionIndex(avail, np.isfinite(E).all(-1))
+    return rng, E, E_all, avail, eps1, eps2, labels, index
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_indexed_judge_equals_dense_judge(seed):
-    rng, E, avail, eps1, eps2 = judge_case(seed)
+    rng, E, E_all, avail, eps1, eps2, labels, index = judge_setup(seed)
     F, M, _ = E.shape
-    E_all = np.where(np.isfinite(E), E, rng.normal(size=E.shape))
-    labels = [f"M{m}" for m in range(M)]
-    index = cm.PredictionIndex(avail, np.isfinite(E).all(-1))
     kinds = set()
     for _ in range(300):
         a = int(rng.integers(0, F - 1))

@@ -20,7 +20,7 @@ import pytest
 import mocapflow.stages.skin.merge as cm
 from mocapflow.stages.skin.predict import gather_samples
 from mocapflow.stages.skin.regress import choose_predictors
-from tests.stages.skin.test_merge_equivalence import rival_case, rival_loop
+from tests.stages.skin.test_merge_equivalence import rival_case, rival_loop, unmerged_counts
 
 
 @pytest.mark.parametrize("contiguous", [True, False])
@@ -49,7 +49,7 @@ def test_gather_samples_equals_two_array_indexing(contiguous):
 def test_rival_fragment_with_cumulative_counts_equals_the_scan(seed):
     fragments, unmerged, E_all, eps1, labels, flabels = rival_case(200 + seed)
     U, M = fragments.shape[1], E_all.shape[1]
-    n_unmerged = np.concatenate([np.zeros((1, U), np.int32), np.cumsum(unmerged, 0)])
+    n_unmerged = unmerged_counts(unmerged)
     refused = 0
     for u in range(U):
         T = np.flatnonzero(np.isfinite(fragments[:, u]).all(-1))

@@ -113,6 +113,12 @@ def rival_case(seed, F=60, U=25, M=6):
             [f"*{r}" for r in range(U)])
 
 
+def unmerged_counts(unmerged):
+    """``(F + 1, U)`` cumulative counts of ``unmerged (F, U)`` over frames (the
+    ``n_unmerged`` of :func:`~mocapflow.stages.skin.merge._rival_fragment`)."""
+    return np.concatenate([np.zeros((1, unmerged.shape[1]), np.int32), np.cumsum(unmerged, 0)])
+
+
 @pytest.mark.parametrize("seed", range(8))
 def test_rival_fragment_equals_a_loop_over_rivals(seed):
     fragments, unmerged, E_all, eps1, labels, flabels = rival_case(100 + seed)

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 import mocapflow.stages.skin.merge as cm
-from tests.stages.skin.test_clean_merge import judge_case
-from tests.stages.skin.test_merge_equivalence import rival_case
+from tests.stages.skin.test_clean_merge import judge_setup
+from tests.stages.skin.test_merge_equivalence import rival_case, unmerged_counts
 from tests.stages.skin.test_merge_keeps_samples import GRID, grid_neighbours, moving_grid
 
 
@@ -40,11 +40,8 @@ def random_fragments(rng, E_all, n):
 
 @pytest.mark.parametrize("seed", range(4))
 def test_entry_screen_then_judge_equals_the_plain_judge(seed):
-    rng, E, avail, eps1, eps2 = judge_case(seed)
+    rng, E, E_all, avail, eps1, eps2, labels, index = judge_setup(seed)
     F, M, _ = E.shape
-    E_all = np.where(np.isfinite(E), E, rng.normal(size=E.shape))
-    labels = [f"M{m}" for m in range(M)]
-    index = cm.PredictionIndex(avail, np.isfinite(E).all(-1))
     usable = np.isfinite(eps1)
     fragments, frames_of = random_fragments(rng, E_all, 300)
     us = list(range(300))
@@ -139,7 +136,7 @@ def rival_plain(fragments, unmerged, u, T, v, E_all, eps1, labels, flabels):
 def test_rival_fragment_on_enough_rivals_only_equals_the_full_table(seed):
     fragments, unmerged, E_all, eps1, labels, flabels = rival_case(300 + seed)
     U, M = fragments.shape[1], E_all.shape[1]
-    n_unmerged = np.concatenate([np.zeros((1, U), np.int32), np.cumsum(unmerged, 0)])
+    n_unmerged = unmerged_counts(unmerged)
     refused = 0
     for u in range(U):
         T = np.flatnonzero(np.isfinite(fragments[:, u]).all(-1))
@@ -163,7 +160,7 @@ def test_rival_fragment_with_one_rival_in_enough_frames_known_answer():
     fragments[:, 1] = [0.0, 0.002, 0.0]
     fragments[:5, 2] = [0.0, 0.0, 0.001]
     unmerged = np.isfinite(fragments).all(-1)
-    n_unmerged = np.concatenate([np.zeros((1, 3), np.int32), np.cumsum(unmerged, 0)])
+    n_unmerged = unmerged_counts(unmerged)
     v = {"marker": 0, "entry": 0.004, "max": 0.004, "mean": 0.004}
     got = cm._rival_fragment(fragments, unmerged, 0, np.arange(F), v, E_all, np.full(1, 0.01),
                              ["A"], ["*1", "*2", "*3"], n_unmerged)
