@@ -1502,7 +1502,9 @@ def deform(
     # the edges of the triangles that blend, measured while the frames are evaluated
     watch, ends = _blending_edges(mesh, binding.beta) if widen else (None, None)
     residual = mode.endswith("residual")
-    C = frame_coefficients(models, fits, residual=residual)  # shared by both passes
+    # computed once for both passes when the blend widens; else the evaluation pass
+    # computes them where it runs (in process, or per chunk on the workers)
+    C = frame_coefficients(models, fits, residual=residual) if widen else None
     verts, longest = _deform_frames(
         models, fits, x.shape[0], mesh.vertices, binding.beta, residual=residual,
         chunk_frames=chunk_frames, ctx=ctx, edges=ends, coefficients=C)
