@@ -135,7 +135,11 @@ support_margin=None, clamp_margin=None, max_blend_stretch=None``:
   ``quadratic_residual`` reweights 2,619 vertices in 60 steps and runs at about
   670 frames per CPU-second against about 1,100 without widening in the same
   (loaded) run, ``rigid`` (2,709 vertices, 92 steps) at about 820 against 2,900
-  (table 4 has both rows; before the frame coefficients were shared by the two
+  (table 4 has both rows; before the widening took the operator's rows with
+  ``β = 1`` instead of building them again, the frame coefficients were made one
+  C-contiguous array and the operator's rows ordered by one stable sort, issue 15:
+  about 5 % more CPU time in paired runs, the row without widening unchanged;
+  before the frame coefficients were shared by the two
   passes, the widening's predictions written straight into their store, its final
   positions straight into the output and the clamp tested only near its bound,
   issue 15: 620 and 670 in the same session, the rows without widening unchanged;
@@ -144,11 +148,14 @@ support_margin=None, clamp_margin=None, max_blend_stretch=None``:
   560 / 2,500 in the same runs; before the edges' length bounds, the positions
   computed only where measured and the first check made during the evaluation
   pass: 350 and 270; before the checks were made incremental: 200).  What is left
-  is mostly the evaluation pass's one sparse product per chunk (about 0.27 CPU-s
-  of the 1.35 here, the rows' terms added in order for the bit-reproducibility
-  below), the widening's predictions over all frames (about 0.25) and its
-  measurements (about 0.2), and the set-up (binding, part fits, operator, report:
-  about 0.3).
+  is mostly the evaluation pass's one sparse product per chunk (about 0.25 CPU-s
+  of the 1.3 here, the rows' terms added in order for the bit-reproducibility
+  below; per part the rows would be dense blocks of 1,058,699 entries against
+  438,209 terms, mostly kernel values that are zero, and a fixed-order NumPy sum
+  over them costs 11x the CSR kernel, BLAS 0.8x without the bit-reproducibility),
+  its clamp test and the transposition into the output (about 0.1 each), the
+  widening's predictions over all frames (about 0.2) and its measurements (about
+  0.15), and the set-up (binding, part fits, operator, report: about 0.3).
   Held-out markers (``benchmarks/deform.py`` table 2) are points without
   triangles, so they are not affected; table 3 (the simulator's true mesh)
   measures it.  Not fixed by this: triangles that turn over against the rigid
@@ -196,8 +203,13 @@ Implementation notes (none changes the method):
   and edge vectors are sparse products over its stores of rows (all frames at
   once; :meth:`_Rows.combine`), each adding its terms in the order the plain sums
   did: the same bits as before (issue 15).  The frame coefficients are computed once
-  for both passes, and the clamp's test ``|u|² / β² > bound²`` is made only on the
-  entries whose ``|u|²`` comes within 10⁻⁹ of ``β² bound²`` (the same entries);
+  for both passes, as one C-contiguous array (their ``(K, 3F)`` rows a view), and the
+  clamp's test ``|u|² / β² > bound²`` is made only on the
+  entries whose ``|u|²`` comes within 10⁻⁹ of ``β² bound²`` (the same entries).  The
+  operator keeps its rows with ``β = 1`` (:attr:`VertexOperator.unit`; its own rows are
+  them times ``β``, the same products as before): the widening takes the rows of the
+  pairs it predicts from them where the operator holds the pair, and builds only the
+  pairs the diffused ``β`` adds (on the throughput body 1,332 of 4,967);
 * **bit-reproducible**: every vertex's result is computed by operations whose
   rounding does not depend on which other vertices, frames or parts are computed
   in the same call, nor on BLAS or its thread count: ``H``'s rows come from their
@@ -226,7 +238,7 @@ errors naming the problem.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from typing import Any
 
@@ -315,6 +327,11 @@ class VertexOperator:
         Each part's :func:`~mocapflow.stages.skin.parts.soft_clamp` margin (None: no clamp).
     layers : list of ((n,) int ndarray, int)
         ``(vertices, first pair)`` of each layer; its pairs are consecutive.
+    unit : (rigid, nonrigid) scipy.sparse.csr_matrix pair, or None
+        The same rows with ``β = 1`` (built from rest vertices only; ``rigid`` and
+        ``nonrigid`` are them times ``β``, bit for bit): :func:`_widen_blends` reuses
+        them for the pairs it evaluates again with other weights.  Not shipped to
+        workers.
     """
 
     vertices: list[np.ndarray]
@@ -327,6 +344,7 @@ class VertexOperator:
     n_vertices: int
     clamp_margins: list[float | None]
     layers: list[tuple[np.ndarray, int]]
+    unit: tuple[sp.csr_matrix, sp.csr_matrix] | None = None
 
 
 def _part_local(m: PartModel, points: np.ndarray) -> np.ndarray:
@@ -375,8 +393,8 @@ def vertex_operator(models: list[PartModel], n_vertices: int, *, residual: bool,
         order = np.lexsort((pair_vertex, rank))  # by layer, then vertex
         pair_vertex, pair_part, rank = pair_vertex[order], pair_part[order], rank[order]
         pair_beta = beta[pair_vertex, pair_part]
-        R, N = _pair_rows(models, offsets, rest, pair_vertex, pair_part, pair_beta,
-                          residual=residual)  # fmt: skip
+        unit = _pair_rows(models, offsets, rest, pair_vertex, pair_part, residual=residual)
+        R, N = (_scaled_rows(M, pair_beta) for M in unit)  # β times each row's terms
         by_part = np.argsort(pair_part, kind="stable")  # each part's vertices ascending
         cut = np.searchsorted(pair_part[by_part], np.arange(len(models) + 1))
         verts = [np.sort(pair_vertex[by_part[a:b]]) for a, b in zip(cut, cut[1:])]
@@ -385,7 +403,7 @@ def vertex_operator(models: list[PartModel], n_vertices: int, *, residual: bool,
         starts = np.cumsum([0, *counts])
         layers = [(pair_vertex[a:b], int(a)) for a, b in zip(starts, starts[1:])]
         return VertexOperator(verts, betas, R, N, pair_part, pair_beta, offsets, n_vertices,
-                              [m.clamp_margin for m in models], layers)  # fmt: skip
+                              [m.clamp_margin for m in models], layers, unit)  # fmt: skip
     verts, betas, rigid, nonrigid = [], [], [], []
     for p, m in enumerate(models):  # the models' own vertex arrays
         v, b, local = m.vertices, m.beta, m.vertex_local
@@ -468,7 +486,9 @@ def frame_coefficients(
         out.append((f.d - rigid_d)[None])  # (1, F, 3): the quadratic's constant, R c
         if residual:
             out.append(_products(f.W, f.R.transpose(0, 2, 1)).transpose(1, 0, 2))  # (n, F, 3)
-    return np.concatenate(out, axis=0)
+    # C-contiguous (the blocks are transposed views), so its (K, 3F) reshape is a view
+    C = np.empty((sum(len(b) for b in out), *out[0].shape[1:])) if out else None
+    return np.concatenate(out, axis=0, out=C)
 
 
 #: Pair-coordinates (rows x 3 frames) per product in :func:`deform_positions`: the work
@@ -772,23 +792,24 @@ def _fallback_hint(message: str) -> str | None:
 
 
 def _deform_frames(models: list[PartModel], fits: list[PartFit], n_frames: int,
-                   rest: np.ndarray, beta: np.ndarray, *, residual: bool, chunk_frames: int,
+                   operator: VertexOperator, *, residual: bool, chunk_frames: int,
                    ctx: Context, edges: np.ndarray | None = None,
                    coefficients: np.ndarray | None = None,
                    ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """The blended vertices ``(F, V, 3)`` of ``rest (V, 3)`` with weights ``beta (V, P)``
-    (P&H Eq. 8–9): in one in-process pass, or in frame chunks of ``chunk_frames`` on the
-    executor's workers (the same bits either way); and the largest squared length over the
-    frames of ``edges (E, 2)`` (:func:`_longest_edges`; empty without).  ``coefficients``:
-    the models' :func:`frame_coefficients` when already computed (in-process pass)."""
-    F, V = n_frames, len(rest)
+    """The blended vertices ``(F, V, 3)`` of ``operator`` (:func:`vertex_operator` of the
+    rest vertices and their weights; P&H Eq. 8–9): in one in-process pass, or in frame
+    chunks of ``chunk_frames`` on the executor's workers (the same bits either way); and the
+    largest squared length over the frames of ``edges (E, 2)`` (:func:`_longest_edges`; empty
+    without).  ``coefficients``: the models' :func:`frame_coefficients` when already
+    computed (in-process pass)."""
+    F, V = n_frames, operator.n_vertices
     edges = np.zeros((0, 2), np.int64) if edges is None else edges
-    operator = vertex_operator(models, V, residual=residual, rest=rest, beta=beta)
     bounds = list(range(0, F, max(1, chunk_frames))) + [F]
     if ctx.mapper is None or len(bounds) <= 2:  # in-process: one pass, no copies
         return _frame_major(models, fits, V, operator, residual=residual, edges=edges,
                             coefficients=coefficients)  # fmt: skip
     light = [_without_vertices(m) for m in models]
+    operator = replace(operator, unit=None)  # the rows with β = 1 stay here
     chunks = [
         (light, [_slice_fit(f, slice(a, b)) for f in fits], V, operator, residual)
         for a, b in zip(bounds, bounds[1:])
@@ -849,6 +870,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
                   verts: np.ndarray, *, max_stretch: float, steps: int, residual: bool,
                   measured: tuple[np.ndarray, np.ndarray] | None = None,
                   coefficients: np.ndarray | None = None,
+                  operator: VertexOperator | None = None,
                   ) -> tuple[np.ndarray, int, int, int, int]:  # fmt: skip
     """Widen the blend between parts where it tears the surface (P&H Eq. 9's ``β``).
 
@@ -882,7 +904,9 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     changed), and the torn triangles before and after.  ``measured``: the edges of the
     triangles that blend (:func:`_blending_edges`) and their largest squared lengths over
     ``verts``' frames, when already measured (:func:`_deform_frames`); ``coefficients``:
-    the models' :func:`frame_coefficients` when already computed.
+    the models' :func:`frame_coefficients` when already computed; ``operator``: the
+    :func:`vertex_operator` of ``beta`` (from the rest vertices), whose rows with ``β = 1``
+    are reused for the pairs it holds (the same rows as built again).
     """
     faces = np.asarray(mesh.faces, dtype=np.int64)
     rest = mesh.vertices
@@ -944,6 +968,27 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     n_rows = max(1, _EDGE_FRAMES_PER_SLICE // max(1, F))  # rows per product: a few MB
     scratch = np.empty((2, n_rows, 3 * F))  # results of those products, reused
 
+    # the first pass's rows with β = 1 (an operator pair per vertex and part, -1: none)
+    unit = None if operator is None else operator.unit
+    if unit is not None:
+        pair_at = np.full((V, P), -1, np.int64)
+        for lv, at in operator.layers:
+            pair_at[lv, operator.pair_part[at : at + len(lv)]] = np.arange(at, at + len(lv))
+
+    def pair_rows(v: np.ndarray, p: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+        """:func:`_pair_rows` of pairs ``(v, p)`` with ``β = 1``, the operator's where it
+        has them."""
+        if unit is None:
+            return _pair_rows(models, offsets, rest, v, p, residual=residual)
+        at = pair_at[v, p]
+        have = np.flatnonzero(at >= 0)
+        if len(have) == len(v):
+            return unit[0][at], unit[1][at]
+        new = np.flatnonzero(at < 0)
+        built = _pair_rows(models, offsets, rest, v[new], p[new], residual=residual)
+        back = np.argsort(np.concatenate([have, new]))  # each pair's row, in (v, p) order
+        return tuple(_stacked_rows(M[at[have]], B)[back] for M, B in zip(unit, built))
+
     def predict(v: np.ndarray, p: np.ndarray) -> None:
         """Give pairs ``(v, p)`` a row of ``pred``: part ``p``'s model alone at vertex ``v``
         (β = 1), by the row-by-row products of :func:`deform_positions` (the rigid rows
@@ -955,7 +1000,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
             return
         new = pred.append(None, n_rows=len(key))
         slot[v, p] = new
-        rigid, nonrigid_rows = _pair_rows(models, offsets, rest, v, p, residual=residual)
+        rigid, nonrigid_rows = pair_rows(v, p)
         u, at = np.unique(v, return_index=True)  # a vertex's first new pair comes first
         first[u[first[u] < 0]] = new[at[first[u] < 0]]
         far = np.empty(len(new))
@@ -1008,7 +1053,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
             if final:  # (k, F) -> (F, k), moving whole xyz triplets (24 bytes) at a time
                 moved = scratch[0][: len(index)]
                 pred.combine(index[:, :L], weights[:, :L], moved)
-                verts[:, R[c : c + n_rows]] = moved.view(_XYZ).T[..., None].view(np.float64)
+                verts.view(_XYZ)[:, R[c : c + n_rows], 0] = moved.view(_XYZ).T
                 continue
             rows = row[R[c : c + n_rows]]
             if np.all(np.diff(rows) == 1):  # consecutive rows: straight into the store
@@ -1057,7 +1102,13 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         most = _longest_edges(verts, ends[check])
     over[check], known[check], upper[check] = most > limit[check], True, np.sqrt(most)
     lower[check] = upper[check]
-    bad = np.flatnonzero(blended & over[face_edge].any(1))
+    sides = [np.ascontiguousarray(face_edge[:, k]) for k in range(3)]
+
+    def torn() -> np.ndarray:
+        """The triangles that blend with an edge stretched beyond ``max_stretch``."""
+        return np.flatnonzero(blended & (over[sides[0]] | over[sides[1]] | over[sides[2]]))
+
+    bad = torn()
     torn_before = len(bad)
     beta_in = beta.copy()
     changed = np.zeros(V, bool)  # weights diffused; the position is then Σ β_p prediction_p
@@ -1070,7 +1121,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         taken += k
         S = np.unique(faces[bad])
         for _ in range(k):  # the torn triangles' corners and k rings around them
-            S = np.unique(ring[S].indices)
+            S = _columns(ring, S)
         sub = smooth[S]
         prior = beta[S]
         for _ in range(k):
@@ -1095,9 +1146,9 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         # triangles may start or stop blending where weights changed; the edges of a vertex
         # that moved are checked again when their triangle blends and the bound of their
         # length reaches max_stretch
-        t = incidence[S].indices
+        t = _columns(incidence, S)
         blended[t] = blending(t)
-        e = np.unique(vertex_edges[R].indices)
+        e = _columns(vertex_edges, R)
         upper[e] += moves[ends[e, 0]] + moves[ends[e, 1]]
         lower[e] -= moves[ends[e, 0]] + moves[ends[e, 1]]
         under, still = upper[e] < reach[e], lower[e] > beyond[e]
@@ -1108,16 +1159,26 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         most = longest(check)
         over[check], known[check], upper[check] = most > limit[check], True, np.sqrt(most)
         lower[check] = upper[check]
-        bad = np.flatnonzero(blended & over[face_edge].any(1))
+        bad = torn()
     if len(bad) >= torn_before:  # no better: the weights as they were
         return beta_in, taken, 0, torn_before, len(bad)
     done = np.flatnonzero(changed)
     kept = done[(row[done] >= 0) & ~stale[done]]  # their rows of pos hold their positions
-    for c in range(0, len(kept), 256):
+    for c in range(0, len(kept), 256):  # (k, F) -> (F, k), whole xyz triplets at a time
         rows = pos.take(row[kept[c : c + 256]])
-        verts[:, kept[c : c + 256]] = rows.view(_XYZ)[..., 0].T[..., None].view(np.float64)
+        verts.view(_XYZ)[:, kept[c : c + 256], 0] = rows.view(_XYZ)[..., 0].T
     place(done[(row[done] < 0) | stale[done]], final=True)  # the others, straight into verts
     return beta, taken, len(done), torn_before, len(bad)
+
+
+def _columns(A: sp.csr_matrix, rows: np.ndarray) -> np.ndarray:
+    """The columns (ascending, each once) with an entry in any of ``rows (k,)`` of ``A``
+    (``np.unique(A[rows].indices)`` without building ``A[rows]``)."""
+    lo, n = A.indptr[rows], np.diff(A.indptr)[rows]
+    at = np.arange(int(n.sum())) + np.repeat(lo - (np.cumsum(n) - n), n)
+    hit = np.zeros(A.shape[1], bool)
+    hit[A.indices[at]] = True
+    return np.flatnonzero(hit)
 
 
 def _row_block(A: sp.csr_matrix, a: int, b: int) -> sp.csr_matrix:
@@ -1125,6 +1186,13 @@ def _row_block(A: sp.csr_matrix, a: int, b: int) -> sp.csr_matrix:
     lo, hi = A.indptr[a], A.indptr[b]
     return sp.csr_matrix((A.data[lo:hi], A.indices[lo:hi], A.indptr[a : b + 1] - lo),
                          shape=(b - a, A.shape[1]))  # fmt: skip
+
+
+def _scaled_rows(A: sp.csr_matrix, w: np.ndarray) -> sp.csr_matrix:
+    """Row ``i`` of ``A`` times ``w[i]`` (``(n,)``), its terms in their order and places
+    (each the product ``a w``, as :func:`_pair_rows` with weights computes it)."""
+    return sp.csr_matrix((A.data * np.repeat(w, np.diff(A.indptr)), A.indices, A.indptr),
+                         shape=A.shape)  # fmt: skip
 
 
 def _row_differences(a: np.ndarray, b: np.ndarray, store: _Rows,
@@ -1161,6 +1229,7 @@ def _pair_rows(models: list[PartModel], offsets: np.ndarray, rest: np.ndarray, v
             vals[r].append(dense[i, j] if beta is None else dense[i, j] * beta[sel[i]])
         if residual:
             kernel = sp.csr_matrix(m.kernel_rows(local))
+            kernel.sort_indices()  # each row's markers ascending
             i = np.repeat(np.arange(len(sel)), np.diff(kernel.indptr))
             rows[1].append(sel[i])
             cols[1].append(o + 14 + kernel.indices)
@@ -1169,7 +1238,9 @@ def _pair_rows(models: list[PartModel], offsets: np.ndarray, rest: np.ndarray, v
     for r in range(2):
         i = np.concatenate(rows[r]) if rows[r] else np.zeros(0, np.int64)
         j = np.concatenate(cols[r]) if cols[r] else np.zeros(0, np.int64)
-        order = np.lexsort((j, i))  # each row's terms in column order
+        # each row's terms in column order: a row's terms come from one part, appended in
+        # column order (its monomials, 1, then its kernel values), so a stable sort by row
+        order = np.argsort(i, kind="stable")
         out.append(sp.csr_matrix(
             (np.concatenate(vals[r])[order] if vals[r] else np.zeros(0), j[order],
              np.searchsorted(i[order], np.arange(k + 1))), shape=(k, K)))  # fmt: skip
@@ -1505,15 +1576,17 @@ def deform(
     # computed once for both passes when the blend widens; else the evaluation pass
     # computes them where it runs (in process, or per chunk on the workers)
     C = frame_coefficients(models, fits, residual=residual) if widen else None
+    operator = vertex_operator(models, V, residual=residual, rest=mesh.vertices,
+                               beta=binding.beta)  # fmt: skip
     verts, longest = _deform_frames(
-        models, fits, x.shape[0], mesh.vertices, binding.beta, residual=residual,
+        models, fits, x.shape[0], operator, residual=residual,
         chunk_frames=chunk_frames, ctx=ctx, edges=ends, coefficients=C)
     beta, widened = binding.beta, {"steps": 0, "vertices": 0}
     if widen:
         beta, n_steps, n_changed, torn0, torn1 = _widen_blends(
             models, fits, mesh, binding.beta, verts, max_stretch=max_blend_stretch,
             steps=widening_steps(mesh, blend_widening_reach), residual=residual,
-            measured=(watch, longest), coefficients=C)
+            measured=(watch, longest), coefficients=C, operator=operator)
         widened = {"steps": n_steps, "vertices": n_changed, "torn_before": torn0,
                    "torn_after": torn1 if n_changed else torn0}
         if torn0 and not n_changed:
