@@ -50,10 +50,16 @@
   copy on the take's edge) and adding the nearest-donor rigid-body fill, on
   mask seeds 200-209 (not used while tuning): PiG calibration 50 -> 67 %
   (worst ratio to the best peer 3.10 -> 2.23), Qualisys 83 -> 92 % (1.54 ->
-  1.23), Eb015pr 83 -> 92 % (1.18 -> 1.10).  What is left loses to the
-  cubic spline on 0.1-0.5 s gaps of near-static markers (the PiG calibration
-  trial, 0.04-0.09 mm errors): the pose-based models carry their donors'
-  noise, and four copies of a short run rarely tell them apart.
+  1.23), Eb015pr 83 -> 92 % (1.18 -> 1.10).  With the copies kept where the
+  spline reaches them, a fifth copy on the run's own margins and the copies'
+  errors combined geometrically (:func:`_shifted_runs`,
+  :func:`_validation_mse`), on the same-sample criterion (ours within 5 % of
+  every peer on the samples it filled) and mask seeds 300-309 (not used while
+  tuning): PiG 14 -> 16 of 18 configurations (worst 1.58 -> 1.28), Qualisys
+  10 -> 11 of 12 (1.15 -> 1.09).  What is left loses to the cubic spline on
+  0.1 s gaps of one marker (the 1 % configurations, 0.02-0.6 mm errors), where
+  one run decides a repetition and its copies, 15-30 frames away, see motion
+  its gap does not (the PiG calibration's left wrist, Qualisys' R_IAS).
 
 Measured on the simulated 350-marker dynamic capture (120 Hz, 0.3 mm noise,
 real occlusion, no complete frame for most neighbourhoods), the same gap masks
@@ -607,8 +613,9 @@ def fill_by_validated_blend(
     copies)^-:data:`BLEND_POWER`, a rigid-body fill's (:data:`RIGID_MODELS`)
     error taken as at least :data:`RIGID_DISAGREEMENT_SHARE` of how far its
     carries from before and after the gap disagree (the marker moving against
-    its donors there, which the copies need not see); a run with no copy
-    scored keeps the local fill.
+    its donors there, which the copies need not see), a model whose estimate
+    repeats an earlier one's counted once (:func:`_repeated_estimates`); a run
+    with no copy scored keeps the local fill.
 
     Parameters
     ----------
@@ -651,6 +658,7 @@ def fill_by_validated_blend(
     mse = _validation_mse(errs, ok, full)
     _floor_rigid_errors(mse, disagreement, run)
     wr = _blend_weights(mse)
+    wr[_repeated_estimates(est, runs)] = 0.0  # a model given twice weighs once
     w = np.where(holes[None], wr[:, np.maximum(run, 0)], 0.0)  # (K, F, M)
     have = finite_rows(est) & holes[None]  # (K, F, M)
     wf = np.where(have, w, 0.0)
@@ -662,6 +670,32 @@ def fill_by_validated_blend(
     share = wf[:, sel] / tot[sel]
     return out, {n: float(share[k].mean()) if sel.any() else 0.0
                  for k, n in enumerate(BLEND_MODELS)}
+
+
+#: Two blend members whose estimates of a run agree within this (m) are one model
+#: (:func:`_repeated_estimates`): the same donors, their terms added in another order.
+SAME_ESTIMATE_TOLERANCE = 1e-9
+
+
+def _repeated_estimates(est: np.ndarray, runs: list[tuple[int, int, int]]) -> np.ndarray:
+    """``(K, R)`` bool: model ``k``'s estimate of run ``r`` is an earlier model's (within
+    :data:`SAME_ESTIMATE_TOLERANCE` at every sample; ``est`` ``(K, F, M, 3)``,
+    :func:`_blend_members`).
+
+    On a sparse capture the most rigid markers near a marker are often its 3 nearest:
+    the two rigid-body fills then give one estimate, which weighed twice in the blend
+    (PiG calibration, left wrist, 0.1 s holes: both at 0.59-0.82 mm where the spline
+    was 0.25-0.36 mm, blend 0.36-0.61 mm; counted once 0.29-0.53 mm)."""
+    K = est.shape[0]
+    out = np.zeros((K, len(runs)), dtype=bool)
+    for r, (m, a, b) in enumerate(runs):
+        e = est[:, a:b, m]  # (K, L, 3)
+        fin = np.isfinite(e).all((1, 2))
+        for k in range(1, K):
+            if fin[k]:
+                out[k, r] = any(fin[j] and np.abs(e[k] - e[j]).max() <= SAME_ESTIMATE_TOLERANCE
+                                for j in range(k))
+    return out
 
 
 def _floor_rigid_errors(mse: np.ndarray, disagreement: dict[int, np.ndarray],
