@@ -473,7 +473,8 @@ def _shifted_runs(runs: list[tuple[int, int, int]], shape: tuple[int, int],
     take's ends where the take is long enough, so that every model can be scored on
     it: a 1 s hole in the 3 s PiG calibration had every copy moved onto an end, the
     spline (the best model on that still subject) was never scored and took no weight
-    (0.5-1 s clustered holes there: blend 1.2-1.6 mm mean, spline 0.9 mm).
+    (1 s holes in 30 % of the markers at once, mask seeds 100-109: blend 1.60 mm mean,
+    spline 0.94 mm).
     With ``k`` 0, the copy is the run's margins instead: the
     :data:`VALIDATION_MARGIN` share of its length (at least 2 frames) before and
     after it, within the take, knocked out together with the run itself.
@@ -782,9 +783,9 @@ def _validation_mse(mse: np.ndarray, ok: np.ndarray, usable: np.ndarray) -> np.n
     squared errors on the run's copies.
 
     Geometric, so that one copy on a glitch does not decide the run: on the PiG
-    calibration a copy moved onto LPSI's first 6 frames (jumps of 30 mm, every model
-    0.4-1.8 mm off there) flattened the arithmetic means of all five models, and the
-    blend of a 0.1 s hole the spline fills within 0.1 mm came out 0.6 mm off.
+    calibration a copy moved onto LPSI's first 6 frames (jumps of 30 mm) raised all
+    five models' arithmetic means to 4-18 mm (0.1-0.7 mm with that copy elsewhere),
+    and the blend of a 0.1 s hole the spline fills within 0.1 mm came out 0.6 mm off.
     A run's models are compared on the same copies: those that every model in
     ``usable`` (``(K, R)`` bool: it estimates the whole run) estimated in
     full (a spline cannot reach a copy moved onto the take's edge, where every
