@@ -9,7 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from mocapflow.pipeline import Context
 from mocapflow.stages.motion.datatypes import Markers, Mesh
+from mocapflow.stages.skin.binding import bind_mesh
+from mocapflow.stages.skin.deform import vertex_operator
+from mocapflow.stages.skin.parts import fit_part, prepare_part
+from mocapflow.stages.skin.segment import segment
 
 
 def rot_x(a):
@@ -92,3 +97,18 @@ def limb_capture(n_frames=120, *, seed=0, n_around=10, n_rings=14, mesh=(32, 40)
         "mesh": Mesh(Vr, Vf),
         "truth": V,
     }
+
+
+def limb_deform_setup(n_frames: int) -> dict:
+    """:func:`limb_capture` (no noise) segmented, bound (``sharpness`` 4) and fitted per part
+    (``quadratic_residual``), with its :func:`~mocapflow.stages.skin.deform.vertex_operator`:
+    the set-up of the deformation speed tests (keys ``d, seg, mesh, beta, models, fits, op``)."""
+    d = limb_capture(n_frames=n_frames, noise=0.0)
+    seg = segment(d["markers"], d["surface"], ctx=Context())["segmentation"]
+    mesh, x = d["mesh"], d["markers"].positions
+    beta = bind_mesh(mesh.vertices, seg, sharpness=4.0).beta
+    models = [prepare_part(seg, p) for p in range(seg.n_parts)]
+    fits = [fit_part(m, x[:, m.members], mode="quadratic_residual") for m in models]
+    op = vertex_operator(models, len(mesh.vertices), residual=True, rest=mesh.vertices, beta=beta)
+    return {"d": d, "seg": seg, "mesh": mesh, "beta": beta, "models": models, "fits": fits,
+            "op": op}  # fmt: skip

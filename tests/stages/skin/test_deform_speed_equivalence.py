@@ -16,7 +16,7 @@ import pytest
 
 import mocapflow.stages.skin.deform as deform_module
 from mocapflow.pipeline import Context
-from mocapflow.stages.skin.binding import bind_mesh, mesh_edges
+from mocapflow.stages.skin.binding import mesh_edges
 from mocapflow.stages.skin.deform import (
     _blending_edges,
     _frame_major,
@@ -29,21 +29,12 @@ from mocapflow.stages.skin.deform import (
     vertex_operator,
 )
 from mocapflow.stages.skin.parts import fit_part, prepare_part, soft_clamp
-from mocapflow.stages.skin.segment import segment
-from tests.stages.skin.conftest import limb_capture
+from tests.stages.skin.conftest import limb_deform_setup
 
 
 @pytest.fixture(scope="module")
 def limb_fits():
-    d = limb_capture(n_frames=60, noise=0.0)
-    seg = segment(d["markers"], d["surface"], ctx=Context())["segmentation"]
-    mesh, x = d["mesh"], d["markers"].positions
-    beta = bind_mesh(mesh.vertices, seg, sharpness=4.0).beta
-    models = [prepare_part(seg, p) for p in range(seg.n_parts)]
-    fits = [fit_part(m, x[:, m.members], mode="quadratic_residual") for m in models]
-    op = vertex_operator(models, len(mesh.vertices), residual=True, rest=mesh.vertices, beta=beta)
-    return {"d": d, "seg": seg, "mesh": mesh, "beta": beta, "models": models, "fits": fits,
-            "op": op}  # fmt: skip
+    return limb_deform_setup(n_frames=60)
 
 
 def _plain_longest(verts, ends):

@@ -14,8 +14,6 @@ import pytest
 import scipy.sparse as sp
 
 import mocapflow.stages.skin.deform as deform_module
-from mocapflow.pipeline import Context
-from mocapflow.stages.skin.binding import bind_mesh
 from mocapflow.stages.skin.deform import (
     _blending_edges,
     _columns,
@@ -23,23 +21,13 @@ from mocapflow.stages.skin.deform import (
     _pair_rows,
     _widen_blends,
     frame_coefficients,
-    vertex_operator,
 )
-from mocapflow.stages.skin.parts import fit_part, prepare_part
-from mocapflow.stages.skin.segment import segment
-from tests.stages.skin.conftest import limb_capture
+from tests.stages.skin.conftest import limb_deform_setup
 
 
 @pytest.fixture(scope="module")
 def limb():
-    d = limb_capture(n_frames=40, noise=0.0)
-    seg = segment(d["markers"], d["surface"], ctx=Context())["segmentation"]
-    mesh, x = d["mesh"], d["markers"].positions
-    beta = bind_mesh(mesh.vertices, seg, sharpness=4.0).beta
-    models = [prepare_part(seg, p) for p in range(seg.n_parts)]
-    fits = [fit_part(m, x[:, m.members], mode="quadratic_residual") for m in models]
-    op = vertex_operator(models, len(mesh.vertices), residual=True, rest=mesh.vertices, beta=beta)
-    return {"mesh": mesh, "beta": beta, "models": models, "fits": fits, "op": op}
+    return limb_deform_setup(n_frames=40)
 
 
 def _same(A, B):
