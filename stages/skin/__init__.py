@@ -69,8 +69,8 @@ the paper lives in one function (modules of this package):
   quadratic p̂ ≈ A q(p̄) (P&H Eq. 6)       parts._quadratic_fits, kernels.quadratic_basis
   RBF residual, cubic B-spline           parts._residual_fits, kernels.rbf_matrix,
   (P&H Eq. 7)                            kernels.cubic_bspline, kernels._solve_kernel
-  vertices moved and blended             parts.evaluate_part, deform.vertex_operator,
-  (P&H Eq. 8–9)                          deform.deform_positions (bit-reproducible:
+  vertices moved and blended             parts.evaluate_part, blend.vertex_operator,
+  (P&H Eq. 8–9)                          blend.deform_positions (bit-reproducible:
                                          sparse rows, sums in a fixed order, no BLAS);
                                          the stage deform.deform
 rendering (Figure 7: modes side by side) render.render_frames, render.render_modes
@@ -115,7 +115,7 @@ Departures from the paper (each module docstring says why, with measurements):
   parts.PartModel.basis) and each vertex's non-rigid displacement softly clamped
   at the part markers' deviation from rigid (``clamp_margin``, parts.soft_clamp);
   β diffused over the mesh where a blend between parts would stretch an edge
-  beyond ``max_blend_stretch`` (2.5; deform._widen_blends,
+  beyond ``max_blend_stretch`` (2.5; widening._widen_blends,
   binding.blend_smoothing_operator); with ``unflip`` (the graph's config) the
   vertices of triangles turned over against the rigid mode pulled back
   (deform.unflip_triangles); the paper exactly: ``beta_sharpness=1,

@@ -12,7 +12,7 @@ import numpy as np
 from mocapflow.pipeline import Context
 from mocapflow.stages.motion.datatypes import Markers, Mesh
 from mocapflow.stages.skin.binding import bind_mesh
-from mocapflow.stages.skin.deform import vertex_operator
+from mocapflow.stages.skin.blend import vertex_operator
 from mocapflow.stages.skin.parts import fit_part, prepare_part
 from mocapflow.stages.skin.segment import segment
 
@@ -101,7 +101,7 @@ def limb_capture(n_frames=120, *, seed=0, n_around=10, n_rings=14, mesh=(32, 40)
 
 def limb_deform_setup(n_frames: int) -> dict:
     """:func:`limb_capture` (no noise) segmented, bound (``sharpness`` 4) and fitted per part
-    (``quadratic_residual``), with its :func:`~mocapflow.stages.skin.deform.vertex_operator`:
+    (``quadratic_residual``), with its :func:`~mocapflow.stages.skin.blend.vertex_operator`:
     the set-up of the deformation speed tests (keys ``d, seg, mesh, beta, models, fits, op``)."""
     d = limb_capture(n_frames=n_frames, noise=0.0)
     seg = segment(d["markers"], d["surface"], ctx=Context())["segmentation"]

@@ -17,15 +17,13 @@ from mocapflow.stages.skin.binding import (
     blend_smoothing_operator,
     closest_points_on_triangles,
 )
-from mocapflow.stages.skin.deform import (
-    _Rows,
-    _widen_blends,
-    deform,
+from mocapflow.stages.skin.blend import (
     deform_positions,
     frame_coefficients,
     operator_matrix,
     vertex_operator,
 )
+from mocapflow.stages.skin.deform import deform
 from mocapflow.stages.skin.kernels import (
     cubic_bspline,
     dilation,
@@ -38,6 +36,7 @@ from mocapflow.stages.skin.mesh_fit import fit_detailed_mesh, fit_mesh, template
 from mocapflow.stages.skin.parts import MODES, evaluate_part, fit_part, prepare_part
 from mocapflow.stages.skin.segment import part_frames, segment
 from mocapflow.stages.skin.segmentation import Segmentation
+from mocapflow.stages.skin.widening import _Rows, _widen_blends
 from tests.stages.skin.conftest import deform_limb, grid_cylinder, limb_capture, rot_x, rot_y
 
 
@@ -686,3 +685,22 @@ def test_rows_store_across_blocks():
     store.put(index[:4], -kept[index[:4]])
     kept[index[:4]] *= -1
     assert store.take(np.arange(17)).tobytes() == kept.tobytes()
+
+
+def test_deform_modules_import_one_way():
+    """The stage (deform) imports the vertex evaluation (blend) and the blend widening
+    (widening); the widening may import blend; blend imports neither."""
+    import ast
+    import importlib
+
+    def skin_imports(name):
+        tree = ast.parse(open(importlib.import_module(f"mocapflow.stages.skin.{name}").__file__,
+                              encoding="utf-8").read())  # fmt: skip
+        return {n.module.rsplit(".", 1)[1] for n in ast.walk(tree)
+                if isinstance(n, ast.ImportFrom) and (n.module or "").startswith(
+                    "mocapflow.stages.skin.")}  # fmt: skip
+
+    deform_imports, widening_imports = skin_imports("deform"), skin_imports("widening")
+    assert {"blend", "widening"} <= deform_imports
+    assert "blend" in widening_imports and "deform" not in widening_imports
+    assert not {"deform", "widening"} & skin_imports("blend")

@@ -14,21 +14,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import mocapflow.stages.skin.blend as blend_module
 import mocapflow.stages.skin.deform as deform_module
+import mocapflow.stages.skin.widening as widening_module
 from mocapflow.pipeline import Context
 from mocapflow.stages.skin.binding import mesh_edges
-from mocapflow.stages.skin.deform import (
-    _blending_edges,
-    _frame_major,
-    _longest_edges,
-    _part_local,
-    _Rows,
-    _widen_blends,
-    deform,
-    deform_positions,
-    vertex_operator,
-)
+from mocapflow.stages.skin.blend import _frame_major, _part_local, deform_positions, vertex_operator
+from mocapflow.stages.skin.deform import deform
 from mocapflow.stages.skin.parts import fit_part, prepare_part, soft_clamp
+from mocapflow.stages.skin.widening import _blending_edges, _longest_edges, _Rows, _widen_blends
 from tests.stages.skin.conftest import limb_deform_setup
 
 
@@ -53,7 +47,7 @@ def test_edges_measured_while_evaluating_equal_the_plain_lengths(limb_fits, monk
     assert 20 < len(watch) < len(mesh_edges(np.asarray(mesh.faces), V)[0])  # some, not all
     runs = []
     for values in (1, 7 * 3 * L["op"].rigid.shape[0], 10**9):  # 1, 7 and all frames
-        monkeypatch.setattr(deform_module, "_VALUES_PER_PRODUCT", values)
+        monkeypatch.setattr(blend_module, "_VALUES_PER_PRODUCT", values)
         runs.append(_frame_major(L["models"], L["fits"], V, L["op"], residual=True, edges=ends))
     verts, most = runs[0]
     assert verts.shape == (60, V, 3)
@@ -70,7 +64,7 @@ def _widen_every_edge(models, fits, mesh, beta, verts, **kw):
     """The widening with every blending edge measured on every frame after every round:
     ``_widen_blends`` with a length bound that never holds (no edge is skipped)."""
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(deform_module, "_MOVE_ROUND_OFF", np.inf)
+        mp.setattr(widening_module, "_MOVE_ROUND_OFF", np.inf)
         return _widen_blends(models, fits, mesh, beta, verts, **kw)
 
 
@@ -85,8 +79,8 @@ def test_widening_with_bounds_equals_measuring_everything(limb_fits, stretch, mo
     verts, most = _frame_major(L["models"], L["fits"], V, L["op"], residual=True, edges=ends)
     kw = {"max_stretch": stretch, "steps": 100, "residual": True}
     measured = []  # edge-frames (and prediction-frames) whose length was computed
-    lengths = deform_module._squared_lengths
-    monkeypatch.setattr(deform_module, "_squared_lengths",
+    lengths = widening_module._squared_lengths
+    monkeypatch.setattr(widening_module, "_squared_lengths",
                         lambda d: measured.append(d[..., 0].size) or lengths(d))  # fmt: skip
     want_verts = verts.copy()
     want = _widen_every_edge(L["models"], L["fits"], mesh, L["beta"], want_verts, **kw)
@@ -141,13 +135,13 @@ def test_main_pass_makes_one_sparse_product_per_chunk_with_the_bits_of_scipy(lim
     L = limb_fits
     op, V = L["op"], len(L["mesh"].vertices)
     calls = []
-    kernel = deform_module.csr_matvecs
-    monkeypatch.setattr(deform_module, "csr_matvecs",
+    kernel = blend_module.csr_matvecs
+    monkeypatch.setattr(blend_module, "csr_matvecs",
                         lambda *a: calls.append(a[0]) or kernel(*a))  # fmt: skip
-    monkeypatch.setattr(deform_module, "_VALUES_PER_PRODUCT", 7 * 3 * op.rigid.shape[0])
+    monkeypatch.setattr(blend_module, "_VALUES_PER_PRODUCT", 7 * 3 * op.rigid.shape[0])
     got = deform_positions(L["models"], L["fits"], V, op, residual=True)
     assert calls == [2 * op.rigid.shape[0]] * 9  # 60 frames, 7 a chunk: 9 products
-    C = deform_module.frame_coefficients(L["models"], L["fits"], residual=True)
+    C = blend_module.frame_coefficients(L["models"], L["fits"], residual=True)
     want = np.empty_like(got)
     pair_beta = op.pair_beta
     for f in range(C.shape[1]):  # the former path, one frame at a time: A @ X of scipy
@@ -198,7 +192,7 @@ def test_rows_store_combines_rows_across_blocks_as_the_plain_sum():
     """_Rows.combine adds ``w_0 x_0 + w_1 x_1 + ...`` in that order over rows in different
     blocks (-1: no term), the bytes of the plain NumPy sum; _row_differences are the bytes
     of the subtraction, and _edge_vectors' product those of ``x[b] - x[a]`` either way round."""
-    combine, differences = deform_module._Rows.combine, deform_module._row_differences
+    combine, differences = widening_module._Rows.combine, widening_module._row_differences
     rng = np.random.default_rng(3)
     store = _Rows(4, first_block=2)
     for k in (3, 5, 9):  # blocks of 2, 4, 8 rows: the rows straddle them
@@ -220,7 +214,7 @@ def test_rows_store_combines_rows_across_blocks_as_the_plain_sum():
     X = rng.standard_normal((7, 6))
     edges = np.array([[0, 3], [5, 1], [6, 2]])
     out = np.empty((3, 6))
-    deform_module._sparse_product(deform_module._edge_vectors(edges, 7), X, out)
+    blend_module._sparse_product(blend_module._edge_vectors(edges, 7), X, out)
     assert out.tobytes() == (X[edges[:, 1]] - X[edges[:, 0]]).tobytes()
 
 
@@ -254,9 +248,10 @@ def test_stage_computes_the_frame_coefficients_once(limb_fits, monkeypatch):
     d, seg, mesh = limb_fits["d"], limb_fits["seg"], limb_fits["mesh"]
     want = deform(d["markers"], seg, mesh, max_blend_stretch=1.3, ctx=Context())
     calls = []
-    coefficients = deform_module.frame_coefficients
-    monkeypatch.setattr(deform_module, "frame_coefficients",
-                        lambda *a, **k: calls.append(1) or coefficients(*a, **k))  # fmt: skip
+    coefficients = blend_module.frame_coefficients
+    for module in (deform_module, blend_module, widening_module):  # wherever it is looked up
+        monkeypatch.setattr(module, "frame_coefficients",
+                            lambda *a, **k: calls.append(1) or coefficients(*a, **k))  # fmt: skip
     got = deform(d["markers"], seg, mesh, max_blend_stretch=1.3, ctx=Context())
     assert got["report"]["blend_widening"]["vertices"] > 10  # the widening ran
     assert len(calls) == 1
@@ -286,6 +281,6 @@ def test_clamp_tests_only_near_entries_and_clamps_the_same_ones():
     i, j = np.nonzero(over)
     want[i, j] = soft_clamp(want[i, j], beta[i] * deviation[part[i], j], margin[i])
     got = u.copy()
-    deform_module._clamp_weighted(got, beta, part, deviation, margin)
+    blend_module._clamp_weighted(got, beta, part, deviation, margin)
     assert 0 < over.sum() < over.size
     assert got.tobytes() == want.reshape(N, 3 * f).tobytes()

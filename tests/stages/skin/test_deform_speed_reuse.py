@@ -13,15 +13,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-import mocapflow.stages.skin.deform as deform_module
-from mocapflow.stages.skin.deform import (
-    _blending_edges,
-    _columns,
-    _frame_major,
-    _pair_rows,
-    _widen_blends,
-    frame_coefficients,
-)
+import mocapflow.stages.skin.blend as blend_module
+import mocapflow.stages.skin.widening as widening_module
+from mocapflow.stages.skin.blend import _frame_major, _pair_rows, frame_coefficients
+from mocapflow.stages.skin.widening import _blending_edges, _columns, _widen_blends
 from tests.stages.skin.conftest import limb_deform_setup
 
 
@@ -71,8 +66,8 @@ def test_widening_with_the_operators_rows_equals_building_them(limb, stretch, mo
     watch, ends = _blending_edges(mesh, L["beta"])
     verts, most = _frame_major(L["models"], L["fits"], V, L["op"], residual=True, edges=ends)
     built = []  # pairs whose rows _pair_rows built
-    rows = deform_module._pair_rows
-    monkeypatch.setattr(deform_module, "_pair_rows",
+    rows = widening_module._pair_rows  # where the widening looks it up
+    monkeypatch.setattr(widening_module, "_pair_rows",
                         lambda *a, **k: built.append(len(a[3])) or rows(*a, **k))  # fmt: skip
     kw = {"max_stretch": stretch, "steps": 100, "residual": True, "measured": (watch, most)}
     want_verts = verts.copy()
@@ -101,7 +96,7 @@ def test_frame_coefficients_are_one_c_contiguous_array(limb):
     n = len(m.members)
     assert K == L["op"].offsets[-1] and 14 + n == L["op"].offsets[1]
     assert C[:3].tobytes() == np.ascontiguousarray(f.R.transpose(2, 0, 1)).tobytes()
-    kernel = deform_module._products(f.W, f.R.transpose(0, 2, 1)).transpose(1, 0, 2)
+    kernel = blend_module._products(f.W, f.R.transpose(0, 2, 1)).transpose(1, 0, 2)
     assert C[14 : 14 + n].tobytes() == np.ascontiguousarray(kernel).tobytes()
     np.testing.assert_allclose(C[14 : 14 + n], np.einsum("fnk,fjk->nfj", f.W, f.R),
                                rtol=0, atol=1e-15)  # fmt: skip

@@ -1,0 +1,596 @@
+"""Blend widening: the weights ``β`` of P&H Eq. 9 diffused where a blend tears the mesh.
+
+Beyond Park & Hodgins 2006 (§5.3), used by the stage
+:func:`mocapflow.stages.skin.deform.deform` (``max_blend_stretch``,
+``blend_widening_reach``; ``max_blend_stretch=None``: the paper) after its evaluation
+pass (:mod:`mocapflow.stages.skin.blend`): :func:`_widen_blends` checks the triangles
+whose corners blend differently (:func:`_blending_edges`; their edges' largest lengths
+over the frames, :func:`_longest_edges`), diffuses ``β`` where one stretches an edge
+beyond ``max_blend_stretch`` and moves those vertices again with every part they now
+follow; :func:`widening_steps` turns ``blend_widening_reach`` into a number of diffusion
+steps; :class:`_Rows` is the vertex-major store of the predictions and positions it
+combines.  The stage's docstring lists the other departures from the paper; this one,
+with its measurements:
+
+**Blends widened where they tear** (``max_blend_stretch`` 2.5; ``None`` = the
+paper), ``blend_widening_reach`` 0.45 m: two parts' models
+disagree at a vertex between them (a part's rigid transform is a compromise
+away from its markers; on the demo's segmentation the rigid predictions of
+neighbouring parts differ by 48 mm at the median blend vertex and by up to
+23 cm at the right shoulder, where one part holds the whole arm), and a
+sharpened ``β`` moves from one to the other within a mesh edge or two: the
+demo's quick body (5,001 vertices, 120 frames) had 238 triangles with an
+edge stretched more than 3× in ``rigid`` mode and 40 in
+``quadratic_residual``, every one where parts blend.  After the per-part
+fits, every triangle whose corners blend differently is checked in every
+frame; while one stretches an edge beyond ``max_blend_stretch``, the ``β``
+of its corners and of their neighbours take a diffusion step over the mesh
+(half their own, half their neighbours' in proportion to ``1 / edge
+length``, so slivers' short edges are pulled together;
+:func:`~mocapflow.stages.skin.binding.blend_smoothing_operator`; more steps
+and rings at once while the torn triangles do not get fewer) and those
+vertices are moved again with every part they now follow
+(:func:`_widen_blends`).  Only the blends that tear are widened; elsewhere
+the sharpened ``β`` stay.  Where widening does not leave fewer torn triangles
+than it found, the paper's ``β`` are kept (a one-line warning): rigid
+skinning of the sparse real captures, whose parts disagree by decimetres,
+tore more after it (graph to ``deform`` on the shared C3Ds, triangles stretched
+beyond 3×, widening against the paper: Qualisys 543 / 661, racing 530 / 1,138,
+pyomeca 2,560 / 854 before this rule, 854 / 854 with it).  On the demo:
+``quadratic_residual`` reweights 630 of 5,001 vertices in 87 steps and no
+edge stretches beyond 2.50×;
+``rigid`` 888 vertices in 31 steps (2.49×).  The widening's reach is a distance
+over the surface (``blend_widening_reach``), not a step count: a step spreads a
+blend about one edge, so the steps needed grow with the square of the mesh's
+resolution (two parts sliding 15 cm apart: 7, 23, 55, 95 steps on 22, 11, 7.3,
+5.5 mm edges).  With the former fixed 100 steps the graph's default 13,000-vertex
+body on the shared captures stopped with triangles still stretched beyond 3×
+(Qualisys 39, racing 503, pyomeca 314; 0 at 2,000 vertices); with a 0.45 m reach
+(963 / 894 / 1,227 steps): 6 / 0 / 0, the 2,000-vertex runs unchanged (a 0.6 m
+reach: 4 / 0 / 0).  The last ones were slivers of the decimated template (rest
+edges of 4-7 mm beside 12-98 mm ones, at the hips); with the template's triangles
+evened out (``template_mesh(relax=5)``) 0 / 0 / 0, in 216 / 303 / 207 steps, and
+none left torn beyond ``max_blend_stretch`` (592 / 1,281 / 637 found).  On the
+simulator's true mesh (table 3, quick; seeds 0 / 1) no triangle stretches beyond 3× (before:
+47 / 46 in quadratic + residual, 153 / 168 in rigid); the mean vertex error
+drops in rigid (7.10 → 6.70 / 7.11 → 6.85 mm) and quadratic (5.38 → 5.16 /
+5.48 → 5.34) and changes by −0.02 / +0.07 mm in quadratic + residual
+(3.68 → 3.66 / 3.65 → 3.72).  Cost: on the throughput body of
+``benchmarks/deform.py --throughput`` (13,000 vertices, 900 frames)
+``quadratic_residual`` reweights 2,619 vertices in 60 steps and runs at about
+670 frames per CPU-second against about 1,100 without widening in the same
+(loaded) run, ``rigid`` (2,709 vertices, 92 steps) at about 820 against 2,900
+(table 4 has both rows; before the widening took the operator's rows with
+``β = 1`` instead of building them again, the frame coefficients were made one
+C-contiguous array and the operator's rows ordered by one stable sort, issue 15:
+about 5 % more CPU time in paired runs, the row without widening unchanged;
+before the frame coefficients were shared by the two
+passes, the widening's predictions written straight into their store, its final
+positions straight into the output and the clamp tested only near its bound,
+issue 15: 620 and 670 in the same session, the rows without widening unchanged;
+before the products were made one CSR kernel call per chunk and the widening's
+predictions and positions sparse products over its stores: 430 / 920 and
+560 / 2,500 in the same runs; before the edges' length bounds, the positions
+computed only where measured and the first check made during the evaluation
+pass: 350 and 270; before the checks were made incremental: 200).  What is left
+is mostly the evaluation pass's one sparse product per chunk (about 0.25 CPU-s
+of the 1.3 here, the rows' terms added in order for the bit-reproducibility
+of :mod:`mocapflow.stages.skin.blend`; per part the rows would be dense blocks of
+1,058,699 entries against 438,209 terms, mostly kernel values that are zero, and a
+fixed-order NumPy sum over them costs 11x the CSR kernel, BLAS 0.8x without the
+bit-reproducibility), its clamp test and the transposition into the output (about
+0.1 each), the widening's predictions over all frames (about 0.2) and its
+measurements (about 0.15), and the set-up (binding, part fits, operator, report: about 0.3).
+Held-out markers (``benchmarks/deform.py`` table 2) are points without
+triangles, so they are not affected; table 3 (the simulator's true mesh)
+measures it.  Not fixed by this: triangles that turn over against the rigid
+mode (see ``tests/stages/skin/test_artifacts.py``; the stage's ``unflip``,
+:func:`~mocapflow.stages.skin.deform.unflip_triangles`, pulls them back).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from mocapflow.stages.motion.datatypes import Mesh
+from mocapflow.stages.skin.binding import blend_smoothing_operator, mesh_edges
+from mocapflow.stages.skin.blend import (
+    _XYZ,
+    VertexOperator,
+    _clamp_weighted,
+    _pair_rows,
+    _sparse_product,
+    _stacked_rows,
+    csr_matvecs,
+    frame_coefficients,
+)
+from mocapflow.stages.skin.parts import PartFit, PartModel
+
+__all__ = ["widening_steps"]
+
+
+def _blending(beta: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Whether the corners of triangles ``faces (T, 3)`` blend differently (``β (V, P)``)."""
+    b = beta[faces]  # (T, 3, P)
+    return ((b[:, 0] != b[:, 1]) | (b[:, 0] != b[:, 2])).any(1)
+
+
+def _blending_edges(mesh: Mesh, beta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The edges (:func:`~mocapflow.stages.skin.binding.mesh_edges`, ascending) of the
+    triangles of ``mesh`` whose corners blend differently with weights ``β (V, P)``:
+    their indices ``(E,)`` and ends ``(E, 2)``."""
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    ends, face_edge, _ = mesh_edges(faces, len(mesh.vertices))
+    watch = np.unique(face_edge[_blending(beta, faces)])
+    return watch, ends[watch]
+
+
+#: Most diffusion steps of :func:`_widen_blends` between two checks of the stretch: one
+#: while the torn triangles get fewer, twice as many each time they do not.
+_MOST_STEPS_PER_CHECK = 8
+
+
+#: Edge-frames (stretch checks) or vertex-frames (moved vertices) per slice of
+#: :func:`_widen_blends`: work arrays of a few MB.
+_EDGE_FRAMES_PER_SLICE = 100_000
+
+
+#: Relative margin of :func:`_widen_blends`' length bounds over the round-off of the lengths
+#: they bound (~1e-16): a bound within it of ``max_blend_stretch`` is measured instead.
+_BOUND_MARGIN = 1e-9
+
+
+#: Absolute slack (m) of :func:`_widen_blends`' bound on how far a vertex moved, over the
+#: round-off of positions (~1e-16 m at a few metres from the origin).
+_MOVE_ROUND_OFF = 1e-12
+
+
+def _squared_lengths(d: np.ndarray) -> np.ndarray:
+    """``|d|²`` of vectors ``d (..., 3)``, its three terms added in a fixed order."""
+    out = d[..., 0] * d[..., 0]
+    out += d[..., 1] * d[..., 1]
+    out += d[..., 2] * d[..., 2]
+    return out
+
+
+def _longest_edges(verts: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """The largest squared length over the frames of ``edges (E, 2)`` of ``verts (F, V, 3)``."""
+    most = np.zeros(len(edges))
+    n = max(1, _EDGE_FRAMES_PER_SLICE // max(1, len(edges)))  # frames per slice
+    for f0 in range(0, verts.shape[0], n):
+        d = verts[f0 : f0 + n, edges[:, 1]] - verts[f0 : f0 + n, edges[:, 0]]
+        np.maximum(most, _squared_lengths(d).max(0), out=most)
+    return most
+
+
+def widening_steps(mesh: Mesh, reach: float) -> int:
+    """Most diffusion steps of :func:`_widen_blends` for a blend to spread ``reach`` metres.
+
+    A step of :func:`~mocapflow.stages.skin.binding.blend_smoothing_operator` spreads a
+    blend about one edge, a random walk: ``k`` steps reach about ``sqrt(k)`` edges, so
+    ``ceil((reach / e)**2)`` with ``e`` the mean rest length of ``mesh``'s triangle edges.
+    """
+    f = np.asarray(mesh.faces, dtype=np.int64)
+    if not len(f) or reach <= 0:
+        return 0
+    v = mesh.vertices
+    e = float(np.mean([np.linalg.norm(v[f[:, (k + 1) % 3]] - v[f[:, k]], axis=1).mean()
+                       for k in range(3)]))
+    return int(np.ceil((reach / e) ** 2)) if e > 0 else 0
+
+
+def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta: np.ndarray,
+                  verts: np.ndarray, *, max_stretch: float, steps: int, residual: bool,
+                  measured: tuple[np.ndarray, np.ndarray] | None = None,
+                  coefficients: np.ndarray | None = None,
+                  operator: VertexOperator | None = None,
+                  ) -> tuple[np.ndarray, int, int, int, int]:  # fmt: skip
+    """Widen the blend between parts where it tears the surface (P&H Eq. 9's ``β``).
+
+    Where two parts' models disagree at a vertex by ``D`` and ``β`` changes by
+    ``Δβ`` along an edge of rest length ``e``, the edge stretches by about
+    ``1 + D Δβ / e``.  While a triangle whose corners blend differently stretches
+    an edge beyond ``max_stretch`` in some frame, the weights of its corners and of
+    the vertices within ``k`` rings take ``k`` diffusion steps over the mesh
+    (:func:`~mocapflow.stages.skin.binding.blend_smoothing_operator`; ``k`` is 1,
+    doubled up to ``_MOST_STEPS_PER_CHECK`` while the torn triangles do not get fewer)
+    and those vertices are moved again with every part they now follow (P&H
+    Eq. 8–9; each vertex-part prediction is computed once), up to ``steps`` steps
+    in all.  Vertices away from a tear keep their weights.
+
+    The stretch is kept per mesh edge (each checked once for its two triangles), with
+    bounds of its largest length over the frames: the length when last measured plus
+    (upper) or less (lower) how far each end can have moved since (a vertex whose
+    weights change by ``Δβ`` moves by at most ``Σ_p |Δβ_p| max_f |prediction_p -
+    prediction_first|``, the weights summing to 1).  An edge is measured again (on every
+    frame) only where a triangle starts to blend or a moved end's edge has bounds on
+    both sides of ``max_stretch`` (within ``_BOUND_MARGIN``): the same decisions as
+    measuring every such edge.  A vertex's position ``Σ_p β_p prediction_p`` is computed
+    only when one of its edges is measured, and at the end (the same bits whenever it is
+    computed).
+
+    Where the widening does not leave fewer torn triangles than it found (parts
+    whose models disagree widely, as rigid skinning of a sparse real capture),
+    nothing changes: ``β`` and ``verts`` stay as they were.  Otherwise ``verts
+    (F, V, 3)`` is updated in place.  Returns the ``β (V, P)`` kept, the steps
+    taken, the number of vertices whose weights were diffused (0 when nothing
+    changed), and the torn triangles before and after.  ``measured``: the edges of the
+    triangles that blend (:func:`_blending_edges`) and their largest squared lengths over
+    ``verts``' frames, when already measured
+    (:func:`~mocapflow.stages.skin.deform._deform_frames`); ``coefficients``: the models'
+    :func:`~mocapflow.stages.skin.blend.frame_coefficients` when already computed;
+    ``operator``: the :func:`~mocapflow.stages.skin.blend.vertex_operator` of ``beta``
+    (from the rest vertices), whose rows with ``β = 1`` are reused for the pairs it holds
+    (the same rows as built again).
+    """
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    rest = mesh.vertices
+    beta = beta.copy()
+    V, T, P = len(rest), len(faces), beta.shape[1]
+    F = verts.shape[0]
+    rest_edges = np.stack([np.linalg.norm(rest[faces[:, (k + 1) % 3]] - rest[faces[:, k]], axis=1)
+                           for k in range(3)], 1)  # fmt: skip
+    rest_edges = np.maximum(rest_edges, 1e-12)
+    ends, face_edge, first = mesh_edges(faces, V)
+    E = len(ends)
+    limit = (max_stretch * rest_edges.ravel()[first]) ** 2  # (E,) longest squared length
+    incidence = sp.csr_matrix((np.ones(3 * T), (faces.ravel(), np.repeat(np.arange(T), 3))),
+                              shape=(V, T))  # fmt: skip
+    vertex_edges = sp.csr_matrix((np.ones(2 * E), (ends.ravel(), np.repeat(np.arange(E), 2))),
+                                 shape=(V, E))  # fmt: skip
+    smooth = blend_smoothing_operator(rest, faces)
+    ring = (smooth != 0).astype(np.int8).tocsr()
+    # vertex-major stores (rows of F x 3), filled on first use: positions of the vertices
+    # whose edges are measured, and each vertex-part prediction with how far it lies from
+    # the vertex's first prediction (largest over the frames)
+    row = np.full(V, -1, np.int64)
+    pos = _Rows(F)
+    slot = np.full((V, P), -1, np.int64)
+    pred = _Rows(F)
+    spread = np.zeros(0)
+    first = np.full(V, -1, np.int64)  # slot of each vertex's first prediction
+    stale = np.zeros(V, bool)  # weights changed since its row of pos was last computed
+
+    def with_rows(v: np.ndarray) -> None:
+        """Give vertices ``v`` (any order, repeats) a row of ``pos``; a stale vertex's
+        position is then computed from its predictions."""
+        new = np.zeros(V, bool)
+        new[v[row[v] < 0]] = True
+        fresh = np.flatnonzero(new & ~stale)  # still at their first-pass positions
+        if len(fresh):
+            row[fresh] = pos.append(None, n_rows=len(fresh))
+            for lo, hi, into in pos.segments(row[fresh]):  # (F, k) -> (k, F), 32 frames a time
+                into = into.reshape(hi - lo, F, 3).view(_XYZ)[..., 0]
+                for f in range(0, F, 32):
+                    into[:, f : f + 32] = verts[f : f + 32].view(_XYZ)[:, fresh[lo:hi], 0].T
+        new = np.flatnonzero(new & stale)  # placed below, straight into their new rows
+        if len(new):
+            row[new] = pos.append(None, n_rows=len(new))
+            place(new)
+        place(np.flatnonzero(np.isin(np.arange(V), v) & stale) if len(v) else v)
+
+    # every part's frame_coefficients (K, 3F), whether its model has non-rigid terms
+    # (deform_positions adds them then) and its clamp (bound per frame, margin)
+    C = (frame_coefficients(models, fits, residual=residual) if coefficients is None
+         else coefficients).reshape(-1, 3 * F)  # fmt: skip
+    offsets = np.cumsum([0, *[14 + (len(m.members) if residual else 0) for m in models]])
+    nonrigid = np.array([bool(C[o + 4 : z].any()) for o, z in zip(offsets, offsets[1:])], bool)
+    clamped = np.array([m.clamp_margin is not None for m in models], bool)
+    margins = np.array([m.clamp_margin or 0.0 for m in models])
+    deviation = np.stack([f.marker_deviation if c else np.zeros(F)
+                          for f, c in zip(fits, clamped)]) if P else np.zeros((0, F))  # fmt: skip
+    deviation_squared = np.square(deviation)
+    n_rows = max(1, _EDGE_FRAMES_PER_SLICE // max(1, F))  # rows per product: a few MB
+    scratch = np.empty((2, n_rows, 3 * F))  # results of those products, reused
+
+    # the first pass's rows with β = 1 (an operator pair per vertex and part, -1: none)
+    unit = None if operator is None else operator.unit
+    if unit is not None:
+        pair_at = np.full((V, P), -1, np.int64)
+        for lv, at in operator.layers:
+            pair_at[lv, operator.pair_part[at : at + len(lv)]] = np.arange(at, at + len(lv))
+
+    def pair_rows(v: np.ndarray, p: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+        """:func:`~mocapflow.stages.skin.blend._pair_rows` of pairs ``(v, p)`` with ``β = 1``,
+        the operator's where it has them."""
+        if unit is None:
+            return _pair_rows(models, offsets, rest, v, p, residual=residual)
+        at = pair_at[v, p]
+        have = np.flatnonzero(at >= 0)
+        if len(have) == len(v):
+            return unit[0][at], unit[1][at]
+        new = np.flatnonzero(at < 0)
+        built = _pair_rows(models, offsets, rest, v[new], p[new], residual=residual)
+        back = np.argsort(np.concatenate([have, new]))  # each pair's row, in (v, p) order
+        return tuple(_stacked_rows(M[at[have]], B)[back] for M, B in zip(unit, built))
+
+    def predict(v: np.ndarray, p: np.ndarray) -> None:
+        """Give pairs ``(v, p)`` a row of ``pred``: part ``p``'s model alone at vertex ``v``
+        (β = 1), by the row-by-row products of
+        :func:`~mocapflow.stages.skin.blend.deform_positions` (the rigid rows straight into
+        the store, the clamped non-rigid ones added)."""
+        nonlocal spread
+        key = np.unique(v[slot[v, p] < 0] * P + p[slot[v, p] < 0])
+        v, p = key // P, key % P
+        if not len(key):
+            return
+        new = pred.append(None, n_rows=len(key))
+        slot[v, p] = new
+        rigid, nonrigid_rows = pair_rows(v, p)
+        u, at = np.unique(v, return_index=True)  # a vertex's first new pair comes first
+        first[u[first[u] < 0]] = new[at[first[u] < 0]]
+        far = np.empty(len(new))
+        for lo, hi, into in pred.segments(new):  # (hi - lo, 3F) views of the store
+            for c in range(lo, hi, n_rows):  # rows c..z-1, straight into the store
+                z = min(hi, c + n_rows)
+                rows = into[c - lo : z - lo]
+                _sparse_product(_row_block(rigid, c, z), C, rows)
+                bent = np.flatnonzero(nonrigid[p[c:z]])  # pairs whose part has non-rigid terms
+                if len(bent):
+                    U = scratch[1][: len(bent)]
+                    every = len(bent) == z - c
+                    _sparse_product(_row_block(nonrigid_rows, c, z) if every else
+                                    nonrigid_rows[c + bent], C, U)  # fmt: skip
+                    cl = np.flatnonzero(clamped[p[c + bent]])
+                    if len(cl):
+                        Uc = U if len(cl) == len(bent) else U[cl]
+                        one = np.ones(len(cl))
+                        _clamp_weighted(Uc, one, p[c + bent[cl]], deviation,
+                                        margins[p[c + bent[cl]]], beta_squared=one,
+                                        deviation_squared=deviation_squared,
+                                        work=scratch[0][: len(cl)])  # fmt: skip
+                        if len(cl) < len(bent):
+                            U[cl] = Uc
+                    if every:
+                        rows += U  # rigid + non-rigid
+                    else:
+                        rows[bent] += U
+                # how far each prediction lies from its vertex's first (computed by now;
+                # 0 for the first itself)
+                other = np.flatnonzero(first[v[c:z]] != new[c:z])
+                far[c:z] = 0.0
+                if len(other):
+                    d = _row_differences(first[v[c + other]], new[c + other], pred, scratch[0])
+                    far[c + other] = np.sqrt(_squared_lengths(d).max(1))
+        spread = np.concatenate([spread, far])
+
+    def place(R: np.ndarray, *, final: bool = False) -> None:
+        """Rows of ``pos`` for vertices ``R`` (ascending, with rows): ``Σ_p β_p prediction_p``,
+        parts in ascending order (:meth:`_Rows.combine`); ``final``: into ``verts`` instead
+        (``R`` need no rows)."""
+        b = beta[R]
+        for c in range(0, len(R), n_rows):
+            i, p = np.nonzero(b[c : c + n_rows] > 0)  # each vertex's parts, ascending
+            layer = np.arange(len(i)) - np.searchsorted(i, i)  # k-th part of its vertex
+            index = np.full((min(n_rows, len(R) - c), P), -1, np.int64)
+            weights = np.zeros(index.shape)
+            index[i, layer], weights[i, layer] = slot[R[c + i], p], b[c + i, p]
+            L = int(layer.max(initial=-1)) + 1
+            if final:  # (k, F) -> (F, k), moving whole xyz triplets (24 bytes) at a time
+                moved = scratch[0][: len(index)]
+                pred.combine(index[:, :L], weights[:, :L], moved)
+                verts.view(_XYZ)[:, R[c : c + n_rows], 0] = moved.view(_XYZ).T
+                continue
+            rows = row[R[c : c + n_rows]]
+            if np.all(np.diff(rows) == 1):  # consecutive rows: straight into the store
+                for lo, hi, into in pos.segments(rows):
+                    pred.combine(index[lo:hi, :L], weights[lo:hi, :L], into)
+                continue
+            moved = scratch[0][: len(index)]
+            pred.combine(index[:, :L], weights[:, :L], moved)
+            pos.put(rows, moved)
+        stale[R] = False
+
+    def blending(t: np.ndarray) -> np.ndarray:
+        """Whether the corners of triangles ``t`` blend differently."""
+        return _blending(beta, faces[t])
+
+    def longest(e: np.ndarray) -> np.ndarray:
+        """The largest squared length of edges ``e`` over the frames (current positions)."""
+        with_rows(ends[e].ravel())
+        out = np.empty(len(e))
+        for i in range(0, len(e), n_rows):
+            a, b = row[ends[e[i : i + n_rows]].T]
+            d = _row_differences(a, b, pos, scratch[0])
+            out[i : i + n_rows] = _squared_lengths(d).max(1)
+        return out
+
+    # only triangles whose corners blend differently can tear: start from their edges,
+    # checked on the frame-major vertices (a vertex-major row only for those near a tear)
+    blended = blending(np.arange(T))
+    over = np.zeros(E, bool)  # stretched beyond max_stretch in some frame
+    known = np.zeros(E, bool)  # `over` holds for the current positions
+    # an upper bound of each edge's longest length over the frames: its length when last
+    # measured plus how far each end can have moved since (triangle inequality); an edge
+    # whose bound stays below max_stretch cannot be over it, so it is not measured again
+    upper = np.full(E, np.inf)
+    reach = np.sqrt(limit) / (1.0 + _BOUND_MARGIN)
+    # and a lower bound (the length when last measured less how far the ends moved): an
+    # edge whose lower bound stays beyond max_stretch is still over it
+    lower = np.zeros(E)
+    beyond = np.sqrt(limit) * (1.0 + _BOUND_MARGIN)
+    check = np.zeros(E, bool)
+    check[face_edge[blended]] = True
+    check = np.flatnonzero(check)
+    if measured is not None and np.array_equal(measured[0], check):
+        most = measured[1]
+    else:
+        most = _longest_edges(verts, ends[check])
+    over[check], known[check], upper[check] = most > limit[check], True, np.sqrt(most)
+    lower[check] = upper[check]
+    sides = [np.ascontiguousarray(face_edge[:, k]) for k in range(3)]
+
+    def torn() -> np.ndarray:
+        """The triangles that blend with an edge stretched beyond ``max_stretch``."""
+        return np.flatnonzero(blended & (over[sides[0]] | over[sides[1]] | over[sides[2]]))
+
+    bad = torn()
+    torn_before = len(bad)
+    beta_in = beta.copy()
+    changed = np.zeros(V, bool)  # weights diffused; the position is then Σ β_p prediction_p
+    taken, k, before = 0, 1, len(bad) + 1
+    while len(bad) and taken < steps:
+        if len(bad) >= before:  # no progress: diffuse farther before the next check
+            k = min(2 * k, _MOST_STEPS_PER_CHECK)
+        before = len(bad)
+        k = min(k, steps - taken)
+        taken += k
+        S = np.unique(faces[bad])
+        for _ in range(k):  # the torn triangles' corners and k rings around them
+            S = _columns(ring, S)
+        sub = smooth[S]
+        prior = beta[S]
+        for _ in range(k):
+            beta[S] = np.asarray(sub @ beta)
+        b = beta[S]
+        b[b < 1e-3] = 0.0
+        b /= b.sum(1, keepdims=True)
+        beta[S] = b
+        # a vertex moved before with the same weights would be moved to the same place
+        redo = ~changed[S] | (b != prior).any(1)
+        changed[S] = True
+        R, b, prior = S[redo], b[redo], prior[redo]
+        i, p = np.nonzero((b > 0) | (prior > 0))  # the parts it follows and followed
+        predict(R[i], p)
+        stale[R] = True  # placed when one of its edges is measured, or at the end
+        # how far each vertex can have moved: Σ_p |Δβ_p| |prediction_p - first prediction|
+        # (the weights sum to 1 before and after, so Σ_p Δβ_p c = 0 for any c; round-off
+        # of the sums and of the first-pass positions well inside _MOVE_ROUND_OFF)
+        moves = np.zeros(V)
+        moves[R] = np.bincount(i, np.abs(b[i, p] - prior[i, p]) * spread[slot[R[i], p]],
+                               minlength=len(R)) + _MOVE_ROUND_OFF  # fmt: skip
+        # triangles may start or stop blending where weights changed; the edges of a vertex
+        # that moved are checked again when their triangle blends and the bound of their
+        # length reaches max_stretch
+        t = _columns(incidence, S)
+        blended[t] = blending(t)
+        e = _columns(vertex_edges, R)
+        upper[e] += moves[ends[e, 0]] + moves[ends[e, 1]]
+        lower[e] -= moves[ends[e, 0]] + moves[ends[e, 1]]
+        under, still = upper[e] < reach[e], lower[e] > beyond[e]
+        known[e], over[e] = under | still, still
+        check = np.zeros(E, bool)
+        check[face_edge[blended]] = True
+        check = np.flatnonzero(check & ~known)
+        most = longest(check)
+        over[check], known[check], upper[check] = most > limit[check], True, np.sqrt(most)
+        lower[check] = upper[check]
+        bad = torn()
+    if len(bad) >= torn_before:  # no better: the weights as they were
+        return beta_in, taken, 0, torn_before, len(bad)
+    done = np.flatnonzero(changed)
+    kept = done[(row[done] >= 0) & ~stale[done]]  # their rows of pos hold their positions
+    for c in range(0, len(kept), 256):  # (k, F) -> (F, k), whole xyz triplets at a time
+        rows = pos.take(row[kept[c : c + 256]])
+        verts.view(_XYZ)[:, kept[c : c + 256], 0] = rows.view(_XYZ)[..., 0].T
+    place(done[(row[done] < 0) | stale[done]], final=True)  # the others, straight into verts
+    return beta, taken, len(done), torn_before, len(bad)
+
+
+def _columns(A: sp.csr_matrix, rows: np.ndarray) -> np.ndarray:
+    """The columns (ascending, each once) with an entry in any of ``rows (k,)`` of ``A``
+    (``np.unique(A[rows].indices)`` without building ``A[rows]``)."""
+    lo, n = A.indptr[rows], np.diff(A.indptr)[rows]
+    at = np.arange(int(n.sum())) + np.repeat(lo - (np.cumsum(n) - n), n)
+    hit = np.zeros(A.shape[1], bool)
+    hit[A.indices[at]] = True
+    return np.flatnonzero(hit)
+
+
+def _row_block(A: sp.csr_matrix, a: int, b: int) -> sp.csr_matrix:
+    """Rows ``a..b-1`` of ``A`` (its arrays' slices, each row's terms in their order)."""
+    lo, hi = A.indptr[a], A.indptr[b]
+    return sp.csr_matrix((A.data[lo:hi], A.indices[lo:hi], A.indptr[a : b + 1] - lo),
+                         shape=(b - a, A.shape[1]))  # fmt: skip
+
+
+def _row_differences(a: np.ndarray, b: np.ndarray, store: _Rows,
+                     work: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+    """``store`` rows ``b`` minus rows ``a`` (``(k,)`` each) as ``(k, F, 3)``, by
+    :meth:`_Rows.combine` (``0 - a + b``: the bits of the subtraction); in the first
+    ``k`` rows of ``work (n >= k, 3 F)`` when given."""
+    out = np.empty((len(a), 3 * store.shape[0])) if work is None else work[: len(a)]
+    store.combine(np.stack([a, b], 1), np.tile([-1.0, 1.0], (len(a), 1)), out)
+    return out.reshape(len(a), *store.shape)
+
+
+class _Rows:
+    """A growing store of ``(F, 3)`` rows in blocks, each twice the size of the one before
+    (nothing is copied when it grows; a block's unused rows are never touched)."""
+
+    def __init__(self, n_frames: int, first_block: int = 256):
+        self.blocks: list[np.ndarray] = []
+        self.starts = [0]  # first row of each block, then the capacity
+        self.shape = (n_frames, 3)
+        self.first_block = first_block
+        self.n = 0
+
+    def append(self, rows: np.ndarray | None, *, frame_major: bool = True,
+               n_rows: int = 0) -> np.ndarray:  # fmt: skip
+        """Store ``rows (F, k, 3)`` (frame-major, as
+        :func:`~mocapflow.stages.skin.blend.deform_positions` returns them)
+        or ``(k, F, 3)`` (``frame_major`` false), or reserve ``n_rows`` rows (``rows``
+        None, contents undefined until :meth:`put`); returns their indices ``(k,)``."""
+        k = n_rows if rows is None else rows.shape[1 if frame_major else 0]
+        while self.n + k > self.starts[-1]:
+            size = 2 * len(self.blocks[-1]) if self.blocks else self.first_block
+            self.blocks.append(np.empty((size, *self.shape)))
+            self.starts.append(self.starts[-1] + size)
+        for b, block in enumerate(self.blocks):  # the blocks the new rows fall in
+            a, z = max(self.n, self.starts[b]), min(self.n + k, self.starts[b + 1])
+            if a >= z or rows is None:
+                continue
+            if not frame_major:
+                block[a - self.starts[b] : z - self.starts[b]] = rows[a - self.n : z - self.n]
+            else:  # (F, k) -> (k, F), moving whole xyz triplets (24 bytes) at a time
+                into = block[a - self.starts[b] : z - self.starts[b]]
+                into.view(_XYZ)[..., 0] = rows[:, a - self.n : z - self.n].view(_XYZ)[..., 0].T
+        self.n += k
+        return np.arange(self.n - k, self.n)
+
+    def put(self, index: np.ndarray, values: np.ndarray) -> None:
+        """Overwrite rows ``index (n,)`` with ``values (n, F, 3)`` (or ``(n, 3 F)``)."""
+        values = values.reshape(len(index), *self.shape)
+        block = np.searchsorted(self.starts, index, side="right") - 1
+        if len(index) and block.min() == block.max():  # one block (the usual case)
+            self.blocks[block[0]][index - self.starts[block[0]]] = values
+            return
+        for b in np.unique(block):
+            sel = block == b
+            self.blocks[b][index[sel] - self.starts[b]] = values[sel]
+
+    def take(self, index: np.ndarray) -> np.ndarray:
+        """Rows ``index (n,)`` as an ``(n, F, 3)`` array."""
+        block = np.searchsorted(self.starts, index, side="right") - 1
+        if len(index) and block.min() == block.max():  # one block (the usual case): one copy
+            return self.blocks[block[0]][index - self.starts[block[0]]]
+        out = np.empty((len(index), *self.shape))
+        for b in np.unique(block):
+            sel = block == b
+            out[sel] = self.blocks[b][index[sel] - self.starts[b]]
+        return out
+
+    def segments(self, index: np.ndarray):
+        """The consecutive rows ``index (k,)`` (as :meth:`append` returns them) block by
+        block: yields ``(a, b, rows)``, ``rows`` the ``(b - a, 3 F)`` view of ``index[a:b]``."""
+        lo, hi = int(index[0]), int(index[-1]) + 1
+        for b, block in enumerate(self.blocks):
+            a, z = max(lo, self.starts[b]), min(hi, self.starts[b + 1])
+            if a < z:
+                view = block[a - self.starts[b] : z - self.starts[b]]
+                yield a - lo, z - lo, view.reshape(z - a, -1)
+
+    def combine(self, index: np.ndarray, weights: np.ndarray, out: np.ndarray) -> None:
+        """``out (k, 3 F)`` = ``Σ_l weights[:, l] × row index[:, l]`` (``(k, L)`` each; index
+        -1: no term), the terms added in ``l`` order: one sparse product per term and block,
+        each adding to ``out`` (``0 + w_0 x_0 + w_1 x_1 ...``, the bits of the plain sum)."""
+        out.fill(0.0)
+        block = np.searchsorted(self.starts, index, side="right") - 1
+        for j in range(index.shape[1]):
+            for b in np.unique(block[index[:, j] >= 0, j]):
+                has = (index[:, j] >= 0) & (block[:, j] == b)
+                csr_matvecs(len(out), len(self.blocks[b]), out.shape[1],
+                            np.concatenate([[0], np.cumsum(has)]),
+                            index[has, j] - self.starts[b], weights[has, j],
+                            self.blocks[b].ravel(), out.ravel())  # fmt: skip
