@@ -33,9 +33,9 @@ the paper lives in one function (modules of this package):
   continuity across a break or short     merge.continue_breaks (carried by the
   gap (beyond the paper)                 neighbours' rigid motion: merge._carry;
                                          longest gap: merge.bridge_frames)
-  fragments left, against the final      merge.assign_fragments (exact gaps:
-  filling, jointly (beyond the paper)    merge._exact_gap_jumps; one assignment per
-                                         frame window: merge._decide); rounds:
+  fragments left, against the final      assign.assign_fragments (exact gaps:
+  filling, jointly (beyond the paper)    assign._exact_gap_jumps; one assignment per
+                                         frame window: assign._decide); rounds:
                                          clean._fill_merge_rounds
 §4.3 hole filling (dispatcher)           fill.fill_holes
   local PCA of marker + one-ring,        local_pca.train_local_pca
@@ -88,7 +88,7 @@ Departures from the paper (each module docstring says why, with measurements):
   ``pca_merge_rounds``), then against the final filling, jointly: a fragment
   that continues an exact gap, else one assignment problem per frame window
   (linear_sum_assignment, ε₁ the cost cap, refused within
-  merge.ASSIGNMENT_RATIO; param ``fill_merge_rounds``; the paper merged the
+  assign.ASSIGNMENT_RATIO; param ``fill_merge_rounds``; the paper merged the
   rest by hand);
 * hole filling: the default is a wider regression (``fill_model="regression"``:
   fill.fill_by_regression, regress.regression_estimates), the paper's local PCA

@@ -69,12 +69,12 @@ captures with ground truth, see ``benchmarks/clean.py``):
 * fragments still unmerged after that (the paper merged them by hand) are judged
   against the final hole filling with the same ``ε₁`` / ``ε₂`` tests, in rounds
   until nothing merges (``fill_merge_rounds``; :func:`_fill_merge_rounds`,
-  :func:`mocapflow.stages.skin.merge.assign_fragments`): a fragment that fills a
+  :func:`mocapflow.stages.skin.assign.assign_fragments`): a fragment that fills a
   marker's gap exactly and continues its trajectory at the gap ends merges; the
   others are resolved jointly, one assignment problem per frame window of
   overlapping fragments (``scipy.optimize.linear_sum_assignment``, ``ε₁`` the
   cost cap), refused only when a labelling within
-  :data:`~mocapflow.stages.skin.merge.ASSIGNMENT_RATIO` remains.  On the
+  :data:`~mocapflow.stages.skin.assign.ASSIGNMENT_RATIO` remains.  On the
   simulated 900-frame dynamic capture (seed 0) the merged share of the real
   fragments' samples goes from 76 % to 99.9 %, no wrong merge;
 * fragments left after that get a marker proposed by the markers' layout and are
@@ -120,6 +120,7 @@ from mocapflow.pipeline import Context, FilePath, stage
 from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
 from mocapflow.stages.motion.contacts import true_runs
 from mocapflow.stages.motion.datatypes import Markers
+from mocapflow.stages.skin.assign import assign_fragments
 from mocapflow.stages.skin.fill import fill_holes
 from mocapflow.stages.skin.labelling import (
     LabellingError,
@@ -132,7 +133,6 @@ from mocapflow.stages.skin.labelling import (
 from mocapflow.stages.skin.merge import (
     ASSIGN_MIN_FRAMES,
     BREAK_JUMP,
-    assign_fragments,
     merge_fragments,
 )
 from mocapflow.stages.skin.predict import (
@@ -533,7 +533,7 @@ def _fill_merge_rounds(
     Up to ``rounds`` rounds, each filling the merged data as step 3 does
     (``fill_model``, in the frames where fragments wait) and merging the
     fragments against it jointly
-    (:func:`~mocapflow.stages.skin.merge.assign_fragments`: the ε₁ / ε₂ tests,
+    (:func:`~mocapflow.stages.skin.assign.assign_fragments`: the ε₁ / ε₂ tests,
     exact gaps, one assignment problem per frame window), until a round merges
     nothing.  ``assigned`` and ``mrep`` are updated in place.  Returns the
     merged positions ``(F, M, 3)``.
@@ -840,7 +840,7 @@ def clean(
     fill_merge_rounds : int
         Rounds judging the fragments still left against the final hole filling
         (``fill_model``), jointly: exact gaps, then one assignment problem per
-        frame window (:func:`~mocapflow.stages.skin.merge.assign_fragments`);
+        frame window (:func:`~mocapflow.stages.skin.assign.assign_fragments`);
         until a round merges nothing (0: off, the default; none without ``fill``).
         5 (``--set clean.fill_merge_rounds=5``): on simulated dynamic and walk
         captures it keeps 99-100 % of real samples with no wrong merge, but on a

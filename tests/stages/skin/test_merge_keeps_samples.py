@@ -3,7 +3,7 @@
 On a simulated 120-marker, 300-frame dynamic capture (3 ghosts, 243 real fragments)
 the §4.2 rounds alone (``fill_merge_rounds=0``, the behaviour before this pass) merge
 fragments holding 72.4 % of the real fragments' samples; with the rounds against the
-final hole filling (:func:`mocapflow.stages.skin.merge.assign_fragments`) 99.25 %,
+final hole filling (:func:`mocapflow.stages.skin.assign.assign_fragments`) 99.25 %,
 without a wrong merge and without merging a ghost.
 
 Fragments that continue a marker across a break or a gap of a few frames
