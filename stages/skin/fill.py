@@ -617,8 +617,11 @@ def fill_by_validated_blend(
     error taken as at least :data:`RIGID_DISAGREEMENT_SHARE` of how far its
     carries from before and after the gap disagree (the marker moving against
     its donors there, which the copies need not see), a model whose estimate
-    repeats an earlier one's counted once (:func:`_repeated_estimates`); a run
-    with no copy scored keeps the local fill.
+    repeats an earlier one's counted once (:func:`_repeated_estimates`), and a
+    model whose estimate of the run lies far beyond its and the others' validated errors
+    from the others' blend left out of it (:func:`_outlying_estimates`: what the marker
+    does inside its own gap, which no copy sees); a run with no copy scored keeps the
+    local fill.
 
     Parameters
     ----------
@@ -662,6 +665,7 @@ def fill_by_validated_blend(
     _floor_rigid_errors(mse, disagreement, run)
     wr = _blend_weights(mse)
     wr[_repeated_estimates(est, runs)] = 0.0  # a model given twice weighs once
+    wr[_outlying_estimates(est, runs, mse, wr)] = 0.0  # far from all the others in the gap
     w = np.where(holes[None], wr[:, np.maximum(run, 0)], 0.0)  # (K, F, M)
     have = finite_rows(est) & holes[None]  # (K, F, M)
     wf = np.where(have, w, 0.0)
@@ -698,6 +702,53 @@ def _repeated_estimates(est: np.ndarray, runs: list[tuple[int, int, int]]) -> np
             if fin[k]:
                 out[k, r] = any(fin[j] and np.abs(e[k] - e[j]).max() <= SAME_ESTIMATE_TOLERANCE
                                 for j in range(k))
+    return out
+
+
+#: A blend member whose estimate of a run lies farther from the other members' median
+#: than this many times the validated RMS errors (its own plus the others' median) is
+#: left out of that run (:func:`_outlying_estimates`; at most one member per run).
+OUTLIER_FACTOR = 3.0
+
+
+def _outlying_estimates(est: np.ndarray, runs: list[tuple[int, int, int]], mse: np.ndarray,
+                        weights: np.ndarray) -> np.ndarray:
+    """``(K, R)`` bool: the member of each run (at most one) whose estimate disagrees with
+    the other members far beyond what the validation copies predicted.
+
+    For each run with at least 3 weighted members (``weights (K, R)``, :func:`_blend_weights`
+    with repeats already at 0; ``mse (K, R)``, :func:`_validation_mse`; ``est (K, F, M, 3)``,
+    :func:`_blend_members`): member ``k``'s RMS distance over the run from the others'
+    per-sample median, against :data:`OUTLIER_FACTOR` × (``√mse_k`` + the median of the
+    others' ``√mse``); the member with the largest ratio above 1 is flagged.  The median,
+    unweighted: the others' weighted mean is the outlier itself when it holds the weight,
+    and then every other member looks as far off as it does.
+
+    The copies cannot see what a marker does inside its own gap; the other members'
+    estimates there can.  PiG calibration (100 Hz, 300 frames): LFHD knocked out over
+    frames 184-283 (1 s, the head turning near the take's end): the copies scored the
+    spline lowest (0.56 mm), but in the gap it is 18 mm off where the four spatial members
+    agree within 2 mm (the nearest-donor rigid fill 0.7 mm off): blend 7.7 mm mean, 1.1 mm
+    without the spline.  LPSI knocked out over frames 2-11 (its first frames jump 30 mm):
+    the spline, scored 0.03-0.07 mm on copies later in the take, is 33 mm off, the others
+    5-7 mm: blend 32.8 -> 4.9 mm."""
+    K = est.shape[0]
+    out = np.zeros((K, len(runs)), dtype=bool)
+    for r, (m, a, b) in enumerate(runs):
+        e = est[:, a:b, m]  # (K, L, 3)
+        live = np.flatnonzero(np.isfinite(e).all((1, 2)) & (weights[:, r] > 0)
+                              & np.isfinite(mse[:, r]))  # fmt: skip
+        if len(live) < 3:
+            continue
+        worst, flagged = 1.0, -1
+        for k in live:
+            o = live[live != k]
+            d = np.sqrt(np.mean(np.sum((e[k] - np.median(e[o], axis=0)) ** 2, -1)))
+            scale = OUTLIER_FACTOR * (np.sqrt(mse[k, r]) + np.median(np.sqrt(mse[o, r])))
+            if d > worst * scale:
+                worst, flagged = d / scale, k
+        if flagged >= 0:
+            out[flagged, r] = True
     return out
 
 

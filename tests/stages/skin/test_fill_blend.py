@@ -334,6 +334,71 @@ def test_a_head_turning_in_its_gap_is_not_left_to_the_rigid_body_fills(pig_calib
     assert err.mean() < 0.008, err.mean()
 
 
+def test_a_member_far_from_all_the_others_in_the_gap_is_left_out():
+    """Five members of one 40-frame run: four within 1 mm of the truth, the third (a
+    spline, say) 20 mm off although its validation copies scored it at 0.5 mm like the
+    rest: it is flagged (20 mm > 3 x (0.5 + 0.5) mm from the others' median) and no other
+    member is.  Off by 2 mm it stays (within 3 mm); with only two members left weighted,
+    nothing is flagged; a member already at weight 0 is not compared.  When the far
+    member holds the weight (the LPSI case below), it is still the one flagged: with the
+    others' weighted mean as the reference, the far member is that mean for every other
+    member, which then looks as far off as it (the best-validated other was flagged)."""
+    rng = np.random.default_rng(3)
+    L = 40
+    truth = np.cumsum(rng.normal(0, 0.002, (L, 3)), 0)
+    est = truth[None] + rng.uniform(-0.0005, 0.0005, (5, L, 3))
+    est = est[:, :, None]  # (K, F, M=1, 3)
+    runs = [(0, 0, L)]
+    mse = np.full((5, 1), 0.0005**2)
+    w = np.ones((5, 1))
+    far = est.copy()
+    far[2, :, 0] += [0.02, 0, 0]
+    flagged = fill._outlying_estimates(far, runs, mse, w)
+    np.testing.assert_array_equal(flagged[:, 0], [False, False, True, False, False])
+    near = est.copy()
+    near[2, :, 0] += [0.002, 0, 0]
+    assert not fill._outlying_estimates(near, runs, mse, w).any()
+    two = np.array([[1.0], [0], [1], [0], [0]])
+    assert not fill._outlying_estimates(far, runs, mse, two).any()
+    w0 = w.copy()
+    w0[2] = 0.0
+    assert not fill._outlying_estimates(far, runs, mse, w0).any()
+    # the LPSI case's validated errors (mm): the far member 0.04, the others 0.3-1.2, the
+    # best of them 1 mm off the other way: the others' weighted mean flagged that one
+    mse_lead = (np.array([[1.2], [0.45], [0.04], [0.45], [0.3]]) * 1e-3) ** 2
+    w_lead = fill._blend_weights(mse_lead)
+    assert w_lead[2, 0] > 100 * w_lead[[0, 1, 3, 4], 0].sum()
+    far[4, :, 0] -= [0.001, 0, 0]
+    flagged = fill._outlying_estimates(far, runs, mse_lead, w_lead)
+    np.testing.assert_array_equal(flagged[:, 0], [False, False, True, False, False])
+
+
+@pytest.mark.parametrize("label, frames, before, bound", [
+    ("LFHD", (184, 284), (7.67, 16.5), (2.0, 5.0)),
+    ("RFHD", (184, 284), (5.40, 13.0), (2.0, 5.0)),
+    ("LPSI", (2, 12), (32.8, 54.4), (8.0, 40.0)),
+])  # fmt: skip
+def test_a_member_far_from_the_others_in_a_real_gap_is_left_out(
+        pig_calibration, label, frames, before, bound):  # fmt: skip
+    """Real PiG calibration (100 Hz, 300 frames), one marker knocked out (the gap
+    protocol's masks of seeds 505 and 543 hold these runs).  A forehead marker over frames
+    184-283 (1 s): the head turns there; the copies (at other times, the head still)
+    scored the cubic spline lowest (0.56 mm), but in the gap it is 18 mm off where the four
+    spatial members agree within 2 mm (the nearest-donor rigid fill 0.7 mm).  LPSI over
+    frames 2-11, where its recorded trajectory jumps 30 mm: the spline (0.03-0.07 mm on
+    copies later in the take) is 33 mm off, the others 5-7 mm.  The blend was ``before``
+    (mean, max mm) off; leaving out the member far from the others' median
+    (``fill._outlying_estimates``): LFHD 1.1 / 2.3, RFHD 1.5 / 3.1, LPSI 4.9 / 32 mm."""
+    m = pig_calibration
+    mask = np.zeros(m.visible.shape, bool)
+    mask[frames[0]:frames[1], m.labels.index(label)] = True
+    assert m.visible[mask].all()
+    gapped = np.where(mask[..., None], np.nan, m.positions)
+    est = clean(m.replace(positions=gapped), merge=False, ctx=Context())["markers"].positions
+    err = np.linalg.norm(est - m.positions, axis=-1)[mask] * 1e3
+    assert err.mean() < bound[0] and err.max() < bound[1], (err.mean(), err.max(), before)
+
+
 def test_filled_runs_keep_the_fill(shared_data):
     """Real ``ktk_kinematics_racing_full.c3d`` (46 markers, 70 Hz), two gaps of the gap
     protocol's masks (0.5 s, 1 %, seed 202): ``WheelchairRearL`` frames 104-138 and
