@@ -337,8 +337,8 @@ def test_a_head_turning_in_its_gap_is_not_left_to_the_rigid_body_fills(pig_calib
 def test_a_member_far_from_all_the_others_in_the_gap_is_left_out():
     """Five members of one 40-frame run: four within 1 mm of the truth, the third (a
     spline, say) 20 mm off although its validation copies scored it at 0.5 mm like the
-    rest: it is flagged (20 mm > 3 x (0.5 + 0.5) mm from the others' median) and no other
-    member is.  Off by 2 mm it stays (within 3 mm); with only two members left weighted,
+    rest: it is flagged (20 mm > 5 x (0.5 + 0.5) mm from the others' median) and no other
+    member is.  Off by 4 mm it stays (within 5 mm); with only two members left weighted,
     nothing is flagged; a member already at weight 0 is not compared.  When the far
     member holds the weight (the LPSI case below), it is still the one flagged: with the
     others' weighted mean as the reference, the far member is that mean for every other
@@ -356,7 +356,7 @@ def test_a_member_far_from_all_the_others_in_the_gap_is_left_out():
     flagged = fill._outlying_estimates(far, runs, mse, w)
     np.testing.assert_array_equal(flagged[:, 0], [False, False, True, False, False])
     near = est.copy()
-    near[2, :, 0] += [0.002, 0, 0]
+    near[2, :, 0] += [0.004, 0, 0]
     assert not fill._outlying_estimates(near, runs, mse, w).any()
     two = np.array([[1.0], [0], [1], [0], [0]])
     assert not fill._outlying_estimates(far, runs, mse, two).any()
@@ -397,6 +397,23 @@ def test_a_member_far_from_the_others_in_a_real_gap_is_left_out(
     est = clean(m.replace(positions=gapped), merge=False, ctx=Context())["markers"].positions
     err = np.linalg.norm(est - m.positions, axis=-1)[mask] * 1e3
     assert err.mean() < bound[0] and err.max() < bound[1], (err.mean(), err.max(), before)
+
+
+def test_a_spline_right_where_the_spatial_members_share_an_error_is_kept(pig_calibration):
+    """Real PiG calibration, the whole right arm (RELB, RWRA, RWRB, RFIN) knocked out over
+    frames 239-288 (the gap protocol's 0.5 s / 10 % / clustered mask of seed 555).  The
+    four spatial members lose their donors with the arm and share one error (4-16 mm); the
+    spline is 1-2 mm off and lies 4-5 mm from them.  That is no outlier: with
+    ``OUTLIER_FACTOR`` 3 the spline was dropped for two of the markers (3.3 mm mean); kept,
+    1.4 mm."""
+    m = pig_calibration
+    mask = np.zeros(m.visible.shape, bool)
+    mask[239:289, [m.labels.index(n) for n in ("RELB", "RWRA", "RWRB", "RFIN")]] = True
+    assert m.visible[mask].all()
+    gapped = np.where(mask[..., None], np.nan, m.positions)
+    est = clean(m.replace(positions=gapped), merge=False, ctx=Context())["markers"].positions
+    err = np.linalg.norm(est - m.positions, axis=-1)[mask]
+    assert err.mean() < 0.002, err.mean()
 
 
 def test_filled_runs_keep_the_fill(shared_data):
