@@ -626,7 +626,7 @@ def fill_by_validated_blend(
     its donors there, which the copies need not see), a model whose estimate
     repeats an earlier one's counted once (:func:`_repeated_estimates`), and a
     model whose estimate of the run lies far beyond its and the others' validated errors
-    from the others' blend left out of it (:func:`_outlying_estimates`: what the marker
+    from the others' median left out of it (:func:`_outlying_estimates`: what the marker
     does inside its own gap, which no copy sees); a run with no copy scored keeps the
     local fill.
 
