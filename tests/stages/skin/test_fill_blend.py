@@ -255,6 +255,22 @@ def pig_calibration(shared_data):
     return m.replace(fragments=np.zeros((m.n_frames, 0, 3)), fragment_labels=[])
 
 
+def _knocked_out(m, frames: tuple[int, int], names) -> np.ndarray:
+    """``(F, M)`` bool: markers ``names`` over ``frames`` ``(a, b)`` (all measured there)."""
+    mask = np.zeros(m.visible.shape, bool)
+    mask[frames[0]:frames[1], [m.labels.index(n) for n in names]] = True
+    assert m.visible[mask].all()
+    return mask
+
+
+def _clean_errors(m, mask: np.ndarray) -> tuple[np.ndarray, dict]:
+    """``mask (F, M)`` knocked out of ``m`` and filled by ``clean`` with its defaults (no
+    merging): the errors at the knocked-out samples ``(n,)`` (m) and the stage's output."""
+    out = clean(m.replace(positions=np.where(mask[..., None], np.nan, m.positions)),
+                merge=False, ctx=Context())
+    return np.linalg.norm(out["markers"].positions - m.positions, axis=-1)[mask], out
+
+
 def test_a_hole_near_the_take_start_is_not_left_to_a_wild_spline(pig_calibration):
     """Real PiG calibration (a still subject, 100 Hz), 11 markers knocked out over frames
     4-53 (the gap protocol's 0.5 s / 30 % / clustered mask, seed 102): the blend's cubic
@@ -264,12 +280,7 @@ def test_a_hole_near_the_take_start_is_not_left_to_a_wild_spline(pig_calibration
     m = pig_calibration
     names = ["LBHD", "T10", "CLAV", "STRN", "LSHO", "LELB", "LWRA", "LWRB", "LFIN", "LASI",
              "LPSI"]
-    mask = np.zeros(m.visible.shape, bool)
-    mask[4:54, [m.labels.index(n) for n in names]] = True
-    assert m.visible[mask].all()
-    gapped = np.where(mask[..., None], np.nan, m.positions)
-    est = clean(m.replace(positions=gapped), merge=False, ctx=Context())["markers"].positions
-    err = np.linalg.norm(est - m.positions, axis=-1)[mask]
+    err, _ = _clean_errors(m, _knocked_out(m, (4, 54), names))
     assert err.mean() < 0.0025 and err.max() < 0.02, (err.mean(), err.max())
 
 
@@ -325,12 +336,7 @@ def test_a_head_turning_in_its_gap_is_not_left_to_the_rigid_body_fills(pig_calib
     5.5); after, with their validation error at least a quarter of that disagreement
     (``fill.RIGID_DISAGREEMENT_SHARE``), 6.2 mm."""
     m = pig_calibration
-    mask = np.zeros(m.visible.shape, bool)
-    mask[220:270, [m.labels.index(n) for n in ("LFHD", "RFHD", "LBHD", "RBHD")]] = True
-    assert m.visible[mask].all()
-    gapped = np.where(mask[..., None], np.nan, m.positions)
-    est = clean(m.replace(positions=gapped), merge=False, ctx=Context())["markers"].positions
-    err = np.linalg.norm(est - m.positions, axis=-1)[mask]
+    err, _ = _clean_errors(m, _knocked_out(m, (220, 270), ("LFHD", "RFHD", "LBHD", "RBHD")))
     assert err.mean() < 0.008, err.mean()
 
 
@@ -390,12 +396,8 @@ def test_a_member_far_from_the_others_in_a_real_gap_is_left_out(
     (mean, max mm) off; leaving out the member far from the others' median
     (``fill._outlying_estimates``): LFHD 1.1 / 2.3, RFHD 1.5 / 3.1, LPSI 4.9 / 32 mm."""
     m = pig_calibration
-    mask = np.zeros(m.visible.shape, bool)
-    mask[frames[0]:frames[1], m.labels.index(label)] = True
-    assert m.visible[mask].all()
-    gapped = np.where(mask[..., None], np.nan, m.positions)
-    est = clean(m.replace(positions=gapped), merge=False, ctx=Context())["markers"].positions
-    err = np.linalg.norm(est - m.positions, axis=-1)[mask] * 1e3
+    err, _ = _clean_errors(m, _knocked_out(m, frames, [label]))
+    err *= 1e3
     assert err.mean() < bound[0] and err.max() < bound[1], (err.mean(), err.max(), before)
 
 
@@ -407,12 +409,7 @@ def test_a_spline_right_where_the_spatial_members_share_an_error_is_kept(pig_cal
     ``OUTLIER_FACTOR`` 3 the spline was dropped for two of the markers (3.3 mm mean); kept,
     1.4 mm."""
     m = pig_calibration
-    mask = np.zeros(m.visible.shape, bool)
-    mask[239:289, [m.labels.index(n) for n in ("RELB", "RWRA", "RWRB", "RFIN")]] = True
-    assert m.visible[mask].all()
-    gapped = np.where(mask[..., None], np.nan, m.positions)
-    est = clean(m.replace(positions=gapped), merge=False, ctx=Context())["markers"].positions
-    err = np.linalg.norm(est - m.positions, axis=-1)[mask]
+    err, _ = _clean_errors(m, _knocked_out(m, (239, 289), ("RELB", "RWRA", "RWRB", "RFIN")))
     assert err.mean() < 0.002, err.mean()
 
 
@@ -477,12 +474,9 @@ def test_a_long_hole_in_a_short_take_scores_the_spline(pig_calibration):
     m = pig_calibration
     names = ["C7", "T10", "CLAV", "STRN", "RBAK", "LSHO", "RSHO", "LASI", "RASI", "LPSI", "RPSI"]
     for a in (62, 150):
-        mask = np.zeros(m.visible.shape, bool)
-        mask[a:a + 100, [m.labels.index(n) for n in names]] = True
-        assert m.visible[mask].all()
+        mask = _knocked_out(m, (a, a + 100), names)
+        err, out = _clean_errors(m, mask)
         gapped = np.where(mask[..., None], np.nan, m.positions)
-        out = clean(m.replace(positions=gapped), merge=False, ctx=Context())
-        err = np.linalg.norm(out["markers"].positions - m.positions, axis=-1)[mask]
         spline = np.full_like(gapped, np.nan)
         fill._interpolate_interior(spline, gapped, ~np.isfinite(gapped).all(-1), 10)
         err_spline = np.linalg.norm(spline - m.positions, axis=-1)[mask]
@@ -514,11 +508,6 @@ def test_the_rigid_body_fills_weigh_once_when_they_agree(pig_calibration):
     twice the weight; the blend was 0.605 / 0.360 mm off against the spline's 0.355 /
     0.252.  Counted once: 0.526 / 0.287 mm."""
     m = pig_calibration
-    j = m.labels.index("LWRB")
     for a, most in ((272, 0.56e-3), (221, 0.32e-3)):
-        mask = np.zeros(m.visible.shape, bool)
-        mask[a:a + 10, j] = True
-        gapped = np.where(mask[..., None], np.nan, m.positions)
-        out = clean(m.replace(positions=gapped), merge=False, ctx=Context())
-        err = np.linalg.norm(out["markers"].positions - m.positions, axis=-1)[mask]
+        err, _ = _clean_errors(m, _knocked_out(m, (a, a + 10), ["LWRB"]))
         assert err.mean() < most, (a, err.mean())
