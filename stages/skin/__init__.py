@@ -51,8 +51,10 @@ the paper lives in one function (modules of this package):
                                          fill._rigid_body_fill (most rigid / nearest donors)
                                          at least a share of the carries'
                                          disagreement: fill.RIGID_DISAGREEMENT_SHARE;
-                                         a member far from all the others in the gap
-                                         left out: fill._outlying_estimates
+                                         a member the gap shows far off (from the
+                                         others, or missing the trajectory at the
+                                         gap's ends) left out: fill._outlying_estimates,
+                                         fill._boundary_misses
 §4.4 smoothing x ← x − λ Δ⁴x in the      clean.smooth_local (the iteration, every run
   local frames                           at once: clean._smooth_runs)
 §5.1–5.2 near-rigid segmentation         segment.segment

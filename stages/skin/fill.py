@@ -624,11 +624,12 @@ def fill_by_validated_blend(
     error taken as at least :data:`RIGID_DISAGREEMENT_SHARE` of how far its
     carries from before and after the gap disagree (the marker moving against
     its donors there, which the copies need not see), a model whose estimate
-    repeats an earlier one's counted once (:func:`_repeated_estimates`), and a
-    model whose estimate of the run lies far beyond its and the others' validated errors
-    from the others' median left out of it (:func:`_outlying_estimates`: what the marker
-    does inside its own gap, which no copy sees); a run with no copy scored keeps the
-    local fill.
+    repeats an earlier one's counted once (:func:`_repeated_estimates`), and the
+    models the gap itself shows far off left out of it (:func:`_outlying_estimates`:
+    an estimate far beyond its and the others' validated errors from the others'
+    median, sooner where it does not join the measured trajectory at the gap's ends, or
+    missing those ends alone; what the marker does inside its own gap, which no copy
+    sees); a run with no copy scored keeps the local fill.
 
     Parameters
     ----------
@@ -672,7 +673,7 @@ def fill_by_validated_blend(
     _floor_rigid_errors(mse, disagreement, run)
     wr = _blend_weights(mse)
     wr[_repeated_estimates(est, runs)] = 0.0  # a model given twice weighs once
-    wr[_outlying_estimates(est, runs, mse, wr)] = 0.0  # far from all the others in the gap
+    wr[_outlying_estimates(est, runs, mse, wr, positions)] = 0.0  # far off in the gap
     w = np.where(holes[None], wr[:, np.maximum(run, 0)], 0.0)  # (K, F, M)
     have = finite_rows(est) & holes[None]  # (K, F, M)
     wf = np.where(have, w, 0.0)
@@ -714,53 +715,119 @@ def _repeated_estimates(est: np.ndarray, runs: list[tuple[int, int, int]]) -> np
 
 #: A blend member whose estimate of a run lies farther from the other members' median
 #: than this many times the validated RMS errors (its own plus the others' median) is
-#: left out of that run (:func:`_outlying_estimates`; at most one member per run).  At 3 it
-#: also dropped a spline that was right: PiG calibration, the whole right arm gone for
-#: 0.5 s (the gap protocol's 0.5 s / 10 % / clustered mask of seed 555), where the four
-#: spatial members share their error (4-16 mm, donors gone with the arm) and the spline,
-#: 1-2 mm off, lay 4-5 mm from them: 1.43 -> 3.31 mm; at 5 that stays 1.43 mm and the
-#: cases of :func:`_outlying_estimates` keep their gains.
+#: left out of that run (:func:`_outlying_estimates`).  At 3 it also dropped a spline that
+#: was right: PiG calibration, the whole right arm gone for 0.5 s (the gap protocol's
+#: 0.5 s / 10 % / clustered mask of seed 555), where the four spatial members share their
+#: error (4-16 mm, donors gone with the arm) and the spline, 1-2 mm off, lay 4-5 mm from
+#: them: 1.43 -> 3.31 mm; at 5 that stays 1.43 mm and the cases of
+#: :func:`_outlying_estimates` keep their gains.
 OUTLIER_FACTOR = 5.0
 
 
+#: The same test at this factor for a member that also misses the measured trajectory at
+#: the run's ends by more than :data:`BOUNDARY_FACTOR` × the others' median miss
+#: (:func:`_boundary_misses`): the gap itself shows it off where the others join.  The arm
+#: case above is not touched by it: the spline joins the trajectory at the ends.
+JOINLESS_OUTLIER_FACTOR = 3.0
+
+
+#: A member whose miss at the run's ends (:func:`_boundary_misses`) exceeds this many
+#: times its validated RMS error plus the others' median miss is left out whatever its
+#: distance from the others (:func:`_outlying_estimates`).
+BOUNDARY_FACTOR = 2.0
+
+
+def _boundary_misses(est: np.ndarray, positions: np.ndarray, m: int, a: int,
+                     b: int) -> np.ndarray:
+    """``(K,)``: how far each member's estimate ``est (K, b - a, 3)`` of marker ``m``'s run
+    ``a..b-1`` lies, at the run's first and last frame, from the measured trajectory carried
+    one frame on (``2 x[a-1] - x[a-2]``, ``2 x[b] - x[b+1]``; ``positions (F, M, 3)``, NaN
+    where not measured): the larger miss of the two ends, an end without two measured
+    samples left out; NaN when neither has them.  A sample of each member's error inside the
+    gap that no validation copy gives; carrying the trajectory on errs by about its change
+    of velocity over a frame (at 50 Hz on the Eb015pr walk, 0.2-2.4 mm where the markers
+    move 1-3 mm a frame)."""
+    F = positions.shape[0]
+    seen = np.isfinite(positions[:, m]).all(-1)
+    miss = []
+    if a >= 2 and seen[a - 2 : a].all():
+        miss.append(np.linalg.norm(est[:, 0] - (2 * positions[a - 1, m] - positions[a - 2, m]),
+                                   axis=-1))  # fmt: skip
+    if b + 2 <= F and seen[b : b + 2].all():
+        miss.append(np.linalg.norm(est[:, -1] - (2 * positions[b, m] - positions[b + 1, m]),
+                                   axis=-1))  # fmt: skip
+    return np.max(miss, axis=0) if miss else np.full(est.shape[0], np.nan)
+
+
 def _outlying_estimates(est: np.ndarray, runs: list[tuple[int, int, int]], mse: np.ndarray,
-                        weights: np.ndarray) -> np.ndarray:
-    """``(K, R)`` bool: the member of each run (at most one) whose estimate disagrees with
-    the other members far beyond what the validation copies predicted.
+                        weights: np.ndarray, positions: np.ndarray | None = None) -> np.ndarray:
+    """``(K, R)`` bool: the members of each run whose estimate the gap itself shows far off,
+    beyond what the validation copies predicted.
 
     For each run with at least 3 weighted members (``weights (K, R)``, :func:`_blend_weights`
     with repeats already at 0; ``mse (K, R)``, :func:`_validation_mse`; ``est (K, F, M, 3)``,
-    :func:`_blend_members`): member ``k``'s RMS distance over the run from the others'
-    per-sample median, against :data:`OUTLIER_FACTOR` × (``√mse_k`` + the median of the
-    others' ``√mse``); the member with the largest ratio above 1 is flagged.  The median,
-    unweighted: the others' weighted mean is the outlier itself when it holds the weight,
-    and then every other member looks as far off as it does.
+    :func:`_blend_members`), member ``k`` with validated scale ``s_k = √mse_k`` + the median
+    of the others' ``√mse`` and RMS distance ``d_k`` over the run from the others'
+    per-sample median is off when
+
+    * ``d_k > OUTLIER_FACTOR s_k`` (:data:`OUTLIER_FACTOR`), or
+    * ``d_k > JOINLESS_OUTLIER_FACTOR s_k`` and its miss at the run's ends
+      (:func:`_boundary_misses`, from ``positions (F, M, 3)``) exceeds
+      :data:`BOUNDARY_FACTOR` × the others' median miss, or
+    * that miss exceeds :data:`BOUNDARY_FACTOR` × (``√mse_k`` + the others' median miss);
+
+    the member off by the largest ratio is left out, and the last two tests repeated on
+    the rest while 3 remain.  The first alone leaves out at most one member: of the three
+    left after it, two wrong ones that agree outvote a right one (pyomeca's box marker
+    ``boite:droite_ext``, the 1 s / 1 % / independent mask of seed 594: after the spline,
+    61 mm off, the local fill and the whole-body PCA, 8 mm off together, left out the
+    rigid-body fill, 0.6 mm off: blend 0.6 -> 8.2 mm).  Without ``positions``, the first
+    rule alone.  The median, unweighted: the others' weighted mean is the outlier itself
+    when it holds the weight, and then every other member looks as far off as it does.
 
     The copies cannot see what a marker does inside its own gap; the other members'
-    estimates there can.  PiG calibration (100 Hz, 300 frames): LFHD knocked out over
-    frames 184-283 (1 s, the head turning near the take's end): the copies scored the
-    spline lowest (0.56 mm), but in the gap it is 18 mm off where the four spatial members
-    agree within 2 mm (the nearest-donor rigid fill 0.7 mm off): blend 7.7 mm mean, 1.1 mm
-    without the spline.  LPSI knocked out over frames 2-11 (its first frames jump 30 mm):
-    the spline, scored 0.03-0.07 mm on copies later in the take, is 33 mm off, the others
-    5-7 mm: blend 32.8 -> 4.9 mm."""
+    estimates there can, and so can the measured samples at its ends.  PiG calibration
+    (100 Hz, 300 frames): LFHD knocked out over frames 184-283 (1 s, the head turning near
+    the take's end): the copies scored the spline lowest (0.56 mm), but in the gap it is
+    18 mm off where the four spatial members agree within 2 mm (the nearest-donor rigid fill
+    0.7 mm off): blend 7.7 mm mean, 1.1 mm without the spline.  LPSI knocked out over
+    frames 2-11 (its first frames jump 30 mm): the spline, scored 0.03-0.07 mm on copies
+    later in the take, is 33 mm off, the others 5-7 mm: blend 32.8 -> 4.9 mm.  Eb015pr
+    (50 Hz walk, 26 markers), the right foot and shank and LSK4 gone for 0.5 s over frames
+    152-176 (the 0.5 s / 30 % / clustered mask of seed 531): the local fill and the
+    whole-body PCA, scored 7-11 mm on the copies, are 64-132 mm off on RSK2-4 and miss
+    the trajectory at the ends by 10-71 mm, where the spline and the rigid-body fills
+    (3-13 mm off) miss it by 0.2-4 mm.  The distance alone left out one of the two (1.05-1.33
+    × its bound) and the other held the weight: blend 42-48 mm; it also lies beyond 3 × its
+    scale and misses the ends by more than twice the others do, so it goes too: 4-11 mm."""
     K = est.shape[0]
     out = np.zeros((K, len(runs)), dtype=bool)
     for r, (m, a, b) in enumerate(runs):
         e = est[:, a:b, m]  # (K, L, 3)
         live = np.flatnonzero(np.isfinite(e).all((1, 2)) & (weights[:, r] > 0)
                               & np.isfinite(mse[:, r]))  # fmt: skip
-        if len(live) < 3:
-            continue
-        worst, flagged = 1.0, -1
-        for k in live:
-            o = live[live != k]
-            d = np.sqrt(np.mean(np.sum((e[k] - np.median(e[o], axis=0)) ** 2, -1)))
-            scale = OUTLIER_FACTOR * (np.sqrt(mse[k, r]) + np.median(np.sqrt(mse[o, r])))
-            if d > worst * scale:
-                worst, flagged = d / scale, k
-        if flagged >= 0:
+        miss = (np.full(K, np.nan) if positions is None else
+                _boundary_misses(e, positions, m, a, b))  # fmt: skip
+        rms = np.sqrt(mse[:, r])
+        first = True
+        while len(live) >= 3:
+            worst, flagged = 1.0, -1
+            for k in live:
+                o = live[live != k]
+                d = np.sqrt(np.mean(np.sum((e[k] - np.median(e[o], axis=0)) ** 2, -1)))
+                scale = rms[k] + np.median(rms[o])
+                ratio = d / (OUTLIER_FACTOR * scale) if first else 0.0
+                others_miss = np.median(miss[o])
+                if miss[k] > BOUNDARY_FACTOR * others_miss:  # False where NaN
+                    ratio = max(ratio, d / (JOINLESS_OUTLIER_FACTOR * scale),
+                                miss[k] / (BOUNDARY_FACTOR * (rms[k] + others_miss)))
+                if ratio > worst:
+                    worst, flagged = ratio, k
+            if flagged < 0:
+                break
             out[flagged, r] = True
+            live = live[live != flagged]
+            first = False
     return out
 
 

@@ -401,6 +401,107 @@ def test_a_member_far_from_the_others_in_a_real_gap_is_left_out(
     assert err.mean() < bound[0] and err.max() < bound[1], (err.mean(), err.max(), before)
 
 
+def _joinless_case(seed: int = 5):
+    """One 40-frame run (frames 10-49) of a marker measured over 60 frames, smooth truth
+    (``x (60, 1, 3)``, NaN in the run) and five members within 0.5 mm of it (``est (5, 60,
+    1, 3)``, NaN outside the run)."""
+    rng = np.random.default_rng(seed)
+    F, a, b = 60, 10, 50
+    t = np.arange(F) / 100.0
+    truth = np.stack([0.1 * np.sin(2 * t), 0.05 * t, 1.0 + 0.02 * np.cos(3 * t)], 1)[:, None]
+    x = truth.copy()
+    x[a:b] = np.nan
+    est = np.full((5, F, 1, 3), np.nan)
+    est[:, a:b] = truth[None, a:b] + rng.uniform(-0.0005, 0.0005, (5, b - a, 1, 3))
+    return x, truth, est, [(0, a, b)]
+
+
+def test_boundary_misses_are_the_ends_off_the_carried_trajectory():
+    """A member off by (1, 2, 3) mm at the run's first frame and 4 mm at its last misses
+    the trajectory carried one frame on (exact on a straight line) by the larger, 4 mm; an
+    end with one measured sample before it is left out; none: NaN."""
+    F, a, b = 30, 10, 20
+    x = np.zeros((F, 1, 3))
+    x[:, 0, 0] = np.arange(F) * 0.001  # 1 mm a frame: carried on exactly
+    est = np.repeat(x[None, a:b, 0], 2, axis=0)  # (2, 10, 3)
+    est[1, 0] += [0.001, 0.002, 0.003]
+    est[1, -1] += [0, 0, 0.004]
+    x[a:b] = np.nan
+    np.testing.assert_allclose(fill._boundary_misses(est, x, 0, a, b), [0, 0.004], atol=1e-12)
+    x[a - 2] = np.nan  # the start has one measured sample before it: the end alone
+    np.testing.assert_allclose(fill._boundary_misses(est, x, 0, a, b), [0, 0.004], atol=1e-12)
+    x[b + 1] = np.nan
+    assert np.isnan(fill._boundary_misses(est, x, 0, a, b)).all()
+
+
+def test_a_member_off_at_the_gap_ends_is_left_out_sooner():
+    """Validated at 2 mm each, a member whose error grows from 3 mm at the run's ends to
+    23 mm in its middle (17 mm RMS from the others: 4.2 x its scale of 2 + 2 mm) is left
+    out: it misses the trajectory at the ends by more than twice the others do, so 3 x its
+    scale is the bound, not 5.  An error of that size that vanishes at the ends (a
+    spline's shape) stays.  A member 10 mm off throughout, validated at 1 mm where the
+    others are at 4 mm, lies within 3 x its scale of them but misses the ends by 10 mm >
+    2 x (1 + < 0.9) mm: out.
+    Two such members are both left out (the test repeats on the rest).  Without the
+    measured positions, the distance alone."""
+    x, truth, est, runs = _joinless_case()
+    L = 40
+    bump = np.sin(np.linspace(0, np.pi, L))[:, None] * [0.02, 0, 0]
+    w = np.ones((5, 1))
+    mse = np.full((5, 1), 0.002**2)
+    grown = est.copy()
+    grown[1, 10:50, 0] += bump + [0.003, 0, 0]
+    np.testing.assert_array_equal(fill._outlying_estimates(grown, runs, mse, w, x)[:, 0],
+                                  [False, True, False, False, False])
+    assert not fill._outlying_estimates(grown, runs, mse, w).any()  # no positions: 5 x
+    joined = est.copy()
+    joined[1, 10:50, 0] += 1.2 * bump  # 24 mm in the middle, 0 at the ends
+    d = np.sqrt(np.mean(np.sum((joined[1, 10:50, 0] - truth[10:50, 0]) ** 2, -1)))
+    assert 3 * 0.004 < d < 5 * 0.004, d
+    assert not fill._outlying_estimates(joined, runs, mse, w, x).any()
+    offset = est.copy()
+    offset[3, 10:50, 0] += [0.010, 0, 0]
+    mse_c = np.array([[0.004], [0.004], [0.004], [0.001], [0.004]]) ** 2
+    np.testing.assert_array_equal(fill._outlying_estimates(offset, runs, mse_c, w, x)[:, 0],
+                                  [False, False, False, True, False])
+    two = grown.copy()
+    two[4, 10:50, 0] -= bump + [0.003, 0, 0]
+    np.testing.assert_array_equal(fill._outlying_estimates(two, runs, mse, w, x)[:, 0],
+                                  [False, True, False, False, True])
+    # pyomeca's box marker (1 s hole): the local fill and the whole-body PCA agree, 10 mm
+    # off in the middle and joined at the ends; the spline 60 mm off; the rigid-body fill
+    # right (validated 0.1 mm; the nearest-donor one repeats it, weight 0).  The spline goes;
+    # of the three left, the two that agree would outvote the right one by distance alone
+    # (7 mm from their mean > 5 x (0.1 + 1.1) mm), so that test is not repeated
+    box = est.copy()
+    box[0, 10:50, 0] += 0.5 * bump
+    box[1, 10:50, 0] += 0.5 * bump
+    box[2, 10:50, 0] += 3.0 * bump
+    mse_box = (np.array([[0.9], [1.3], [2.2], [0.1], [0.1]]) * 1e-3) ** 2
+    w_box = np.array([[1.0], [1], [1], [1], [0]])
+    np.testing.assert_array_equal(fill._outlying_estimates(box, runs, mse_box, w_box, x)[:, 0],
+                                  [False, False, True, False, False])
+
+
+def test_members_off_at_the_ends_of_a_real_cluster_gap_are_left_out(eb015):
+    """Real Eb015pr (50 Hz walk, 26 markers): the right foot and shank and LSK4 knocked
+    out over frames 152-176 (the gap protocol's 0.5 s / 30 % / clustered mask of seed
+    531).  The local fill and the whole-body PCA, scored 7-11 mm on the validation copies,
+    are 64-132 mm off on RSK2-4 and miss the measured trajectory at the gap's ends by 10-71
+    mm, where the spline and the rigid-body fills miss it by 0.2-4 mm.  Their distance from
+    the others left out one of the two and the other held the weight: 41.7 / 48.3 / 46.1 mm
+    mean.  Both left out (``fill._outlying_estimates``): 4.1 / 11.4 / 5.0 mm (a cubic spline
+    alone 4.1 / 12.5 / 3.2)."""
+    m = eb015
+    names = ("RFT1", "RFT2", "RFT3", "RSK1", "RSK2", "RSK3", "RSK4", "LSK4")
+    mask = _knocked_out(m, (152, 177), names)
+    _, out = _clean_errors(m, mask)
+    err = np.linalg.norm(out["markers"].positions - m.positions, axis=-1) * 1e3
+    shank = [m.labels.index(n) for n in ("RSK2", "RSK3", "RSK4")]
+    per = err[152:177][:, shank].mean(0)
+    assert per.max() < 15.0 and per.mean() < 9.0, per
+
+
 def test_a_spline_right_where_the_spatial_members_share_an_error_is_kept(pig_calibration):
     """Real PiG calibration, the whole right arm (RELB, RWRA, RWRB, RFIN) knocked out over
     frames 239-288 (the gap protocol's 0.5 s / 10 % / clustered mask of seed 555).  The
