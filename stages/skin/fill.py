@@ -65,19 +65,22 @@
   0.97), Qualisys 12 of 12 (0.96); seeds 550-569: PiG 16 of 18 (1.16); the
   90 repetitions of seeds 500-589 pooled: PiG 18 of 18 (0.97), Qualisys 12 of
   12 (0.95).  With the members that miss the measured trajectory at the gap's
-  ends left out too (:func:`_boundary_misses`; Eb015pr, the right foot and shank
-  gone for 0.5 s: RSK2-4 41.7-48.3 -> 4.1-11.4 mm; that configuration's worst
-  ratio on mask seeds 530-539 1.39 -> 0.98), on mask seeds 600-609 (10
-  repetitions, drawn after all tuning): PiG 17 of 18 (worst 1.74), Qualisys 12
-  of 12 (0.98), Eb015pr 24 of 24 (0.98), racing 24 of 24 (0.88), pyomeca 24 of
-  24 (0.99).  What is left loses on holes in one marker (the 1 % configurations),
-  where one run decides a repetition and one or two repetitions a 10-20
-  repetition mean: copies 15-30 frames away see motion its gap does not (the PiG
-  calibration's left wrist, Qualisys' R_IAS), a copy at the take's end shows
-  one model 30 mm off and the geometric mean damps it (PiG RBHD), or the spline
-  alone is right and nothing says so (PiG LFIN over frames 31-40, seed 605 of
-  the 0.1 s / 1 % / independent masks: spline 0.06 mm, the four others 0.7-0.9
-  mm and agreeing, validated alike: blend 0.41 mm, that configuration's 1.74).
+  ends left out too (:func:`_boundary_misses`, :data:`BOUNDARY_GUARD`; Eb015pr,
+  the right foot and shank gone for 0.5 s: RSK2-4 41.7-48.3 -> 4.1-11.4 mm; that
+  configuration's worst ratio on mask seeds 530-539 1.39 -> 0.98), 10 repetitions:
+  mask seeds 620-629 (drawn after all tuning): PiG 16 of 18 (worst 1.22),
+  Qualisys 11 of 12 (1.06), Eb015pr 24 of 24 (1.02; 23 of 24, 1.17 without the
+  rule), racing 24 of 24 (0.79), pyomeca 24 of 24 (0.95); seeds 610-619 (one
+  racing repetition inspected for the guard): 18 of 18 (1.03), 12 of 12 (0.96),
+  24 of 24 (0.96), 24 of 24 (0.83), 24 of 24 (0.94).  What is left loses on holes
+  in one marker (the 1 % configurations), where one run decides a repetition and
+  one or two repetitions a 10-20 repetition mean: copies 15-30 frames away see
+  motion its gap does not (the PiG calibration's left wrist, Qualisys' R_IAS), a
+  copy at the take's end shows one model 30 mm off and the geometric mean damps
+  it (PiG RBHD), or the spline alone is right and nothing says so (PiG LFIN over
+  frames 31-40, seed 605 of the 0.1 s / 1 % / independent masks: spline 0.06 mm,
+  the four others 0.7-0.9 mm and agreeing, validated alike: blend 0.41 mm; that
+  configuration's worst ratio over seeds 600-609, 1.74).
 
 Measured on the simulated 350-marker dynamic capture (120 Hz, 0.3 mm noise,
 real occlusion, no complete frame for most neighbourhoods), the same gap masks
@@ -793,17 +796,16 @@ def _outlying_estimates(est: np.ndarray, runs: list[tuple[int, int, int]], mse: 
     * ``d_k > JOINLESS_OUTLIER_FACTOR s_k`` and its miss at the run's ends
       (:func:`_boundary_misses`, from ``positions (F, M, 3)``) exceeds
       :data:`BOUNDARY_FACTOR` × the others' median miss, or
-    * that miss exceeds :data:`BOUNDARY_FACTOR` × (``√mse_k`` + the others' median miss);
+    * that miss exceeds :data:`BOUNDARY_FACTOR` × (``√mse_k`` + the others' median miss).
 
-    the last two only while another member's ``√mse`` is within :data:`BOUNDARY_GUARD` ×
-    ``√mse_k``;
-
-    the member off by the largest ratio is left out, and the last two tests repeated on
-    the rest while 3 remain.  The first alone leaves out at most one member: of the three
-    left after it, two wrong ones that agree outvote a right one (pyomeca's box marker
-    ``boite:droite_ext``, the 1 s / 1 % / independent mask of seed 594: after the spline,
-    61 mm off, the local fill and the whole-body PCA, 8 mm off together, left out the
-    rigid-body fill, 0.6 mm off: blend 0.6 -> 8.2 mm).  Without ``positions``, the first
+    The last two apply only while another member's ``√mse`` is within
+    :data:`BOUNDARY_GUARD` × ``√mse_k``.  The member off by the largest ratio is left
+    out, and the last two tests are repeated on the rest while 3 remain.  The first alone
+    leaves out at most one member: of the three left after it, two wrong ones that agree
+    outvote a right one (pyomeca's box marker ``boite:droite_ext``, the 1 s / 1 % /
+    independent mask of seed 594: after the spline, 61 mm off, the local fill and the
+    whole-body PCA, 8 mm off together, left out the rigid-body fill, 0.6 mm off: blend
+    0.6 -> 8.2 mm).  Without ``positions``, the first
     rule alone.  The median, unweighted: the others' weighted mean is the outlier itself
     when it holds the weight, and then every other member looks as far off as it does.
 
