@@ -769,15 +769,11 @@ def _boundary_misses(est: np.ndarray, positions: np.ndarray, m: int, a: int,
     gap that no validation copy gives; carrying the trajectory on errs by about its change
     of velocity over a frame (at 50 Hz on the Eb015pr walk, 0.2-2.4 mm where the markers
     move 1-3 mm a frame)."""
-    F = positions.shape[0]
-    seen = np.isfinite(positions[:, m]).all(-1)
-    miss = []
-    if a >= 2 and seen[a - 2 : a].all():
-        miss.append(np.linalg.norm(est[:, 0] - (2 * positions[a - 1, m] - positions[a - 2, m]),
-                                   axis=-1))  # fmt: skip
-    if b + 2 <= F and seen[b : b + 2].all():
-        miss.append(np.linalg.norm(est[:, -1] - (2 * positions[b, m] - positions[b + 1, m]),
-                                   axis=-1))  # fmt: skip
+    x = positions[:, m]
+    seen = np.isfinite(x).all(-1)
+    miss = [np.linalg.norm(est[:, at] - (2 * x[near] - x[far]), axis=-1)
+            for at, near, far in ((0, a - 1, a - 2), (-1, b, b + 1))  # start, end
+            if 0 <= min(near, far) and max(near, far) < len(x) and seen[[near, far]].all()]
     return np.max(miss, axis=0) if miss else np.full(est.shape[0], np.nan)
 
 
@@ -833,14 +829,13 @@ def _outlying_estimates(est: np.ndarray, runs: list[tuple[int, int, int]], mse: 
         miss = (np.full(K, np.nan) if positions is None else
                 _boundary_misses(e, positions, m, a, b))  # fmt: skip
         rms = np.sqrt(mse[:, r])
-        first = True
         while len(live) >= 3:
             worst, flagged = 1.0, -1
             for k in live:
                 o = live[live != k]
                 d = np.sqrt(np.mean(np.sum((e[k] - np.median(e[o], axis=0)) ** 2, -1)))
                 scale = rms[k] + np.median(rms[o])
-                ratio = d / (OUTLIER_FACTOR * scale) if first else 0.0
+                ratio = 0.0 if out[:, r].any() else d / (OUTLIER_FACTOR * scale)
                 others_miss = np.median(miss[o])
                 if (miss[k] > BOUNDARY_FACTOR * others_miss  # False where NaN
                         and rms[o].min() <= BOUNDARY_GUARD * rms[k]):  # fmt: skip
@@ -852,7 +847,6 @@ def _outlying_estimates(est: np.ndarray, runs: list[tuple[int, int, int]], mse: 
                 break
             out[flagged, r] = True
             live = live[live != flagged]
-            first = False
     return out
 
 

@@ -84,16 +84,22 @@ def test_shifted_runs_copy_each_gap_next_to_itself():
     np.testing.assert_array_equal(np.flatnonzero(back[:, 2] == 2), np.arange(350, 370))
 
 
-@pytest.fixture(scope="module")
-def eb015(shared_data):
+def _real_take(shared_data, name: str):
+    """The shared C3D ``name`` as read, its unlabelled fragments dropped (skipped when
+    ezc3d or the file is absent)."""
     pytest.importorskip("ezc3d")
     from mocapflow.stages.motion.formats.c3d import read_c3d
 
-    p = shared_data / "c3d" / "btkdata_c3dorg_Eb015pr.c3d"
+    p = shared_data / "c3d" / name
     if not p.exists():
-        pytest.skip("btkdata_c3dorg_Eb015pr.c3d absent")
+        pytest.skip(f"{name} absent")
     m = read_c3d(p)
     return m.replace(fragments=np.zeros((m.n_frames, 0, 3)), fragment_labels=[])
+
+
+@pytest.fixture(scope="module")
+def eb015(shared_data):
+    return _real_take(shared_data, "btkdata_c3dorg_Eb015pr.c3d")
 
 
 # (duration s, share of markers, clustered, mask seed): configurations where the
@@ -245,14 +251,7 @@ def test_spline_member_needs_support_for_the_hole_length():
 
 @pytest.fixture(scope="module")
 def pig_calibration(shared_data):
-    pytest.importorskip("ezc3d")
-    p = shared_data / "c3d" / "btkdata_PiG_Calibration-FlatFoot-Hole.c3d"
-    if not p.exists():
-        pytest.skip(f"{p.name} absent")
-    from mocapflow.stages.motion.formats.c3d import read_c3d
-
-    m = read_c3d(p)
-    return m.replace(fragments=np.zeros((m.n_frames, 0, 3)), fragment_labels=[])
+    return _real_take(shared_data, "btkdata_PiG_Calibration-FlatFoot-Hole.c3d")
 
 
 def _knocked_out(m, frames: tuple[int, int], names) -> np.ndarray:
@@ -513,14 +512,7 @@ def test_end_misses_do_not_hand_a_gap_to_members_validated_far_worse(shared_data
     4.7-5.5 mm, is 46-54 mm off and misses the ends by 61-73 mm; every other member,
     validated at 38-124 mm, is 62-326 mm off.  Left out for its misses, the run went to
     them: 263 / 282 mm; kept (``fill.BOUNDARY_GUARD``): 46 / 54 mm."""
-    pytest.importorskip("ezc3d")
-    from mocapflow.stages.motion.formats.c3d import read_c3d
-
-    p = shared_data / "c3d" / "ktk_kinematics_racing_full.c3d"
-    if not p.exists():
-        pytest.skip(f"{p.name} absent")
-    m = read_c3d(p)
-    m = m.replace(fragments=np.zeros((m.n_frames, 0, 3)), fragment_labels=[])
+    m = _real_take(shared_data, "ktk_kinematics_racing_full.c3d")
     mask = _knocked_out(m, (497, 532), ("Head1", "Head2", "Head3", "AcromionR"))
     _, out = _clean_errors(m, mask)
     err = np.linalg.norm(out["markers"].positions - m.positions, axis=-1) * 1e3
