@@ -193,11 +193,17 @@ VALIDATION_MARGIN = 0.5
 #: Weights of :func:`fill_by_validated_blend`: ∝ (mean squared validation error)^-p.
 BLEND_POWER = 2.0
 
-#: The spline estimate of :func:`fill_by_validated_blend` needs measured samples on
-#: each side of a hole at least this share of its length (up to ``interpolate``): a
-#: cubic through the 4 samples left before a 0.5 s hole near the start of the PiG
-#: calibration swung 17-169 mm off (the validation copies, moved into the take, had
-#: full support and gave it the weight).
+#: Validation copies of a hole are kept this share of its length (up to
+#: ``interpolate``, at least 2 frames) from the take's ends, so that the spline reaches
+#: them (:func:`_shifted_runs`).  It was also the least support the blend's spline had
+#: to have on each side of the hole itself: a cubic through the 4 samples left before a
+#: 0.5 s hole near the start of the PiG calibration swung 17-169 mm off while the
+#: copies, moved into the take with full support, gave it the weight.  The copies now
+#: take the support the hole has (:func:`_gap_support`), which scores such a spline as
+#: it is (that hole 1.03 -> 0.84 mm mean), and the spline of a hole with 2 samples on a
+#: side is a member: PiG, the head turning over the take's last 53 frames, 3 samples
+#: after the hole, blend 6.3 -> 3.0 mm
+#: (``test_a_spline_short_of_samples_on_one_side_is_scored_as_it_is``).
 SPLINE_MIN_SUPPORT_SHARE = 0.2
 
 #: The estimates :func:`fill_by_validated_blend` weighs, in order.
@@ -238,21 +244,28 @@ def _spline_support_needed(length: int, support: int, min_support_share: float =
 
 
 def _interpolate_interior(X: np.ndarray, measured: np.ndarray, holes: np.ndarray,
-                          support: int, min_support_share: float = 0.0) -> int:
+                          support: int,
+                          sides: tuple[np.ndarray, np.ndarray] | None = None) -> int:
     """Cubic interpolation (in place) of interior holes still empty, from up to
-    ``support`` measured samples on each side; a hole with fewer than 2, or fewer than
-    ``min_support_share`` of its length (at most ``support``), on a side is left empty.
-    Returns the samples filled."""
+    ``support`` measured samples on each side; a hole with fewer than 2 on a side is
+    left empty.  ``sides``, optional ``(labels (F, M) int, limits (R, 2) int)``: a hole with samples
+    labelled ``r >= 0`` takes at most ``limits[r]`` measured samples before and after it
+    (the smallest over its labels; :func:`_gap_support`).  Returns the samples filled."""
     obs = finite_rows(measured)
     todo = holes & ~finite_rows(X)
     n = 0
     for m in np.flatnonzero(todo.any(0)):
         d = np.diff(np.concatenate([[0], todo[:, m].astype(np.int8), [0]]))
         for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)):
-            left = np.flatnonzero(obs[:a, m])[-support:]
-            right = b + np.flatnonzero(obs[b:, m])[:support]
-            need = _spline_support_needed(b - a, support, min_support_share)
-            if len(left) < need or len(right) < need:
+            before = after = support
+            if sides is not None:
+                lab = sides[0][a:b, m]
+                if (lab >= 0).any():
+                    before, after = np.minimum(sides[1][lab[lab >= 0]].min(0), support)
+            seen = np.flatnonzero(obs[:a, m])
+            left = seen[max(len(seen) - before, 0):]
+            right = b + np.flatnonzero(obs[b:, m])[:after]
+            if len(left) < 2 or len(right) < 2:
                 continue  # an edge hole: nothing (or too little) to interpolate between
             idx = np.concatenate([left, right])
             X[a:b, m] = CubicSpline(idx, measured[idx, m], axis=0)(np.arange(a, b))
@@ -481,6 +494,16 @@ def _runs(holes: np.ndarray) -> list[tuple[int, int, int]]:
             for a, b in true_runs(holes[:, m])]
 
 
+def _gap_support(measured: np.ndarray, runs: list[tuple[int, int, int]],
+                 support: int) -> np.ndarray:
+    """``(R, 2)`` int: the measured samples (``measured (F, M)`` bool) a spline of each run
+    has before and after it, at most ``support`` each (:func:`_interpolate_interior`)."""
+    out = np.zeros((len(runs), 2), dtype=np.int64)
+    for r, (m, a, b) in enumerate(runs):
+        out[r] = min(support, int(measured[:a, m].sum())), min(support, int(measured[b:, m].sum()))
+    return out
+
+
 def _shifted_runs(runs: list[tuple[int, int, int]], shape: tuple[int, int],
                   k: int, *, support: int = 0) -> np.ndarray:
     """``(F, M)`` int: each run's copy moved by ``k`` times its length plus half of it
@@ -615,9 +638,8 @@ def fill_by_validated_blend(
     whole-body PCA trained on the take completed by it
     (:func:`~mocapflow.stages.skin.lowrank.whole_body_pca`, Gløersen &
     Federolf R2 without complete frames); for interior holes, a cubic spline
-    in time through ``interpolate`` measured samples each side (a hole with
-    fewer than :data:`SPLINE_MIN_SUPPORT_SHARE` of its length on a side has
-    none); and the
+    in time through ``interpolate`` measured samples each side (at least 2;
+    its copies take the samples the hole has, :func:`_gap_support`); and the
     rigid-body fill from 3 donors (:func:`_rigid_body_fill`), the most rigid
     nearby markers and the 3 nearest (Vicon's choice).  Which is best
     depends on the capture, the marker, the gap's length and what else is
@@ -867,16 +889,17 @@ def _floor_rigid_errors(mse: np.ndarray, disagreement: dict[int, np.ndarray],
 
 def _blend_members(X: np.ndarray, positions: np.ndarray, holes: np.ndarray,
                    surface: MarkerSurface, *, interpolate: int,
-                   disagreement: dict[int, np.ndarray] | None = None) -> np.ndarray:
+                   disagreement: dict[int, np.ndarray] | None = None,
+                   spline_sides: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """``(K, F, M, 3)``: the estimates of :data:`BLEND_MODELS` at ``holes`` (NaN elsewhere
     and where a model cannot estimate), ``X`` being the local fill; ``disagreement``,
     optional ``{model index: (F, M) array}``: the rigid-body fills' (filled in, see
-    :func:`_rigid_body_fill`)."""
+    :func:`_rigid_body_fill`); ``spline_sides``: the spline's support per hole
+    (``sides`` of :func:`_interpolate_interior`)."""
     dis = disagreement or {}
     low = whole_body_pca(X, finite_rows(positions), holes)
     spl = np.full_like(positions, np.nan)
-    _interpolate_interior(spl, positions, holes, interpolate,
-                          min_support_share=SPLINE_MIN_SUPPORT_SHARE)
+    _interpolate_interior(spl, positions, holes, interpolate, sides=spline_sides)
     rig = _rigid_body_fill(positions, holes, surface.reference,
                            disagreement=dis.get(RIGID_MODELS[0]))
     near = _rigid_body_fill(positions, holes, surface.reference, donors="nearest",
@@ -893,7 +916,9 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
     Every run of holes is copied next to itself (:func:`_shifted_runs`, once
     per shift) onto measured samples, which are knocked out and estimated by
     the models (the local fill with ``local``'s keyword arguments of
-    :func:`fill_holes`, without the blend).
+    :func:`fill_holes`, without the blend; the spline with at most the measured
+    samples the run itself has on each side, :func:`_gap_support`, so that a
+    spline short of samples at the hole is scored as it will be used).
 
     Returns
     -------
@@ -906,6 +931,7 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
     obs = finite_rows(positions)
     n_runs = len(runs)
     K = len(BLEND_MODELS)
+    support = _gap_support(obs, runs, interpolate)
     mse = np.zeros((K, len(shifts), n_runs))
     ok = np.zeros((K, len(shifts), n_runs), dtype=bool)
     for s, k in enumerate(shifts):
@@ -915,7 +941,8 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
             continue
         Pv = np.where(val[..., None], np.nan, positions)
         Xv, _ = fill_holes(Pv, surface, **local, whole_body=False, ctx=ctx)
-        ev = _blend_members(Xv, Pv, holes | val, surface, interpolate=interpolate)
+        ev = _blend_members(Xv, Pv, holes | val, surface, interpolate=interpolate,
+                            spline_sides=(np.where(val, moved, -1), support))
         err = ((ev[:, val] - positions[val][None]) ** 2).sum(-1)  # (K, n)
         rid = moved[val]
         cnt = np.bincount(rid, minlength=n_runs)
