@@ -252,8 +252,9 @@ RIGID_DISAGREEMENT_SHARE = 0.25
 
 
 def _spline_support_needed(length: int, support: int, min_support_share: float = 0.0) -> int:
-    """Measured samples :func:`_interpolate_interior` needs on each side of a hole of
-    ``length`` frames: ``min_support_share`` of its length, at least 2 and at most
+    """Frames a validation copy of a hole of ``length`` frames is kept from the take's ends
+    (:func:`_shifted_runs`): ``min_support_share`` of its length, at least 2 (the fewest
+    measured samples :func:`_interpolate_interior` interpolates from) and at most
     ``support``."""
     return max(2, min(support, int(np.ceil(min_support_share * length))))
 
@@ -263,9 +264,10 @@ def _interpolate_interior(X: np.ndarray, measured: np.ndarray, holes: np.ndarray
                           sides: tuple[np.ndarray, np.ndarray] | None = None) -> int:
     """Cubic interpolation (in place) of interior holes still empty, from up to
     ``support`` measured samples on each side; a hole with fewer than 2 on a side is
-    left empty.  ``sides``, optional ``(labels (F, M) int, limits (R, 2) int)``: a hole with samples
-    labelled ``r >= 0`` takes at most ``limits[r]`` measured samples before and after it
-    (the smallest over its labels; :func:`_gap_support`).  Returns the samples filled."""
+    left empty.  ``sides``, optional ``(labels (F, M) int, limits (R, 2) int)``: a hole
+    with samples labelled ``r >= 0`` takes at most ``limits[r]`` measured samples before
+    and after it (the smallest over its labels; :func:`_gap_support`).  Returns the
+    samples filled."""
     obs = finite_rows(measured)
     todo = holes & ~finite_rows(X)
     n = 0
@@ -513,10 +515,10 @@ def _gap_support(measured: np.ndarray, runs: list[tuple[int, int, int]],
                  support: int) -> np.ndarray:
     """``(R, 2)`` int: the measured samples (``measured (F, M)`` bool) a spline of each run
     has before and after it, at most ``support`` each (:func:`_interpolate_interior`)."""
-    out = np.zeros((len(runs), 2), dtype=np.int64)
-    for r, (m, a, b) in enumerate(runs):
-        out[r] = min(support, int(measured[:a, m].sum())), min(support, int(measured[b:, m].sum()))
-    return out
+    seen = np.concatenate([np.zeros((1, measured.shape[1]), np.int64),
+                           np.cumsum(measured, axis=0)])  # (F + 1, M): measured before a frame
+    m, a, b = (np.array([run[i] for run in runs], dtype=np.int64) for i in range(3))
+    return np.minimum(np.stack([seen[a, m], seen[-1, m] - seen[b, m]], 1), support)
 
 
 def _shifted_runs(runs: list[tuple[int, int, int]], shape: tuple[int, int],
