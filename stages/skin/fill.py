@@ -251,7 +251,7 @@ RIGID_DISAGREEMENT_SHARE = 0.25
 # --------------------------------------------------------------------------- PCA fill (§4.3)
 
 
-def _spline_support_needed(length: int, support: int, min_support_share: float = 0.0) -> int:
+def _spline_support_needed(length: int, support: int, min_support_share: float) -> int:
     """Frames a validation copy of a hole of ``length`` frames is kept from the take's ends
     (:func:`_shifted_runs`): ``min_support_share`` of its length, at least 2 (the fewest
     measured samples :func:`_interpolate_interior` interpolates from) and at most
