@@ -10,6 +10,8 @@ which also gives the measurements).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
@@ -150,6 +152,35 @@ def regress_gap(
         The gaps' frames in order; None with too few training frames or a
         predictor missing in a gap.
     """
+    problem = _gap_problem(X, visible, marker, predictors, runs, reference,
+                           max_train=max_train)  # fmt: skip
+    if problem is None:
+        return None
+    return _solve_gaps(X, [problem], ridge=ridge, offset_correction=offset_correction,
+                       edge=edge)[0]
+
+
+@dataclass
+class _GapProblem:
+    """One regression of :func:`regress_gap` up to its rigid fits: the marker, its
+    predictors ``S (k,)``, the gaps, the training frames ``train (n,)`` followed by the
+    gaps' frames in ``frames``, and the predictors' positions there ``P (len(frames), k,
+    3)``, to be fitted by ``local`` (their reference positions about the marker's)."""
+
+    marker: int
+    S: np.ndarray
+    runs: list[tuple[int, int]]
+    train: np.ndarray
+    frames: np.ndarray
+    P: np.ndarray
+    local: np.ndarray
+
+
+def _gap_problem(X: np.ndarray, visible: np.ndarray, marker: int, predictors: np.ndarray,
+                 runs: list[tuple[int, int]], reference: np.ndarray, *,
+                 max_train: int) -> _GapProblem | None:  # fmt: skip
+    """The frames and predictor positions of :func:`regress_gap` (None: too few training
+    frames, or a predictor missing in a gap)."""
     S = np.asarray(predictors)
     gap = np.concatenate([np.arange(a, b) for a, b in runs])
     train = np.flatnonzero(visible[:, marker] & visible[:, S].all(1))
@@ -159,15 +190,55 @@ def regress_gap(
         centre = 0.5 * (runs[0][0] + runs[-1][1] - 1)
         near = np.argsort(np.abs(train - centre), kind="stable")[:max_train]
         train = np.sort(train[near])
-    n = len(train)
     frames = np.concatenate([train, gap])
     P = gather_samples(X, frames[:, None], S[None])
     local = np.broadcast_to(reference[S] - reference[marker], P.shape)
-    R, t = absolute_orientation_batch(local, P)  # P ≈ local @ R.T + t per frame
+    return _GapProblem(int(marker), S, runs, train, frames, P, local)
+
+
+#: Frames of :func:`_solve_gaps`' rigid fits per call of
+#: :func:`~mocapflow.stages.motion.absolute_orientation.absolute_orientation_batch`: a few MB.
+_FRAMES_PER_FIT = 20_000
+
+
+def _solve_gaps(X: np.ndarray, problems: list[_GapProblem], *, ridge: float,
+                offset_correction: bool, edge: int = 6) -> list[np.ndarray | None]:
+    """The estimates of :func:`regress_gap` for many ``problems`` (:func:`_gap_problem`):
+    the rigid fits of all problems with as many predictors in one call (each frame's fit
+    is its own: the same numbers as one call per problem), then each ridge regression.
+    None where a frame's predictors are degenerate (collinear)."""
+    fits: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(problems)
+    by_k: dict[int, list[int]] = {}
+    for i, pr in enumerate(problems):
+        by_k.setdefault(len(pr.S), []).append(i)
+    for idx in by_k.values():
+        batch: list[int] = []
+        n = 0
+        for j, i in enumerate(idx):
+            batch.append(i)
+            n += len(problems[i].frames)
+            if n < _FRAMES_PER_FIT and j + 1 < len(idx):
+                continue
+            R, t = absolute_orientation_batch(  # P ≈ local @ R.T + t per frame
+                np.concatenate([problems[b].local for b in batch]),
+                np.concatenate([problems[b].P for b in batch]))
+            cut = np.cumsum([0, *[len(problems[b].frames) for b in batch]])
+            for b, lo, hi in zip(batch, cut, cut[1:]):
+                fits[b] = (R[lo:hi], t[lo:hi])
+            batch, n = [], 0
+    return [_ridge_estimate(X, pr, *fit, ridge=ridge, offset_correction=offset_correction,
+                            edge=edge) for pr, fit in zip(problems, fits)]  # fmt: skip
+
+
+def _ridge_estimate(X: np.ndarray, pr: _GapProblem, R: np.ndarray, t: np.ndarray, *,
+                    ridge: float, offset_correction: bool, edge: int) -> np.ndarray | None:
+    """The ridge regression of :func:`regress_gap` given the frames' rigid fits ``R (N, 3,
+    3)``, ``t (N, 3)`` (None where one is degenerate)."""
     if not np.isfinite(R).all():
         return None  # degenerate (collinear) predictor set in some frame
-    Z = np.matmul(P - t[:, None], R).reshape(len(frames), -1)  # R^T (x - t), row-wise
-    y = np.matmul((X[train, marker] - t[:n])[:, None], R[:n])[:, 0]
+    train, runs, n = pr.train, pr.runs, len(pr.train)
+    Z = np.matmul(pr.P - t[:, None], R).reshape(len(pr.frames), -1)  # R^T (x - t), row-wise
+    y = np.matmul((X[train, pr.marker] - t[:n])[:, None], R[:n])[:, 0]
     mz, my = Z[:n].mean(0), y.mean(0)
     Zc = Z - mz
     A = Zc[:n].T @ Zc[:n]
@@ -288,11 +359,16 @@ def regression_estimates(
     estimates : (N, 3) float ndarray
     """
     vis = finite_rows(X) if visible is None else visible
-    c = np.asarray(candidates, dtype=np.int64)
-    span = max_train // 2 if max_span is None else max_span
-    top = c[:2 * n_predictors]
+    kw = {"n_predictors": n_predictors, "min_predictors": min_predictors, "ridge": ridge,
+          "max_train": max_train, "max_span": max_span, "offset_correction": offset_correction}
+    return _markers_estimates(X, vis, [marker], [candidates], [holes], reference, **kw)[0]
+
+
+def _groups(vis: np.ndarray, holes: np.ndarray, top: np.ndarray, *, n_predictors: int,
+            span: int) -> list[list[tuple[int, int]]]:
+    """The runs of ``holes (F,)`` grouped as :func:`regression_estimates` regresses them
+    together (within ``span`` frames, ``n_predictors`` of ``top`` visible through all)."""
     groups: list[list[tuple[int, int]]] = []
-    stack: list[tuple[int, int]] = []
     cur: list[tuple[int, int]] = []
     cur_v = np.ones(len(top), bool)
     for a, b in true_runs(holes):
@@ -306,42 +382,84 @@ def regression_estimates(
         cur, cur_v = [(a, b)], v
     if cur:
         groups.append(cur)
-    frames, ests = [], []
-    for g in groups:
-        if len(g) > 1:
-            ok = np.ones(len(c), bool)
-            for a, b in g:
-                ok &= vis[a:b][:, c].all(0)
-            n_gap = sum(b - a for a, b in g)
-            S = choose_predictors(vis, marker, c[ok], n_predictors=n_predictors,
-                                  min_frames=_min_train(n_gap))
-            e = None
-            if len(S) >= min_predictors:
-                e = regress_gap(X, vis, marker, S, g, reference, ridge=ridge,
-                                max_train=max_train, offset_correction=offset_correction)
+    return groups
+
+
+def _markers_estimates(
+    X: np.ndarray, vis: np.ndarray, markers: list[int], rankings: list[np.ndarray],
+    holes: list[np.ndarray], reference: np.ndarray, *, n_predictors: int, min_predictors: int,
+    ridge: float, max_train: int, max_span: int | None, offset_correction: bool,
+) -> list[tuple[np.ndarray, np.ndarray]]:  # fmt: skip
+    """:func:`regression_estimates` of several markers (``holes``: each one's ``(F,)``),
+    their rigid fits batched (:func:`_solve_gaps`, about :data:`_FRAMES_PER_FIT` frames
+    at a time): first every group of runs, then the runs of the groups that could not be
+    regressed together, one by one (halved while they lack predictors), as
+    :func:`regression_estimates` describes."""
+    span = max_train // 2 if max_span is None else max_span
+    frames: list[list[np.ndarray]] = [[] for _ in markers]
+    ests: list[list[np.ndarray]] = [[] for _ in markers]
+    stacks: list[list[tuple[int, int]]] = [[] for _ in markers]
+    jobs: list[tuple[int, list[tuple[int, int]]]] = []
+    problems: list[_GapProblem] = []
+
+    def solve(flush: bool) -> None:
+        """Solve the pending problems (when they hold enough frames, or ``flush``): an
+        estimate goes to its marker, a failed group's runs to its stack."""
+        if not problems or (not flush and sum(len(p.frames) for p in problems)
+                            < _FRAMES_PER_FIT):  # fmt: skip
+            return
+        for (i, g), e in zip(jobs, _solve_gaps(X, problems, ridge=ridge,
+                                               offset_correction=offset_correction)):
             if e is not None:
-                frames.append(np.concatenate([np.arange(a, b) for a, b in g]))
-                ests.append(e)
+                frames[i].append(np.concatenate([np.arange(a, b) for a, b in g]))
+                ests[i].append(e)
+            elif len(g) > 1:
+                stacks[i] += g
+        jobs.clear()
+        problems.clear()
+
+    def add(i: int, g: list[tuple[int, int]], pr: _GapProblem) -> None:
+        jobs.append((i, g))
+        problems.append(pr)
+        solve(False)
+
+    for i, (marker, cand, h) in enumerate(zip(markers, rankings, holes)):
+        c = np.asarray(cand, dtype=np.int64)
+        for g in _groups(vis, h, c[:2 * n_predictors], n_predictors=n_predictors, span=span):
+            pr = None
+            if len(g) > 1:
+                ok = np.ones(len(c), bool)
+                for a, b in g:
+                    ok &= vis[a:b][:, c].all(0)
+                n_gap = sum(b - a for a, b in g)
+                S = choose_predictors(vis, marker, c[ok], n_predictors=n_predictors,
+                                      min_frames=_min_train(n_gap))
+                if len(S) >= min_predictors:
+                    pr = _gap_problem(X, vis, marker, S, g, reference, max_train=max_train)
+            if pr is None:
+                stacks[i] += g
+            else:
+                add(i, g, pr)
+    solve(True)
+    want = max(min_predictors, int(REGRESSION_SPLIT_FRACTION * n_predictors))
+    for i, (marker, cand) in enumerate(zip(markers, rankings)):
+        c = np.asarray(cand, dtype=np.int64)
+        stack = stacks[i]
+        while stack:
+            a, b = stack.pop()
+            S = choose_predictors(vis, marker, c[vis[a:b][:, c].all(0)],
+                                  n_predictors=n_predictors, min_frames=_min_train(b - a))
+            if len(S) < (min_predictors if b - a == 1 else want):
+                if b - a > 1:
+                    h = (a + b) // 2
+                    stack += [(a, h), (h, b)]
                 continue
-        stack += g
-    while stack:
-        a, b = stack.pop()
-        S = choose_predictors(vis, marker, c[vis[a:b][:, c].all(0)], n_predictors=n_predictors,
-                              min_frames=_min_train(b - a))
-        want = max(min_predictors, int(REGRESSION_SPLIT_FRACTION * n_predictors))
-        if len(S) < (min_predictors if b - a == 1 else want):
-            if b - a > 1:
-                h = (a + b) // 2
-                stack += [(a, h), (h, b)]
-            continue
-        e = regress_gap(X, vis, marker, S, [(a, b)], reference, ridge=ridge,
-                        max_train=max_train, offset_correction=offset_correction)
-        if e is not None:
-            frames.append(np.arange(a, b))
-            ests.append(e)
-    if not frames:
-        return np.zeros(0, np.int64), np.zeros((0, 3))
-    return np.concatenate(frames), np.concatenate(ests)
+            pr = _gap_problem(X, vis, marker, S, [(a, b)], reference, max_train=max_train)
+            if pr is not None:
+                add(i, [(a, b)], pr)
+    solve(True)
+    return [(np.concatenate(f), np.concatenate(e)) if f else
+            (np.zeros(0, np.int64), np.zeros((0, 3))) for f, e in zip(frames, ests)]
 
 
 def _regress_chunk(item: tuple) -> tuple[np.ndarray, ...]:
@@ -349,12 +467,12 @@ def _regress_chunk(item: tuple) -> tuple[np.ndarray, ...]:
     X = np.ascontiguousarray(X)  # regress_gap gathers from it as (F * M, 3) rows
     vis = np.asfortranarray(finite_rows(X))  # one marker's frames contiguous
     ranking = predictor_ranking(X, reference, markers, pool=kw.pop("pool"))
-    fs, ms, es = [], [], []
-    for m, cand in zip(markers, ranking):
-        f, e = regression_estimates(X, int(m), cand, holes[:, m], reference, visible=vis, **kw)
-        fs.append(f)
-        ms.append(np.full(len(f), m, dtype=np.int64))
-        es.append(e)
+    kw.setdefault("max_span", None)
+    out = _markers_estimates(X, vis, [int(m) for m in markers], ranking,
+                             [holes[:, m] for m in markers], reference, **kw)
+    fs = [f for f, _ in out]
+    ms = [np.full(len(f), m, dtype=np.int64) for m, (f, _) in zip(markers, out)]
+    es = [e for _, e in out]
     if not fs:
         return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3))
     return np.concatenate(fs), np.concatenate(ms), np.concatenate(es)

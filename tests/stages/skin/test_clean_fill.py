@@ -11,6 +11,7 @@ from mocapflow.pipeline import Context
 from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
 from mocapflow.stages.motion.datatypes import Markers
 from mocapflow.stages.motion.rotations import quat_from_rotvec, quat_to_matrix
+from mocapflow.stages.skin import regress as rg
 from mocapflow.stages.skin.clean import CleanError, clean
 from mocapflow.stages.skin.fill import fill_holes
 from mocapflow.stages.skin.local_pca import (
@@ -125,6 +126,51 @@ def test_regression_recovers_a_deforming_gap():
     # the paper's one-ring PCA on the same gap, for comparison
     Xp, _ = fill_holes(X, surf, model="pca")
     assert err < 0.8 * rms(Xp[150:210, 24] - P[150:210, 24])
+
+
+@pytest.mark.parametrize("frames_per_fit", [rg._FRAMES_PER_FIT, 200])
+def test_regressions_fitted_together_give_the_bits_of_one_at_a_time(frames_per_fit,
+                                                                     monkeypatch):
+    """The rigid fits of many gaps of several markers in one call (_solve_gaps) are each
+    frame's own: the estimates equal regress_gap called gap by gap, bit for bit,
+    including a group of runs regressed together and gaps with different predictor
+    counts, whether all are fitted at once or a few at a time (``frames_per_fit``)."""
+    monkeypatch.setattr(rg, "_FRAMES_PER_FIT", frames_per_fit)
+    P = deforming_patch(360) + np.random.default_rng(3).normal(0, 0.0003, (360, 49, 3))
+    X = P.copy()
+    X[150:210, 24] = np.nan
+    X[40:45, 24] = np.nan
+    X[50:53, 24] = np.nan  # with 40-45: one regression of two runs
+    X[100:180, 10] = np.nan
+    X[300:330, 30] = np.nan
+    X[120:125, 17] = np.nan  # 17 is missing in 10's gap: another predictor set
+    X[100:140, 33:49] = np.nan  # and so are 16 more: 30 predictors there, 32 elsewhere
+    vis = np.isfinite(X).all(-1)
+    ref = P[0]
+    markers = [24, 10, 30]
+    ranking = predictor_ranking(X, ref, np.array(markers))
+    together = rg._markers_estimates(
+        X, vis, markers, ranking, [~vis[:, m] for m in markers], ref, n_predictors=32,
+        min_predictors=4, ridge=rg.REGRESSION_RIDGE, max_train=120, max_span=None,
+        offset_correction=False)
+    for m, cand, (f, e) in zip(markers, ranking, together):
+        assert np.array_equal(f, regression_estimates(X, m, cand, ~vis[:, m], ref,
+                                                      max_train=120)[0])
+        one, sizes = {}, set()
+        groups = rg._groups(vis, ~vis[:, m], cand[:64], n_predictors=32, span=60)
+        assert any(len(g) > 1 for g in groups) == (m == 24)
+        for g in groups:
+            ok = np.ones(len(cand), bool)
+            for a, b in g:
+                ok &= vis[a:b][:, cand].all(0)
+            S = rg.choose_predictors(vis, m, cand[ok],
+                                     min_frames=rg._min_train(sum(b - a for a, b in g)))
+            sizes.add(len(S))
+            est = regress_gap(X, vis, m, S, g, ref, max_train=120)
+            one.update(zip(np.concatenate([np.arange(a, b) for a, b in g]), est))
+        assert sizes == ({30} if m == 10 else {32})
+        assert sorted(one) == sorted(f.tolist())
+        assert all(np.array_equal(one[k], v) for k, v in zip(f, e))
 
 
 def test_offset_correction_removes_an_unexplained_drift():
