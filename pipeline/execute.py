@@ -23,20 +23,16 @@ to the manifest (``timings``, with the stage's own ``ctx.timer`` steps under
 
 from __future__ import annotations
 
-import contextlib
 import importlib
 import socket
-import sys
-import threading
 import time
 import traceback
-from collections.abc import Iterator, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from threadpoolctl import ThreadpoolController
-
 from mocapflow.pipeline import codecs, keys, registry
+from mocapflow.pipeline.blas import single_threaded_blas
 from mocapflow.pipeline.config import resolve_stage
 from mocapflow.pipeline.context import Context
 from mocapflow.pipeline.executors import CallOutcome, progress_sink, task_mapper
@@ -193,44 +189,6 @@ def error_line(e: BaseException) -> str:
     text = str(e).strip().splitlines()
     msg = text[0] if text else ""
     return f"{type(e).__name__}: {msg}" if msg else type(e).__name__
-
-
-_BLAS_LOCK = threading.Lock()
-#: ``depth``: tasks of this process inside :func:`single_threaded_blas`; ``limiter``:
-#: what restores the pools; ``controller``/``modules``: the pools found, and
-#: ``len(sys.modules)`` when they were looked up (a new import may load a new BLAS).
-_BLAS: dict[str, Any] = {"depth": 0, "limiter": None, "controller": None, "modules": -1}
-
-
-@contextlib.contextmanager
-def single_threaded_blas() -> Iterator[None]:
-    """BLAS and OpenMP thread pools at one thread while a task of this process runs a stage.
-
-    A threaded BLAS splits sums (dot products, ``gemv``, LAPACK panels)
-    differently for each thread count, so the same stage on the same inputs may
-    differ in the last bits between ``OPENBLAS_NUM_THREADS=1`` and ``=2``: with
-    one thread per task a stage's outputs do not depend on the machine, the
-    environment or the executor (Dask worker processes start with one thread
-    already).  Parallelism comes from tasks and ``ctx.map``.  Re-entrant and
-    thread-safe: the pools are limited while any task runs and restored after
-    the last; the pools are looked up again only when modules were imported
-    since (``threadpoolctl``'s lookup costs ~3 ms, the limit ~0.1 ms).
-    """
-    with _BLAS_LOCK:
-        if _BLAS["depth"] == 0:
-            if _BLAS["controller"] is None or _BLAS["modules"] != len(sys.modules):
-                _BLAS["modules"] = len(sys.modules)
-                _BLAS["controller"] = ThreadpoolController()
-            _BLAS["limiter"] = _BLAS["controller"].limit(limits=1)
-        _BLAS["depth"] += 1
-    try:
-        yield
-    finally:
-        with _BLAS_LOCK:
-            _BLAS["depth"] -= 1
-            if _BLAS["depth"] == 0:
-                _BLAS["limiter"].restore_original_limits()
-                _BLAS["limiter"] = None
 
 
 def worker_stage(name: str, module: str) -> registry.StageSpec:

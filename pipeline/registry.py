@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 from importlib import metadata
 from typing import Any, Literal, NewType, get_args, get_origin
 
+from mocapflow.pipeline.blas import single_threaded_blas
 from mocapflow.pipeline.context import Context
 
 __all__ = [
@@ -209,7 +210,8 @@ def stage(
 
 
 def call(spec: StageSpec, *args: Any, **kwargs: Any) -> Mapping[str, Any]:
-    """Call a stage from Python as the engine does: params validated, a context made.
+    """Call a stage from Python as the engine does: params validated, a context made, BLAS
+    and OpenMP at one thread while it runs (:func:`~mocapflow.pipeline.blas.single_threaded_blas`).
 
     Parameters
     ----------
@@ -245,7 +247,8 @@ def call(spec: StageSpec, *args: Any, **kwargs: Any) -> Mapping[str, Any]:
         if ctx is None:
             ctx = Context(seed=int(params.get("seed", 0) or 0))
         params["ctx"] = ctx
-    return spec.func(*(inputs[n] for n in spec.inputs), **params)
+    with single_threaded_blas():  # as the engine runs it: the same bits, no oversubscription
+        return spec.func(*(inputs[n] for n in spec.inputs), **params)
 
 
 def _build_spec(func, name, outputs, version, retries) -> StageSpec:

@@ -251,6 +251,19 @@ def test_stages_run_with_one_blas_thread_whatever_the_environment(tmp_path, data
     assert set(after) == {2}  # restored for the caller
 
 
+def test_a_stage_called_from_python_runs_with_one_blas_thread(tmp_path, data_dir):
+    """Called directly (registry.call), a stage runs as the engine runs it: BLAS at one
+    thread (the same bits; on a loaded 2-core machine a threaded SVD of clean's
+    whole-body PCA cost 20x), the caller's pools restored after."""
+    if not any(p["user_api"] == "blas" for p in threadpool_info()):
+        pytest.skip("no BLAS library found by threadpoolctl")
+    with threadpool_limits(limits=2, user_api="blas"):
+        seen = repro_blas_threads(FilePath(f"{data_dir}/trial001.txt"))["threads"]
+        after = [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+    assert seen.size and set(np.asarray(seen).ravel().tolist()) == {1}
+    assert set(after) == {2}
+
+
 def test_blas_limit_is_reentrant_and_restored_after_the_last_task():
     if not any(p["user_api"] == "blas" for p in threadpool_info()):
         pytest.skip("no BLAS library found by threadpoolctl")
