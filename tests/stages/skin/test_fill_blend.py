@@ -85,6 +85,38 @@ def test_shifted_runs_copy_each_gap_next_to_itself():
     np.testing.assert_array_equal(np.flatnonzero(back[:, 2] == 2), np.arange(350, 370))
 
 
+def test_copies_pose_the_runs_own_problem():
+    """With the take's measured samples, every copy lands on measured samples with one
+    measured frame on each side, away (``support`` frames) from the copies of the same
+    marker's other runs, and gaps at once still move together: its gap in the pass is the
+    run's own length.  Without them, the short run's backward copy lands on the long
+    hole and merges with it."""
+    F, M = 600, 3
+    holes = np.zeros((F, M), bool)
+    holes[100:300, 0] = True  # a long hole
+    holes[310:322, 0] = True  # a short one 10 frames after it
+    holes[310:322, 1] = True  # the same gap in a second marker: moves with it
+    holes[330:340, 2] = True
+    runs = _runs(holes)
+    measured = ~holes
+    for k in (-1, 1, -2, 2):
+        moved = _shifted_runs(runs, (F, M), k, support=10, measured=measured)
+        knocked = holes | (moved >= 0)
+        for r, (m, a, b) in enumerate(runs):
+            at = np.flatnonzero(moved[:, m] == r)
+            if not len(at):
+                continue
+            assert len(at) == b - a and at[-1] - at[0] == b - a - 1
+            assert measured[at[0] - 1:at[-1] + 2, m].all()  # on measured samples, 1 each side
+            assert not knocked[at[0] - 1, m] and not knocked[at[-1] + 1, m]  # gap of b - a
+            others = np.flatnonzero((moved[:, m] >= 0) & (moved[:, m] != r))
+            assert not len(others) or np.abs(others[:, None] - at[None]).min() > 10
+        np.testing.assert_array_equal(moved[:, 0] == 1, moved[:, 1] == 2)  # together
+    bare = _shifted_runs(runs, (F, M), -1)  # moved by the shift alone: frames 292-303
+    short = np.flatnonzero(bare[:, 0] == 1)
+    assert holes[short[0] - 1:short[-1] + 2, 0].any()
+
+
 def _real_take(shared_data, name: str):
     """The shared C3D ``name`` as read, its unlabelled fragments dropped (skipped when
     ezc3d or the file is absent)."""
@@ -597,6 +629,21 @@ def test_filled_runs_keep_the_fill(shared_data):
         wheel.mean(), nar.mean(), nar.max())
 
 
+def test_a_copy_buried_in_the_marker_s_other_holes_does_not_decide(shared_data):
+    """Real basket sprint (120 Hz): the push-rim marker SWL:Marker1, missing over most of
+    the sprint (2175-2413, 2415-2670, 2672-2880, 2894-2902), knocked out over frames
+    2904-2915 (the gap protocol's 0.1 s / 1 % / clustered mask of seed 677), here in frames
+    2100-3100 of the take.  Its copies, moved by the shift alone, lay in gaps of 231-928
+    frames made by the copies of its other runs: the spline, 0.86 mm off, was scored at
+    hundreds of mm and the blend came out 40.6 mm off (44.6 mm on the whole take).  Placed
+    where they pose the run's problem: 0.86 mm, with the spline."""
+    m = _real_take(shared_data, "ktk_kinematics_basket_sprint.c3d").take_frames(slice(2100, 3100))
+    mask = _knocked_out(m, (804, 816), ["SWL:Marker1"])
+    err, _ = _clean_errors(m, mask)
+    spline = _spline_errors(m, mask)
+    assert err.mean() < 2e-3 and err.mean() <= 1.2 * spline.mean(), (err.mean(), spline.mean())
+
+
 def test_shifted_runs_keep_the_spline_in_reach():
     """A 100-frame run in a 300-frame take: every copy moved 150 or 300 frames lands on an
     end of the take, where a spline has nothing on one side.  With the spline's support
@@ -624,14 +671,16 @@ def test_a_long_hole_in_a_short_take_scores_the_spline(pig_calibration):
     validation copy of the hole fell on an end of the take, the spline (the best model
     on a still subject) was never scored and took no weight; the blend came out 1.30 mm
     (frames 62-161) and 1.01 mm (150-249) from the truth against the spline's 1.08 / 0.88.
-    Copies kept in the spline's reach: spline weight 0.47 / 0.42, 1.06 / 0.80 mm."""
+    Copies kept in the spline's reach: spline weight 0.47 / 0.42, 1.06 / 0.80 mm; copies
+    placed on measured samples only (:func:`fill._placed_copies`: none overlaps the hole
+    itself): 0.30 / 0.25, 0.97 / 0.92 mm."""
     m = pig_calibration
     names = ["C7", "T10", "CLAV", "STRN", "RBAK", "LSHO", "RSHO", "LASI", "RASI", "LPSI", "RPSI"]
     for a in (62, 150):
         mask = _knocked_out(m, (a, a + 100), names)
         err, out = _clean_errors(m, mask)
         err_spline = _spline_errors(m, mask)
-        assert out["report"]["fill"]["blend"]["spline"] > 0.3, out["report"]["fill"]["blend"]
+        assert out["report"]["fill"]["blend"]["spline"] > 0.2, out["report"]["fill"]["blend"]
         assert err.mean() < 1.05 * err_spline.mean(), (a, err.mean(), err_spline.mean())
 
 
