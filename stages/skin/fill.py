@@ -105,7 +105,13 @@
   at once: the 12-frame copy lies inside gaps of 231, 777, 238 and 928 frames, where the
   spline is scored at 407 mm and the local fill at 176 mm.  Spread of ours' mean over the
   repetitions 173 % (median over configurations).  Copies are now placed where they pose
-  the run's own problem (:func:`_placed_copies`): that repetition 44.6 -> 0.86 mm.  The rigid-body
+  the run's own problem (:func:`_placed_copies`): that repetition 44.6 -> 0.86 mm; the
+  six 0.1 s configurations on the same seeds: 0.1 s / 1 % / clustered 4.91 -> 0.91 x the
+  spline but 1.51 -> 1.59 x the rigid-body fill (single-marker holes where the rigid fill
+  is best: seeds 675, 678, 679), 0.1 s / 10 % / independent 1.11 -> 0.73 x, the others
+  0.39-0.92 x.  On fresh mask seeds 680-689 (10 repetitions, drawn after the change), same
+  samples: PiG 17 of 18 (worst 1.06), Qualisys 12 of 12 (0.98), Eb015pr 24 of 24 (1.01),
+  pyomeca 24 of 24 (0.98).  The rigid-body
   fills are misjudged alike where the run's donors are missing at every copy
   (ArmL:Marker1 over 2 s, seed 672: rigid 1.16 mm, its two carries agreeing within
   0.75 mm, scored at 9.7 mm on copies carried by other donors; ours 1.76 mm).
