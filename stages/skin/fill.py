@@ -111,7 +111,11 @@
   is best: seeds 675, 678, 679), 0.1 s / 10 % / independent 1.11 -> 0.73 x, the others
   0.39-0.92 x.  On fresh mask seeds 680-689 (10 repetitions, drawn after the change), same
   samples: PiG 17 of 18 (worst 1.06), Qualisys 12 of 12 (0.98), Eb015pr 24 of 24 (1.01),
-  pyomeca 24 of 24 (0.98).  The rigid-body
+  pyomeca 24 of 24 (0.98), racing 23 of 24 but 0.5 s / 1 % / independent at 1.30 x
+  G&F (0.87 x before the change: seed 684, Sternum over frames 385-421, 3 samples
+  knocked out: no start qualified for any copy of that run, so the local fill alone, 88.8
+  mm off where the whole-body PCA was 5.3 mm; falling back to the shifted place gives
+  31.9 mm there, but buried the basket copy above again, 9.96 mm: not kept).  The rigid-body
   fills are misjudged alike where the run's donors are missing at every copy
   (ArmL:Marker1 over 2 s, seed 672: rigid 1.16 mm, its two carries agreeing within
   0.75 mm, scored at 9.7 mm on copies carried by other donors; ours 1.76 mm).
