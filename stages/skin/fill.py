@@ -651,7 +651,8 @@ def _placed_copies(runs: list[tuple[int, int, int]], measured: np.ndarray, k: in
 def _rigid_body_fill(positions: np.ndarray, holes: np.ndarray,
                      reference: np.ndarray, *,
                      donors: Literal["rigid", "nearest"] = "rigid",
-                     disagreement: np.ndarray | None = None) -> np.ndarray:
+                     disagreement: np.ndarray | None = None,
+                     donor_sets: dict | None = None) -> np.ndarray:
     """Rigid-body estimates of the holes from 3 donors (as Vicon's rigid-body fill).
 
     Per run of holes, 3 donors measured through it and at the marker's last /
@@ -666,6 +667,8 @@ def _rigid_body_fill(positions: np.ndarray, holes: np.ndarray,
     ``disagreement``, optional ``(F, M)`` float array: set to the distance between the
     two carries (from before and from after the gap) at the holes carried from both,
     NaN elsewhere (how far the marker moves against its donors within the gap).
+    ``donor_sets``, optional dict: set to ``{(marker, start, stop): donors}`` (a
+    ``frozenset`` of marker indices) for every run of holes carried.
 
     Returns
     -------
@@ -698,6 +701,8 @@ def _rigid_body_fill(positions: np.ndarray, holes: np.ndarray,
             d = cand[need][:3]
             if len(d) < 3:
                 continue
+            if donor_sets is not None:
+                donor_sets[(int(m), a, b)] = frozenset(d.tolist())
             s = (np.arange(a, b) - a + 1) / (b - a + 1)
             for f in anchors:
                 src.append(np.broadcast_to(positions[f, d], (b - a, 3, 3)))
@@ -801,8 +806,9 @@ def fill_by_validated_blend(
     """
     F, M, _ = X.shape
     disagreement = {k: np.full(holes.shape, np.nan) for k in RIGID_MODELS}
+    donor_sets: dict[int, dict] = {k: {} for k in RIGID_MODELS}
     est = _blend_members(X, positions, holes, surface, interpolate=interpolate,
-                         disagreement=disagreement)
+                         disagreement=disagreement, donor_sets=donor_sets)
     runs = _runs(holes)
     run = np.full((F, M), -1, dtype=np.int64)
     for r, (m, a, b) in enumerate(runs):
@@ -813,7 +819,8 @@ def fill_by_validated_blend(
     for r, (m, a, b) in enumerate(runs):
         full[:, r] = reach[:, a:b, m].all(1)
     errs, ok = _validation_errors(positions, holes, runs, surface, interpolate=interpolate,
-                                  local=local, shifts=VALIDATION_SHIFTS[:n_shifts], ctx=ctx)
+                                  local=local, shifts=VALIDATION_SHIFTS[:n_shifts],
+                                  donor_sets=donor_sets, ctx=ctx)
     mse = _validation_mse(errs, ok, full)
     _floor_rigid_errors(mse, disagreement, run)
     wr = _blend_weights(mse)
@@ -1001,26 +1008,33 @@ def _floor_rigid_errors(mse: np.ndarray, disagreement: dict[int, np.ndarray],
 def _blend_members(X: np.ndarray, positions: np.ndarray, holes: np.ndarray,
                    surface: MarkerSurface, *, interpolate: int,
                    disagreement: dict[int, np.ndarray] | None = None,
-                   spline_sides: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+                   spline_sides: tuple[np.ndarray, np.ndarray] | None = None,
+                   donor_sets: dict[int, dict] | None = None) -> np.ndarray:
     """``(K, F, M, 3)``: the estimates of :data:`BLEND_MODELS` at ``holes`` (NaN elsewhere
     and where a model cannot estimate), ``X`` being the local fill; ``disagreement``,
     optional ``{model index: (F, M) array}``: the rigid-body fills' (filled in, see
     :func:`_rigid_body_fill`); ``spline_sides``: the spline's support per hole
-    (``sides`` of :func:`_interpolate_interior`)."""
+    (``sides`` of :func:`_interpolate_interior`); ``donor_sets``, optional ``{model
+    index: dict}``: the rigid-body fills' donors per run (filled in, see
+    :func:`_rigid_body_fill`)."""
     dis = disagreement or {}
+    dons = donor_sets or {}
     low = whole_body_pca(X, finite_rows(positions), holes)
     spl = np.full_like(positions, np.nan)
     _interpolate_interior(spl, positions, holes, interpolate, sides=spline_sides)
     rig = _rigid_body_fill(positions, holes, surface.reference,
-                           disagreement=dis.get(RIGID_MODELS[0]))
+                           disagreement=dis.get(RIGID_MODELS[0]),
+                           donor_sets=dons.get(RIGID_MODELS[0]))
     near = _rigid_body_fill(positions, holes, surface.reference, donors="nearest",
-                            disagreement=dis.get(RIGID_MODELS[1]))
+                            disagreement=dis.get(RIGID_MODELS[1]),
+                            donor_sets=dons.get(RIGID_MODELS[1]))
     return np.stack([np.where(holes[..., None], X, np.nan), low, spl, rig, near])
 
 
 def _validation_errors(positions: np.ndarray, holes: np.ndarray,
                        runs: list[tuple[int, int, int]], surface: MarkerSurface, *,
                        interpolate: int, local: dict[str, Any], shifts: tuple[int, ...],
+                       donor_sets: dict[int, dict] | None = None,
                        ctx: Context) -> tuple[np.ndarray, np.ndarray]:
     """Each model's errors on the validation copies of each run.
 
@@ -1030,6 +1044,10 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
     :func:`fill_holes`, without the blend; the spline with at most the measured
     samples the run itself has on each side, :func:`_gap_support`, so that a
     spline short of samples at the hole is scored as it will be used).
+    With ``donor_sets`` (``{model index: {(marker, start, stop): donors}}``, the
+    rigid-body fills' donors of each run, :func:`_rigid_body_fill`), a rigid-body fill
+    is scored only on the copies where the run's own donors are measured, where it has
+    any (:func:`_donors_at_copies`).
 
     Returns
     -------
@@ -1045,6 +1063,7 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
     support = _gap_support(obs, runs, interpolate)
     mse = np.zeros((K, len(shifts), n_runs))
     ok = np.zeros((K, len(shifts), n_runs), dtype=bool)
+    same = np.ones((K, len(shifts), n_runs), dtype=bool)  # carried with the run's donors
     for s, k in enumerate(shifts):
         moved = _shifted_runs(runs, (F, M), k, support=interpolate, measured=obs)
         val = (moved >= 0) & obs
@@ -1055,6 +1074,8 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
         ev = _blend_members(Xv, Pv, holes | val, surface, interpolate=interpolate,
                             spline_sides=(np.where(val, moved, -1), support))
         err = ((ev[:, val] - positions[val][None]) ** 2).sum(-1)  # (K, n)
+        for j, sets in (donor_sets or {}).items():
+            same[j, s] = _donors_at_copies(moved, runs, sets, obs & ~val)
         rid = moved[val]
         cnt = np.bincount(rid, minlength=n_runs)
         for j in range(K):
@@ -1062,7 +1083,35 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
             mse[j, s] = np.bincount(rid[fin], weights=err[j][fin], minlength=n_runs) / \
                 np.maximum(cnt, 1)
             ok[j, s] = (cnt > 0) & (np.bincount(rid[~fin], minlength=n_runs) == 0)
+    ok &= same | ~(ok & same).any(1, keepdims=True)  # the run's donors, where they carry any
     return mse, ok
+
+
+def _donors_at_copies(moved: np.ndarray, runs: list[tuple[int, int, int]], own: dict,
+                      measured: np.ndarray) -> np.ndarray:
+    """``(R,)`` bool: the donors a rigid-body fill carries each run with (``own``:
+    ``{(marker, start, stop): donors}``, :func:`_rigid_body_fill`) are all measured
+    (``measured (F, M)``, in the copies' pass) over the run's copy in ``moved``
+    (``(F, M)``, :func:`_shifted_runs`) and one frame on each side, so that the fill
+    carries the copy as it carries the run.  True where the run is not carried or has no
+    copy."""
+    F, _ = moved.shape
+    out = np.ones(len(runs), dtype=bool)
+    seen = np.concatenate([np.zeros((1, measured.shape[1]), np.int64),
+                           np.cumsum(measured, axis=0)])  # (F + 1, M)
+    hit, col = np.nonzero(moved >= 0)
+    rid = moved[hit, col]
+    lo = np.full(len(runs), F, dtype=np.int64)
+    hi = np.full(len(runs), -1, dtype=np.int64)
+    np.minimum.at(lo, rid, hit)
+    np.maximum.at(hi, rid, hit)
+    for r in np.flatnonzero(hi >= 0):
+        d = own.get(runs[r])
+        if d is None:
+            continue
+        a, b = max(lo[r] - 1, 0), min(hi[r] + 2, F)
+        out[r] = bool((seen[b, list(d)] - seen[a, list(d)] == b - a).all())
+    return out
 
 
 def _validation_mse(mse: np.ndarray, ok: np.ndarray, usable: np.ndarray) -> np.ndarray:
