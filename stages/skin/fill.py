@@ -555,12 +555,17 @@ def _runs(holes: np.ndarray) -> list[tuple[int, int, int]]:
             for a, b in true_runs(holes[:, m])]
 
 
+def _measured_before(measured: np.ndarray) -> np.ndarray:
+    """``(F + 1, M)`` int: the samples of ``measured (F, M)`` before each frame (and in all)."""
+    return np.concatenate([np.zeros((1, measured.shape[1]), np.int64),
+                           np.cumsum(measured, axis=0)])
+
+
 def _gap_support(measured: np.ndarray, runs: list[tuple[int, int, int]],
                  support: int) -> np.ndarray:
     """``(R, 2)`` int: the measured samples (``measured (F, M)`` bool) a spline of each run
     has before and after it, at most ``support`` each (:func:`_interpolate_interior`)."""
-    seen = np.concatenate([np.zeros((1, measured.shape[1]), np.int64),
-                           np.cumsum(measured, axis=0)])  # (F + 1, M): measured before a frame
+    seen = _measured_before(measured)
     m, a, b = (np.array([run[i] for run in runs], dtype=np.int64) for i in range(3))
     return np.minimum(np.stack([seen[a, m], seen[-1, m] - seen[b, m]], 1), support)
 
@@ -845,7 +850,7 @@ def fill_by_validated_blend(
     mse = _validation_mse(errs, ok, full)
     _floor_rigid_errors(mse, disagreement, run)
     wr = _blend_weights(mse)
-    _count_once(wr, _repeated_estimates(est, runs), est, runs)  # a model given twice
+    _count_once(wr, _earlier_twins(est, runs))  # a model given twice weighs once
     wr[_outlying_estimates(est, runs, mse, wr, positions)] = 0.0  # far off in the gap
     w = np.where(holes[None], wr[:, np.maximum(run, 0)], 0.0)  # (K, F, M)
     have = finite_rows(est) & holes[None]  # (K, F, M)
@@ -874,35 +879,40 @@ def _repeated_estimates(est: np.ndarray, runs: list[tuple[int, int, int]]) -> np
     the two rigid-body fills then give one estimate, which weighed twice in the blend
     (PiG calibration, left wrist, 0.1 s holes: both at 0.59-0.82 mm where the spline
     was 0.25-0.36 mm, blend 0.36-0.61 mm; counted once 0.29-0.53 mm)."""
+    return _earlier_twins(est, runs) >= 0
+
+
+def _earlier_twins(est: np.ndarray, runs: list[tuple[int, int, int]]) -> np.ndarray:
+    """``(K, R)`` int: the first earlier model whose estimate of run ``r`` is model ``k``'s
+    (within :data:`SAME_ESTIMATE_TOLERANCE` at every sample), -1 where none is
+    (:func:`_repeated_estimates`)."""
     K = est.shape[0]
-    out = np.zeros((K, len(runs)), dtype=bool)
+    out = np.full((K, len(runs)), -1, dtype=np.int64)
     for r, (m, a, b) in enumerate(runs):
         e = est[:, a:b, m]  # (K, L, 3)
         fin = np.isfinite(e).all((1, 2))
         for k in range(1, K):
             if fin[k]:
-                out[k, r] = any(fin[j] and np.abs(e[k] - e[j]).max() <= SAME_ESTIMATE_TOLERANCE
-                                for j in range(k))
+                out[k, r] = next((j for j in range(k) if fin[j] and np.abs(e[k] - e[j]).max()
+                                  <= SAME_ESTIMATE_TOLERANCE), -1)
     return out
 
 
-def _count_once(weights: np.ndarray, repeated: np.ndarray, est: np.ndarray,
-                runs: list[tuple[int, int, int]]) -> None:
-    """Set the weights ``(K, R)`` of the repeated estimates (``repeated (K, R)``,
-    :func:`_repeated_estimates`) to 0, in place, the first model giving that estimate
+def _count_once(weights: np.ndarray, twins: np.ndarray) -> None:
+    """Set the weights ``(K, R)`` of the repeated estimates (``twins (K, R)``: the earlier
+    model giving each, :func:`_earlier_twins`) to 0, in place, the first model giving it
     taking the largest weight of them: the estimate weighs once, as much as its best
     validated giver.  Before, the repeat alone lost its weight: on basket_sprint
     (0.1 s / 10 % / clustered, mask seed 699) the local fill of SWL:Marker2's run
     2242-2259 was the spline's (1.04 mm off, validated 1.09 mm against the local fill's
     48 mm on other copies), the spline's weight went, the rigid-body fills could not
     reach the knocked-out sample and the whole-body PCA filled it alone, 502 mm off."""
+    repeated = twins >= 0
     for k, r in zip(*np.nonzero(repeated)):
-        m, a, b = runs[r]
-        for j in range(k):
-            if not repeated[j, r] and np.isfinite(est[j, a:b, m]).all() and (
-                    np.abs(est[k, a:b, m] - est[j, a:b, m]).max() <= SAME_ESTIMATE_TOLERANCE):
-                weights[j, r] = max(weights[j, r], weights[k, r])
-                break
+        j = twins[k, r]
+        while twins[j, r] >= 0:  # the first giver of that estimate
+            j = twins[j, r]
+        weights[j, r] = max(weights[j, r], weights[k, r])
     weights[repeated] = 0.0
 
 
@@ -1138,8 +1148,7 @@ def _donors_at_copies(moved: np.ndarray, runs: list[tuple[int, int, int]], own: 
     copy."""
     F, _ = moved.shape
     out = np.ones(len(runs), dtype=bool)
-    seen = np.concatenate([np.zeros((1, measured.shape[1]), np.int64),
-                           np.cumsum(measured, axis=0)])  # (F + 1, M)
+    seen = _measured_before(measured)
     hit, col = np.nonzero(moved >= 0)
     rid = moved[hit, col]
     lo = np.full(len(runs), F, dtype=np.int64)

@@ -795,6 +795,5 @@ def test_a_repeated_estimate_keeps_its_best_giver_s_weight():
     est[4, 5:15, 0] = est[3, 5:15, 0]  # the two rigid fills agree
     weights = np.array([[1e-4], [1e-2], [0.9], [0.3], [0.5]])
     runs = [(0, 5, 15)]
-    repeated = fill._repeated_estimates(est, runs)
-    fill._count_once(weights, repeated, est, runs)
+    fill._count_once(weights, fill._earlier_twins(est, runs))
     np.testing.assert_array_equal(weights[:, 0], [0.9, 1e-2, 0.0, 0.5, 0.0])
