@@ -24,10 +24,10 @@ One run prints five tables (``--graph-path`` prints its own, 5 below, instead):
    ``None``, show what it changes; table 2 cannot show it: held-out points have
    no triangles);
 4. throughput: frames per second deforming a ~13k-vertex mesh from 350 markers,
-   in one process, with 2 worker processes and with 2 threads (the stage's
-   ``ctx.map``), with a plain NumPy linear-blend skinning of the same mesh as
-   the in-process reference; BLAS at one thread, as the engine runs stages;
-   best of 3 calls, and the first call's frames per CPU-second (fresh memory for
+   in one process, with 2 worker processes (the stage's ``ctx.map``) and with 2
+   threads of the process (the stage's ``threads``), with a plain NumPy linear-blend
+   skinning of the same mesh as the in-process reference; BLAS at one thread, as the
+   engine runs stages; best of 3 calls, and the first call's frames per CPU-second (fresh memory for
    the output and the work arrays, which a stage pays once per task).
 
 Markers are the simulator's true skin-marker centres plus its measurement noise
@@ -60,7 +60,7 @@ import argparse
 import inspect
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import ProcessPoolExecutor
 from functools import partial
 from pathlib import Path
 from unittest import mock
@@ -501,7 +501,8 @@ def mesh_artifacts(faces, rest, rigid, verts):
 
 def throughput_table(sim, seg, mk_test, *, frames):
     """Table 4: frames per second deforming a ~13k-vertex mesh, in process, with 2 worker
-    processes and with 2 threads, against a NumPy linear-blend skinning of the same mesh.
+    processes and with 2 threads (``threads=2``), against a NumPy linear-blend skinning of
+    the same mesh.
 
     BLAS runs at one thread, as the engine runs every stage (``single_threaded_blas``):
     with a threaded BLAS on a loaded 2-core machine each small product can cost ~20 ms
@@ -530,21 +531,21 @@ def throughput_table(sim, seg, mk_test, *, frames):
             first_c = first_c or time.process_time() - c
         return frames / best_t, frames / best_c, frames / first_c
 
-    with ProcessPoolExecutor(2) as pool, ThreadPoolExecutor(2) as threads, \
-            single_threaded_blas():  # fmt: skip
+    with ProcessPoolExecutor(2) as pool, single_threaded_blas():
         procs = lambda fn, items: list(pool.map(fn, items))  # noqa: E731
         list(pool.map(abs, [1, 2]))  # start the workers
-        setups = [  # (label, processes, mapper, chunk_frames)
-            ("in-process", 1, None, frames),
-            ("part fits on workers, one evaluation pass", 2, procs, frames),
-            ("part fits + 4 frame chunks on workers", 2, procs, -(-frames // 4)),
-            ("part fits + 2 frame chunks on 2 threads", 1, lambda fn, it: list(threads.map(fn, it)),
-             -(-frames // 2)),
+        setups = [  # (label, processes, mapper, chunk_frames, threads)
+            ("in-process", 1, None, frames, 1),
+            ("in-process on 2 threads (threads=2)", 1, None, frames, 2),
+            ("part fits on workers, one evaluation pass", 2, procs, frames, 1),
+            ("part fits on workers, one evaluation pass on 2 threads", 2, procs, frames, 2),
+            ("part fits + 4 frame chunks on workers", 2, procs, -(-frames // 4), 1),
         ]  # fmt: skip
         for mode in ("quadratic_residual", "rigid"):
-            for label, n_proc, mp, chunk in setups:
+            for label, n_proc, mp, chunk, n_threads in setups:
                 fps, cps, first = timed(partial(deform, mk, seg, mesh13, mode=mode,
-                                                chunk_frames=chunk, ctx=Context(mapper=mp)))
+                                                chunk_frames=chunk, threads=n_threads,
+                                                ctx=Context(mapper=mp)))  # fmt: skip
                 rows.append([f"ours, {mode}, {label}", n_proc, f"{fps:.0f}",
                              f"{cps:.0f}" if n_proc == 1 else "",
                              f"{first:.0f}" if n_proc == 1 else ""])  # fmt: skip

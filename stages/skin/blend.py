@@ -35,6 +35,11 @@ Implementation notes (none changes the method):
   as before): the widening takes the rows of the pairs it predicts from them where
   the operator holds the pair, and builds only the pairs the diffused ``β`` adds (on
   the throughput body 1,332 of 4,967);
+* **threads** (the stage's ``threads``, :class:`Threads`): the evaluation pass splits the
+  frames into one consecutive range per thread, and the widening its products, position
+  sums and edge lengths into jobs of rows, dealt round-robin; scipy's CSR kernel and
+  NumPy's copies and ufuncs release the GIL, every job writes its own rows or frames,
+  and every row is computed as on one thread (below): the same bits on any number;
 * **bit-reproducible**: every vertex's result is computed by operations whose
   rounding does not depend on which other vertices, frames or parts are computed
   in the same call, nor on BLAS or its thread count: ``H``'s rows come from their
@@ -53,6 +58,7 @@ Implementation notes (none changes the method):
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,6 +77,7 @@ except ImportError:  # pragma: no cover - a private module; the same bits throug
         y += (A @ x.reshape(n_col, n_vecs)).ravel()
 
 __all__ = [
+    "Threads",
     "VertexOperator",
     "deform_positions",
     "frame_coefficients",
@@ -80,6 +87,48 @@ __all__ = [
 
 
 # ------------------------------------------------------------------------- all parts (P&H Eq. 8–9)
+
+
+class Threads:
+    """``n`` threads sharing lists of jobs: the calling thread and ``n - 1`` pooled ones (a
+    context manager; ``n = 1``: the calling thread alone, no pool).
+
+    For work whose jobs write disjoint results and release the GIL (scipy's CSR kernel,
+    NumPy's copies and ufuncs): every job computes the same bits whichever thread runs it.
+    """
+
+    def __init__(self, n: int = 1):
+        self.n = max(1, int(n))
+        self.pool = ThreadPoolExecutor(self.n - 1) if self.n > 1 else None
+
+    def __enter__(self) -> Threads:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.pool is not None:
+            self.pool.shutdown()
+
+    def run(self, fn, jobs: list, works: list | None = None) -> list:
+        """``fn(job, work)`` for every job (``work``: thread ``t``'s ``works[t]``, None
+        without), thread ``t`` taking jobs ``t, t + n, ...``; returns the results in job
+        order."""
+        out = [None] * len(jobs)
+
+        def share(t: int) -> None:
+            for i in range(t, len(jobs), self.n):
+                out[i] = fn(jobs[i], None if works is None else works[t])
+
+        if self.pool is None or len(jobs) < 2:
+            for i, job in enumerate(jobs):
+                out[i] = fn(job, None if works is None else works[0])
+            return out
+        done = [self.pool.submit(share, t) for t in range(1, min(self.n, len(jobs)))]
+        share(0)
+        for d in done:
+            d.result()
+        return out
+
+
 
 
 @dataclass
@@ -382,32 +431,50 @@ def deform_positions(
 def _frame_major(models: list[PartModel], fits: list[PartFit], n_vertices: int,
                  operator: VertexOperator | None = None, *, residual: bool | None = None,
                  edges: np.ndarray | None = None, coefficients: np.ndarray | None = None,
-                 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+                 threads: Threads | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """:func:`deform_positions` ``(F, V, 3)``, and the largest squared length over the frames
     of ``edges (E, 2)`` (vertex pairs; ``(E,)``, empty without), measured on each chunk of
     frames while it is at hand (the same numbers as
     :func:`~mocapflow.stages.skin.widening._longest_edges` of the result).
-    ``coefficients``: the models' :func:`frame_coefficients` when already computed."""
+    ``coefficients``: the models' :func:`frame_coefficients` when already computed;
+    ``threads``: the frames in one consecutive range per thread (:class:`Threads`; the
+    same bits: a frame's result never depends on the others, and the largest of the
+    ranges' largest lengths is their largest)."""
+    if residual is None:
+        residual = any(np.any(f.W) for f in fits)
+    if operator is None:
+        operator = vertex_operator(models, n_vertices, residual=residual)
+    if coefficients is None:
+        coefficients = frame_coefficients(models, fits, residual=residual)
     F = fits[0].R.shape[0] if fits else 0
     out = np.empty((F, n_vertices, 3))
     edges = np.zeros((0, 2), np.int64) if edges is None else edges
-    most = np.zeros(len(edges))
     along = _edge_vectors(edges, n_vertices)
-    work = np.empty(0)
-    for a, b, X in _blended_chunks(models, fits, n_vertices, operator, residual=residual,
-                                   coefficients=coefficients):  # fmt: skip
-        # (V, f, 3) -> (f, V, 3), moving whole xyz triplets (24 bytes) at a time
-        out[a:b].view(_XYZ)[..., 0] = X.view(_XYZ).T
-        if len(edges):
-            if work.shape != (len(edges), X.shape[1]):
-                work = np.empty((len(edges), X.shape[1]))
-            _sparse_product(along, X, work)  # (E, 3f): end minus start
-            np.square(work, out=work)
-            length = work[:, 0::3] + work[:, 1::3]
-            length += work[:, 2::3]  # (E, f): as _squared_lengths
-            for j in range(length.shape[1]):  # frame by frame (a max over a short axis is slow)
-                np.maximum(most, length[:, j], out=most)
-    return out, most
+
+    def evaluate(frames: tuple[int, int]) -> np.ndarray:
+        most = np.zeros(len(edges))
+        work = np.empty(0)
+        for a, b, X in _blended_chunks(models, fits, n_vertices, operator, residual=residual,
+                                       coefficients=coefficients, frames=frames):  # fmt: skip
+            # (V, f, 3) -> (f, V, 3), moving whole xyz triplets (24 bytes) at a time
+            out[a:b].view(_XYZ)[..., 0] = X.view(_XYZ).T
+            if len(edges):
+                if work.shape != (len(edges), X.shape[1]):
+                    work = np.empty((len(edges), X.shape[1]))
+                _sparse_product(along, X, work)  # (E, 3f): end minus start
+                np.square(work, out=work)
+                length = work[:, 0::3] + work[:, 1::3]
+                length += work[:, 2::3]  # (E, f): as _squared_lengths
+                for j in range(length.shape[1]):  # frame by frame (a max over a short axis is slow)
+                    np.maximum(most, length[:, j], out=most)
+        return most
+
+    n = 1 if threads is None else min(threads.n, max(1, F))
+    cuts = np.linspace(0, F, n + 1).round().astype(int)
+    ranges = list(zip(cuts[:-1].tolist(), cuts[1:].tolist()))
+    if n == 1:
+        return out, evaluate(ranges[0])
+    return out, np.maximum.reduce(threads.run(lambda r, _: evaluate(r), ranges))
 
 
 def _edge_vectors(edges: np.ndarray, n_vertices: int) -> sp.csr_matrix:
@@ -424,7 +491,8 @@ def _edge_vectors(edges: np.ndarray, n_vertices: int) -> sp.csr_matrix:
 
 def _blended_chunks(models: list[PartModel], fits: list[PartFit], n_vertices: int,
                     operator: VertexOperator | None = None, *, residual: bool | None = None,
-                    coefficients: np.ndarray | None = None):  # fmt: skip
+                    coefficients: np.ndarray | None = None,
+                    frames: tuple[int, int] | None = None):  # fmt: skip
     """The blended vertices chunk by chunk of frames, vertex-major: yields ``(a, b, X)``
     with ``X (V, 3 (b - a))`` the positions in frames ``a..b-1`` (a work array, overwritten
     by the next chunk); see :func:`deform_positions`.  ``coefficients``: the models'
@@ -462,8 +530,9 @@ def _blended_chunks(models: list[PartModel], fits: list[PartFit], n_vertices: in
     n = max(1, min(F, _VALUES_PER_PRODUCT // (3 * max(1, N))))  # frames per product
     Z_full = np.empty((rows.shape[0], 3 * n))
     work_full = np.empty((len(pairs), 3 * n))
-    for a in range(0, F, n):
-        b = min(F, a + n)
+    start, stop = (0, F) if frames is None else frames
+    for a in range(start, stop, n):
+        b = min(stop, a + n)
         Cc = np.ascontiguousarray(C[:, a:b]).reshape(K, 3 * (b - a))
         full = b - a == n
         Z = Z_full if full else np.empty((rows.shape[0], 3 * (b - a)))

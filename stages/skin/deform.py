@@ -159,6 +159,7 @@ from mocapflow.stages.motion.datatypes import Markers, Mesh
 from mocapflow.stages.motion.geometry import triangle_normals
 from mocapflow.stages.skin.binding import DeformError, MeshBinding, bind_mesh, mesh_edges
 from mocapflow.stages.skin.blend import (
+    Threads,
     VertexOperator,
     _frame_major,
     deform_positions,
@@ -238,14 +239,18 @@ def align_markers(markers: Markers, segmentation: Segmentation) -> np.ndarray:
 
 
 def _fit_parts(models: list[PartModel], x: np.ndarray, *, mode: str,
-               min_quadratic_markers: int, damping: float, ctx: Context) -> list[PartFit]:
+               min_quadratic_markers: int, damping: float, ctx: Context,
+               threads: Threads | None = None) -> list[PartFit]:  # fmt: skip
     """Every part's fit over all frames (:func:`~mocapflow.stages.skin.parts.fit_part`),
-    one task per part through ``ctx.map``; the models' and fits' messages are warned."""
-    fits = ctx.map(
-        partial(_fit_part_item, mode=mode, min_quadratic_markers=min_quadratic_markers,
-                damping=damping),
-        [(_without_vertices(m), x[:, m.members]) for m in models],
-    )
+    one task per part through ``ctx.map`` (on ``threads`` when the context has no
+    executor); the models' and fits' messages are warned."""
+    fit = partial(_fit_part_item, mode=mode, min_quadratic_markers=min_quadratic_markers,
+                  damping=damping)  # fmt: skip
+    items = [(_without_vertices(m), x[:, m.members]) for m in models]
+    if ctx.mapper is None and threads is not None and threads.n > 1:
+        fits = threads.run(lambda item, _: fit(item), items)
+    else:
+        fits = ctx.map(fit, items)
     for m, f in zip(models, fits):
         notes = m.messages if mode.endswith("residual") else []  # the kernel's notes
         for msg in notes + f.messages:
@@ -267,7 +272,7 @@ def _fallback_hint(message: str) -> str | None:
 def _deform_frames(models: list[PartModel], fits: list[PartFit], n_frames: int,
                    operator: VertexOperator, *, residual: bool, chunk_frames: int,
                    ctx: Context, edges: np.ndarray | None = None,
-                   coefficients: np.ndarray | None = None,
+                   coefficients: np.ndarray | None = None, threads: Threads | None = None,
                    ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """The blended vertices ``(F, V, 3)`` of ``operator``
     (:func:`~mocapflow.stages.skin.blend.vertex_operator` of the rest vertices and their
@@ -282,7 +287,7 @@ def _deform_frames(models: list[PartModel], fits: list[PartFit], n_frames: int,
     bounds = list(range(0, F, max(1, chunk_frames))) + [F]
     if ctx.mapper is None or len(bounds) <= 2:  # in-process: one pass, no copies
         return _frame_major(models, fits, V, operator, residual=residual, edges=edges,
-                            coefficients=coefficients)  # fmt: skip
+                            coefficients=coefficients, threads=threads)  # fmt: skip
     light = [_without_vertices(m) for m in models]
     operator = replace(operator, unit=None)  # the rows with β = 1 stay here
     chunks = [
@@ -439,6 +444,7 @@ def deform(
     max_blend_stretch: float | None = 2.5,
     blend_widening_reach: float = 0.45,
     unflip: bool = False,
+    threads: int | None = None,
     ctx: Context,
 ) -> dict[str, Any]:
     """Animate a detailed mesh from markers: rigid + quadratic + RBF residual per part.
@@ -503,6 +509,12 @@ def deform(
         (:func:`unflip_triangles`; ``report["unflip"]``).  It deforms the mesh a second
         time, rigidly, and pulls (the demo's body: 3.3x the cost).  Off by default; the
         skin graph's config turns it on (the demo: 344 flipped triangles -> 0).
+    threads : int or None
+        Threads of this process evaluating the frames, the blend widening and (without
+        an executor) the per-part fits; ``None``: ``ctx.workers`` (the engine's worker
+        count; 1 for a plain Python call).  The result is the same bits on any number
+        (every vertex, frame and part is computed apart from the others: see
+        :mod:`mocapflow.stages.skin.blend`).
 
     Returns
     -------
@@ -524,6 +536,9 @@ def deform(
     if not blend_widening_reach >= 0:
         raise DeformError(
             f"deform: blend_widening_reach must be >= 0 (metres), got {blend_widening_reach}")
+    n_threads = ctx.workers if threads is None else threads
+    if not n_threads >= 1:
+        raise DeformError(f"deform: threads must be >= 1 (or null), got {threads}")
     x = align_markers(markers, segmentation)
     sparse = (segmentation.attrs.get("density") or {}).get("suited") is False
     if sparse:  # below Park & Hodgins' density (segment warned once): rigid skinning
@@ -538,32 +553,34 @@ def deform(
                      support_margin=support_margin, clamp_margin=clamp_margin)
         for p in range(segmentation.n_parts)
     ]  # fmt: skip
-    fits = _fit_parts(models, x, mode=mode, min_quadratic_markers=min_quadratic_markers,
-                      damping=quadratic_damping, ctx=ctx)
-    V = mesh.vertices.shape[0]
-    widen = max_blend_stretch is not None and len(mesh.faces) > 0
-    # the edges of the triangles that blend, measured while the frames are evaluated
-    watch, ends = _blending_edges(mesh, binding.beta) if widen else (None, None)
-    residual = mode.endswith("residual")
-    # computed once for both passes when the blend widens; else the evaluation pass
-    # computes them where it runs (in process, or per chunk on the workers)
-    C = frame_coefficients(models, fits, residual=residual) if widen else None
-    operator = vertex_operator(models, V, residual=residual, rest=mesh.vertices,
-                               beta=binding.beta)  # fmt: skip
-    verts, longest = _deform_frames(
-        models, fits, x.shape[0], operator, residual=residual,
-        chunk_frames=chunk_frames, ctx=ctx, edges=ends, coefficients=C)
-    beta, widened = binding.beta, {"steps": 0, "vertices": 0}
-    if widen:
-        beta, n_steps, n_changed, torn0, torn1 = _widen_blends(
-            models, fits, mesh, binding.beta, verts, max_stretch=max_blend_stretch,
-            steps=widening_steps(mesh, blend_widening_reach), residual=residual,
-            measured=(watch, longest), coefficients=C, operator=operator)
-        widened = {"steps": n_steps, "vertices": n_changed, "torn_before": torn0,
-                   "torn_after": torn1 if n_changed else torn0}
-        if torn0 and not n_changed:
-            ctx.warn(f"deform: widening the blends did not tear fewer triangles ({torn0} "
-                     f"-> {torn1} beyond {max_blend_stretch:g}x), so the paper's blend is kept")
+    with Threads(n_threads) as threads_:  # the evaluation's threads (same bits on any number)
+        fits = _fit_parts(models, x, mode=mode, min_quadratic_markers=min_quadratic_markers,
+                          damping=quadratic_damping, ctx=ctx, threads=threads_)
+        V = mesh.vertices.shape[0]
+        widen = max_blend_stretch is not None and len(mesh.faces) > 0
+        # the edges of the triangles that blend, measured while the frames are evaluated
+        watch, ends = _blending_edges(mesh, binding.beta) if widen else (None, None)
+        residual = mode.endswith("residual")
+        # computed once for both passes when the blend widens; else the evaluation pass
+        # computes them where it runs (in process, or per chunk on the workers)
+        C = frame_coefficients(models, fits, residual=residual) if widen else None
+        operator = vertex_operator(models, V, residual=residual, rest=mesh.vertices,
+                                   beta=binding.beta)  # fmt: skip
+        verts, longest = _deform_frames(
+            models, fits, x.shape[0], operator, residual=residual,
+            chunk_frames=chunk_frames, ctx=ctx, edges=ends, coefficients=C, threads=threads_)
+        beta, widened = binding.beta, {"steps": 0, "vertices": 0}
+        if widen:
+            beta, n_steps, n_changed, torn0, torn1 = _widen_blends(
+                models, fits, mesh, binding.beta, verts, max_stretch=max_blend_stretch,
+                steps=widening_steps(mesh, blend_widening_reach), residual=residual,
+                measured=(watch, longest), coefficients=C, operator=operator,
+                threads=threads_)
+            widened = {"steps": n_steps, "vertices": n_changed, "torn_before": torn0,
+                       "torn_after": torn1 if n_changed else torn0}
+            if torn0 and not n_changed:
+                ctx.warn(f"deform: widening the blends did not tear fewer triangles ({torn0} "
+                         f"-> {torn1} beyond {max_blend_stretch:g}x), so the paper's blend is kept")
     report = _deform_report(models, fits, x, binding, V, mode=mode)
     if unflip and mode != "rigid" and len(mesh.faces):
         reference = deform(markers, segmentation, mesh, mode="rigid",
@@ -572,7 +589,7 @@ def deform(
                            beta_sharpness=beta_sharpness, residual_kernel=residual_kernel,
                            chunk_frames=chunk_frames, support_margin=support_margin,
                            clamp_margin=clamp_margin, max_blend_stretch=max_blend_stretch,
-                           blend_widening_reach=blend_widening_reach,
+                           blend_widening_reach=blend_widening_reach, threads=n_threads,
                            ctx=Context(part=ctx.part, mapper=ctx.mapper, workers=ctx.workers))
         verts, report["unflip"] = unflip_triangles(verts, reference["mesh"].vertices, mesh.faces)
     for p, part in enumerate(report["parts"].values()):

@@ -97,6 +97,7 @@ from mocapflow.stages.motion.datatypes import Mesh
 from mocapflow.stages.skin.binding import blend_smoothing_operator, mesh_edges
 from mocapflow.stages.skin.blend import (
     _XYZ,
+    Threads,
     VertexOperator,
     _clamp_weighted,
     _pair_rows,
@@ -184,7 +185,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
                   verts: np.ndarray, *, max_stretch: float, steps: int, residual: bool,
                   measured: tuple[np.ndarray, np.ndarray] | None = None,
                   coefficients: np.ndarray | None = None,
-                  operator: VertexOperator | None = None,
+                  operator: VertexOperator | None = None, threads: Threads | None = None,
                   ) -> tuple[np.ndarray, int, int, int, int]:  # fmt: skip
     """Widen the blend between parts where it tears the surface (P&H Eq. 9's ``β``).
 
@@ -224,6 +225,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     (from the rest vertices), whose rows with ``β = 1`` are reused for the pairs it holds
     (the same rows as built again).
     """
+    threads = Threads() if threads is None else threads
     faces = np.asarray(mesh.faces, dtype=np.int64)
     rest = mesh.vertices
     beta = beta.copy()
@@ -283,6 +285,13 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     deviation_squared = np.square(deviation)
     n_rows = max(1, _EDGE_FRAMES_PER_SLICE // max(1, F))  # rows per product: a few MB
     scratch = np.empty((2, n_rows, 3 * F))  # results of those products, reused
+    # the products on `threads`' threads, each with its own work arrays
+    works = [scratch] + [np.empty_like(scratch) for _ in range(threads.n - 1)]
+
+    def in_threads(fn, jobs: list) -> None:
+        """``fn(job, work)`` for every job (they write disjoint rows: the same bits on any
+        thread)."""
+        threads.run(fn, jobs, works)
 
     # the first pass's rows with β = 1 (an operator pair per vertex and part, -1: none)
     unit = None if operator is None else operator.unit
@@ -311,48 +320,58 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         :func:`~mocapflow.stages.skin.blend.deform_positions` (the rigid rows straight into
         the store, the clamped non-rigid ones added)."""
         nonlocal spread
-        key = np.unique(v[slot[v, p] < 0] * P + p[slot[v, p] < 0])
-        v, p = key // P, key % P
+        # part by part (a part's coefficient rows stay in cache from one pair to the next),
+        # vertices ascending
+        key = np.unique(p[slot[v, p] < 0] * V + v[slot[v, p] < 0])
+        v, p = key % V, key // V
         if not len(key):
             return
         new = pred.append(None, n_rows=len(key))
         slot[v, p] = new
-        rigid, nonrigid_rows = pair_rows(v, p)
-        u, at = np.unique(v, return_index=True)  # a vertex's first new pair comes first
+        u, at = np.unique(v, return_index=True)  # a vertex's first new pair: its lowest part
         first[u[first[u] < 0]] = new[at[first[u] < 0]]
         far = np.empty(len(new))
-        for lo, hi, into in pred.segments(new):  # (hi - lo, 3F) views of the store
-            for c in range(lo, hi, n_rows):  # rows c..z-1, straight into the store
-                z = min(hi, c + n_rows)
-                rows = into[c - lo : z - lo]
-                _sparse_product(_row_block(rigid, c, z), C, rows)
-                bent = np.flatnonzero(nonrigid[p[c:z]])  # pairs whose part has non-rigid terms
-                if len(bent):
-                    U = scratch[1][: len(bent)]
-                    every = len(bent) == z - c
-                    _sparse_product(_row_block(nonrigid_rows, c, z) if every else
-                                    nonrigid_rows[c + bent], C, U)  # fmt: skip
-                    cl = np.flatnonzero(clamped[p[c + bent]])
-                    if len(cl):
-                        Uc = U if len(cl) == len(bent) else U[cl]
-                        one = np.ones(len(cl))
-                        _clamp_weighted(Uc, one, p[c + bent[cl]], deviation,
-                                        margins[p[c + bent[cl]]], beta_squared=one,
-                                        deviation_squared=deviation_squared,
-                                        work=scratch[0][: len(cl)])  # fmt: skip
-                        if len(cl) < len(bent):
-                            U[cl] = Uc
-                    if every:
-                        rows += U  # rigid + non-rigid
-                    else:
-                        rows[bent] += U
-                # how far each prediction lies from its vertex's first (computed by now;
-                # 0 for the first itself)
-                other = np.flatnonzero(first[v[c:z]] != new[c:z])
-                far[c:z] = 0.0
-                if len(other):
-                    d = _row_differences(first[v[c + other]], new[c + other], pred, scratch[0])
-                    far[c + other] = np.sqrt(_squared_lengths(d).max(1))
+        # rows c..z-1 of the store per job; the jobs write disjoint rows (one thread each)
+        jobs = [(c, min(hi, c + n_rows), into[c - lo : min(hi, c + n_rows) - lo])
+                for lo, hi, into in pred.segments(new) for c in range(lo, hi, n_rows)]
+
+        def products(job: tuple, work: np.ndarray) -> None:
+            c, z, rows = job  # straight into the store
+            rigid, nonrigid_rows = pair_rows(v[c:z], p[c:z])
+            _sparse_product(rigid, C, rows)
+            bent = np.flatnonzero(nonrigid[p[c:z]])  # pairs whose part has non-rigid terms
+            if not len(bent):
+                return
+            U = work[1][: len(bent)]
+            every = len(bent) == z - c
+            _sparse_product(nonrigid_rows if every else nonrigid_rows[bent], C, U)
+            cl = np.flatnonzero(clamped[p[c + bent]])
+            if len(cl):
+                Uc = U if len(cl) == len(bent) else U[cl]
+                one = np.ones(len(cl))
+                _clamp_weighted(Uc, one, p[c + bent[cl]], deviation,
+                                margins[p[c + bent[cl]]], beta_squared=one,
+                                deviation_squared=deviation_squared,
+                                work=work[0][: len(cl)])  # fmt: skip
+                if len(cl) < len(bent):
+                    U[cl] = Uc
+            if every:
+                rows += U  # rigid + non-rigid
+            else:
+                rows[bent] += U
+
+        def distances(job: tuple, work: np.ndarray) -> None:
+            # how far each prediction lies from its vertex's first (computed by now, all jobs'
+            # products done; 0 for the first itself)
+            c, z, _ = job
+            other = np.flatnonzero(first[v[c:z]] != new[c:z])
+            far[c:z] = 0.0
+            if len(other):
+                d = _row_differences(first[v[c + other]], new[c + other], pred, work[0])
+                far[c + other] = np.sqrt(_squared_lengths(d).max(1))
+
+        in_threads(products, jobs)
+        in_threads(distances, jobs)
         spread = np.concatenate([spread, far])
 
     def place(R: np.ndarray, *, final: bool = False) -> None:
@@ -360,7 +379,8 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         parts in ascending order (:meth:`_Rows.combine`); ``final``: into ``verts`` instead
         (``R`` need no rows)."""
         b = beta[R]
-        for c in range(0, len(R), n_rows):
+
+        def combined(c: int, work: np.ndarray) -> None:  # vertices R[c : c + n_rows]
             i, p = np.nonzero(b[c : c + n_rows] > 0)  # each vertex's parts, ascending
             layer = np.arange(len(i)) - np.searchsorted(i, i)  # k-th part of its vertex
             index = np.full((min(n_rows, len(R) - c), P), -1, np.int64)
@@ -368,18 +388,20 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
             index[i, layer], weights[i, layer] = slot[R[c + i], p], b[c + i, p]
             L = int(layer.max(initial=-1)) + 1
             if final:  # (k, F) -> (F, k), moving whole xyz triplets (24 bytes) at a time
-                moved = scratch[0][: len(index)]
+                moved = work[0][: len(index)]
                 pred.combine(index[:, :L], weights[:, :L], moved)
                 verts.view(_XYZ)[:, R[c : c + n_rows], 0] = moved.view(_XYZ).T
-                continue
+                return
             rows = row[R[c : c + n_rows]]
             if np.all(np.diff(rows) == 1):  # consecutive rows: straight into the store
                 for lo, hi, into in pos.segments(rows):
                     pred.combine(index[lo:hi, :L], weights[lo:hi, :L], into)
-                continue
-            moved = scratch[0][: len(index)]
+                return
+            moved = work[0][: len(index)]
             pred.combine(index[:, :L], weights[:, :L], moved)
             pos.put(rows, moved)
+
+        in_threads(combined, list(range(0, len(R), n_rows)))  # disjoint rows and vertices
         stale[R] = False
 
     def blending(t: np.ndarray) -> np.ndarray:
@@ -390,10 +412,13 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         """The largest squared length of edges ``e`` over the frames (current positions)."""
         with_rows(ends[e].ravel())
         out = np.empty(len(e))
-        for i in range(0, len(e), n_rows):
+
+        def lengths(i: int, work: np.ndarray) -> None:  # edges e[i : i + n_rows]
             a, b = row[ends[e[i : i + n_rows]].T]
-            d = _row_differences(a, b, pos, scratch[0])
+            d = _row_differences(a, b, pos, work[0])
             out[i : i + n_rows] = _squared_lengths(d).max(1)
+
+        in_threads(lengths, list(range(0, len(e), n_rows)))
         return out
 
     # only triangles whose corners blend differently can tear: start from their edges,
@@ -496,13 +521,6 @@ def _columns(A: sp.csr_matrix, rows: np.ndarray) -> np.ndarray:
     hit = np.zeros(A.shape[1], bool)
     hit[A.indices[at]] = True
     return np.flatnonzero(hit)
-
-
-def _row_block(A: sp.csr_matrix, a: int, b: int) -> sp.csr_matrix:
-    """Rows ``a..b-1`` of ``A`` (its arrays' slices, each row's terms in their order)."""
-    lo, hi = A.indptr[a], A.indptr[b]
-    return sp.csr_matrix((A.data[lo:hi], A.indices[lo:hi], A.indptr[a : b + 1] - lo),
-                         shape=(b - a, A.shape[1]))  # fmt: skip
 
 
 def _row_differences(a: np.ndarray, b: np.ndarray, store: _Rows,

@@ -11,6 +11,8 @@ on an executor (which measures the lengths afterwards).
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 import pytest
 
@@ -109,6 +111,35 @@ def test_stage_in_process_equals_frame_chunks_on_an_executor(limb_fits):
     assert report["vertices"] > 10 and report["torn_after"] < report["torn_before"]
     assert runs[1]["report"]["blend_widening"] == report
     assert runs[1]["mesh"].vertices.tobytes() == runs[0]["mesh"].vertices.tobytes()
+
+
+def test_stage_on_threads_equals_one_thread(limb_fits, monkeypatch):
+    """deform on 3 threads (frame ranges of the evaluation pass, the widening's jobs of
+    rows, the per-part fits) gives the same bytes and report as on one, and the kernels
+    did run on more than one thread; ``threads=0`` is refused in one line."""
+    d, seg, mesh = limb_fits["d"], limb_fits["seg"], limb_fits["mesh"]
+    monkeypatch.setattr(widening_module, "_EDGE_FRAMES_PER_SLICE", 60 * 5)  # 5 rows per job
+    ran = set()
+    kernel = blend_module.csr_matvecs
+
+    def spy(*a):
+        ran.add(threading.get_ident())
+        return kernel(*a)
+
+    monkeypatch.setattr(blend_module, "csr_matvecs", spy)
+    monkeypatch.setattr(widening_module, "csr_matvecs", spy)
+    runs = []
+    for n in (1, 3):
+        ran.clear()
+        runs.append(deform(d["markers"], seg, mesh, max_blend_stretch=1.3, threads=n,
+                           ctx=Context()))  # fmt: skip
+        assert len(ran) == n
+    report = runs[0]["report"]["blend_widening"]
+    assert report["vertices"] > 10 and report["torn_after"] < report["torn_before"]
+    assert runs[1]["report"] == runs[0]["report"]
+    assert runs[1]["mesh"].vertices.tobytes() == runs[0]["mesh"].vertices.tobytes()
+    with pytest.raises(deform_module.DeformError, match="threads must be >= 1"):
+        deform(d["markers"], seg, mesh, threads=0, ctx=Context())
 
 
 def test_rows_store_takes_vertex_major_rows():
