@@ -80,7 +80,13 @@ of :mod:`mocapflow.stages.skin.blend`; per part the rows would be dense blocks o
 fixed-order NumPy sum over them costs 11x the CSR kernel, BLAS 0.8x without the
 bit-reproducibility), its clamp test and the transposition into the output (about
 0.1 each), the widening's predictions over all frames (about 0.2) and its
-measurements (about 0.15), and the set-up (binding, part fits, operator, report: about 0.3).
+measurements (about 0.15), and the set-up (binding, part fits, operator, report: about
+0.3).  On 2 threads (the stage's ``threads``, issue 15; the same bits) the same body runs
+at 932-976 frames/s against 619-679 on one (four alternating pairs of calls in one
+process, idle 2-core machine): the evaluation pass's frame ranges scale well except its
+clamp test (memory bound: about 0.1 s on one thread or two), the widening's rounds have
+1-5 jobs of rows after the first (its 0.42 CPU-s take about 0.34 s), the part fits
+mostly hold the GIL (0.09 -> 0.06 s) and the rest of the set-up stays on one thread.
 Held-out markers (``benchmarks/deform.py`` table 2) are points without
 triangles, so they are not affected; table 3 (the simulator's true mesh)
 measures it.  Not fixed by this: triangles that turn over against the rigid
