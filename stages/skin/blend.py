@@ -129,8 +129,6 @@ class Threads:
         return out
 
 
-
-
 @dataclass
 class VertexOperator:
     """Sparse rows with ``vertices(f) = Σ_pairs (R_pair + N_pair) @ C(f)`` (P&H Eq. 8–9).

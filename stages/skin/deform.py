@@ -553,9 +553,9 @@ def deform(
                      support_margin=support_margin, clamp_margin=clamp_margin)
         for p in range(segmentation.n_parts)
     ]  # fmt: skip
-    with Threads(n_threads) as threads_:  # the evaluation's threads (same bits on any number)
+    with Threads(n_threads) as pool:  # the evaluation's threads (the same bits on any number)
         fits = _fit_parts(models, x, mode=mode, min_quadratic_markers=min_quadratic_markers,
-                          damping=quadratic_damping, ctx=ctx, threads=threads_)
+                          damping=quadratic_damping, ctx=ctx, threads=pool)
         V = mesh.vertices.shape[0]
         widen = max_blend_stretch is not None and len(mesh.faces) > 0
         # the edges of the triangles that blend, measured while the frames are evaluated
@@ -568,14 +568,14 @@ def deform(
                                    beta=binding.beta)  # fmt: skip
         verts, longest = _deform_frames(
             models, fits, x.shape[0], operator, residual=residual,
-            chunk_frames=chunk_frames, ctx=ctx, edges=ends, coefficients=C, threads=threads_)
+            chunk_frames=chunk_frames, ctx=ctx, edges=ends, coefficients=C, threads=pool)
         beta, widened = binding.beta, {"steps": 0, "vertices": 0}
         if widen:
             beta, n_steps, n_changed, torn0, torn1 = _widen_blends(
                 models, fits, mesh, binding.beta, verts, max_stretch=max_blend_stretch,
                 steps=widening_steps(mesh, blend_widening_reach), residual=residual,
                 measured=(watch, longest), coefficients=C, operator=operator,
-                threads=threads_)
+                threads=pool)
             widened = {"steps": n_steps, "vertices": n_changed, "torn_before": torn0,
                        "torn_after": torn1 if n_changed else torn0}
             if torn0 and not n_changed:
