@@ -27,8 +27,8 @@ One run prints five tables (``--graph-path`` prints its own, 5 below, instead):
    in one process, with 2 worker processes (the stage's ``ctx.map``) and with 2
    threads of the process (the stage's ``threads``), with a plain NumPy linear-blend
    skinning of the same mesh as the in-process reference; BLAS at one thread, as the
-   engine runs stages; best of 3 calls, and the first call's frames per CPU-second (fresh memory for
-   the output and the work arrays, which a stage pays once per task).
+   engine runs stages; best of 3 calls, and the first call's frames per CPU-second
+   (fresh memory for the output and the work arrays, which a stage pays once per task).
 
 Markers are the simulator's true skin-marker centres plus its measurement noise
 (no occlusion: the deformation is measured, not the cleaning).

@@ -118,9 +118,8 @@ class Threads:
             for i in range(t, len(jobs), self.n):
                 out[i] = fn(jobs[i], None if works is None else works[t])
 
-        if self.pool is None or len(jobs) < 2:
-            for i, job in enumerate(jobs):
-                out[i] = fn(job, None if works is None else works[0])
+        if self.pool is None or len(jobs) < 2:  # n = 1 (every job), or one job
+            share(0)
             return out
         done = [self.pool.submit(share, t) for t in range(1, min(self.n, len(jobs)))]
         share(0)
@@ -452,7 +451,7 @@ def _frame_major(models: list[PartModel], fits: list[PartFit], n_vertices: int,
     def evaluate(frames: tuple[int, int]) -> np.ndarray:
         most = np.zeros(len(edges))
         work = np.empty(0)
-        for a, b, X in _blended_chunks(models, fits, n_vertices, operator, residual=residual,
+        for a, b, X in _blended_chunks(models, fits, n_vertices, operator,
                                        coefficients=coefficients, frames=frames):  # fmt: skip
             # (V, f, 3) -> (f, V, 3), moving whole xyz triplets (24 bytes) at a time
             out[a:b].view(_XYZ)[..., 0] = X.view(_XYZ).T
@@ -488,19 +487,14 @@ def _edge_vectors(edges: np.ndarray, n_vertices: int) -> sp.csr_matrix:
 
 
 def _blended_chunks(models: list[PartModel], fits: list[PartFit], n_vertices: int,
-                    operator: VertexOperator | None = None, *, residual: bool | None = None,
-                    coefficients: np.ndarray | None = None,
-                    frames: tuple[int, int] | None = None):  # fmt: skip
-    """The blended vertices chunk by chunk of frames, vertex-major: yields ``(a, b, X)``
-    with ``X (V, 3 (b - a))`` the positions in frames ``a..b-1`` (a work array, overwritten
-    by the next chunk); see :func:`deform_positions`.  ``coefficients``: the models'
-    :func:`frame_coefficients` when already computed."""
-    if residual is None:
-        residual = any(np.any(f.W) for f in fits)
-    if operator is None:
-        operator = vertex_operator(models, n_vertices, residual=residual)
-    C = frame_coefficients(models, fits, residual=residual) if coefficients is None else (
-        coefficients)  # fmt: skip
+                    operator: VertexOperator, *, coefficients: np.ndarray,
+                    frames: tuple[int, int]):  # fmt: skip
+    """The blended vertices of frames ``frames[0]..frames[1]-1`` chunk by chunk of frames,
+    vertex-major: yields ``(a, b, X)`` with ``X (V, 3 (b - a))`` the positions in frames
+    ``a..b-1`` (a work array, overwritten by the next chunk); see
+    :func:`deform_positions` (``coefficients``: the models' :func:`frame_coefficients`,
+    ``(K, F, 3)``, as :func:`_frame_major` makes them)."""
+    C = coefficients
     K, F, _ = C.shape
     if K != operator.offsets[-1]:
         raise ValueError("deform_positions: operator and fits disagree (residual?)")
@@ -528,7 +522,7 @@ def _blended_chunks(models: list[PartModel], fits: list[PartFit], n_vertices: in
     n = max(1, min(F, _VALUES_PER_PRODUCT // (3 * max(1, N))))  # frames per product
     Z_full = np.empty((rows.shape[0], 3 * n))
     work_full = np.empty((len(pairs), 3 * n))
-    start, stop = (0, F) if frames is None else frames
+    start, stop = frames
     for a in range(start, stop, n):
         b = min(stop, a + n)
         Cc = np.ascontiguousarray(C[:, a:b]).reshape(K, 3 * (b - a))

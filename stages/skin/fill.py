@@ -54,7 +54,7 @@
   spline reaches them, a fifth copy on the run's own margins, the copies'
   errors combined geometrically (:func:`_shifted_runs`,
   :func:`_validation_mse`) and a model given twice counted once
-  (:func:`_repeated_estimates`), on the same-sample criterion (ours within
+  (:func:`_earlier_twins`), on the same-sample criterion (ours within
   5 % of every peer on the samples it filled), mask seeds 400-409 (drawn after
   the tuning): PiG 17 of 18 configurations (worst 1.23, 0.5 s holes in one
   marker), Qualisys 11 of 12 (1.06).  With a member far from all the others in
@@ -800,7 +800,7 @@ def fill_by_validated_blend(
     error taken as at least :data:`RIGID_DISAGREEMENT_SHARE` of how far its
     carries from before and after the gap disagree (the marker moving against
     its donors there, which the copies need not see), a model whose estimate
-    repeats an earlier one's counted once (:func:`_repeated_estimates`), and the
+    repeats an earlier one's counted once (:func:`_earlier_twins`), and the
     models the gap itself shows far off left out of it (:func:`_outlying_estimates`:
     an estimate far beyond its and the others' validated errors from the others'
     median, sooner where it does not join the measured trajectory at the gap's ends, or
@@ -866,26 +866,19 @@ def fill_by_validated_blend(
 
 
 #: Two blend members whose estimates of a run agree within this (m) are one model
-#: (:func:`_repeated_estimates`): the same donors, their terms added in another order.
+#: (:func:`_earlier_twins`): the same donors, their terms added in another order.
 SAME_ESTIMATE_TOLERANCE = 1e-9
 
 
-def _repeated_estimates(est: np.ndarray, runs: list[tuple[int, int, int]]) -> np.ndarray:
-    """``(K, R)`` bool: model ``k``'s estimate of run ``r`` is an earlier model's (within
-    :data:`SAME_ESTIMATE_TOLERANCE` at every sample; ``est`` ``(K, F, M, 3)``,
-    :func:`_blend_members`).
+def _earlier_twins(est: np.ndarray, runs: list[tuple[int, int, int]]) -> np.ndarray:
+    """``(K, R)`` int: the first earlier model whose estimate of run ``r`` is model ``k``'s
+    (within :data:`SAME_ESTIMATE_TOLERANCE` at every sample; ``est`` ``(K, F, M, 3)``,
+    :func:`_blend_members`), -1 where none is: ``>= 0`` marks a repeated estimate.
 
     On a sparse capture the most rigid markers near a marker are often its 3 nearest:
     the two rigid-body fills then give one estimate, which weighed twice in the blend
     (PiG calibration, left wrist, 0.1 s holes: both at 0.59-0.82 mm where the spline
     was 0.25-0.36 mm, blend 0.36-0.61 mm; counted once 0.29-0.53 mm)."""
-    return _earlier_twins(est, runs) >= 0
-
-
-def _earlier_twins(est: np.ndarray, runs: list[tuple[int, int, int]]) -> np.ndarray:
-    """``(K, R)`` int: the first earlier model whose estimate of run ``r`` is model ``k``'s
-    (within :data:`SAME_ESTIMATE_TOLERANCE` at every sample), -1 where none is
-    (:func:`_repeated_estimates`)."""
     K = est.shape[0]
     out = np.full((K, len(runs)), -1, dtype=np.int64)
     for r, (m, a, b) in enumerate(runs):

@@ -695,7 +695,7 @@ def test_repeated_estimates_count_once():
     est[[0, 3], 20:30, 1] = est[2, 20:30, 1] + np.array([1e-6, 0, 0])  # 1 µm off model 2
     est[1, 20:30, 1] = est[2, 20:30, 1]
     est[4, 20:30, 1] = np.nan  # cannot estimate this run
-    got = fill._repeated_estimates(est, [(0, 5, 15), (1, 20, 30)])
+    got = fill._earlier_twins(est, [(0, 5, 15), (1, 20, 30)]) >= 0
     np.testing.assert_array_equal(got[:, 0], [False, False, False, False, True])
     # 2 repeats 1, 3 repeats 0; 1 is not 0 (1 µm apart)
     np.testing.assert_array_equal(got[:, 1], [False, False, True, True, False])
