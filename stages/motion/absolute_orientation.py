@@ -124,6 +124,20 @@ def _adjugate_column(N: np.ndarray, lam: np.ndarray) -> tuple[np.ndarray, np.nda
     return cof[rows[:, None], _TRIU_OF[col]], d[rows, col]
 
 
+def _row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(B,)`` dot products of the rows of ``a, b (B, n)``, each summed left to right.
+
+    ``np.einsum`` and ``np.linalg.norm`` sum a row with SIMD accumulators whose split
+    depends on where the row lies in memory, so a set's last bit depended on its place in
+    the batch (one in four sets of a real gap's 251 frames, ``c0`` of the quartic, up to
+    1.6e-14 in ``R``); column by column, each row's sum is the same wherever it is.
+    """
+    out = a[:, 0] * b[:, 0]
+    for j in range(1, a.shape[1]):
+        out += a[:, j] * b[:, j]
+    return out
+
+
 def _top_eigenvector(N: np.ndarray, bound: np.ndarray) -> np.ndarray:
     """Unit eigenvectors ``(B, 4)`` of the largest eigenvalue of traceless symmetric ``N``.
 
@@ -144,9 +158,9 @@ def _top_eigenvector_closed_form(N: np.ndarray, bound: np.ndarray) -> np.ndarray
     # characteristic polynomial λ⁴ + c2 λ² + c1 λ + c0 (tr N = 0): c2 = -tr(N²)/2,
     # c1 = -(sum of the principal 3×3 minors), c0 = det N (along the first row)
     cof = _cofactors(N)
-    c0 = np.einsum("bj,bj->b", N[:, 0, :], cof[:, :4])
-    c1 = -cof[:, _TRIU_DIAG].sum(1)
-    c2 = -0.5 * np.einsum("bij,bij->b", N, N)
+    c0 = _row_dot(N[:, 0, :], cof[:, :4])
+    c1 = -(cof[:, 0] + cof[:, 4] + cof[:, 7] + cof[:, 9])  # the diagonal's (_TRIU_DIAG)
+    c2 = -0.5 * _row_dot(N.reshape(B, 16), N.reshape(B, 16))
     lam = bound.copy()
     tol = 1e-15 * np.maximum(bound, np.finfo(float).tiny)
     todo = np.arange(B)
@@ -167,10 +181,12 @@ def _top_eigenvector_closed_form(N: np.ndarray, bound: np.ndarray) -> np.ndarray
     q, gap = _adjugate_column(N, lam)
     redo = np.flatnonzero(gap < _GAP_REFINE * scale)
     if len(redo):
-        qn = q[redo] / np.maximum(np.linalg.norm(q[redo], axis=-1), np.finfo(float).tiny)[:, None]
-        lr = np.einsum("bi,bij,bj->b", qn, N[redo], qn)
+        qn = q[redo] / np.maximum(np.sqrt(_row_dot(q[redo], q[redo])),
+                                  np.finfo(float).tiny)[:, None]  # fmt: skip
+        Nr = N[redo]
+        lr = _row_dot(qn, np.stack([_row_dot(Nr[:, i], qn) for i in range(4)], -1))
         q[redo], gap[redo] = _adjugate_column(N[redo], lr)
-    norm = np.linalg.norm(q, axis=-1)
+    norm = np.sqrt(_row_dot(q, q))
     bad = ~(gap > _GAP_MIN * scale) | ~(norm > 0)
     bad[todo] = True
     q /= np.where(bad, 1.0, norm)[:, None]

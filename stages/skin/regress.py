@@ -12,7 +12,10 @@ markers are made together, about :data:`_FRAMES_PER_FIT` frames per call
 (:func:`_solve_gaps`): the same numbers as one call per gap, with ~40x fewer calls
 (``ktk_kinematics_basket_sprint.c3d``, 3,678 frames with ~6,500 runs of holes, regressed
 again in each of the gap filler's 6 local fills: 39,724 calls -> 966, a gap-protocol
-case 44 -> 30 CPU-s whole process).
+case 44 -> 30 CPU-s whole process).  A frame's fit depends only on the marker, its
+predictors and the frame, so it is made once and kept (:class:`_RigidFits`): the gaps
+of one marker regressed frame by frame (runs halved while they lack predictors) share
+most training frames (the same basket case: 13.3 M fits, 1.96 M distinct).
 """
 
 from __future__ import annotations
@@ -184,19 +187,30 @@ class _GapProblem:
 
 
 def _gap_problem(X: np.ndarray, visible: np.ndarray, marker: int, predictors: np.ndarray,
-                 runs: list[tuple[int, int]], reference: np.ndarray, *,
-                 max_train: int) -> _GapProblem | None:  # fmt: skip
+                 runs: list[tuple[int, int]], reference: np.ndarray, *, max_train: int,
+                 trainable: dict | None = None) -> _GapProblem | None:  # fmt: skip
     """The frames and predictor positions of :func:`regress_gap` (None: too few training
-    frames, or a predictor missing in a gap)."""
+    frames, or a predictor missing in a gap).  ``trainable``: the frames where the marker
+    and its predictors are all measured, kept per predictor set by a caller regressing
+    many gaps of one marker."""
     S = np.asarray(predictors)
     gap = np.concatenate([np.arange(a, b) for a, b in runs])
-    train = np.flatnonzero(visible[:, marker] & visible[:, S].all(1))
+    key = marker, S.tobytes()
+    train = None if trainable is None else trainable.get(key)
+    if train is None:
+        train = np.flatnonzero(visible[:, marker] & visible[:, S].all(1))
+        if trainable is not None:
+            trainable[key] = train
     if len(train) < max(10, 3 * len(S) // 2) or not visible[gap][:, S].all():
         return None
     if len(train) > max_train:
+        # the max_train nearest the centre (ties: the earlier frame) lie within
+        # max_train places of it in ascending train: sort only those
         centre = 0.5 * (runs[0][0] + runs[-1][1] - 1)
-        near = np.argsort(np.abs(train - centre), kind="stable")[:max_train]
-        train = np.sort(train[near])
+        at = int(np.searchsorted(train, centre))
+        near = train[max(0, at - max_train):at + max_train]
+        near = near[np.argsort(np.abs(near - centre), kind="stable")[:max_train]]
+        train = np.sort(near)
     frames = np.concatenate([train, gap])
     P = gather_samples(X, frames[:, None], S[None])
     local = np.broadcast_to(reference[S] - reference[marker], P.shape)
@@ -207,34 +221,108 @@ def _gap_problem(X: np.ndarray, visible: np.ndarray, marker: int, predictors: np
 #: :func:`~mocapflow.stages.motion.absolute_orientation.absolute_orientation_batch`: a few MB.
 _FRAMES_PER_FIT = 20_000
 
+#: Most rigid fits a :class:`_RigidFits` keeps (12 floats each: about 40 MB).
+_MOST_KEPT_FITS = 400_000
+
+
+class _RigidFits:
+    """The rigid fits :func:`_solve_gaps` has made, per marker and predictor set: a
+    frame's fit depends only on them (its local positions are the predictors' reference
+    positions about the marker's), so gaps sharing training frames (a marker's runs
+    halved to single frames, the gap filler's validation copies shifted by a frame or
+    two) fit each frame once.  ``store[(marker, S)]``: its fitted frames ``(n,)``
+    ascending, ``R (n, 3, 3)`` and ``t (n, 3)``.  Past :data:`_MOST_KEPT_FITS` the sets
+    the current gaps do not use are dropped (the same numbers: each fit is its own)."""
+
+    def __init__(self, most: int = _MOST_KEPT_FITS) -> None:
+        self.store: dict[tuple[int, bytes], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self.most = most
+        self.size = 0
+        self.made = 0  # fits computed (the rest were looked up)
+
+    @staticmethod
+    def key(pr: _GapProblem) -> tuple[int, bytes]:
+        return pr.marker, np.asarray(pr.S, dtype=np.int64).tobytes()
+
+    def missing(self, key: tuple[int, bytes], frames: np.ndarray) -> np.ndarray:
+        """The ``frames`` (ascending, unique) not fitted yet for ``key``."""
+        have = self.store.get(key)
+        if have is None:
+            return frames
+        return frames[~np.isin(frames, have[0], assume_unique=True)]
+
+    def make_room(self, n: int, keep: set) -> None:
+        """Drop the sets not in ``keep`` when ``n`` more fits would pass :attr:`most`."""
+        if self.size + n <= self.most:
+            return
+        for key in [k for k in self.store if k not in keep]:
+            self.size -= len(self.store.pop(key)[0])
+
+    def add(self, key: tuple[int, bytes], frames: np.ndarray, R: np.ndarray,
+            t: np.ndarray) -> None:  # fmt: skip
+        have = self.store.get(key)
+        if have is not None:
+            order = np.argsort(np.concatenate([have[0], frames]), kind="stable")
+            frames = np.concatenate([have[0], frames])[order]
+            R = np.concatenate([have[1], R])[order]
+            t = np.concatenate([have[2], t])[order]
+            self.size -= len(have[0])
+        self.store[key] = frames, R, t
+        self.size += len(frames)
+        self.made += len(frames) - (0 if have is None else len(have[0]))
+
+    def get(self, key: tuple[int, bytes], frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        have, R, t = self.store[key]
+        at = np.searchsorted(have, frames)
+        return R[at], t[at]
+
 
 def _solve_gaps(X: np.ndarray, problems: list[_GapProblem], *, ridge: float,
-                offset_correction: bool, edge: int = 6) -> list[np.ndarray | None]:
+                offset_correction: bool, edge: int = 6,
+                fits: _RigidFits | None = None) -> list[np.ndarray | None]:  # fmt: skip
     """The estimates of :func:`regress_gap` for many ``problems`` (:func:`_gap_problem`):
-    the rigid fits of all problems with as many predictors in one call (each frame's fit
-    is its own: the same numbers as one call per problem), then each ridge regression.
-    None where a frame's predictors are degenerate (collinear)."""
-    fits: list[tuple[np.ndarray, np.ndarray] | None] = [None] * len(problems)
+    the rigid fits each frame needs that ``fits`` (:class:`_RigidFits`, kept by the
+    caller between calls) does not hold yet, those with as many predictors in one call
+    (each frame's fit is its own: the same numbers as one call per problem), then each
+    ridge regression.  None where a frame's predictors are degenerate (collinear)."""
+    fits = _RigidFits() if fits is None else fits
+    need: dict[tuple[int, bytes], list] = {}
+    for pr in problems:
+        key = fits.key(pr)
+        if key in need:
+            need[key][1].append(pr.frames)
+        else:
+            need[key] = [pr, [pr.frames]]
+    todo = []
+    for key, (pr, frames) in need.items():
+        new = fits.missing(key, np.unique(np.concatenate(frames)))
+        if len(new):
+            todo.append((key, pr, new))
+    fits.make_room(sum(len(new) for _, _, new in todo), set(need))
     by_k: dict[int, list[int]] = {}
-    for i, pr in enumerate(problems):
-        by_k.setdefault(len(pr.S), []).append(i)
+    for j, (_, pr, _) in enumerate(todo):
+        by_k.setdefault(len(pr.S), []).append(j)
     for idx in by_k.values():
         batch: list[int] = []
         n = 0
-        for j, i in enumerate(idx):
-            batch.append(i)
-            n += len(problems[i].frames)
-            if n < _FRAMES_PER_FIT and j + 1 < len(idx):
+        for jj, j in enumerate(idx):
+            batch.append(j)
+            n += len(todo[j][2])
+            if n < _FRAMES_PER_FIT and jj + 1 < len(idx):
                 continue
-            R, t = absolute_orientation_batch(  # P ≈ local @ R.T + t per frame
-                np.concatenate([problems[b].local for b in batch]),
-                np.concatenate([problems[b].P for b in batch]))
-            cut = np.cumsum([0, *[len(problems[b].frames) for b in batch]])
+            local, P = [], []
+            for b in batch:
+                _, pr, new = todo[b]
+                P.append(gather_samples(X, new[:, None], pr.S[None]))
+                local.append(np.broadcast_to(pr.local[0], P[-1].shape))
+            R, t = absolute_orientation_batch(np.concatenate(local), np.concatenate(P))
+            cut = np.cumsum([0, *[len(todo[b][2]) for b in batch]])
             for b, lo, hi in zip(batch, cut, cut[1:]):
-                fits[b] = (R[lo:hi], t[lo:hi])
+                fits.add(todo[b][0], todo[b][2], R[lo:hi], t[lo:hi])
             batch, n = [], 0
-    return [_ridge_estimate(X, pr, *fit, ridge=ridge, offset_correction=offset_correction,
-                            edge=edge) for pr, fit in zip(problems, fits)]  # fmt: skip
+    return [_ridge_estimate(X, pr, *fits.get(fits.key(pr), pr.frames), ridge=ridge,
+                            offset_correction=offset_correction, edge=edge)
+            for pr in problems]  # fmt: skip
 
 
 def _ridge_estimate(X: np.ndarray, pr: _GapProblem, R: np.ndarray, t: np.ndarray, *,
@@ -249,7 +337,7 @@ def _ridge_estimate(X: np.ndarray, pr: _GapProblem, R: np.ndarray, t: np.ndarray
     mz, my = Z[:n].mean(0), y.mean(0)
     Zc = Z - mz
     A = Zc[:n].T @ Zc[:n]
-    A[np.diag_indices_from(A)] += ridge * n
+    A.flat[::len(A) + 1] += ridge * n  # the diagonal
     W = np.linalg.solve(A, Zc[:n].T @ (y - my))
     pred = Zc[n:] @ W + my
     if offset_correction:
@@ -408,14 +496,15 @@ def _markers_estimates(
     stacks: list[list[tuple[int, int]]] = [[] for _ in markers]
     jobs: list[tuple[int, list[tuple[int, int]]]] = []
     problems: list[_GapProblem] = []
+    pending = [0]  # frames of the pending problems
+    fits = _RigidFits()
 
     def solve(flush: bool) -> None:
         """Solve the pending problems (when they hold enough frames, or ``flush``): an
         estimate goes to its marker, a failed group's runs to its stack."""
-        if not problems or (not flush and sum(len(p.frames) for p in problems)
-                            < _FRAMES_PER_FIT):  # fmt: skip
+        if not problems or (not flush and pending[0] < _FRAMES_PER_FIT):
             return
-        for (i, g), e in zip(jobs, _solve_gaps(X, problems, ridge=ridge,
+        for (i, g), e in zip(jobs, _solve_gaps(X, problems, ridge=ridge, fits=fits,
                                                offset_correction=offset_correction)):
             if e is not None:
                 frames[i].append(np.concatenate([np.arange(a, b) for a, b in g]))
@@ -424,10 +513,12 @@ def _markers_estimates(
                 stacks[i] += g
         jobs.clear()
         problems.clear()
+        pending[0] = 0
 
     def add(i: int, g: list[tuple[int, int]], pr: _GapProblem) -> None:
         jobs.append((i, g))
         problems.append(pr)
+        pending[0] += len(pr.frames)
         solve(False)
 
     for i, (marker, cand, h) in enumerate(zip(markers, rankings, holes)):
@@ -452,16 +543,24 @@ def _markers_estimates(
     for i, (marker, cand) in enumerate(zip(markers, rankings)):
         c = np.asarray(cand, dtype=np.int64)
         stack = stacks[i]
+        chosen: dict[tuple[bytes, int], np.ndarray] = {}  # the same runs' candidates
+        trainable: dict = {}
         while stack:
             a, b = stack.pop()
-            S = choose_predictors(vis, marker, c[vis[a:b][:, c].all(0)],
-                                  n_predictors=n_predictors, min_frames=_min_train(b - a))
+            through = vis[a:b][:, c].all(0)
+            key = through.tobytes(), _min_train(b - a)
+            S = chosen.get(key)
+            if S is None:
+                S = chosen[key] = choose_predictors(vis, marker, c[through],
+                                                    n_predictors=n_predictors,
+                                                    min_frames=key[1])  # fmt: skip
             if len(S) < (min_predictors if b - a == 1 else want):
                 if b - a > 1:
                     h = (a + b) // 2
                     stack += [(a, h), (h, b)]
                 continue
-            pr = _gap_problem(X, vis, marker, S, [(a, b)], reference, max_train=max_train)
+            pr = _gap_problem(X, vis, marker, S, [(a, b)], reference, max_train=max_train,
+                              trainable=trainable)  # fmt: skip
             if pr is not None:
                 add(i, [(a, b)], pr)
     solve(True)
