@@ -665,13 +665,13 @@ def _merge(
 
 def _fill(
     X: np.ndarray, surf: MarkerSurface, *, fill: bool, variance: float, fill_model: str,
-    fill_predictors: int, ctx: Context,
+    fill_predictors: int, rate: float, ctx: Context,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Step 3 (§4.3): hole filling; the info without the models and the pass map."""
     if not fill:
         return X, {"filled_by_pass": []}
     Xf, finfo = fill_holes(X, surf, variance=variance, model=fill_model,
-                           n_predictors=fill_predictors, ctx=ctx)
+                           n_predictors=fill_predictors, rate=rate, ctx=ctx)
     finfo.pop("model_list", None)
     finfo.pop("pass", None)
     return Xf, finfo
@@ -974,7 +974,7 @@ def _clean_subject(markers: Markers, *, reference_frame: int | None, opts: dict[
     with ctx.timer("fill"):
         Xf, finfo = _fill(X, surf, fill=fill, variance=o["variance"],
                           fill_model=o["fill_model"], fill_predictors=o["fill_predictors"],
-                          ctx=ctx)
+                          rate=markers.rate, ctx=ctx)
     vis2 = finite_rows(Xf)
     status = _status(markers.visible, vis1, vis2)
     with ctx.timer("smooth"):

@@ -291,6 +291,18 @@ RIGID_MODELS = (BLEND_MODELS.index("rigid_body"), BLEND_MODELS.index("rigid_near
 #: ``BLEND_POWER`` 3 or 4 (Qualisys 10 -> 10 and 9 of 12, worst 1.07 -> 1.17, 1.24).
 RIGID_DISAGREEMENT_SHARE = 0.25
 
+#: Runs shorter than this (s) get a proportionally smaller :data:`RIGID_DISAGREEMENT_SHARE`
+#: (with the take's rate, :func:`fill_holes`' ``rate``).  The linear blend of the carries
+#: misses the part of the marker's motion against its donors that is not linear in time:
+#: for a smooth motion ``d(t)`` over a gap of ``T`` about ``|d''| T² / (2 √30)`` (rms of the
+#: parabola), against a disagreement of about ``|d'| T``, so the share grows with ``T``;
+#: 0.25 was set on 0.5 s gaps (the head above) and is kept for longer ones.  At 0.1 s the
+#: full share raised the rigid fills of a wrist marker turning slowly against its donors
+#: (pyomeca, ``Daphnee:STYLr``, gap protocol 0.1 s / 1 % / independent, mask seed 714:
+#: carries 2.8 mm apart, so validated at 0.71 mm against 0.34 from its copies) above the
+#: spline's 0.69 though 0.20 mm off in the gap against the spline's 1.05.
+RIGID_DISAGREEMENT_DURATION = 0.5
+
 
 # --------------------------------------------------------------------------- PCA fill (§4.3)
 
@@ -430,6 +442,7 @@ def fill_holes(
     cache: dict | None = None,
     rigid_fallback: bool = True,
     whole_body: bool | None = None,
+    rate: float | None = None,
     ctx: Context | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Hole filling in the local frame (Park & Hodgins §4.3, or a wider regression).
@@ -493,6 +506,9 @@ def fill_holes(
         of the run moved onto measured samples nearby
         (:func:`fill_by_validated_blend`).  Default (None): on captures of at
         most :data:`WHOLE_BODY_MAX_MARKERS` markers, with ``model="regression"``.
+    rate : float, optional
+        The take's frames per second, for the blend's runs shorter than
+        :data:`RIGID_DISAGREEMENT_DURATION` (None: the blend as at 0.5 s on every run).
     ctx : Context, optional
         Models are trained and evaluated per marker chunk through ``ctx.map``.
 
@@ -545,7 +561,7 @@ def fill_holes(
                      offset_correction=offset_correction, rigid_fallback=rigid_fallback)
         X, info["blend"] = fill_by_validated_blend(X, positions, holes, surface,
                                                    interpolate=interpolate, local=local,
-                                                   ctx=ctx)
+                                                   rate=rate, ctx=ctx)
     return X, info
 
 
@@ -770,6 +786,7 @@ def fill_by_validated_blend(
     interpolate: int,
     local: dict[str, Any],
     n_shifts: int = len(VALIDATION_SHIFTS),
+    rate: float | None = None,
     ctx: Context,
 ) -> tuple[np.ndarray, dict[str, float]]:
     """The local fill blended with a whole-body PCA, a spline and two rigid-body fills.
@@ -799,7 +816,8 @@ def fill_by_validated_blend(
     copies)^-:data:`BLEND_POWER`, a rigid-body fill's (:data:`RIGID_MODELS`)
     error taken as at least :data:`RIGID_DISAGREEMENT_SHARE` of how far its
     carries from before and after the gap disagree (the marker moving against
-    its donors there, which the copies need not see), a model whose estimate
+    its donors there, which the copies need not see; a smaller share on runs
+    shorter than :data:`RIGID_DISAGREEMENT_DURATION` when ``rate`` is given), a model whose estimate
     repeats an earlier one's counted once (:func:`_earlier_twins`), and the
     models the gap itself shows far off left out of it (:func:`_outlying_estimates`:
     an estimate far beyond its and the others' validated errors from the others'
@@ -822,6 +840,9 @@ def fill_by_validated_blend(
         validation copies.
     n_shifts : int
         Copies of each run (the first of :data:`VALIDATION_SHIFTS`).
+    rate : float, optional
+        Frames per second (see :data:`RIGID_DISAGREEMENT_DURATION`; None: the full share
+        on every run).
     ctx : Context
 
     Returns
@@ -848,7 +869,7 @@ def fill_by_validated_blend(
                                   local=local, shifts=VALIDATION_SHIFTS[:n_shifts],
                                   donor_sets=donor_sets, ctx=ctx)
     mse = _validation_mse(errs, ok, full)
-    _floor_rigid_errors(mse, disagreement, run)
+    _floor_rigid_errors(mse, disagreement, run, _disagreement_shares(runs, rate))
     wr = _blend_weights(mse)
     _count_once(wr, _earlier_twins(est, runs))  # a model given twice weighs once
     wr[_outlying_estimates(est, runs, mse, wr, positions)] = 0.0  # far off in the gap
@@ -1035,9 +1056,11 @@ def _outlying_estimates(est: np.ndarray, runs: list[tuple[int, int, int]], mse: 
 
 
 def _floor_rigid_errors(mse: np.ndarray, disagreement: dict[int, np.ndarray],
-                        run: np.ndarray) -> None:
+                        run: np.ndarray, share: float | np.ndarray = RIGID_DISAGREEMENT_SHARE,
+                        ) -> None:  # fmt: skip
     """Raise the validation errors ``mse`` ``(K, R)`` of the rigid-body fills, in place, to
-    :data:`RIGID_DISAGREEMENT_SHARE`² × the mean squared disagreement of their carries over
+    ``share``² (:data:`RIGID_DISAGREEMENT_SHARE`, or one per run ``(R,)``,
+    :func:`_disagreement_shares`) × the mean squared disagreement of their carries over
     each run (``disagreement``: ``{model index: (F, M)}``, :func:`_rigid_body_fill`; ``run``
     ``(F, M)``: the run of each hole, -1 elsewhere).  A model not scored on a run (NaN)
     stays unscored; a run carried from one side only is not raised."""
@@ -1046,7 +1069,19 @@ def _floor_rigid_errors(mse: np.ndarray, disagreement: dict[int, np.ndarray],
         at = (run >= 0) & np.isfinite(dis)
         n = np.bincount(run[at], minlength=R)
         d2 = np.bincount(run[at], weights=dis[at] ** 2, minlength=R) / np.maximum(n, 1)
-        mse[k] = np.maximum(mse[k], RIGID_DISAGREEMENT_SHARE ** 2 * d2)  # NaN stays NaN
+        mse[k] = np.maximum(mse[k], share ** 2 * d2)  # NaN stays NaN
+
+
+def _disagreement_shares(runs: list[tuple[int, int, int]], rate: float | None
+                         ) -> float | np.ndarray:  # fmt: skip
+    """The share of :func:`_floor_rigid_errors` per run ``(R,)``:
+    :data:`RIGID_DISAGREEMENT_SHARE` × the run's duration ÷
+    :data:`RIGID_DISAGREEMENT_DURATION`, at most the share (``rate`` None: the share)."""
+    if rate is None or not runs:
+        return RIGID_DISAGREEMENT_SHARE
+    frames = np.array([b - a for _, a, b in runs], dtype=float)
+    return RIGID_DISAGREEMENT_SHARE * np.minimum(
+        1.0, frames / (rate * RIGID_DISAGREEMENT_DURATION))
 
 
 def _blend_members(X: np.ndarray, positions: np.ndarray, holes: np.ndarray,

@@ -393,6 +393,40 @@ def test_rigid_floor_keeps_unscored_models_out():
     assert w[4, 0] == 0 and w[3, 2] == 0
 
 
+def test_rigid_floor_share_grows_with_the_run_s_duration():
+    """The floor's share is RIGID_DISAGREEMENT_SHARE on runs of 0.5 s or more and
+    proportional to the duration below (10 frames at 100 Hz: a fifth); without the rate,
+    the share on every run."""
+    runs = [(0, 0, 10), (0, 20, 70), (1, 0, 200), (1, 300, 301)]
+    np.testing.assert_allclose(fill._disagreement_shares(runs, 100.0),
+                               [0.05, 0.25, 0.25, 0.005])
+    np.testing.assert_allclose(fill._disagreement_shares(runs, 20.0), [0.25] * 3 + [0.025])
+    assert fill._disagreement_shares(runs, None) == fill.RIGID_DISAGREEMENT_SHARE
+    holes = np.zeros((80, 1), bool)
+    holes[20:30, 0] = True
+    run = np.where(holes, 0, -1)
+    dis = np.where(holes, 0.0028, np.nan)  # carries 2.8 mm apart
+    mse = np.full((5, 1), 0.00034**2)
+    fill._floor_rigid_errors(mse, {4: dis}, run, fill._disagreement_shares([(0, 20, 30)], 100.0))
+    np.testing.assert_allclose(np.sqrt(mse[4]), 0.00034)  # 0.05 x 2.8 mm = 0.14 < 0.34
+    fill._floor_rigid_errors(mse, {4: dis}, run)
+    np.testing.assert_allclose(np.sqrt(mse[4]), 0.25 * 0.0028)
+
+
+def test_a_short_gap_is_not_taken_from_the_rigid_fill_by_a_slow_turn(shared_data):
+    """Real pyomeca take (100 Hz): the wrist marker Daphnee:STYLr knocked out over frames
+    93-102 (the gap protocol's 0.1 s / 1 % / independent mask of seed 714).  Its carries
+    from before and after the gap are 2.8 mm apart (the wrist turning slowly against its
+    donors), so the full floor validated the nearest-donor rigid fill at 0.71 mm (its
+    copies: 0.34) against the spline's 0.69, though in the gap it is 0.20 mm off and the
+    spline 1.05: blend 0.38 mm, the rigid-body baseline 0.20.  With the share scaled to
+    0.1 s (a fifth): 0.19 mm."""
+    m = _real_take(shared_data, "pyomeca_markers_analogs.c3d")
+    mask = _knocked_out(m, (93, 103), ["Daphnee:STYLr"])
+    err, _ = _clean_errors(m, mask)
+    assert err.mean() < 0.25e-3, err.mean()
+
+
 def test_a_head_turning_in_its_gap_is_not_left_to_the_rigid_body_fills(pig_calibration):
     """Real PiG calibration, the gap protocol's 0.5 s / 10 % / clustered mask of seed 104:
     the whole head (LFHD, RFHD, LBHD, RBHD) gone over frames 220-269 while it turns
