@@ -139,7 +139,18 @@
   :func:`_count_once` (its configurations re-run): 23 of 24, worst 1.24 x (0.21 against
   the spline's 0.11 mm on seed 695's 12 samples, 0.39 against 0.13 on seed 699's), the
   other 0.96 x; PiG, Qualisys, Eb015pr, pyomeca re-run: 17 of 18 (1.14), 12 of 12
-  (0.93), 24 of 24 (0.95), 24 of 24 (0.96).
+  (0.93), 24 of 24 (0.95), 24 of 24 (0.96).  Fresh mask seeds 710-719, every
+  configuration of all six files, 10 repetitions: pyomeca 0.1 s / 1 % / independent at
+  1.22 x the rigid-body fill (0.16 against 0.13 mm), which :data:`RIGID_DISAGREEMENT_DURATION`
+  came from (its seed 714); the 0.5-2 s configurations, whose outputs that leaves
+  unchanged, with the 0.1 s ones on fresh seeds 720-729 after it, same samples: PiG 17 of
+  18 (worst 1.11, 0.1 s / 1 % / independent, spline), Eb015pr 24 of 24 (0.99), Qualisys 11
+  of 12 (1.06), racing 24 of 24 (0.64), pyomeca 24 of 24 (0.95), basket_sprint 22 of 24
+  (1.15, 2 s / 10 % / independent).  Each method's mean over its own samples: basket 18
+  of 24, 4.91 x the rigid-body fill at 2 s / 1 % / independent, which leaves 34 % of
+  those samples unfilled.  Not fixed: a run no copy could score keeps the local fill
+  alone (basket 0.1 s / 10 % / independent, seed 717: ForearmL:Marker4, 90.6 mm off where
+  the other four members agree within 4-9 mm of the truth).
 
 Measured on the simulated 350-marker dynamic capture (120 Hz, 0.3 mm noise,
 real occlusion, no complete frame for most neighbourhoods), the same gap masks
