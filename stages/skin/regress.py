@@ -195,7 +195,7 @@ def _gap_problem(X: np.ndarray, visible: np.ndarray, marker: int, predictors: np
     many gaps of one marker."""
     S = np.asarray(predictors)
     gap = np.concatenate([np.arange(a, b) for a, b in runs])
-    key = marker, S.tobytes()
+    key = _set_key(marker, S)
     train = None if trainable is None else trainable.get(key)
     if train is None:
         train = np.flatnonzero(visible[:, marker] & visible[:, S].all(1))
@@ -221,6 +221,12 @@ def _gap_problem(X: np.ndarray, visible: np.ndarray, marker: int, predictors: np
 #: :func:`~mocapflow.stages.motion.absolute_orientation.absolute_orientation_batch`: a few MB.
 _FRAMES_PER_FIT = 20_000
 
+def _set_key(marker: int, predictors: np.ndarray) -> tuple[int, bytes]:
+    """A marker and its predictor set as a dictionary key (what a frame's rigid fit and
+    training frames depend on besides the frame)."""
+    return int(marker), np.asarray(predictors, dtype=np.int64).tobytes()
+
+
 #: Most rigid fits a :class:`_RigidFits` keeps (12 floats each: about 40 MB).
 _MOST_KEPT_FITS = 400_000
 
@@ -242,7 +248,7 @@ class _RigidFits:
 
     @staticmethod
     def key(pr: _GapProblem) -> tuple[int, bytes]:
-        return pr.marker, np.asarray(pr.S, dtype=np.int64).tobytes()
+        return _set_key(pr.marker, pr.S)
 
     def missing(self, key: tuple[int, bytes], frames: np.ndarray) -> np.ndarray:
         """The ``frames`` (ascending, unique) not fitted yet for ``key``."""
@@ -260,16 +266,17 @@ class _RigidFits:
 
     def add(self, key: tuple[int, bytes], frames: np.ndarray, R: np.ndarray,
             t: np.ndarray) -> None:  # fmt: skip
+        """Keep the fits ``R (n, 3, 3)``, ``t (n, 3)`` of ``frames (n,)`` (new to ``key``)."""
+        self.made += len(frames)
+        self.size += len(frames)
         have = self.store.get(key)
         if have is not None:
-            order = np.argsort(np.concatenate([have[0], frames]), kind="stable")
-            frames = np.concatenate([have[0], frames])[order]
+            frames = np.concatenate([have[0], frames])
+            order = np.argsort(frames, kind="stable")
+            frames = frames[order]
             R = np.concatenate([have[1], R])[order]
             t = np.concatenate([have[2], t])[order]
-            self.size -= len(have[0])
         self.store[key] = frames, R, t
-        self.size += len(frames)
-        self.made += len(frames) - (0 if have is None else len(have[0]))
 
     def get(self, key: tuple[int, bytes], frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         have, R, t = self.store[key]
@@ -496,13 +503,14 @@ def _markers_estimates(
     stacks: list[list[tuple[int, int]]] = [[] for _ in markers]
     jobs: list[tuple[int, list[tuple[int, int]]]] = []
     problems: list[_GapProblem] = []
-    pending = [0]  # frames of the pending problems
+    pending = 0  # frames of the pending problems
     fits = _RigidFits()
 
     def solve(flush: bool) -> None:
         """Solve the pending problems (when they hold enough frames, or ``flush``): an
         estimate goes to its marker, a failed group's runs to its stack."""
-        if not problems or (not flush and pending[0] < _FRAMES_PER_FIT):
+        nonlocal pending
+        if not problems or (not flush and pending < _FRAMES_PER_FIT):
             return
         for (i, g), e in zip(jobs, _solve_gaps(X, problems, ridge=ridge, fits=fits,
                                                offset_correction=offset_correction)):
@@ -513,12 +521,13 @@ def _markers_estimates(
                 stacks[i] += g
         jobs.clear()
         problems.clear()
-        pending[0] = 0
+        pending = 0
 
     def add(i: int, g: list[tuple[int, int]], pr: _GapProblem) -> None:
+        nonlocal pending
         jobs.append((i, g))
         problems.append(pr)
-        pending[0] += len(pr.frames)
+        pending += len(pr.frames)
         solve(False)
 
     for i, (marker, cand, h) in enumerate(zip(markers, rankings, holes)):
