@@ -102,6 +102,31 @@ def dilation(points: np.ndarray, *, factor: float = 2.0) -> float:
     return float(factor * d[:, 1].max())
 
 
+#: Most point-centre pairs for which :func:`rbf_matrix` measures every distance instead of
+#: building k-d trees (a part's vertices against its markers: at most a few MB of work).
+_MOST_DENSE_PAIRS = 1_000_000
+
+
+def _dense_rbf_matrix(points: np.ndarray, centres: np.ndarray,
+                      sig: np.ndarray) -> sp.csr_matrix | None:  # fmt: skip
+    """:func:`rbf_matrix` from every distance: the pairs within ``sig.max()`` that the trees'
+    ``sparse_distance_matrix`` lists, their distances summed as it sums them (``dx² + dy²
+    + dz²``, the same bits), so the same matrix; None where a point coincides with a centre
+    (the tree path's own rule for those)."""
+    d = points[:, None, :] - centres[None, :, :]
+    r = d[..., 0] * d[..., 0]
+    r += d[..., 1] * d[..., 1]
+    r += d[..., 2] * d[..., 2]
+    np.sqrt(r, out=r)
+    if not r.all():
+        return None
+    i, j = np.nonzero(r <= sig.max())
+    M = sp.csr_matrix((cubic_bspline(r[i, j] / sig[j]), (i, j)),
+                      shape=(len(points), len(centres)))  # fmt: skip
+    M.eliminate_zeros()
+    return M
+
+
 def rbf_matrix(points: np.ndarray, centres: np.ndarray, sigma) -> sp.csr_matrix:
     """Sparse kernel matrix ``Φ[a, j] = φ(|points_a - centres_j| / σ_j)``.
 
@@ -117,6 +142,10 @@ def rbf_matrix(points: np.ndarray, centres: np.ndarray, sigma) -> sp.csr_matrix:
     (N, n) scipy.sparse.csr_matrix
     """
     sig = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (len(centres),))
+    if len(points) * len(centres) <= _MOST_DENSE_PAIRS:  # no trees: the same pairs and bits
+        M = _dense_rbf_matrix(points, centres, sig)
+        if M is not None:
+            return M
     D = cKDTree(points).sparse_distance_matrix(
         cKDTree(centres), float(sig.max()), output_type="coo_matrix"
     )

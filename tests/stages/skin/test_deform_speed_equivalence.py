@@ -315,3 +315,33 @@ def test_clamp_tests_only_near_entries_and_clamps_the_same_ones():
     blend_module._clamp_weighted(got, beta, part, deviation, margin)
     assert 0 < over.sum() < over.size
     assert got.tobytes() == want.reshape(N, 3 * f).tobytes()
+
+
+def test_rbf_matrix_without_trees_is_the_same_matrix():
+    """``rbf_matrix`` from every distance (small inputs) equals the k-d trees' matrix: the
+    same pairs, values and bytes, one dilation or one per centre; a point on a centre
+    takes the trees' path."""
+    from mocapflow.stages.skin import kernels
+
+    rng = np.random.default_rng(11)
+    n_dense = 0
+    for t in range(60):
+        points = rng.normal(size=(int(rng.integers(1, 300)), 3)) * rng.uniform(0.01, 2.0)
+        centres = rng.normal(size=(int(rng.integers(1, 50)), 3)) * rng.uniform(0.01, 2.0)
+        if t % 4 == 0:
+            points[0] = centres[0]  # coincident
+        sigma = rng.uniform(0.05, 3.0, len(centres)) if t % 2 else rng.uniform(0.05, 3.0)
+        got = kernels.rbf_matrix(points, centres, sigma)
+        dense = kernels._dense_rbf_matrix(points, centres, np.broadcast_to(sigma, len(centres)))
+        n_dense += dense is not None
+        assert (dense is None) == (t % 4 == 0)
+        old = kernels._MOST_DENSE_PAIRS
+        try:
+            kernels._MOST_DENSE_PAIRS = -1  # the trees
+            want = kernels.rbf_matrix(points, centres, sigma)
+        finally:
+            kernels._MOST_DENSE_PAIRS = old
+        assert got.shape == want.shape and got.nnz == want.nnz
+        for a in ("indptr", "indices", "data"):
+            assert getattr(got, a).tobytes() == getattr(want, a).tobytes(), (t, a)
+    assert n_dense == 45
