@@ -35,11 +35,11 @@ Implementation notes (none changes the method):
   as before): the widening takes the rows of the pairs it predicts from them where
   the operator holds the pair, and builds only the pairs the diffused ``β`` adds (on
   the throughput body 1,332 of 4,967);
-* **threads** (the stage's ``threads``, :class:`Threads`): the evaluation pass splits the
-  frames into one consecutive range per thread, and the widening its products, position
-  sums and edge lengths into jobs of rows, dealt round-robin; scipy's CSR kernel and
-  NumPy's copies and ufuncs release the GIL, every job writes its own rows or frames,
-  and every row is computed as on one thread (below): the same bits on any number;
+* **threads** (the stage's ``threads``, :class:`Threads`): the evaluation pass and the
+  widening split the frames into one consecutive range per thread (the widening keeps
+  its stores of rows per range), and the binding runs beside the part fits; scipy's CSR
+  kernel and NumPy's copies and ufuncs release the GIL, every job writes its own frames,
+  and every value is computed as on one thread (below): the same bits on any number;
 * **bit-reproducible**: every vertex's result is computed by operations whose
   rounding does not depend on which other vertices, frames or parts are computed
   in the same call, nor on BLAS or its thread count: ``H``'s rows come from their

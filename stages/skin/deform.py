@@ -157,7 +157,7 @@ import numpy as np
 from mocapflow.pipeline import Context, stage
 from mocapflow.stages.motion.datatypes import Markers, Mesh
 from mocapflow.stages.motion.geometry import triangle_normals
-from mocapflow.stages.skin.binding import DeformError, MeshBinding, bind_mesh, mesh_edges
+from mocapflow.stages.skin.binding import DeformError, bind_mesh, mesh_edges
 from mocapflow.stages.skin.blend import (
     Threads,
     VertexOperator,
@@ -179,6 +179,7 @@ from mocapflow.stages.skin.segmentation import Segmentation
 from mocapflow.stages.skin.widening import (
     _blending_edges,
     _longest_edges,
+    _mesh_topology,
     _widen_blends,
     widening_steps,
 )
@@ -301,10 +302,10 @@ def _deform_frames(models: list[PartModel], fits: list[PartFit], n_frames: int,
 
 
 def _deform_report(models: list[PartModel], fits: list[PartFit], x: np.ndarray,
-                   binding: MeshBinding, n_vertices: int, *, mode: str) -> dict[str, Any]:
+                   n_vertices: int, *, mode: str) -> dict[str, Any]:
     """The deform report: per part its markers, vertices, fallback frames, dilation and
     how well the model reproduces the observed markers (RMS mm; 0 up to round-off with
-    the residual)."""
+    the residual); ``max_vertex_distance_to_markers_mm`` left None for the binding."""
     marker_rms = {}
     for m, f in zip(models, fits):
         pred = evaluate_part(m, f, m.local, m.basis(m.local), m.kernel.tocsr())
@@ -329,7 +330,7 @@ def _deform_report(models: list[PartModel], fits: list[PartFit], x: np.ndarray,
             }
             for m, f in zip(models, fits)
         },
-        "max_vertex_distance_to_markers_mm": float(binding.distance.max() * 1000),
+        "max_vertex_distance_to_markers_mm": None,
     }
 
 
@@ -510,8 +511,10 @@ def deform(
         time, rigidly, and pulls (the demo's body: 3.3x the cost).  Off by default; the
         skin graph's config turns it on (the demo: 344 flipped triangles -> 0).
     threads : int or None
-        Threads of this process evaluating the frames, the blend widening and (without
-        an executor) the per-part fits; ``None``: ``ctx.workers`` (the engine's worker
+        Threads of this process evaluating the frames and widening the blends (each
+        thread its own range of frames), the binding running on a second one beside the
+        per-part fits (on all of them without a second thread or an executor);
+        ``None``: ``ctx.workers`` (the engine's worker
         count; 1 for a plain Python call).  The result is the same bits on any number
         (every vertex, frame and part is computed apart from the others: see
         :mod:`mocapflow.stages.skin.blend`).
@@ -543,8 +546,6 @@ def deform(
     sparse = (segmentation.attrs.get("density") or {}).get("suited") is False
     if sparse:  # below Park & Hodgins' density (segment warned once): rigid skinning
         mode = "rigid"
-    binding = bind_mesh(mesh.vertices, segmentation, sharpness=beta_sharpness,
-                        name="detailed mesh", min_overlap=0.0 if sparse else 0.9)
     # frame-independent set-up in-process (cheap; per-vertex arrays stay here), the
     # per-part fits over all frames on the executor (small inputs and outputs)
     models = [
@@ -553,19 +554,41 @@ def deform(
                      support_margin=support_margin, clamp_margin=clamp_margin)
         for p in range(segmentation.n_parts)
     ]  # fmt: skip
-    with Threads(n_threads) as pool:  # the evaluation's threads (the same bits on any number)
-        fits = _fit_parts(models, x, mode=mode, min_quadratic_markers=min_quadratic_markers,
-                          damping=quadratic_damping, ctx=ctx, threads=pool)
-        V = mesh.vertices.shape[0]
-        widen = max_blend_stretch is not None and len(mesh.faces) > 0
-        # the edges of the triangles that blend, measured while the frames are evaluated
-        watch, ends = _blending_edges(mesh, binding.beta) if widen else (None, None)
-        residual = mode.endswith("residual")
-        # computed once for both passes when the blend widens; else the evaluation pass
-        # computes them where it runs (in process, or per chunk on the workers)
-        C = frame_coefficients(models, fits, residual=residual) if widen else None
+    V = mesh.vertices.shape[0]
+    widen = max_blend_stretch is not None and len(mesh.faces) > 0
+    residual = mode.endswith("residual")
+
+    def bound() -> tuple:
+        """The mesh's binding, the edges of its triangles that blend (measured while the
+        frames are evaluated), the vertex operator and, to widen the blends, the mesh's
+        topology: NumPy over the rest vertices."""
+        binding = bind_mesh(mesh.vertices, segmentation, sharpness=beta_sharpness,
+                            name="detailed mesh", min_overlap=0.0 if sparse else 0.9)
+        topology = _mesh_topology(mesh) if widen else None
+        watch, ends = _blending_edges(mesh, binding.beta, topology) if widen else (None, None)
         operator = vertex_operator(models, V, residual=residual, rest=mesh.vertices,
                                    beta=binding.beta)  # fmt: skip
+        return binding, watch, ends, operator, topology
+
+    with Threads(n_threads) as pool:  # the evaluation's threads (the same bits on any number)
+        # with a second thread the binding runs there while this one fits the parts (mostly
+        # Python): neither needs the other; on one thread it runs first, as it always did
+        binding_done = bound() if pool.pool is None else pool.pool.submit(bound)
+        try:
+            fits = _fit_parts(models, x, mode=mode, min_quadratic_markers=min_quadratic_markers,
+                              damping=quadratic_damping, ctx=ctx,
+                              threads=pool if pool.pool is None else None)
+            # computed once for both passes when the blend widens; else the evaluation pass
+            # computes them where it runs (in process, or per chunk on the workers)
+            C = frame_coefficients(models, fits, residual=residual) if widen else None
+            report = _deform_report(models, fits, x, V, mode=mode)
+        except Exception:
+            if pool.pool is not None:
+                binding_done.result()  # the binding's error first, as on one thread
+            raise
+        binding, watch, ends, operator, topology = binding_done if pool.pool is None else \
+            binding_done.result()  # fmt: skip
+        report["max_vertex_distance_to_markers_mm"] = float(binding.distance.max() * 1000)
         verts, longest = _deform_frames(
             models, fits, x.shape[0], operator, residual=residual,
             chunk_frames=chunk_frames, ctx=ctx, edges=ends, coefficients=C, threads=pool)
@@ -575,13 +598,12 @@ def deform(
                 models, fits, mesh, binding.beta, verts, max_stretch=max_blend_stretch,
                 steps=widening_steps(mesh, blend_widening_reach), residual=residual,
                 measured=(watch, longest), coefficients=C, operator=operator,
-                threads=pool)
+                threads=pool, topology=topology)
             widened = {"steps": n_steps, "vertices": n_changed, "torn_before": torn0,
                        "torn_after": torn1 if n_changed else torn0}
             if torn0 and not n_changed:
                 ctx.warn(f"deform: widening the blends did not tear fewer triangles ({torn0} "
                          f"-> {torn1} beyond {max_blend_stretch:g}x), so the paper's blend is kept")
-    report = _deform_report(models, fits, x, binding, V, mode=mode)
     if unflip and mode != "rigid" and len(mesh.faces):
         reference = deform(markers, segmentation, mesh, mode="rigid",
                            min_quadratic_markers=min_quadratic_markers,

@@ -96,6 +96,8 @@ mode (see ``tests/stages/skin/test_artifacts.py``; the stage's ``unflip``,
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -123,12 +125,58 @@ def _blending(beta: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return ((b[:, 0] != b[:, 1]) | (b[:, 0] != b[:, 2])).any(1)
 
 
-def _blending_edges(mesh: Mesh, beta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+@dataclass
+class _Topology:
+    """What :func:`_widen_blends` needs of the rest mesh alone (:func:`_mesh_topology`):
+    ``faces (T, 3)``, the rest lengths ``(T, 3)`` of each triangle's edges (from corner
+    ``k`` to ``k + 1``, at least 1e-12), the unique edges
+    (:func:`~mocapflow.stages.skin.binding.mesh_edges`: ``ends``, ``face_edge``,
+    ``first``), the vertex-triangle and vertex-edge incidences ``(V, T)`` and ``(V, E)``,
+    the diffusion step (:func:`~mocapflow.stages.skin.binding.blend_smoothing_operator`)
+    and its pattern ``ring``."""
+
+    faces: np.ndarray
+    rest_edges: np.ndarray
+    ends: np.ndarray
+    face_edge: np.ndarray
+    first: np.ndarray
+    incidence: sp.csr_matrix
+    vertex_edges: sp.csr_matrix
+    smooth: sp.csr_matrix
+    ring: sp.csr_matrix
+
+
+def _mesh_topology(mesh: Mesh) -> _Topology:
+    """:class:`_Topology` of ``mesh`` (its rest vertices and faces)."""
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    rest = mesh.vertices
+    V, T = len(rest), len(faces)
+    rest_edges = np.stack([np.linalg.norm(rest[faces[:, (k + 1) % 3]] - rest[faces[:, k]], axis=1)
+                           for k in range(3)], 1)  # fmt: skip
+    ends, face_edge, first = mesh_edges(faces, V)
+    E = len(ends)
+    smooth = blend_smoothing_operator(rest, faces)
+    return _Topology(
+        faces, np.maximum(rest_edges, 1e-12), ends, face_edge, first,
+        sp.csr_matrix((np.ones(3 * T), (faces.ravel(), np.repeat(np.arange(T), 3))),
+                      shape=(V, T)),
+        sp.csr_matrix((np.ones(2 * E), (ends.ravel(), np.repeat(np.arange(E), 2))),
+                      shape=(V, E)),
+        smooth, (smooth != 0).astype(np.int8).tocsr(),
+    )  # fmt: skip
+
+
+def _blending_edges(mesh: Mesh, beta: np.ndarray, topology: _Topology | None = None,
+                    ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """The edges (:func:`~mocapflow.stages.skin.binding.mesh_edges`, ascending) of the
     triangles of ``mesh`` whose corners blend differently with weights ``β (V, P)``:
-    their indices ``(E,)`` and ends ``(E, 2)``."""
-    faces = np.asarray(mesh.faces, dtype=np.int64)
-    ends, face_edge, _ = mesh_edges(faces, len(mesh.vertices))
+    their indices ``(E,)`` and ends ``(E, 2)`` (``topology``: the mesh's
+    :func:`_mesh_topology` when already made)."""
+    if topology is None:
+        faces = np.asarray(mesh.faces, dtype=np.int64)
+        ends, face_edge, _ = mesh_edges(faces, len(mesh.vertices))
+    else:
+        faces, ends, face_edge = topology.faces, topology.ends, topology.face_edge
     watch = np.unique(face_edge[_blending(beta, faces)])
     return watch, ends[watch]
 
@@ -141,6 +189,11 @@ _MOST_STEPS_PER_CHECK = 8
 #: Edge-frames (stretch checks) or vertex-frames (moved vertices) per slice of
 #: :func:`_widen_blends`: work arrays of a few MB.
 _EDGE_FRAMES_PER_SLICE = 100_000
+
+
+#: Rows of the first block of :func:`_widen_blends`' stores (:class:`_Rows`; each next block
+#: twice the one before).
+_FIRST_BLOCK_ROWS = 256
 
 
 #: Relative margin of :func:`_widen_blends`' length bounds over the round-off of the lengths
@@ -192,6 +245,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
                   measured: tuple[np.ndarray, np.ndarray] | None = None,
                   coefficients: np.ndarray | None = None,
                   operator: VertexOperator | None = None, threads: Threads | None = None,
+                  topology: _Topology | None = None,
                   ) -> tuple[np.ndarray, int, int, int, int]:  # fmt: skip
     """Widen the blend between parts where it tears the surface (P&H Eq. 9's ``β``).
 
@@ -229,36 +283,65 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     :func:`~mocapflow.stages.skin.blend.frame_coefficients` when already computed;
     ``operator``: the :func:`~mocapflow.stages.skin.blend.vertex_operator` of ``beta``
     (from the rest vertices), whose rows with ``β = 1`` are reused for the pairs it holds
-    (the same rows as built again).
+    (the same rows as built again); ``topology``: the mesh's :func:`_mesh_topology` when
+    already made.
     """
     threads = Threads() if threads is None else threads
-    faces = np.asarray(mesh.faces, dtype=np.int64)
+    top = _mesh_topology(mesh) if topology is None else topology
+    faces, ends, face_edge, first = top.faces, top.ends, top.face_edge, top.first
+    incidence, vertex_edges, smooth, ring = top.incidence, top.vertex_edges, top.smooth, top.ring
     rest = mesh.vertices
     beta = beta.copy()
     V, T, P = len(rest), len(faces), beta.shape[1]
     F = verts.shape[0]
-    rest_edges = np.stack([np.linalg.norm(rest[faces[:, (k + 1) % 3]] - rest[faces[:, k]], axis=1)
-                           for k in range(3)], 1)  # fmt: skip
-    rest_edges = np.maximum(rest_edges, 1e-12)
-    ends, face_edge, first = mesh_edges(faces, V)
     E = len(ends)
-    limit = (max_stretch * rest_edges.ravel()[first]) ** 2  # (E,) longest squared length
-    incidence = sp.csr_matrix((np.ones(3 * T), (faces.ravel(), np.repeat(np.arange(T), 3))),
-                              shape=(V, T))  # fmt: skip
-    vertex_edges = sp.csr_matrix((np.ones(2 * E), (ends.ravel(), np.repeat(np.arange(E), 2))),
-                                 shape=(V, E))  # fmt: skip
-    smooth = blend_smoothing_operator(rest, faces)
-    ring = (smooth != 0).astype(np.int8).tocsr()
-    # vertex-major stores (rows of F x 3), filled on first use: positions of the vertices
-    # whose edges are measured, and each vertex-part prediction with how far it lies from
-    # the vertex's first prediction (largest over the frames)
+    limit = (max_stretch * top.rest_edges.ravel()[first]) ** 2  # (E,) longest squared length
+    # vertex-major stores, filled on first use: positions of the vertices whose edges are
+    # measured, and each vertex-part prediction with how far it lies from the vertex's
+    # first prediction (largest over the frames); a row's index is the same in every
+    # frame range's stores (below)
     row = np.full(V, -1, np.int64)
-    pos = _Rows(F)
     slot = np.full((V, P), -1, np.int64)
-    pred = _Rows(F)
     spread = np.zeros(0)
     first = np.full(V, -1, np.int64)  # slot of each vertex's first prediction
     stale = np.zeros(V, bool)  # weights changed since its row of pos was last computed
+    n_pos = n_pred = 0  # rows of the stores
+
+    # every part's frame_coefficients (K, F, 3), whether its model has non-rigid terms
+    # (deform_positions adds them then) and its clamp (bound per frame, margin)
+    C = frame_coefficients(models, fits, residual=residual) if coefficients is None \
+        else coefficients  # fmt: skip
+    C = C.reshape(len(C), F, 3)
+    offsets = np.cumsum([0, *[14 + (len(m.members) if residual else 0) for m in models]])
+    nonrigid = np.array([bool(C[o + 4 : z].any()) for o, z in zip(offsets, offsets[1:])], bool)
+    clamped = np.array([m.clamp_margin is not None for m in models], bool)
+    margins = np.array([m.clamp_margin or 0.0 for m in models])
+    deviation = np.stack([f.marker_deviation if c else np.zeros(F)
+                          for f, c in zip(fits, clamped)]) if P else np.zeros((0, F))  # fmt: skip
+    # the frames in one consecutive range per thread (as the evaluation pass): every
+    # product, sum and measurement below is made range by range, each range on its own
+    # thread with its own stores and work arrays; a value is computed as over all frames
+    # at once, and the largest over the frames is the largest of the ranges' largest
+    n_ranges = min(threads.n, max(1, F))
+    cuts = np.linspace(0, F, n_ranges + 1).round().astype(int).tolist()
+    n_rows = max(1, _EDGE_FRAMES_PER_SLICE // max(1, max(np.diff(cuts), default=1)))
+    spans = [_FrameRange(a, b, C, deviation, n_rows) for a, b in zip(cuts, cuts[1:])]
+
+    def in_ranges(fn) -> list:
+        """``fn(span)`` for every frame range, one thread each (they write disjoint frames:
+        the same bits on any thread); the results in range order."""
+        return threads.run(lambda s, _: fn(s), spans)
+
+    def reserve(pos: bool, k: int) -> np.ndarray:
+        """``k`` new rows of every range's ``pos`` (or ``pred``) store: their indices."""
+        nonlocal n_pos, n_pred
+        for s in spans:
+            (s.pos if pos else s.pred).append(None, n_rows=k)
+        if pos:
+            n_pos += k
+            return np.arange(n_pos - k, n_pos)
+        n_pred += k
+        return np.arange(n_pred - k, n_pred)
 
     def with_rows(v: np.ndarray) -> None:
         """Give vertices ``v`` (any order, repeats) a row of ``pos``; a stale vertex's
@@ -267,37 +350,21 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         new[v[row[v] < 0]] = True
         fresh = np.flatnonzero(new & ~stale)  # still at their first-pass positions
         if len(fresh):
-            row[fresh] = pos.append(None, n_rows=len(fresh))
-            for lo, hi, into in pos.segments(row[fresh]):  # (F, k) -> (k, F), 32 frames a time
-                into = into.reshape(hi - lo, F, 3).view(_XYZ)[..., 0]
-                for f in range(0, F, 32):
-                    into[:, f : f + 32] = verts[f : f + 32].view(_XYZ)[:, fresh[lo:hi], 0].T
+            row[fresh] = reserve(True, len(fresh))
+
+            def copy(s: _FrameRange) -> None:  # (f, k) -> (k, f), 32 frames a time
+                frames = verts[s.start : s.stop]
+                for lo, hi, into in s.pos.segments(row[fresh]):
+                    into = into.reshape(hi - lo, s.n, 3).view(_XYZ)[..., 0]
+                    for f in range(0, s.n, 32):
+                        into[:, f : f + 32] = frames[f : f + 32].view(_XYZ)[:, fresh[lo:hi], 0].T
+
+            in_ranges(copy)
         new = np.flatnonzero(new & stale)  # placed below, straight into their new rows
         if len(new):
-            row[new] = pos.append(None, n_rows=len(new))
+            row[new] = reserve(True, len(new))
             place(new)
         place(np.flatnonzero(np.isin(np.arange(V), v) & stale) if len(v) else v)
-
-    # every part's frame_coefficients (K, 3F), whether its model has non-rigid terms
-    # (deform_positions adds them then) and its clamp (bound per frame, margin)
-    C = (frame_coefficients(models, fits, residual=residual) if coefficients is None
-         else coefficients).reshape(-1, 3 * F)  # fmt: skip
-    offsets = np.cumsum([0, *[14 + (len(m.members) if residual else 0) for m in models]])
-    nonrigid = np.array([bool(C[o + 4 : z].any()) for o, z in zip(offsets, offsets[1:])], bool)
-    clamped = np.array([m.clamp_margin is not None for m in models], bool)
-    margins = np.array([m.clamp_margin or 0.0 for m in models])
-    deviation = np.stack([f.marker_deviation if c else np.zeros(F)
-                          for f, c in zip(fits, clamped)]) if P else np.zeros((0, F))  # fmt: skip
-    deviation_squared = np.square(deviation)
-    n_rows = max(1, _EDGE_FRAMES_PER_SLICE // max(1, F))  # rows per product: a few MB
-    scratch = np.empty((2, n_rows, 3 * F))  # results of those products, reused
-    # the products on `threads`' threads, each with its own work arrays
-    works = [scratch] + [np.empty_like(scratch) for _ in range(threads.n - 1)]
-
-    def in_threads(fn, jobs: list) -> None:
-        """``fn(job, work)`` for every job (they write disjoint rows: the same bits on any
-        thread)."""
-        threads.run(fn, jobs, works)
 
     # the first pass's rows with β = 1 (an operator pair per vertex and part, -1: none)
     unit = None if operator is None else operator.unit
@@ -332,82 +399,89 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         v, p = key % V, key // V
         if not len(key):
             return
-        new = pred.append(None, n_rows=len(key))
+        new = reserve(False, len(key))
         slot[v, p] = new
         u, at = np.unique(v, return_index=True)  # a vertex's first new pair: its lowest part
         first[u[first[u] < 0]] = new[at[first[u] < 0]]
-        far = np.empty(len(new))
-        # rows c..z-1 of the store per job; the jobs write disjoint rows (one thread each)
-        jobs = [(c, min(hi, c + n_rows), into[c - lo : min(hi, c + n_rows) - lo])
-                for lo, hi, into in pred.segments(new) for c in range(lo, hi, n_rows)]
-
-        def products(job: tuple, work: np.ndarray) -> None:
-            c, z, rows = job  # straight into the store
-            rigid, nonrigid_rows = pair_rows(v[c:z], p[c:z])
-            _sparse_product(rigid, C, rows)
-            bent = np.flatnonzero(nonrigid[p[c:z]])  # pairs whose part has non-rigid terms
-            if not len(bent):
-                return
-            U = work[1][: len(bent)]
-            every = len(bent) == z - c
-            _sparse_product(nonrigid_rows if every else nonrigid_rows[bent], C, U)
+        rigid_rows, nonrigid_rows = pair_rows(v, p)  # every new pair's rows, built once
+        # rows c..z of the new ones per product, with the pairs whose part has non-rigid
+        # terms and, of those, the clamped ones
+        chunks = []
+        for lo, hi, _ in spans[0].pred.segments(new):  # (the stores' blocks are alike)
+            for c in range(lo, hi, n_rows):
+                chunks.append((c, min(hi, c + n_rows)))
+        for n, (c, z) in enumerate(chunks):
+            bent = np.flatnonzero(nonrigid[p[c:z]])
             cl = np.flatnonzero(clamped[p[c + bent]])
-            if len(cl):
-                Uc = U if len(cl) == len(bent) else U[cl]
-                one = np.ones(len(cl))
-                _clamp_weighted(Uc, one, p[c + bent[cl]], deviation,
-                                margins[p[c + bent[cl]]], beta_squared=one,
-                                deviation_squared=deviation_squared,
-                                work=work[0][: len(cl)])  # fmt: skip
-                if len(cl) < len(bent):
-                    U[cl] = Uc
-            if every:
-                rows += U  # rigid + non-rigid
-            else:
-                rows[bent] += U
-
-        def distances(job: tuple, work: np.ndarray) -> None:
-            # how far each prediction lies from its vertex's first (computed by now, all jobs'
-            # products done; 0 for the first itself)
-            c, z, _ = job
+            N = nonrigid_rows[c:z] if len(bent) == z - c else nonrigid_rows[c + bent]
             other = np.flatnonzero(first[v[c:z]] != new[c:z])
-            far[c:z] = 0.0
-            if len(other):
-                d = _row_differences(first[v[c + other]], new[c + other], pred, work[0])
-                far[c + other] = np.sqrt(_squared_lengths(d).max(1))
+            chunks[n] = (c, z, rigid_rows[c:z], bent, N, cl, other)
 
-        in_threads(products, jobs)
-        in_threads(distances, jobs)
-        spread = np.concatenate([spread, far])
+        def products(s: _FrameRange) -> np.ndarray:
+            work = s.work
+            for c, z, rigid, bent, N, cl, _ in chunks:
+                rows = s.pred.view(new[c:z])  # straight into the store
+                _sparse_product(rigid, s.C, rows)
+                if not len(bent):
+                    continue
+                U = work[1][: len(bent)]
+                _sparse_product(N, s.C, U)
+                if len(cl):
+                    Uc = U if len(cl) == len(bent) else U[cl]
+                    one = np.ones(len(cl))
+                    _clamp_weighted(Uc, one, p[c + bent[cl]], s.deviation,
+                                    margins[p[c + bent[cl]]], beta_squared=one,
+                                    deviation_squared=s.deviation_squared,
+                                    work=work[0][: len(cl)])  # fmt: skip
+                    if len(cl) < len(bent):
+                        U[cl] = Uc
+                if len(bent) == z - c:
+                    rows += U  # rigid + non-rigid
+                else:
+                    rows[bent] += U
+            # how far each prediction lies from its vertex's first (all products of the
+            # range done by now; 0 for the first itself)
+            far = np.zeros(len(key))
+            for c, _z, *_, other in chunks:
+                if len(other):
+                    d = _row_differences(first[v[c + other]], new[c + other], s.pred, work[0])
+                    far[c + other] = np.sqrt(_squared_lengths(d).max(1))
+            return far
+
+        spread = np.concatenate([spread, np.maximum.reduce(in_ranges(products))])
 
     def place(R: np.ndarray, *, final: bool = False) -> None:
         """Rows of ``pos`` for vertices ``R`` (ascending, with rows): ``Σ_p β_p prediction_p``,
         parts in ascending order (:meth:`_Rows.combine`); ``final``: into ``verts`` instead
         (``R`` need no rows)."""
         b = beta[R]
-
-        def combined(c: int, work: np.ndarray) -> None:  # vertices R[c : c + n_rows]
+        chunks = []  # vertices R[c : c + n_rows]: each one's predictions and weights
+        for c in range(0, len(R), n_rows):
             i, p = np.nonzero(b[c : c + n_rows] > 0)  # each vertex's parts, ascending
             layer = np.arange(len(i)) - np.searchsorted(i, i)  # k-th part of its vertex
             index = np.full((min(n_rows, len(R) - c), P), -1, np.int64)
             weights = np.zeros(index.shape)
             index[i, layer], weights[i, layer] = slot[R[c + i], p], b[c + i, p]
             L = int(layer.max(initial=-1)) + 1
-            if final:  # (k, F) -> (F, k), moving whole xyz triplets (24 bytes) at a time
-                moved = work[0][: len(index)]
-                pred.combine(index[:, :L], weights[:, :L], moved)
-                verts.view(_XYZ)[:, R[c : c + n_rows], 0] = moved.view(_XYZ).T
-                return
-            rows = row[R[c : c + n_rows]]
-            if np.all(np.diff(rows) == 1):  # consecutive rows: straight into the store
-                for lo, hi, into in pos.segments(rows):
-                    pred.combine(index[lo:hi, :L], weights[lo:hi, :L], into)
-                return
-            moved = work[0][: len(index)]
-            pred.combine(index[:, :L], weights[:, :L], moved)
-            pos.put(rows, moved)
+            rows = None if final else row[R[c : c + n_rows]]
+            chunks.append((c, index[:, :L], weights[:, :L], rows))
 
-        in_threads(combined, list(range(0, len(R), n_rows)))  # disjoint rows and vertices
+        def combined(s: _FrameRange) -> None:
+            for c, index, weights, rows in chunks:
+                if final:  # (k, f) -> (f, k), moving whole xyz triplets (24 bytes) at a time
+                    moved = s.work[0][: len(index)]
+                    s.pred.combine(index, weights, moved)
+                    verts[s.start : s.stop].view(_XYZ)[:, R[c : c + n_rows], 0] = \
+                        moved.view(_XYZ).T  # fmt: skip
+                elif np.all(np.diff(rows) == 1):  # consecutive rows: straight into the store
+                    for lo, hi, into in s.pos.segments(rows):
+                        s.pred.combine(index[lo:hi], weights[lo:hi], into)
+                else:
+                    moved = s.work[0][: len(index)]
+                    s.pred.combine(index, weights, moved)
+                    s.pos.put(rows, moved)
+
+        in_ranges(combined)  # disjoint frames
         stale[R] = False
 
     def blending(t: np.ndarray) -> np.ndarray:
@@ -417,15 +491,16 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     def longest(e: np.ndarray) -> np.ndarray:
         """The largest squared length of edges ``e`` over the frames (current positions)."""
         with_rows(ends[e].ravel())
-        out = np.empty(len(e))
+        a, b = row[ends[e].T]
 
-        def lengths(i: int, work: np.ndarray) -> None:  # edges e[i : i + n_rows]
-            a, b = row[ends[e[i : i + n_rows]].T]
-            d = _row_differences(a, b, pos, work[0])
-            out[i : i + n_rows] = _squared_lengths(d).max(1)
+        def lengths(s: _FrameRange) -> np.ndarray:
+            out = np.empty(len(e))
+            for i in range(0, len(e), n_rows):
+                d = _row_differences(a[i : i + n_rows], b[i : i + n_rows], s.pos, s.work[0])
+                out[i : i + n_rows] = _squared_lengths(d).max(1)
+            return out
 
-        in_threads(lengths, list(range(0, len(e), n_rows)))
-        return out
+        return np.maximum.reduce(in_ranges(lengths)) if len(e) else np.zeros(0)
 
     # only triangles whose corners blend differently can tear: start from their edges,
     # checked on the frame-major vertices (a vertex-major row only for those near a tear)
@@ -512,9 +587,14 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         return beta_in, taken, 0, torn_before, len(bad)
     done = np.flatnonzero(changed)
     kept = done[(row[done] >= 0) & ~stale[done]]  # their rows of pos hold their positions
-    for c in range(0, len(kept), 256):  # (k, F) -> (F, k), whole xyz triplets at a time
-        rows = pos.take(row[kept[c : c + 256]])
-        verts.view(_XYZ)[:, kept[c : c + 256], 0] = rows.view(_XYZ)[..., 0].T
+
+    def copy_kept(s: _FrameRange) -> None:  # (k, f) -> (f, k), whole xyz triplets at a time
+        for c in range(0, len(kept), 256):
+            rows = s.pos.take(row[kept[c : c + 256]])
+            verts[s.start : s.stop].view(_XYZ)[:, kept[c : c + 256], 0] = \
+                rows.view(_XYZ)[..., 0].T  # fmt: skip
+
+    in_ranges(copy_kept)
     place(done[(row[done] < 0) | stale[done]], final=True)  # the others, straight into verts
     return beta, taken, len(done), torn_before, len(bad)
 
@@ -537,6 +617,22 @@ def _row_differences(a: np.ndarray, b: np.ndarray, store: _Rows,
     out = np.empty((len(a), 3 * store.shape[0])) if work is None else work[: len(a)]
     store.combine(np.stack([a, b], 1), np.tile([-1.0, 1.0], (len(a), 1)), out)
     return out.reshape(len(a), *store.shape)
+
+
+class _FrameRange:
+    """Consecutive frames ``start..stop-1`` of :func:`_widen_blends`, worked on by one
+    thread: their frame coefficients ``C (K, 3 n)`` (from ``(K, F, 3)``), the parts' marker
+    deviations ``(P, n)`` and their squares, the stores ``pos`` and ``pred`` of ``(n, 3)``
+    rows and the work arrays ``(2, n_rows, 3 n)``."""
+
+    def __init__(self, start: int, stop: int, C: np.ndarray, deviation: np.ndarray,
+                 n_rows: int):  # fmt: skip
+        self.start, self.stop, self.n = start, stop, stop - start
+        self.C = np.ascontiguousarray(C[:, start:stop]).reshape(len(C), 3 * self.n)
+        self.deviation = deviation[:, start:stop]
+        self.deviation_squared = np.square(self.deviation)
+        self.pos, self.pred = _Rows(self.n, _FIRST_BLOCK_ROWS), _Rows(self.n, _FIRST_BLOCK_ROWS)
+        self.work = np.empty((2, n_rows, 3 * self.n))
 
 
 class _Rows:
@@ -604,6 +700,13 @@ class _Rows:
             if a < z:
                 view = block[a - self.starts[b] : z - self.starts[b]]
                 yield a - lo, z - lo, view.reshape(z - a, -1)
+
+    def view(self, index: np.ndarray) -> np.ndarray:
+        """The ``(k, 3 F)`` view of the consecutive rows ``index (k,)``, within one block."""
+        (a, b, rows), *more = self.segments(index)
+        if more or b - a != len(index):
+            raise ValueError("_Rows.view: rows across blocks")
+        return rows
 
     def combine(self, index: np.ndarray, weights: np.ndarray, out: np.ndarray) -> None:
         """``out (k, 3 F)`` = ``Σ_l weights[:, l] × row index[:, l]`` (``(k, L)`` each; index

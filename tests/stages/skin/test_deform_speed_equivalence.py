@@ -114,11 +114,14 @@ def test_stage_in_process_equals_frame_chunks_on_an_executor(limb_fits):
 
 
 def test_stage_on_threads_equals_one_thread(limb_fits, monkeypatch):
-    """deform on 3 threads (frame ranges of the evaluation pass, the widening's jobs of
-    rows, the per-part fits) gives the same bytes and report as on one, and the kernels
-    did run on more than one thread; ``threads=0`` is refused in one line."""
+    """deform on 3 threads (frame ranges of the evaluation pass and of the widening, the
+    binding beside the per-part fits) gives the same bytes and report as on one, and the
+    kernels did run on more than one thread; ``threads=0`` is refused in one line."""
     d, seg, mesh = limb_fits["d"], limb_fits["seg"], limb_fits["mesh"]
-    monkeypatch.setattr(widening_module, "_EDGE_FRAMES_PER_SLICE", 60 * 5)  # 5 rows per job
+    # 5 rows per product on one thread (15 on 3: 20 frames each), and stores of blocks of
+    # 4, 8, 16, ... rows, so that the widening's products and sums cross blocks
+    monkeypatch.setattr(widening_module, "_EDGE_FRAMES_PER_SLICE", 60 * 5)
+    monkeypatch.setattr(widening_module, "_FIRST_BLOCK_ROWS", 4)
     ran = set()
     kernel = blend_module.csr_matvecs
 
@@ -315,6 +318,25 @@ def test_clamp_tests_only_near_entries_and_clamps_the_same_ones():
     blend_module._clamp_weighted(got, beta, part, deviation, margin)
     assert 0 < over.sum() < over.size
     assert got.tobytes() == want.reshape(N, 3 * f).tobytes()
+
+
+def test_binding_error_comes_first_on_threads(limb_fits):
+    """With the binding on a second thread beside the part fits, a mesh that does not
+    overlap the markers is still the error raised, also when the fits fail too (a part
+    never placeable), as on one thread."""
+    d, seg, mesh = limb_fits["d"], limb_fits["seg"], limb_fits["mesh"]
+    far = deform_module.Mesh(mesh.vertices + [1.0, 0.0, 0.0], mesh.faces)
+    x = d["markers"].positions.copy()
+    labels = d["markers"].labels
+    x[:, [labels.index(seg.labels[i]) for i in seg.members(0)]] = np.nan  # never placeable
+    hidden = deform_module.Markers(x, d["markers"].labels, d["markers"].rate)
+    for n in (1, 2):
+        with pytest.raises(deform_module.DeformError, match="does not overlap"):
+            deform(d["markers"], seg, far, threads=n, ctx=Context())
+        with pytest.raises(deform_module.DeformError, match="does not overlap"):
+            deform(hidden, seg, far, threads=n, ctx=Context())
+        with pytest.raises(deform_module.DeformError, match="cannot be placed"):
+            deform(hidden, seg, mesh, threads=n, ctx=Context())
 
 
 def test_rbf_matrix_without_trees_is_the_same_matrix():
