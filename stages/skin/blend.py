@@ -15,10 +15,10 @@ Implementation notes (none changes the method):
 
 * all parts and frames are evaluated as one linear map ``vertices(f) = H · C(f)``
   (``H``: β-weighted local coordinates, monomials and kernel values of the
-  vertex-part pairs, built once; ``C``: per-frame part coefficients), done as one
-  sparse product per chunk of frames (the non-rigid rows, clamped, stacked above the
-  rigid ones; 16 frames of a 13,000-vertex mesh: the work arrays stay a few MB, and
-  the chunking changes no bit) by scipy's CSR kernel called directly into reused work
+  vertex-part pairs, built once; ``C``: per-frame part coefficients), done as two
+  sparse products per chunk of frames (the rigid rows; the non-rigid rows, clamped;
+  16 frames of a 13,000-vertex mesh: the work arrays stay a few MB, and the chunking
+  changes no bit) by scipy's CSR kernel called directly into reused work
   arrays (``A @ X`` would allocate and copy its result and pay scipy's checks on
   every call); ``β`` is folded into ``H`` because the clamp commutes with a positive
   scale, and only the few entries beyond their bound are clamped.  ``H``'s rows are
@@ -52,8 +52,19 @@ Implementation notes (none changes the method):
   made the widened vertices (evaluated apart from the rest) differ by 1.7e-18 m
   between the demo's run and its frozen replay.  Worker frame chunks,
   ``max_blend_stretch`` re-evaluations, vertex subsets and thread counts give the
-  same bytes (``tests/stages/skin/test_deform.py``); results equal the former
-  dense BLAS evaluation within 1e-15 m.
+  same bytes (``tests/stages/skin/test_deform.py``);
+* **the non-rigid terms in single precision** (:data:`_NONRIGID`): the non-rigid rows
+  (``β [q(v̄), 1, φ(v̄)]``, 85 % of the terms) and their coefficients are rounded to
+  single precision and multiplied out there; the clamp's test and the clamp itself are
+  made in double precision on those values (a clamped displacement is stored back
+  rounded), and the rigid transform, the sum of the two and the blend over the parts
+  stay in double.  The non-rigid displacements are millimetres to centimetres, so this
+  rounds the vertices by nanometres: on the throughput body of
+  ``benchmarks/deform.py --throughput`` (13,000 vertices, 900 frames, coordinates up
+  to 1.7 m) 1.2 nm on average and 94 nm at most from the all-double evaluation, whose
+  former dense BLAS form it equalled within 1e-15 m; the rigid mode has no non-rigid
+  terms and is unchanged.  The product takes less than half the time (0.30 -> 0.13
+  CPU-s over the 900 frames on one thread; issue 15: deform 1,500 frames/s).
 """
 
 from __future__ import annotations
@@ -346,29 +357,49 @@ def _clamp_weighted(u: np.ndarray, beta: np.ndarray, part: np.ndarray, deviation
 
     Equal to ``β soft_clamp(u / β, bound)`` (the clamp commutes with a positive
     scale); only the entries beyond the bound (few) go through
-    :func:`~mocapflow.stages.skin.parts.soft_clamp` (``margin (N,)`` per row).  An entry
-    is beyond it when ``|u|² / β² > deviation²``; that test is made only where
-    ``|u|² > β² deviation² (1 - 10⁻⁹)`` (a superset: the two sides differ by a few
-    roundings), the same entries as testing all of them.
+    :func:`~mocapflow.stages.skin.parts.soft_clamp` (``margin (N,)`` per row), in double
+    precision (a clamped single-precision ``u`` is stored back rounded).  An entry is beyond
+    it when ``|u|² / β² > deviation²`` (``|u|²`` in double precision, its terms in ``x, y,
+    z`` order); that test is made only where ``|u|² > β² deviation² (1 - 10⁻⁹)``, or for a
+    single-precision ``u`` where its single-precision ``|u|²`` exceeds ``β² deviation² (1 -
+    10⁻⁵)`` (every entry where ``deviation² min β² < 10⁻³⁰``, below single precision's
+    normal range): a superset (the two sides differ by a few roundings, 2⁻²⁴ each in single
+    precision), the same entries as testing all of them.
     ``beta_squared (N,)``, ``deviation_squared (P, f)``: ``β²`` and ``deviation²`` when
-    already computed; ``work``: an ``(N, 3f)`` scratch array.
+    already computed; ``work``: an ``(N, 3f)`` scratch array of ``u``'s dtype.
     """
+    if not len(u):
+        return
     b2 = np.square(beta) if beta_squared is None else beta_squared
     d2 = np.square(deviation) if deviation_squared is None else deviation_squared
+    single = u.dtype == np.float32
     sq = np.square(u, out=work)
     r2 = sq[:, 0::3] + sq[:, 1::3]
     r2 += sq[:, 2::3]  # (N, f): |β R u|²
-    near = (d2 * (1.0 - 1e-9))[part]
-    near *= b2[:, None]
+    if single:
+        near = d2 * (1.0 - 1e-5)
+        near[d2 * b2.min() < 1e-30] = -1.0
+        near = near.astype(np.float32)[part]
+        near *= b2.astype(np.float32)[:, None]
+    else:
+        near = (d2 * (1.0 - 1e-9))[part]
+        near *= b2[:, None]
     near = np.flatnonzero(r2 > near)  # the candidates, flat
     if not len(near):
         return
     i, j = np.divmod(near, r2.shape[1])
-    over = r2.ravel()[near] / b2[i] > d2[part[i], j]
+    u3 = u.reshape(len(u), -1, 3)
+    if single:
+        c = u3[i, j].astype(np.float64)
+        r2 = c[:, 0] * c[:, 0] + c[:, 1] * c[:, 1]
+        r2 += c[:, 2] * c[:, 2]
+    else:
+        r2 = r2.ravel()[near]
+    over = r2 / b2[i] > d2[part[i], j]
     if over.any():
         i, j = i[over], j[over]
-        u3 = u.reshape(len(u), -1, 3)
-        u3[i, j] = soft_clamp(u3[i, j], beta[i] * deviation[part[i], j], margin[i])
+        u3[i, j] = soft_clamp(u3[i, j].astype(np.float64), beta[i] * deviation[part[i], j],
+                              margin[i])  # fmt: skip
 
 
 def _sparse_product(A: sp.csr_matrix, X: np.ndarray, out: np.ndarray) -> None:
@@ -377,12 +408,27 @@ def _sparse_product(A: sp.csr_matrix, X: np.ndarray, out: np.ndarray) -> None:
     each row's terms in column order, one row at a time, so a row's value does not
     depend on the other rows."""
     if not out.flags.c_contiguous or out.shape != (A.shape[0], X.shape[1]) or (
-            A.shape[1] != X.shape[0]):  # the kernel writes through raw pointers
-        raise ValueError(f"_sparse_product: {A.shape} @ {X.shape} into {out.shape}")
+            A.shape[1] != X.shape[0]) or not (
+            A.dtype == X.dtype == out.dtype):  # the kernel writes through raw pointers
+        raise ValueError(f"_sparse_product: {A.shape} {A.dtype} @ {X.shape} {X.dtype} into "
+                         f"{out.shape} {out.dtype}")
     out.fill(0.0)
     if A.nnz:
         csr_matvecs(A.shape[0], A.shape[1], X.shape[1], A.indptr, A.indices, A.data,
                     X.ravel(), out.ravel())  # fmt: skip
+
+
+#: The precision of the non-rigid displacements' products (P&H Eq. 6–7 terms): single.
+#: Their terms are displacements of millimetres to centimetres from the rigid transform, so
+#: single precision's rounding (2⁻²⁴ of the terms) is of nanometres, and the product takes
+#: less than half the time of double precision's (twice the values per vector operation,
+#: half the memory traffic).  The rigid transforms (positions of metres) stay in double.
+_NONRIGID = np.float32
+
+
+def _single_rows(A: sp.csr_matrix) -> sp.csr_matrix:
+    """``A`` with its entries rounded to :data:`_NONRIGID` (the same rows and terms)."""
+    return sp.csr_matrix((A.data.astype(_NONRIGID), A.indices, A.indptr), shape=A.shape)
 
 
 def _stacked_rows(top: sp.csr_matrix, bottom: sp.csr_matrix) -> sp.csr_matrix:
@@ -514,24 +560,26 @@ def _blended_chunks(models: list[PartModel], fits: list[PartFit], n_vertices: in
         beta_squared = np.square(beta)
     layers = operator.layers
     complete = bool(layers) and len(layers[0][0]) == n_vertices  # every vertex has a part
-    # one product per chunk: the non-rigid rows (β R u, the non-rigid displacements) stacked
-    # above the rigid ones (β (R v̄ + d), the rigid transforms), into work arrays reused by
-    # every chunk (fresh pages cost more than the products here)
+    # per chunk: the rigid rows (β (R v̄ + d), the rigid transforms) times the coefficients,
+    # and the non-rigid rows (β R u, the non-rigid displacements) times them in single
+    # precision (_NONRIGID), into work arrays reused by every chunk (fresh pages cost more
+    # than the products here)
     N = operator.rigid.shape[0]
-    rows = _stacked_rows(operator.nonrigid, operator.rigid) if nonrigid else operator.rigid
+    bent = _single_rows(operator.nonrigid) if nonrigid else None
     n = max(1, min(F, _VALUES_PER_PRODUCT // (3 * max(1, N))))  # frames per product
-    Z_full = np.empty((rows.shape[0], 3 * n))
-    work_full = np.empty((len(pairs), 3 * n))
+    Y_full = np.empty((N, 3 * n))
+    U_full = np.empty((N if nonrigid else 0, 3 * n), _NONRIGID)
+    work_full = np.empty((len(pairs), 3 * n), _NONRIGID)
     start, stop = frames
     for a in range(start, stop, n):
         b = min(stop, a + n)
         Cc = np.ascontiguousarray(C[:, a:b]).reshape(K, 3 * (b - a))
         full = b - a == n
-        Z = Z_full if full else np.empty((rows.shape[0], 3 * (b - a)))
-        _sparse_product(rows, Cc, Z)
-        Y = Z[N:] if nonrigid else Z
+        Y = Y_full if full else np.empty((N, 3 * (b - a)))
+        _sparse_product(operator.rigid, Cc, Y)
         if nonrigid:
-            U = Z[:N]
+            U = U_full if full else np.empty((N, 3 * (b - a)), _NONRIGID)
+            _sparse_product(bent, Cc.astype(_NONRIGID), U)
             if len(pairs):
                 Up = U if len(pairs) == N else U[pairs]  # every part clamps (the default)
                 _clamp_weighted(Up, beta, part, deviation[:, a:b], margin,

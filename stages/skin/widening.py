@@ -104,15 +104,18 @@ import scipy.sparse as sp
 from mocapflow.stages.motion.datatypes import Mesh
 from mocapflow.stages.skin.binding import blend_smoothing_operator, mesh_edges
 from mocapflow.stages.skin.blend import (
+    _NONRIGID,
     _XYZ,
     Threads,
     VertexOperator,
     _clamp_weighted,
     _pair_rows,
+    _single_rows,
     _sparse_product,
     _stacked_rows,
     csr_matvecs,
     frame_coefficients,
+    vertex_operator,
 )
 from mocapflow.stages.skin.parts import PartFit, PartModel
 
@@ -264,9 +267,11 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     bounds of its largest length over the frames: the length when last measured plus
     (upper) or less (lower) how far each end can have moved since (a vertex whose
     weights change by ``Δβ`` moves by at most ``Σ_p |Δβ_p| max_f |prediction_p -
-    prediction_first|``, the weights summing to 1).  An edge is measured again (on every
-    frame) only where a triangle starts to blend or a moved end's edge has bounds on
-    both sides of ``max_stretch`` (within ``_BOUND_MARGIN``): the same decisions as
+    prediction_first|``, the weights summing to 1; on its first move, plus how far its
+    first-pass position can lie from ``Σ_p β_p prediction_p``, :func:`_first_pass_gap`:
+    the two round the single-precision non-rigid terms differently).  An edge is measured
+    again (on every frame) only where a triangle starts to blend or a moved end's edge has
+    bounds on both sides of ``max_stretch`` (within ``_BOUND_MARGIN``): the same decisions as
     measuring every such edge.  A vertex's position ``Σ_p β_p prediction_p`` is computed
     only when one of its edges is measured, and at the end (the same bits whenever it is
     computed).
@@ -373,6 +378,11 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         for lv, at in operator.layers:
             pair_at[lv, operator.pair_part[at : at + len(lv)]] = np.arange(at, at + len(lv))
 
+    # how far a vertex's first-pass position (``verts``) can lie from Σ_p β_p prediction_p:
+    # added to the bound of its first move (:func:`_first_pass_gap`)
+    gap = _first_pass_gap(operator if unit is not None else vertex_operator(
+        models, V, residual=residual, rest=rest, beta=beta), C)  # fmt: skip
+
     def pair_rows(v: np.ndarray, p: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
         """:func:`~mocapflow.stages.skin.blend._pair_rows` of pairs ``(v, p)`` with ``β = 1``,
         the operator's where it has them."""
@@ -413,7 +423,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         for n, (c, z) in enumerate(chunks):
             bent = np.flatnonzero(nonrigid[p[c:z]])
             cl = np.flatnonzero(clamped[p[c + bent]])
-            N = nonrigid_rows[c:z] if len(bent) == z - c else nonrigid_rows[c + bent]
+            N = _single_rows(nonrigid_rows[c:z] if len(bent) == z - c else nonrigid_rows[c + bent])
             other = np.flatnonzero(first[v[c:z]] != new[c:z])
             chunks[n] = (c, z, rigid_rows[c:z], bent, N, cl, other)
 
@@ -424,15 +434,15 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
                 _sparse_product(rigid, s.C, rows)
                 if not len(bent):
                     continue
-                U = work[1][: len(bent)]
-                _sparse_product(N, s.C, U)
+                U = s.single[1][: len(bent)]
+                _sparse_product(N, s.C_single, U)
                 if len(cl):
                     Uc = U if len(cl) == len(bent) else U[cl]
                     one = np.ones(len(cl))
                     _clamp_weighted(Uc, one, p[c + bent[cl]], s.deviation,
                                     margins[p[c + bent[cl]]], beta_squared=one,
                                     deviation_squared=s.deviation_squared,
-                                    work=work[0][: len(cl)])  # fmt: skip
+                                    work=s.single[0][: len(cl)])  # fmt: skip
                     if len(cl) < len(bent):
                         U[cl] = Uc
                 if len(bent) == z - c:
@@ -554,18 +564,21 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         b /= b.sum(1, keepdims=True)
         beta[S] = b
         # a vertex moved before with the same weights would be moved to the same place
-        redo = ~changed[S] | (b != prior).any(1)
+        was = changed[S]
+        redo = ~was | (b != prior).any(1)
         changed[S] = True
-        R, b, prior = S[redo], b[redo], prior[redo]
+        R, b, prior, was = S[redo], b[redo], prior[redo], was[redo]
         i, p = np.nonzero((b > 0) | (prior > 0))  # the parts it follows and followed
         predict(R[i], p)
         stale[R] = True  # placed when one of its edges is measured, or at the end
         # how far each vertex can have moved: Σ_p |Δβ_p| |prediction_p - first prediction|
         # (the weights sum to 1 before and after, so Σ_p Δβ_p c = 0 for any c; round-off
-        # of the sums and of the first-pass positions well inside _MOVE_ROUND_OFF)
+        # of the sums well inside _MOVE_ROUND_OFF), and on its first move how far its
+        # first-pass position can lie from Σ_p β_p prediction_p (gap)
         moves = np.zeros(V)
         moves[R] = np.bincount(i, np.abs(b[i, p] - prior[i, p]) * spread[slot[R[i], p]],
                                minlength=len(R)) + _MOVE_ROUND_OFF  # fmt: skip
+        moves[R[~was]] += gap[R[~was]]
         # triangles may start or stop blending where weights changed; the edges of a vertex
         # that moved are checked again when their triangle blends and the bound of their
         # length reaches max_stretch
@@ -599,6 +612,32 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     return beta, taken, len(done), torn_before, len(bad)
 
 
+def _first_pass_gap(operator: VertexOperator, C: np.ndarray) -> np.ndarray:
+    """How far each vertex's first-pass position can lie from ``Σ_p β_p prediction_p``
+    (``(V,)``, metres): the evaluation pass multiplies the non-rigid rows with ``β`` folded
+    in, the widening those with ``β = 1`` (``operator.unit``), both in the single precision
+    of :data:`~mocapflow.stages.skin.blend._NONRIGID`, so the two round differently.  A row
+    of ``n`` terms ``a_k`` times coefficients ``c_k`` (``C (K, F, 3)``) rounds by at most
+    ``(n + 6) ε Σ_k |a_k| max_f |c_k|`` (its products and sums, ``a_k`` and ``c_k`` rounded
+    to single precision, a clamped displacement stored back; the clamp, a radial
+    contraction, moves no two values apart), per coordinate (``√3 < 2`` in length); twice
+    that (the two passes), summed over the vertex's pairs with their ``β``.  0 where no part
+    has non-rigid terms (the rigid mode)."""
+    rows = operator.unit[1]
+    V = operator.n_vertices
+    if not rows.nnz:
+        return np.zeros(V)
+    top = np.abs(C.reshape(len(C), -1)).max(1)  # (K,): the largest |c_k| over the frames
+    terms = abs(rows) @ top  # (N,): Σ_k |a_k| max |c_k| of each pair
+    n = int(np.diff(rows.indptr).max())
+    pair_vertex = np.zeros(rows.shape[0], np.int64)
+    for v, at in operator.layers:
+        pair_vertex[at : at + len(v)] = v
+    eps = float(np.finfo(_NONRIGID).eps)
+    return 4.0 * (n + 6) * eps * np.bincount(pair_vertex, operator.pair_beta * terms,
+                                               minlength=V)  # fmt: skip
+
+
 def _columns(A: sp.csr_matrix, rows: np.ndarray) -> np.ndarray:
     """The columns (ascending, each once) with an entry in any of ``rows (k,)`` of ``A``
     (``np.unique(A[rows].indices)`` without building ``A[rows]``)."""
@@ -621,9 +660,11 @@ def _row_differences(a: np.ndarray, b: np.ndarray, store: _Rows,
 
 class _FrameRange:
     """Consecutive frames ``start..stop-1`` of :func:`_widen_blends`, worked on by one
-    thread: their frame coefficients ``C (K, 3 n)`` (from ``(K, F, 3)``), the parts' marker
-    deviations ``(P, n)`` and their squares, the stores ``pos`` and ``pred`` of ``(n, 3)``
-    rows and the work arrays ``(2, n_rows, 3 n)``."""
+    thread: their frame coefficients ``C (K, 3 n)`` (from ``(K, F, 3)``) and ``C_single``, them
+    in the precision of the non-rigid products (:data:`~mocapflow.stages.skin.blend._NONRIGID`),
+    the parts' marker deviations ``(P, n)`` and their squares, the stores ``pos`` and
+    ``pred`` of ``(n, 3)`` rows and the work arrays ``work`` and ``single`` (that precision),
+    ``(2, n_rows, 3 n)`` each."""
 
     def __init__(self, start: int, stop: int, C: np.ndarray, deviation: np.ndarray,
                  n_rows: int):  # fmt: skip
@@ -633,6 +674,8 @@ class _FrameRange:
         self.deviation_squared = np.square(self.deviation)
         self.pos, self.pred = _Rows(self.n, _FIRST_BLOCK_ROWS), _Rows(self.n, _FIRST_BLOCK_ROWS)
         self.work = np.empty((2, n_rows, 3 * self.n))
+        self.C_single = self.C.astype(_NONRIGID)
+        self.single = np.empty((2, n_rows, 3 * self.n), _NONRIGID)
 
 
 class _Rows:

@@ -39,6 +39,11 @@ from mocapflow.stages.skin.segmentation import Segmentation
 from mocapflow.stages.skin.widening import _Rows, _widen_blends
 from tests.stages.skin.conftest import deform_limb, grid_cylinder, limb_capture, rot_x, rot_y
 
+#: Tolerance (m) against double-precision references of the non-rigid displacements, which
+#: the stage multiplies out in single precision (``blend._NONRIGID``): their rounding is of
+#: nanometres on the limb (displacements of centimetres); the rigid mode is exact.
+SINGLE = 1e-8
+
 
 def hard_segmentation(reference, parts, names, faces=None, labels=None):
     """A segmentation with given hard parts (one-hot weights)."""
@@ -204,7 +209,7 @@ def test_residual_interpolates_markers_exactly(limb):
     verts = np.concatenate([limb["mesh"].vertices, seg.reference[i : i + 1]])
     faces = limb["mesh"].faces
     out = deform(limb["markers"], seg, Mesh(verts, faces), ctx=Context())
-    assert np.abs(out["mesh"].vertices[:, -1] - x[:, i]).max() < 1e-10
+    assert np.abs(out["mesh"].vertices[:, -1] - x[:, i]).max() < SINGLE
 
 
 def test_modes_against_ground_truth_mesh(limb):
@@ -458,7 +463,7 @@ def test_operator_blocks_match_sparse_matrix_and_per_part_evaluation(limb):
     manual = np.zeros_like(got)
     for m, f in zip(models, fits):
         manual[:, m.vertices] += m.beta[None, :, None] * evaluate_part(m, f)
-    assert np.abs(got - manual).max() < 1e-12
+    assert np.abs(got - manual).max() < SINGLE
     # the sparse matrix is the linear map: exact without the (non-linear) clamp
     for m in models:
         m.clamp_margin = None
@@ -466,7 +471,7 @@ def test_operator_blocks_match_sparse_matrix_and_per_part_evaluation(limb):
     unclamped = deform_positions(models, fits, len(V), op, residual=True)
     C = frame_coefficients(models, fits, residual=True)
     sparse = (operator_matrix(op) @ C.reshape(C.shape[0], -1)).reshape(len(V), -1, 3)
-    assert np.abs(unclamped - sparse.transpose(1, 0, 2)).max() < 1e-12
+    assert np.abs(unclamped - sparse.transpose(1, 0, 2)).max() < SINGLE
     with pytest.raises(ValueError, match="disagree"):
         deform_positions(models, fits, len(V), vertex_operator(models, len(V), residual=False),
                          residual=True)  # fmt: skip
@@ -492,7 +497,7 @@ def test_fast_path_matches_per_part_reference_with_clamp_and_chunks(limb):
         for m, f in zip(models, fits):
             ref[:, m.vertices] += m.beta[None, :, None] * evaluate_part(m, f)
         assert got.shape == (90, len(V), 3)
-        assert np.abs(got - ref).max() < 1e-12
+        assert np.abs(got - ref).max() < (SINGLE if residual else 1e-12)  # rigid: no single
         if residual:  # the clamp changed the result (else this test could not fail on it)
             for m in models:
                 m.clamp_margin = None

@@ -161,31 +161,36 @@ def test_rows_store_takes_vertex_major_rows():
 # ----------------------------------------------------------------- sparse products (issue 15)
 
 
-def test_main_pass_makes_one_sparse_product_per_chunk_with_the_bits_of_scipy(limb_fits,
-                                                                            monkeypatch):
-    """The evaluation pass calls scipy's CSR kernel once per chunk of frames (the non-rigid
-    rows stacked above the rigid ones, written into a reused array) and gives the bytes of
-    the former two ``A @ X`` products per chunk: rigid + clamped non-rigid, layer by layer."""
+def test_main_pass_makes_two_sparse_products_per_chunk_with_the_bits_of_scipy(limb_fits,
+                                                                             monkeypatch):
+    """The evaluation pass calls scipy's CSR kernel twice per chunk of frames (the rigid
+    rows in double precision, the non-rigid ones in single, each into a reused array) and
+    gives the bytes of two ``A @ X`` products per frame: rigid + clamped non-rigid (the
+    clamp's rule in double precision, the clamped displacement stored back in single), layer
+    by layer."""
     L = limb_fits
     op, V = L["op"], len(L["mesh"].vertices)
     calls = []
     kernel = blend_module.csr_matvecs
     monkeypatch.setattr(blend_module, "csr_matvecs",
-                        lambda *a: calls.append(a[0]) or kernel(*a))  # fmt: skip
+                        lambda *a: calls.append((a[0], a[5].dtype)) or kernel(*a))  # fmt: skip
     monkeypatch.setattr(blend_module, "_VALUES_PER_PRODUCT", 7 * 3 * op.rigid.shape[0])
     got = deform_positions(L["models"], L["fits"], V, op, residual=True)
-    assert calls == [2 * op.rigid.shape[0]] * 9  # 60 frames, 7 a chunk: 9 products
+    N = op.rigid.shape[0]
+    assert calls == [(N, np.float64), (N, np.float32)] * 9  # 60 frames, 7 a chunk: 9 chunks
     C = blend_module.frame_coefficients(L["models"], L["fits"], residual=True)
+    single = op.nonrigid.astype(np.float32)
     want = np.empty_like(got)
     pair_beta = op.pair_beta
-    for f in range(C.shape[1]):  # the former path, one frame at a time: A @ X of scipy
+    for f in range(C.shape[1]):  # one frame at a time: A @ X of scipy
         Y = op.rigid @ C[:, f]
-        U = op.nonrigid @ C[:, f]
+        U = single @ C[:, f].astype(np.float32)
+        assert U.dtype == np.float32
         bound = np.array([L["fits"][p].marker_deviation[f] for p in op.pair_part])
-        r = np.sqrt(np.sum(np.square(U), 1) / np.square(pair_beta))
+        r = np.sqrt(np.sum(np.square(U.astype(np.float64)), 1) / np.square(pair_beta))
         over = np.flatnonzero(np.square(r) > np.square(bound))
         if len(over):
-            U[over] = soft_clamp(U[over], pair_beta[over] * bound[over], 0.1)
+            U[over] = soft_clamp(U[over].astype(np.float64), pair_beta[over] * bound[over], 0.1)
         Y += U
         X = Y[:V].copy()
         for v, first in op.layers[1:]:
@@ -318,6 +323,70 @@ def test_clamp_tests_only_near_entries_and_clamps_the_same_ones():
     blend_module._clamp_weighted(got, beta, part, deviation, margin)
     assert 0 < over.sum() < over.size
     assert got.tobytes() == want.reshape(N, 3 * f).tobytes()
+
+
+def test_clamp_of_single_precision_displacements_clamps_the_same_ones():
+    """_clamp_weighted on single-precision ``u`` (the evaluation's non-rigid products) gives
+    the plain rule in double precision on those values, entry by entry, bit for bit: with
+    lengths within a few single-precision roundings of the bound (columns 0-2), far from it
+    (3-4), and bounds far below single precision's normal range (deviation 1e-20 m, column
+    5, lengths within 3e-7 of it)."""
+    rng = np.random.default_rng(12)
+    N, f, P = 400, 6, 3
+    part = rng.integers(0, P, N)
+    beta = rng.uniform(0.05, 1.0, N)
+    deviation = rng.uniform(0.01, 0.05, (P, f))
+    deviation[:, 5] = 1e-20  # tiny bounds: every entry tested
+    direction = rng.standard_normal((N, f, 3))
+    direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
+    factor = 1.0 + rng.uniform(-3e-7, 3e-7, (N, f))  # at the bound, within roundings
+    factor[:, 3:5] = rng.uniform(0.1, 10.0, (N, 2))
+    length = deviation[part] * factor
+    u = (beta[:, None, None] * length[..., None] * direction).astype(np.float32)
+    u = u.reshape(N, 3 * f)
+    margin = np.full(N, 1e-9)  # a clamped entry lands at its bound: a miss shows
+    want = u.reshape(N, f, 3).copy()
+    w = want.astype(np.float64)
+    r2 = (np.square(w[..., 0]) + np.square(w[..., 1])) + np.square(w[..., 2])
+    over = r2 / np.square(beta)[:, None] > np.square(deviation)[part]
+    i, j = np.nonzero(over)
+    want[i, j] = soft_clamp(w[i, j], beta[i] * deviation[part[i], j], margin[i])
+    got = u.copy()
+    blend_module._clamp_weighted(got, beta, part, deviation, margin,
+                                 work=np.empty_like(got))  # fmt: skip
+    assert 0 < over.sum() < over.size and over[:, 5].any() and not over[:, 5].all()
+    assert got.dtype == np.float32
+    assert got.tobytes() == want.reshape(N, 3 * f).tobytes()
+
+
+def test_first_pass_gap_bounds_the_two_single_precision_evaluations(limb_fits):
+    """widening._first_pass_gap bounds, per vertex, how far its evaluation-pass position
+    (β folded into the single-precision non-rigid rows) lies from Σ_p β_p prediction_p (the
+    rows with β = 1), over every frame; the two do differ (else no bound is needed); and it
+    is 0 in the rigid mode, where they are equal."""
+    L = limb_fits
+    mesh, V, beta = L["mesh"], len(L["mesh"].vertices), L["beta"]
+    for mode in ("quadratic_residual", "rigid"):
+        residual = mode.endswith("residual")
+        fits = L["fits"] if residual else [fit_part(m, L["d"]["markers"].positions[:, m.members],
+                                                    mode="rigid") for m in L["models"]]  # fmt: skip
+        op = vertex_operator(L["models"], V, residual=residual, rest=mesh.vertices, beta=beta)
+        first = deform_positions(L["models"], fits, V, op, residual=residual)
+        summed = np.zeros_like(first)
+        for p in range(beta.shape[1]):
+            sel = np.flatnonzero(beta[:, p] > 0)
+            one = vertex_operator([L["models"][p]], len(sel), residual=residual,
+                                  rest=mesh.vertices[sel], beta=np.ones((len(sel), 1)))  # fmt: skip
+            alone = deform_positions([L["models"][p]], [fits[p]], len(sel), one,
+                                     residual=residual)  # fmt: skip
+            summed[:, sel] += beta[sel, p][None, :, None] * alone
+        apart = np.linalg.norm(first - summed, axis=-1).max(0)  # (V,)
+        gap = widening_module._first_pass_gap(
+            op, blend_module.frame_coefficients(L["models"], fits, residual=residual))
+        if residual:
+            assert apart.max() > 0 and np.all(apart <= gap + 1e-12)
+        else:
+            assert np.all(gap == 0) and apart.max() < 1e-12
 
 
 def test_binding_error_comes_first_on_threads(limb_fits):
