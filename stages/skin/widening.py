@@ -195,8 +195,15 @@ _EDGE_FRAMES_PER_SLICE = 100_000
 
 
 #: Rows of the first block of :func:`_widen_blends`' stores (:class:`_Rows`; each next block
-#: twice the one before).
+#: twice the one before), at least :data:`_FIRST_BLOCK_BYTES`.
 _FIRST_BLOCK_ROWS = 256
+
+
+#: Bytes of the first block of :func:`_widen_blends`' stores at least: NumPy asks for huge
+#: pages for arrays of 4 MiB or more, and the stores are filled once each (on the
+#: throughput body of ``benchmarks/deform.py``, 2.8 MB blocks took 7,400-8,900 page faults
+#: of 4 kB per deform, 0.05-0.18 s of system time).
+_FIRST_BLOCK_BYTES = 4 << 20
 
 
 #: Relative margin of :func:`_widen_blends`' length bounds over the round-off of the lengths
@@ -602,9 +609,10 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     kept = done[(row[done] >= 0) & ~stale[done]]  # their rows of pos hold their positions
 
     def copy_kept(s: _FrameRange) -> None:  # (k, f) -> (f, k), whole xyz triplets at a time
-        for c in range(0, len(kept), 256):
-            rows = s.pos.take(row[kept[c : c + 256]])
-            verts[s.start : s.stop].view(_XYZ)[:, kept[c : c + 256], 0] = \
+        for c in range(0, len(kept), n_rows):
+            k = len(kept[c : c + n_rows])
+            rows = s.pos.take(row[kept[c : c + n_rows]], s.work[0][:k].reshape(k, s.n, 3))
+            verts[s.start : s.stop].view(_XYZ)[:, kept[c : c + n_rows], 0] = \
                 rows.view(_XYZ)[..., 0].T  # fmt: skip
 
     in_ranges(copy_kept)
@@ -672,7 +680,8 @@ class _FrameRange:
         self.C = np.ascontiguousarray(C[:, start:stop]).reshape(len(C), 3 * self.n)
         self.deviation = deviation[:, start:stop]
         self.deviation_squared = np.square(self.deviation)
-        self.pos, self.pred = _Rows(self.n, _FIRST_BLOCK_ROWS), _Rows(self.n, _FIRST_BLOCK_ROWS)
+        rows = max(_FIRST_BLOCK_ROWS, -(-_FIRST_BLOCK_BYTES // (24 * max(1, self.n))))
+        self.pos, self.pred = _Rows(self.n, rows), _Rows(self.n, rows)
         self.work = np.empty((2, n_rows, 3 * self.n))
         self.C_single = self.C.astype(_NONRIGID)
         self.single = np.empty((2, n_rows, 3 * self.n), _NONRIGID)
@@ -723,12 +732,13 @@ class _Rows:
             sel = block == b
             self.blocks[b][index[sel] - self.starts[b]] = values[sel]
 
-    def take(self, index: np.ndarray) -> np.ndarray:
-        """Rows ``index (n,)`` as an ``(n, F, 3)`` array."""
+    def take(self, index: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """Rows ``index (n,)`` as an ``(n, F, 3)`` array (``out`` when given)."""
         block = np.searchsorted(self.starts, index, side="right") - 1
+        out = np.empty((len(index), *self.shape)) if out is None else out
         if len(index) and block.min() == block.max():  # one block (the usual case): one copy
-            return self.blocks[block[0]][index - self.starts[block[0]]]
-        out = np.empty((len(index), *self.shape))
+            np.take(self.blocks[block[0]], index - self.starts[block[0]], axis=0, out=out)
+            return out
         for b in np.unique(block):
             sel = block == b
             out[sel] = self.blocks[b][index[sel] - self.starts[b]]

@@ -690,6 +690,9 @@ def test_rows_store_across_blocks():
     store.put(index[:4], -kept[index[:4]])
     kept[index[:4]] *= -1
     assert store.take(np.arange(17)).tobytes() == kept.tobytes()
+    for rows in (np.arange(3, 9), index):  # into a given array: within one block, across
+        out = np.full((len(rows), 4, 3), np.nan)
+        assert store.take(rows, out) is out and out.tobytes() == kept[rows].tobytes()
 
 
 def test_deform_modules_import_one_way():

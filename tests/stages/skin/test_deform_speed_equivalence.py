@@ -122,6 +122,7 @@ def test_stage_on_threads_equals_one_thread(limb_fits, monkeypatch):
     # 4, 8, 16, ... rows, so that the widening's products and sums cross blocks
     monkeypatch.setattr(widening_module, "_EDGE_FRAMES_PER_SLICE", 60 * 5)
     monkeypatch.setattr(widening_module, "_FIRST_BLOCK_ROWS", 4)
+    monkeypatch.setattr(widening_module, "_FIRST_BLOCK_BYTES", 0)
     ran = set()
     kernel = blend_module.csr_matvecs
 
