@@ -402,17 +402,20 @@ def _clamp_weighted(u: np.ndarray, beta: np.ndarray, part: np.ndarray, deviation
                               margin[i])  # fmt: skip
 
 
-def _sparse_product(A: sp.csr_matrix, X: np.ndarray, out: np.ndarray) -> None:
+def _sparse_product(A: sp.csr_matrix, X: np.ndarray, out: np.ndarray, *,
+                    add: bool = False) -> None:  # fmt: skip
     """``out[:] = A @ X`` for C-contiguous ``X (K, n)`` and ``out (N, n)``, by scipy's CSR
     kernel (the one ``A @ X`` calls, without its fresh result array and copy): it adds
     each row's terms in column order, one row at a time, so a row's value does not
-    depend on the other rows."""
+    depend on the other rows; ``add``: onto ``out`` as it is (``out += A @ X``, each term
+    added in turn)."""
     if not out.flags.c_contiguous or out.shape != (A.shape[0], X.shape[1]) or (
             A.shape[1] != X.shape[0]) or not (
             A.dtype == X.dtype == out.dtype):  # the kernel writes through raw pointers
         raise ValueError(f"_sparse_product: {A.shape} {A.dtype} @ {X.shape} {X.dtype} into "
                          f"{out.shape} {out.dtype}")
-    out.fill(0.0)
+    if not add:
+        out.fill(0.0)
     if A.nnz:
         csr_matvecs(A.shape[0], A.shape[1], X.shape[1], A.indptr, A.indices, A.data,
                     X.ravel(), out.ravel())  # fmt: skip
@@ -576,8 +579,7 @@ def _blended_chunks(models: list[PartModel], fits: list[PartFit], n_vertices: in
         Cc = np.ascontiguousarray(C[:, a:b]).reshape(K, 3 * (b - a))
         full = b - a == n
         Y = Y_full if full else np.empty((N, 3 * (b - a)))
-        _sparse_product(operator.rigid, Cc, Y)
-        if nonrigid:
+        if nonrigid:  # the clamped non-rigid displacement, then the rigid terms added to it
             U = U_full if full else np.empty((N, 3 * (b - a)), _NONRIGID)
             _sparse_product(bent, Cc.astype(_NONRIGID), U)
             if len(pairs):
@@ -588,7 +590,8 @@ def _blended_chunks(models: list[PartModel], fits: list[PartFit], n_vertices: in
                                 work=work_full if full else None)  # fmt: skip
                 if len(pairs) < N:
                     U[pairs] = Up
-            Y += U
+            Y[...] = U
+        _sparse_product(operator.rigid, Cc, Y, add=nonrigid)
         # sum each vertex's pairs, layer by layer (layer 0: vertices 0..V-1 when complete)
         if complete:
             X = Y[:n_vertices]

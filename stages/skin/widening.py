@@ -438,24 +438,24 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
             work = s.work
             for c, z, rigid, bent, N, cl, _ in chunks:
                 rows = s.pred.view(new[c:z])  # straight into the store
-                _sparse_product(rigid, s.C, rows)
-                if not len(bent):
-                    continue
-                U = s.single[1][: len(bent)]
-                _sparse_product(N, s.C_single, U)
-                if len(cl):
-                    Uc = U if len(cl) == len(bent) else U[cl]
-                    one = np.ones(len(cl))
-                    _clamp_weighted(Uc, one, p[c + bent[cl]], s.deviation,
-                                    margins[p[c + bent[cl]]], beta_squared=one,
-                                    deviation_squared=s.deviation_squared,
-                                    work=s.single[0][: len(cl)])  # fmt: skip
-                    if len(cl) < len(bent):
-                        U[cl] = Uc
-                if len(bent) == z - c:
-                    rows += U  # rigid + non-rigid
-                else:
-                    rows[bent] += U
+                if len(bent):  # the clamped non-rigid displacement, then the rigid terms
+                    U = s.single[1][: len(bent)]
+                    _sparse_product(N, s.C_single, U)
+                    if len(cl):
+                        Uc = U if len(cl) == len(bent) else U[cl]
+                        one = np.ones(len(cl))
+                        _clamp_weighted(Uc, one, p[c + bent[cl]], s.deviation,
+                                        margins[p[c + bent[cl]]], beta_squared=one,
+                                        deviation_squared=s.deviation_squared,
+                                        work=s.single[0][: len(cl)])  # fmt: skip
+                        if len(cl) < len(bent):
+                            U[cl] = Uc
+                    if len(bent) == z - c:
+                        rows[...] = U
+                    else:
+                        rows.fill(0.0)
+                        rows[bent] = U
+                _sparse_product(rigid, s.C, rows, add=bool(len(bent)))
             # how far each prediction lies from its vertex's first (all products of the
             # range done by now; 0 for the first itself)
             far = np.zeros(len(key))

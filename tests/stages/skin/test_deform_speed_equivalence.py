@@ -164,11 +164,12 @@ def test_rows_store_takes_vertex_major_rows():
 
 def test_main_pass_makes_two_sparse_products_per_chunk_with_the_bits_of_scipy(limb_fits,
                                                                              monkeypatch):
-    """The evaluation pass calls scipy's CSR kernel twice per chunk of frames (the rigid
-    rows in double precision, the non-rigid ones in single, each into a reused array) and
-    gives the bytes of two ``A @ X`` products per frame: rigid + clamped non-rigid (the
-    clamp's rule in double precision, the clamped displacement stored back in single), layer
-    by layer."""
+    """The evaluation pass calls scipy's CSR kernel twice per chunk of frames (the non-rigid
+    rows in single precision, the rigid ones in double added onto them, each into a reused
+    array) and gives the bytes of the plain computation per frame: the non-rigid product
+    (``A @ X`` of scipy), clamped (the clamp's rule in double precision, the clamped
+    displacement stored back in single), then each rigid term added to it in its row's
+    order, layer by layer."""
     L = limb_fits
     op, V = L["op"], len(L["mesh"].vertices)
     calls = []
@@ -178,13 +179,14 @@ def test_main_pass_makes_two_sparse_products_per_chunk_with_the_bits_of_scipy(li
     monkeypatch.setattr(blend_module, "_VALUES_PER_PRODUCT", 7 * 3 * op.rigid.shape[0])
     got = deform_positions(L["models"], L["fits"], V, op, residual=True)
     N = op.rigid.shape[0]
-    assert calls == [(N, np.float64), (N, np.float32)] * 9  # 60 frames, 7 a chunk: 9 chunks
+    assert calls == [(N, np.float32), (N, np.float64)] * 9  # 60 frames, 7 a chunk: 9 chunks
     C = blend_module.frame_coefficients(L["models"], L["fits"], residual=True)
     single = op.nonrigid.astype(np.float32)
+    R = op.rigid
+    n_terms = np.diff(R.indptr)
     want = np.empty_like(got)
     pair_beta = op.pair_beta
-    for f in range(C.shape[1]):  # one frame at a time: A @ X of scipy
-        Y = op.rigid @ C[:, f]
+    for f in range(C.shape[1]):  # one frame at a time
         U = single @ C[:, f].astype(np.float32)
         assert U.dtype == np.float32
         bound = np.array([L["fits"][p].marker_deviation[f] for p in op.pair_part])
@@ -192,7 +194,11 @@ def test_main_pass_makes_two_sparse_products_per_chunk_with_the_bits_of_scipy(li
         over = np.flatnonzero(np.square(r) > np.square(bound))
         if len(over):
             U[over] = soft_clamp(U[over].astype(np.float64), pair_beta[over] * bound[over], 0.1)
-        Y += U
+        Y = U.astype(np.float64)
+        for t in range(n_terms.max()):  # the rigid terms, the t-th of every row in turn
+            rows = np.flatnonzero(n_terms > t)
+            at = R.indptr[rows] + t
+            Y[rows] += R.data[at, None] * C[R.indices[at], f]
         X = Y[:V].copy()
         for v, first in op.layers[1:]:
             X[v] += Y[first : first + len(v)]
