@@ -58,9 +58,11 @@ drops in rigid (7.10 → 6.70 / 7.11 → 6.85 mm) and quadratic (5.38 → 5.16 /
 (3.68 → 3.66 / 3.65 → 3.72).  Cost: on the throughput body of
 ``benchmarks/deform.py --throughput`` (13,000 vertices, 900 frames)
 ``quadratic_residual`` reweights 2,619 vertices in 60 steps and runs at about
-670 frames per CPU-second against about 1,100 without widening in the same
-(loaded) run, ``rigid`` (2,709 vertices, 92 steps) at about 820 against 2,900
-(table 4 has both rows; before the widening took the operator's rows with
+970 frames per CPU-second against about 1,650 without widening in the same
+run, ``rigid`` (2,709 vertices, 92 steps) at about 1,090 against 3,250
+(table 4 has both rows; before the widening took frame ranges and the non-rigid
+terms single precision, issue 15: 772 / 1,237 and 1,030 / 2,962 in a run the same
+day; before the widening took the operator's rows with
 ``β = 1`` instead of building them again, the frame coefficients were made one
 C-contiguous array and the operator's rows ordered by one stable sort, issue 15:
 about 5 % more CPU time in paired runs, the row without widening unchanged;
@@ -72,21 +74,24 @@ before the products were made one CSR kernel call per chunk and the widening's
 predictions and positions sparse products over its stores: 430 / 920 and
 560 / 2,500 in the same runs; before the edges' length bounds, the positions
 computed only where measured and the first check made during the evaluation
-pass: 350 and 270; before the checks were made incremental: 200).  What is left
-is mostly the evaluation pass's one sparse product per chunk (about 0.25 CPU-s
-of the 1.3 here, the rows' terms added in order for the bit-reproducibility
-of :mod:`mocapflow.stages.skin.blend`; per part the rows would be dense blocks of
-1,058,699 entries against 438,209 terms, mostly kernel values that are zero, and a
-fixed-order NumPy sum over them costs 11x the CSR kernel, BLAS 0.8x without the
-bit-reproducibility), its clamp test and the transposition into the output (about
-0.1 each), the widening's predictions over all frames (about 0.2) and its
-measurements (about 0.15), and the set-up (binding, part fits, operator, report: about
-0.3).  On 2 threads (the stage's ``threads``, issue 15; the same bits) the same body runs
-at 932-976 frames/s against 619-679 on one (four alternating pairs of calls in one
-process, idle 2-core machine): the evaluation pass's frame ranges scale well except its
-clamp test (memory bound: about 0.1 s on one thread or two), the widening's rounds have
-1-5 jobs of rows after the first (its 0.42 CPU-s take about 0.34 s), the part fits
-mostly hold the GIL (0.09 -> 0.06 s) and the rest of the set-up stays on one thread.
+pass: 350 and 270; before the checks were made incremental: 200).  On one thread
+(about 1.0 CPU-s) what is left is the evaluation pass (about 0.35 CPU-s: its two sparse
+products per chunk, the non-rigid one in single precision, about 0.17
+(:mod:`mocapflow.stages.skin.blend`; per part the rows would be dense blocks of 1,058,699
+entries against 438,209 terms, mostly kernel values that are zero, and a fixed-order
+NumPy sum over them costs 11x the CSR kernel, BLAS 0.8x without the
+bit-reproducibility), its clamp test about 0.05, the transposition into the output and
+the blending edges' lengths about 0.1), the widening (about 0.31: its predictions over
+all frames about 0.1, the positions and lengths it measures about 0.13, its rounds'
+bookkeeping about 0.07) and the set-up (binding, part fits, operator, report: about
+0.25).  On 2 threads (the stage's ``threads``, issue 15; the same bits) the same body
+runs at 1,340-1,390 frames/s (three calls in one process, idle 2-core machine; 619-679
+on one thread and 932-976 on two before the widening took frame ranges, the binding ran
+beside the part fits and the non-rigid terms went to single precision): the binding,
+operator and mesh topology (about 0.14 s) run beside the part fits and report (about
+0.16 s), the evaluation pass takes about 0.21 s and the widening about 0.28 s; the
+passes over memory scale by only 1.2-1.8 (the two cores share about 30 GB/s) and the
+widening's bookkeeping (about 0.07 s) stays on one thread.
 Held-out markers (``benchmarks/deform.py`` table 2) are points without
 triangles, so they are not affected; table 3 (the simulator's true mesh)
 measures it.  Not fixed by this: triangles that turn over against the rigid
