@@ -558,7 +558,7 @@ def deform(
     widen = max_blend_stretch is not None and len(mesh.faces) > 0
     residual = mode.endswith("residual")
 
-    def bound() -> tuple:
+    def mesh_setup() -> tuple:
         """The mesh's binding, the edges of its triangles that blend (measured while the
         frames are evaluated), the vertex operator and, to widen the blends, the mesh's
         topology: NumPy over the rest vertices."""
@@ -572,8 +572,9 @@ def deform(
 
     with Threads(n_threads) as pool:  # the evaluation's threads (the same bits on any number)
         # with a second thread the binding runs there while this one fits the parts (mostly
-        # Python): neither needs the other; on one thread it runs first, as it always did
-        binding_done = bound() if pool.pool is None else pool.pool.submit(bound)
+        # Python): neither needs the other; on one thread it runs before the fits, as ever
+        pending = None if pool.pool is None else pool.pool.submit(mesh_setup)
+        setup = mesh_setup() if pending is None else None
         try:
             fits = _fit_parts(models, x, mode=mode, min_quadratic_markers=min_quadratic_markers,
                               damping=quadratic_damping, ctx=ctx,
@@ -583,11 +584,11 @@ def deform(
             C = frame_coefficients(models, fits, residual=residual) if widen else None
             report = _deform_report(models, fits, x, V, mode=mode)
         except Exception:
-            if pool.pool is not None:
-                binding_done.result()  # the binding's error first, as on one thread
+            if pending is not None:
+                pending.result()  # the binding's error first, as on one thread
             raise
-        binding, watch, ends, operator, topology = binding_done if pool.pool is None else \
-            binding_done.result()  # fmt: skip
+        binding, watch, ends, operator, topology = setup if pending is None else \
+            pending.result()  # fmt: skip
         report["max_vertex_distance_to_markers_mm"] = float(binding.distance.max() * 1000)
         verts, longest = _deform_frames(
             models, fits, x.shape[0], operator, residual=residual,
