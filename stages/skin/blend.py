@@ -16,10 +16,10 @@ Implementation notes (none changes the method):
 * all parts and frames are evaluated as one linear map ``vertices(f) = H · C(f)``
   (``H``: β-weighted local coordinates, monomials and kernel values of the
   vertex-part pairs, built once; ``C``: per-frame part coefficients), done as two
-  sparse products per chunk of frames (the rigid rows; the non-rigid rows, clamped;
-  16 frames of a 13,000-vertex mesh: the work arrays stay a few MB, and the chunking
-  changes no bit) by scipy's CSR kernel called directly into reused work
-  arrays (``A @ X`` would allocate and copy its result and pay scipy's checks on
+  sparse products per chunk of frames (the non-rigid rows, clamped; the rigid rows'
+  terms added onto them; 16 frames of a 13,000-vertex mesh: the work arrays stay a few
+  MB, and the chunking changes no bit) by scipy's CSR kernel called directly into
+  reused work arrays (``A @ X`` would allocate and copy its result and pay scipy's checks on
   every call); ``β`` is folded into ``H`` because the clamp commutes with a positive
   scale, and only the few entries beyond their bound are clamped.  ``H``'s rows are
   built from arrays (no sparse stacking), the blending edges' lengths are taken
@@ -515,12 +515,19 @@ def _frame_major(models: list[PartModel], fits: list[PartFit], n_vertices: int,
                     np.maximum(most, length[:, j], out=most)
         return most
 
-    n = 1 if threads is None else min(threads.n, max(1, F))
-    cuts = np.linspace(0, F, n + 1).round().astype(int)
-    ranges = list(zip(cuts[:-1].tolist(), cuts[1:].tolist()))
-    if n == 1:
+    ranges = frame_ranges(F, threads)
+    if len(ranges) == 1:
         return out, evaluate(ranges[0])
     return out, np.maximum.reduce(threads.run(lambda r, _: evaluate(r), ranges))
+
+
+def frame_ranges(n_frames: int, threads: Threads | None) -> list[tuple[int, int]]:
+    """The frames ``0..n_frames-1`` as one consecutive range ``(start, stop)`` per thread of
+    ``threads`` (one range without; never an empty one but for no frame at all), as the
+    evaluation pass and the widening split them."""
+    n = 1 if threads is None else min(threads.n, max(1, n_frames))
+    cuts = np.linspace(0, n_frames, n + 1).round().astype(int).tolist()
+    return list(zip(cuts[:-1], cuts[1:]))
 
 
 def _edge_vectors(edges: np.ndarray, n_vertices: int) -> sp.csr_matrix:

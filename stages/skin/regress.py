@@ -221,6 +221,7 @@ def _gap_problem(X: np.ndarray, visible: np.ndarray, marker: int, predictors: np
 #: :func:`~mocapflow.stages.motion.absolute_orientation.absolute_orientation_batch`: a few MB.
 _FRAMES_PER_FIT = 20_000
 
+
 def _set_key(marker: int, predictors: np.ndarray) -> tuple[int, bytes]:
     """A marker and its predictor set as a dictionary key (what a frame's rigid fit and
     training frames depend on besides the frame)."""

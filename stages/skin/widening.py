@@ -120,6 +120,7 @@ from mocapflow.stages.skin.blend import (
     _stacked_rows,
     csr_matvecs,
     frame_coefficients,
+    frame_ranges,
     vertex_operator,
 )
 from mocapflow.stages.skin.parts import PartFit, PartModel
@@ -322,7 +323,6 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     spread = np.zeros(0)
     first = np.full(V, -1, np.int64)  # slot of each vertex's first prediction
     stale = np.zeros(V, bool)  # weights changed since its row of pos was last computed
-    n_pos = n_pred = 0  # rows of the stores
 
     # every part's frame_coefficients (K, F, 3), whether its model has non-rigid terms
     # (deform_positions adds them then) and its clamp (bound per frame, margin)
@@ -339,26 +339,19 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     # product, sum and measurement below is made range by range, each range on its own
     # thread with its own stores and work arrays; a value is computed as over all frames
     # at once, and the largest over the frames is the largest of the ranges' largest
-    n_ranges = min(threads.n, max(1, F))
-    cuts = np.linspace(0, F, n_ranges + 1).round().astype(int).tolist()
-    n_rows = max(1, _EDGE_FRAMES_PER_SLICE // max(1, max(np.diff(cuts), default=1)))
-    spans = [_FrameRange(a, b, C, deviation, n_rows) for a, b in zip(cuts, cuts[1:])]
+    ranges = frame_ranges(F, threads)
+    n_rows = max(1, _EDGE_FRAMES_PER_SLICE // max(1, max(b - a for a, b in ranges)))
+    spans = [_FrameRange(a, b, C, deviation, n_rows) for a, b in ranges]
 
     def in_ranges(fn) -> list:
         """``fn(span)`` for every frame range, one thread each (they write disjoint frames:
         the same bits on any thread); the results in range order."""
         return threads.run(lambda s, _: fn(s), spans)
 
-    def reserve(pos: bool, k: int) -> np.ndarray:
-        """``k`` new rows of every range's ``pos`` (or ``pred``) store: their indices."""
-        nonlocal n_pos, n_pred
-        for s in spans:
-            (s.pos if pos else s.pred).append(None, n_rows=k)
-        if pos:
-            n_pos += k
-            return np.arange(n_pos - k, n_pos)
-        n_pred += k
-        return np.arange(n_pred - k, n_pred)
+    def reserve(store: str, k: int) -> np.ndarray:
+        """``k`` new rows of every range's ``store`` (``"pos"`` or ``"pred"``): their indices,
+        the same in every range (the stores grow alike)."""
+        return [getattr(s, store).append(None, n_rows=k) for s in spans][0]
 
     def with_rows(v: np.ndarray) -> None:
         """Give vertices ``v`` (any order, repeats) a row of ``pos``; a stale vertex's
@@ -367,7 +360,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         new[v[row[v] < 0]] = True
         fresh = np.flatnonzero(new & ~stale)  # still at their first-pass positions
         if len(fresh):
-            row[fresh] = reserve(True, len(fresh))
+            row[fresh] = reserve("pos", len(fresh))
 
             def copy(s: _FrameRange) -> None:  # (f, k) -> (k, f), 32 frames a time
                 frames = verts[s.start : s.stop]
@@ -379,7 +372,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
             in_ranges(copy)
         new = np.flatnonzero(new & stale)  # placed below, straight into their new rows
         if len(new):
-            row[new] = reserve(True, len(new))
+            row[new] = reserve("pos", len(new))
             place(new)
         place(np.flatnonzero(np.isin(np.arange(V), v) & stale) if len(v) else v)
 
@@ -421,7 +414,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         v, p = key % V, key // V
         if not len(key):
             return
-        new = reserve(False, len(key))
+        new = reserve("pred", len(key))
         slot[v, p] = new
         u, at = np.unique(v, return_index=True)  # a vertex's first new pair: its lowest part
         first[u[first[u] < 0]] = new[at[first[u] < 0]]
