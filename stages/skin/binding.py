@@ -57,13 +57,27 @@ def closest_points_on_triangles(
     k = int(min(k, len(faces)))
     _, cand = cKDTree(tri.mean(1)).query(P, k=k)
     cand = np.asarray(cand).reshape(len(P), k)
-    A, B, C = tri[cand, 0], tri[cand, 1], tri[cand, 2]  # (N, k, 3)
-    bary = _closest_barycentric(P[:, None, :], A, B, C)
-    Q = bary[..., :1] * A + bary[..., 1:2] * B + bary[..., 2:] * C
-    d2 = np.sum((Q - P[:, None, :]) ** 2, axis=-1)
-    j = np.argmin(d2, axis=1)
-    n = np.arange(len(P))
-    return cand[n, j], bary[n, j], np.sqrt(d2[n, j])
+    triangle = np.empty(len(P), np.int64)
+    barycentric = np.empty((len(P), 3))
+    distance = np.empty(len(P))
+    # the points in chunks, whose (n, k) temporaries stay in cache (each point's result is
+    # its own: the same bits as all at once, in about 2/3 of the time for 13,000 points)
+    for a in range(0, len(P), _POINTS_PER_CHUNK):
+        p, c = P[a : a + _POINTS_PER_CHUNK], cand[a : a + _POINTS_PER_CHUNK]
+        A, B, C = tri[c, 0], tri[c, 1], tri[c, 2]  # (n, k, 3)
+        bary = _closest_barycentric(p[:, None, :], A, B, C)
+        Q = bary[..., :1] * A + bary[..., 1:2] * B + bary[..., 2:] * C
+        d2 = np.sum((Q - p[:, None, :]) ** 2, axis=-1)
+        j = np.argmin(d2, axis=1)
+        n = np.arange(len(p))
+        triangle[a : a + len(p)], barycentric[a : a + len(p)] = c[n, j], bary[n, j]
+        distance[a : a + len(p)] = np.sqrt(d2[n, j])
+    return triangle, barycentric, distance
+
+
+#: Query points per chunk of :func:`closest_points_on_triangles` (a few hundred kB of
+#: temporaries with its 12 candidates).
+_POINTS_PER_CHUNK = 1024
 
 
 def _closest_barycentric(p, a, b, c):

@@ -120,8 +120,10 @@ def _dense_rbf_matrix(points: np.ndarray, centres: np.ndarray,
     np.sqrt(r, out=r)
     if not r.all():
         return None
-    i, j = np.nonzero(r <= sig.max())
-    M = sp.csr_matrix((cubic_bspline(r[i, j] / sig[j]), (i, j)),
+    i, j = np.nonzero(r <= sig.max())  # row by row, columns ascending: CSR order as it is
+    indptr = np.zeros(len(points) + 1, np.int64)
+    np.cumsum(np.bincount(i, minlength=len(points)), out=indptr[1:])
+    M = sp.csr_matrix((cubic_bspline(r[i, j] / sig[j]), j, indptr),
                       shape=(len(points), len(centres)))  # fmt: skip
     M.eliminate_zeros()
     return M

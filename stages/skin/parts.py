@@ -247,23 +247,25 @@ def _largest_nearest_neighbour(local: np.ndarray) -> float:
     return float(dist[:, 1].max())
 
 
-def soft_clamp(u: np.ndarray, bound: np.ndarray, margin: float) -> np.ndarray:
-    """Shorten displacements ``u (..., 3)`` longer than ``bound (...)``, smoothly.
+def soft_clamp(u: np.ndarray, bound: np.ndarray, margin: float | np.ndarray) -> np.ndarray:
+    """Shorten displacements ``u (..., 3)`` longer than ``bound (...)``, smoothly (``margin``:
+    one, or one per displacement ``(...)``).
 
     A length ``r ≤ b`` is kept; beyond it becomes ``b + m tanh((r - b) / m)``
     with ``m = margin · b`` (continuous slope at ``b``, never ``≥ b + m``).
     """
     r = np.linalg.norm(u, axis=-1)
     b = np.broadcast_to(bound, r.shape)
-    m = margin * b
     over = r > b
     if not over.any():
         return u
+    r, b = r[over], b[over]  # the lengths beyond the bound only (the others are kept)
+    m = np.broadcast_to(margin, over.shape)[over] * b
     with np.errstate(divide="ignore", invalid="ignore"):
-        e = np.where(over, r - b, 0.0)
-        new = b + np.where(m > 0, m * np.tanh(e / np.where(m > 0, m, 1.0)), 0.0)
-        factor = np.where(over, new / r, 1.0)
-    return u * factor[..., None]
+        new = b + np.where(m > 0, m * np.tanh((r - b) / np.where(m > 0, m, 1.0)), 0.0)
+    out = u.copy()
+    out[over] = u[over] * (new / r)[:, None]
+    return out
 
 
 @dataclass
