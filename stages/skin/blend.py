@@ -69,8 +69,10 @@ Implementation notes (none changes the method):
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from threading import Lock
 
 import numpy as np
 import scipy.sparse as sp
@@ -483,9 +485,11 @@ def _frame_major(models: list[PartModel], fits: list[PartFit], n_vertices: int,
     frames while it is at hand (the same numbers as
     :func:`~mocapflow.stages.skin.widening._longest_edges` of the result).
     ``coefficients``: the models' :func:`frame_coefficients` when already computed;
-    ``threads``: the frames in one consecutive range per thread (:class:`Threads`; the
-    same bits: a frame's result never depends on the others, and the largest of the
-    ranges' largest lengths is their largest)."""
+    ``threads``: the chunks of frames shared by the threads (:class:`Threads`), each thread
+    taking the next chunk when done with its last, so a thread that starts late (busy with
+    other work of the stage) takes fewer; the same bits on any number of threads and in
+    any order: a frame's result never depends on the others, and the largest of the
+    threads' largest lengths is their largest."""
     if residual is None:
         residual = any(np.any(f.W) for f in fits)
     if operator is None:
@@ -497,11 +501,13 @@ def _frame_major(models: list[PartModel], fits: list[PartFit], n_vertices: int,
     edges = np.zeros((0, 2), np.int64) if edges is None else edges
     along = _edge_vectors(edges, n_vertices)
 
-    def evaluate(frames: tuple[int, int]) -> np.ndarray:
+    chunks = _SharedChunks(F, _frames_per_product(operator))
+
+    def evaluate() -> np.ndarray:
         most = np.zeros(len(edges))
         work = np.empty(0)
         for a, b, X in _blended_chunks(models, fits, n_vertices, operator,
-                                       coefficients=coefficients, frames=frames):  # fmt: skip
+                                       coefficients=coefficients, frames=chunks):  # fmt: skip
             # (V, f, 3) -> (f, V, 3), moving whole xyz triplets (24 bytes) at a time
             out[a:b].view(_XYZ)[..., 0] = X.view(_XYZ).T
             if len(edges):
@@ -515,10 +521,32 @@ def _frame_major(models: list[PartModel], fits: list[PartFit], n_vertices: int,
                     np.maximum(most, length[:, j], out=most)
         return most
 
-    ranges = frame_ranges(F, threads)
-    if len(ranges) == 1:
-        return out, evaluate(ranges[0])
-    return out, np.maximum.reduce(threads.run(lambda r, _: evaluate(r), ranges))
+    if threads is None or threads.n == 1:
+        return out, evaluate()
+    return out, np.maximum.reduce(threads.run(lambda _, __: evaluate(), [None] * threads.n))
+
+
+class _SharedChunks:
+    """The frames ``0..n_frames-1`` in chunks of ``n`` (the last shorter), handed out in
+    order to whichever thread asks next (an iterator of ``(a, b)``, safe across threads)."""
+
+    def __init__(self, n_frames: int, n: int):
+        self.bounds = [(a, min(n_frames, a + n)) for a in range(0, n_frames, n)]
+        self.next = 0
+        self.lock = Lock()
+
+    def __iter__(self):
+        while True:
+            with self.lock:
+                k, self.next = self.next, self.next + 1
+            if k >= len(self.bounds):
+                return
+            yield self.bounds[k]
+
+
+def _frames_per_product(operator: VertexOperator) -> int:
+    """Frames per product of :func:`_blended_chunks` (:data:`_VALUES_PER_PRODUCT` values)."""
+    return max(1, _VALUES_PER_PRODUCT // (3 * max(1, operator.rigid.shape[0])))
 
 
 def frame_ranges(n_frames: int, threads: Threads | None) -> list[tuple[int, int]]:
@@ -544,10 +572,11 @@ def _edge_vectors(edges: np.ndarray, n_vertices: int) -> sp.csr_matrix:
 
 def _blended_chunks(models: list[PartModel], fits: list[PartFit], n_vertices: int,
                     operator: VertexOperator, *, coefficients: np.ndarray,
-                    frames: tuple[int, int]):  # fmt: skip
-    """The blended vertices of frames ``frames[0]..frames[1]-1`` chunk by chunk of frames,
-    vertex-major: yields ``(a, b, X)`` with ``X (V, 3 (b - a))`` the positions in frames
-    ``a..b-1`` (a work array, overwritten by the next chunk); see
+                    frames) -> Iterator[tuple[int, int, np.ndarray]]:  # fmt: skip
+    """The blended vertices of the chunks of frames ``(a, b)`` that ``frames`` yields (at
+    most :func:`_frames_per_product` frames each), vertex-major: yields ``(a, b, X)`` with
+    ``X (V, 3 (b - a))`` the positions in frames ``a..b-1`` (a work array, overwritten by the
+    next chunk); see
     :func:`deform_positions` (``coefficients``: the models' :func:`frame_coefficients`,
     ``(K, F, 3)``, as :func:`_frame_major` makes them)."""
     C = coefficients
@@ -576,13 +605,11 @@ def _blended_chunks(models: list[PartModel], fits: list[PartFit], n_vertices: in
     # than the products here)
     N = operator.rigid.shape[0]
     bent = _single_rows(operator.nonrigid) if nonrigid else None
-    n = max(1, min(F, _VALUES_PER_PRODUCT // (3 * max(1, N))))  # frames per product
+    n = min(F, _frames_per_product(operator))  # frames per product
     Y_full = np.empty((N, 3 * n))
     U_full = np.empty((N if nonrigid else 0, 3 * n), _NONRIGID)
     work_full = np.empty((len(pairs), 3 * n), _NONRIGID)
-    start, stop = frames
-    for a in range(start, stop, n):
-        b = min(stop, a + n)
+    for a, b in frames:
         Cc = np.ascontiguousarray(C[:, a:b]).reshape(K, 3 * (b - a))
         full = b - a == n
         Y = Y_full if full else np.empty((N, 3 * (b - a)))

@@ -178,6 +178,7 @@ from mocapflow.stages.skin.parts import (
 from mocapflow.stages.skin.segmentation import Segmentation
 from mocapflow.stages.skin.widening import (
     _blending_edges,
+    _first_pass_gap,
     _longest_edges,
     _mesh_topology,
     _widen_blends,
@@ -579,27 +580,37 @@ def deform(
             fits = _fit_parts(models, x, mode=mode, min_quadratic_markers=min_quadratic_markers,
                               damping=quadratic_damping, ctx=ctx,
                               threads=pool if pool.pool is None else None)
+            # with a second thread the report is made there after the binding, while this
+            # one starts the evaluation pass (whose chunks of frames it joins when done)
+            reporting = None if pool.pool is None else \
+                pool.pool.submit(_deform_report, models, fits, x, V, mode=mode)  # fmt: skip
             # computed once for both passes when the blend widens; else the evaluation pass
             # computes them where it runs (in process, or per chunk on the workers)
             C = frame_coefficients(models, fits, residual=residual) if widen else None
-            report = _deform_report(models, fits, x, V, mode=mode)
+            report = _deform_report(models, fits, x, V, mode=mode) if reporting is None else None
         except Exception:
             if pending is not None:
                 pending.result()  # the binding's error first, as on one thread
             raise
         binding, watch, ends, operator, topology = setup if pending is None else \
             pending.result()  # fmt: skip
-        report["max_vertex_distance_to_markers_mm"] = float(binding.distance.max() * 1000)
+        # and there, after the report, the widening's bound of how far the evaluation
+        # pass's positions can lie from its own (needs the operator and the coefficients)
+        gapping = None if reporting is None or not widen or operator.unit is None else \
+            pool.pool.submit(_first_pass_gap, operator, C)  # fmt: skip
         verts, longest = _deform_frames(
             models, fits, x.shape[0], operator, residual=residual,
             chunk_frames=chunk_frames, ctx=ctx, edges=ends, coefficients=C, threads=pool)
+        report = report if reporting is None else reporting.result()
+        report["max_vertex_distance_to_markers_mm"] = float(binding.distance.max() * 1000)
         beta, widened = binding.beta, {"steps": 0, "vertices": 0}
         if widen:
             beta, n_steps, n_changed, torn0, torn1 = _widen_blends(
                 models, fits, mesh, binding.beta, verts, max_stretch=max_blend_stretch,
                 steps=widening_steps(mesh, blend_widening_reach), residual=residual,
                 measured=(watch, longest), coefficients=C, operator=operator,
-                threads=pool, topology=topology)
+                threads=pool, topology=topology,
+                gap=None if gapping is None else gapping.result())
             widened = {"steps": n_steps, "vertices": n_changed, "torn_before": torn0,
                        "torn_after": torn1 if n_changed else torn0}
             if torn0 and not n_changed:

@@ -223,10 +223,11 @@ _MOVE_ROUND_OFF = 1e-12
 
 
 def _squared_lengths(d: np.ndarray) -> np.ndarray:
-    """``|d|²`` of vectors ``d (..., 3)``, its three terms added in a fixed order."""
-    out = d[..., 0] * d[..., 0]
-    out += d[..., 1] * d[..., 1]
-    out += d[..., 2] * d[..., 2]
+    """``|d|²`` of vectors ``d (..., 3)``, its three terms added in a fixed order (``x² + y²``,
+    then ``+ z²``); ``d`` is squared in place (one pass over it, no temporaries)."""
+    np.square(d, out=d)
+    out = d[..., 0] + d[..., 1]
+    out += d[..., 2]
     return out
 
 
@@ -261,7 +262,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
                   measured: tuple[np.ndarray, np.ndarray] | None = None,
                   coefficients: np.ndarray | None = None,
                   operator: VertexOperator | None = None, threads: Threads | None = None,
-                  topology: _Topology | None = None,
+                  topology: _Topology | None = None, gap: np.ndarray | None = None,
                   ) -> tuple[np.ndarray, int, int, int, int]:  # fmt: skip
     """Widen the blend between parts where it tears the surface (P&H Eq. 9's ``β``).
 
@@ -302,7 +303,8 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     ``operator``: the :func:`~mocapflow.stages.skin.blend.vertex_operator` of ``beta``
     (from the rest vertices), whose rows with ``β = 1`` are reused for the pairs it holds
     (the same rows as built again); ``topology``: the mesh's :func:`_mesh_topology` when
-    already made.
+    already made; ``gap``: :func:`_first_pass_gap` of ``operator`` and ``coefficients`` when
+    already computed.
     """
     threads = Threads() if threads is None else threads
     top = _mesh_topology(mesh) if topology is None else topology
@@ -341,7 +343,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     # at once, and the largest over the frames is the largest of the ranges' largest
     ranges = frame_ranges(F, threads)
     n_rows = max(1, _EDGE_FRAMES_PER_SLICE // max(1, max(b - a for a, b in ranges)))
-    spans = [_FrameRange(a, b, C, deviation, n_rows) for a, b in ranges]
+    spans = threads.run(lambda r, _: _FrameRange(*r, C, deviation, n_rows), ranges)
 
     def in_ranges(fn) -> list:
         """``fn(span)`` for every frame range, one thread each (they write disjoint frames:
@@ -385,8 +387,9 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
 
     # how far a vertex's first-pass position (``verts``) can lie from Σ_p β_p prediction_p:
     # added to the bound of its first move (:func:`_first_pass_gap`)
-    gap = _first_pass_gap(operator if unit is not None else vertex_operator(
-        models, V, residual=residual, rest=rest, beta=beta), C)  # fmt: skip
+    if gap is None:
+        gap = _first_pass_gap(operator if unit is not None else vertex_operator(
+            models, V, residual=residual, rest=rest, beta=beta), C)  # fmt: skip
 
     def pair_rows(v: np.ndarray, p: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
         """:func:`~mocapflow.stages.skin.blend._pair_rows` of pairs ``(v, p)`` with ``β = 1``,
@@ -434,7 +437,8 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
 
         def products(s: _FrameRange) -> np.ndarray:
             work = s.work
-            for c, z, rigid, bent, N, cl, _ in chunks:
+            far = np.zeros(len(key))
+            for c, z, rigid, bent, N, cl, other in chunks:
                 rows = s.pred.view(new[c:z])  # straight into the store
                 if len(bent):  # the clamped non-rigid displacement, then the rigid terms
                     U = s.single[1][: len(bent)]
@@ -454,10 +458,9 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
                         rows.fill(0.0)
                         rows[bent] = U
                 _sparse_product(rigid, s.C, rows, add=bool(len(bent)))
-            # how far each prediction lies from its vertex's first (all products of the
-            # range done by now; 0 for the first itself)
-            far = np.zeros(len(key))
-            for c, _z, *_, other in chunks:
+                # how far each prediction lies from its vertex's first (0 for the first
+                # itself), while the chunk's rows are in cache: a vertex's first new pair
+                # is its lowest part's, in this chunk or an earlier one
                 if len(other):
                     d = _row_differences(first[v[c + other]], new[c + other], s.pred, work[0])
                     far[c + other] = np.sqrt(_squared_lengths(d).max(1))
