@@ -436,15 +436,6 @@ def _single_rows(A: sp.csr_matrix) -> sp.csr_matrix:
     return sp.csr_matrix((A.data.astype(_NONRIGID), A.indices, A.indptr), shape=A.shape)
 
 
-def _stacked_rows(top: sp.csr_matrix, bottom: sp.csr_matrix) -> sp.csr_matrix:
-    """The rows of ``top`` above those of ``bottom`` (same columns), as one CSR matrix built
-    from their arrays (each row's terms as they are)."""
-    indptr = np.concatenate([top.indptr, bottom.indptr[1:] + top.indptr[-1]])
-    return sp.csr_matrix((np.concatenate([top.data, bottom.data]),
-                          np.concatenate([top.indices, bottom.indices]), indptr),
-                         shape=(top.shape[0] + bottom.shape[0], top.shape[1]))  # fmt: skip
-
-
 def deform_positions(
     models: list[PartModel], fits: list[PartFit], n_vertices: int,
     operator: VertexOperator | None = None, *, residual: bool | None = None,

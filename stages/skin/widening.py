@@ -101,7 +101,7 @@ mode (see ``tests/stages/skin/test_artifacts.py``; the stage's ``unflip``,
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -115,9 +115,7 @@ from mocapflow.stages.skin.blend import (
     VertexOperator,
     _clamp_weighted,
     _pair_rows,
-    _single_rows,
     _sparse_product,
-    _stacked_rows,
     csr_matvecs,
     frame_coefficients,
     frame_ranges,
@@ -379,7 +377,8 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         place(np.flatnonzero(np.isin(np.arange(V), v) & stale) if len(v) else v)
 
     # the first pass's rows with β = 1 (an operator pair per vertex and part, -1: none)
-    unit = None if operator is None else operator.unit
+    unit = None if operator is None or operator.unit is None else \
+        tuple(map(_CSRRows.of, operator.unit))  # fmt: skip
     if unit is not None:
         pair_at = np.full((V, P), -1, np.int64)
         for lv, at in operator.layers:
@@ -391,19 +390,21 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         gap = _first_pass_gap(operator if unit is not None else vertex_operator(
             models, V, residual=residual, rest=rest, beta=beta), C)  # fmt: skip
 
-    def pair_rows(v: np.ndarray, p: np.ndarray) -> tuple[sp.csr_matrix, sp.csr_matrix]:
+    def pair_rows(v: np.ndarray, p: np.ndarray) -> tuple[_CSRRows, _CSRRows]:
         """:func:`~mocapflow.stages.skin.blend._pair_rows` of pairs ``(v, p)`` with ``β = 1``,
         the operator's where it has them."""
         if unit is None:
-            return _pair_rows(models, offsets, rest, v, p, residual=residual)
+            return tuple(map(_CSRRows.of, _pair_rows(models, offsets, rest, v, p,
+                                                     residual=residual)))  # fmt: skip
         at = pair_at[v, p]
         have = np.flatnonzero(at >= 0)
         if len(have) == len(v):
-            return unit[0][at], unit[1][at]
+            return unit[0].take(at), unit[1].take(at)
         new = np.flatnonzero(at < 0)
         built = _pair_rows(models, offsets, rest, v[new], p[new], residual=residual)
         back = np.argsort(np.concatenate([have, new]))  # each pair's row, in (v, p) order
-        return tuple(_stacked_rows(M[at[have]], B)[back] for M, B in zip(unit, built))
+        return tuple(M.take(at[have]).above(_CSRRows.of(B)).take(back)
+                     for M, B in zip(unit, built))  # fmt: skip
 
     def predict(v: np.ndarray, p: np.ndarray) -> None:
         """Give pairs ``(v, p)`` a row of ``pred``: part ``p``'s model alone at vertex ``v``
@@ -431,9 +432,10 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
         for n, (c, z) in enumerate(chunks):
             bent = np.flatnonzero(nonrigid[p[c:z]])
             cl = np.flatnonzero(clamped[p[c + bent]])
-            N = _single_rows(nonrigid_rows[c:z] if len(bent) == z - c else nonrigid_rows[c + bent])
+            N = (nonrigid_rows.between(c, z) if len(bent) == z - c else
+                 nonrigid_rows.take(c + bent)).single()  # fmt: skip
             other = np.flatnonzero(first[v[c:z]] != new[c:z])
-            chunks[n] = (c, z, rigid_rows[c:z], bent, N, cl, other)
+            chunks[n] = (c, z, rigid_rows.between(c, z), bent, N, cl, other)
 
         def products(s: _FrameRange) -> np.ndarray:
             work = s.work
@@ -665,6 +667,63 @@ def _row_differences(a: np.ndarray, b: np.ndarray, store: _Rows,
     out = np.empty((len(a), 3 * store.shape[0])) if work is None else work[: len(a)]
     store.combine(np.stack([a, b], 1), np.tile([-1.0, 1.0], (len(a), 1)), out)
     return out.reshape(len(a), *store.shape)
+
+
+@dataclass(frozen=True)
+class _CSRRows:
+    """Rows of a CSR matrix as its arrays ``indptr``, ``indices`` and ``data`` (``shape``
+    ``(rows, columns)``), cut and stacked with NumPy alone: :func:`_widen_blends` cuts a few
+    hundred row sets a call, and a scipy matrix costs tens of microseconds to build each
+    time.  Each row keeps its terms in their order, so a product with them
+    (:func:`~mocapflow.stages.skin.blend._sparse_product`, which takes either) has the
+    bits of the scipy rows'."""
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    data: np.ndarray
+    shape: tuple[int, int]
+
+    @classmethod
+    def of(cls, A: sp.csr_matrix) -> _CSRRows:
+        """The rows of ``A`` (its own arrays, not copied)."""
+        return cls(A.indptr, A.indices, A.data, A.shape)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self.data.dtype
+
+    @property
+    def nnz(self) -> int:
+        return int(self.indptr[-1])
+
+    def take(self, rows: np.ndarray) -> _CSRRows:
+        """Rows ``rows (k,)`` in that order (repeats allowed), as ``A[rows]``."""
+        lo = self.indptr[rows]
+        n = self.indptr[rows + 1] - lo
+        indptr = np.zeros(len(rows) + 1, self.indices.dtype)
+        np.cumsum(n, out=indptr[1:])
+        at = np.arange(indptr[-1]) + np.repeat(lo - indptr[:-1], n)
+        return _CSRRows(indptr, self.indices[at], self.data[at], (len(rows), self.shape[1]))
+
+    def between(self, a: int, b: int) -> _CSRRows:
+        """Rows ``a..b-1`` (views of the arrays), as ``A[a:b]``."""
+        lo, hi = int(self.indptr[a]), int(self.indptr[b])
+        return _CSRRows(self.indptr[a : b + 1] - lo, self.indices[lo:hi], self.data[lo:hi],
+                        (b - a, self.shape[1]))  # fmt: skip
+
+    def above(self, other: _CSRRows) -> _CSRRows:
+        """These rows, then ``other``'s (same columns)."""
+        indptr = np.concatenate([self.indptr, other.indptr[1:] + self.indptr[-1]])
+        return _CSRRows(indptr.astype(self.indices.dtype, copy=False),
+                        np.concatenate([self.indices, other.indices]),
+                        np.concatenate([self.data, other.data]),
+                        (self.shape[0] + other.shape[0], self.shape[1]))  # fmt: skip
+
+    def single(self) -> _CSRRows:
+        """The same rows, their entries rounded to the precision of the non-rigid products
+        (:data:`~mocapflow.stages.skin.blend._NONRIGID`), as
+        :func:`~mocapflow.stages.skin.blend._single_rows`."""
+        return replace(self, data=self.data.astype(_NONRIGID))
 
 
 class _FrameRange:

@@ -114,30 +114,44 @@ def test_stage_in_process_equals_frame_chunks_on_an_executor(limb_fits):
 
 
 def test_stage_on_threads_equals_one_thread(limb_fits, monkeypatch):
-    """deform on 3 threads (frame ranges of the evaluation pass and of the widening, the
-    binding beside the per-part fits) gives the same bytes and report as on one, and the
-    kernels did run on more than one thread; ``threads=0`` is refused in one line."""
+    """deform on 3 threads (the evaluation pass's chunks of frames shared by the threads,
+    frame ranges of the widening, the binding beside the per-part fits, the report after
+    it) gives the same bytes and report as on one, and the kernels and the evaluation
+    pass's chunks did run on more than one thread; ``threads=0`` is refused in one line."""
     d, seg, mesh = limb_fits["d"], limb_fits["seg"], limb_fits["mesh"]
     # 5 rows per product on one thread (15 on 3: 20 frames each), and stores of blocks of
-    # 4, 8, 16, ... rows, so that the widening's products and sums cross blocks
+    # 4, 8, 16, ... rows, so that the widening's products and sums cross blocks; one frame
+    # per chunk of the evaluation pass (60 chunks to share)
     monkeypatch.setattr(widening_module, "_EDGE_FRAMES_PER_SLICE", 60 * 5)
     monkeypatch.setattr(widening_module, "_FIRST_BLOCK_ROWS", 4)
     monkeypatch.setattr(widening_module, "_FIRST_BLOCK_BYTES", 0)
-    ran = set()
-    kernel = blend_module.csr_matvecs
+    monkeypatch.setattr(blend_module, "_VALUES_PER_PRODUCT", 1)
+    ran, chunked = set(), []
+    kernel, chunks = blend_module.csr_matvecs, blend_module._blended_chunks
 
     def spy(*a):
         ran.add(threading.get_ident())
         return kernel(*a)
 
+    def chunk_spy(*a, **k):
+        for item in chunks(*a, **k):
+            chunked.append((threading.get_ident(), item[0], item[1]))
+            yield item
+
     monkeypatch.setattr(blend_module, "csr_matvecs", spy)
     monkeypatch.setattr(widening_module, "csr_matvecs", spy)
+    monkeypatch.setattr(blend_module, "_blended_chunks", chunk_spy)
     runs = []
     for n in (1, 3):
         ran.clear()
+        chunked.clear()
         runs.append(deform(d["markers"], seg, mesh, max_blend_stretch=1.3, threads=n,
                            ctx=Context()))  # fmt: skip
         assert len(ran) == n
+        # every frame evaluated once, in 60 one-frame chunks, by more than one thread on 3
+        assert sorted((a, b) for _, a, b in chunked) == [(f, f + 1) for f in range(60)]
+        takers = {t for t, _, _ in chunked}
+        assert len(takers) == 1 if n == 1 else len(takers) >= 2
     report = runs[0]["report"]["blend_widening"]
     assert report["vertices"] > 10 and report["torn_after"] < report["torn_before"]
     assert runs[1]["report"] == runs[0]["report"]
@@ -157,6 +171,34 @@ def test_rows_store_takes_vertex_major_rows():
         kept.append(rows.transpose(1, 0, 2) if frame_major else rows)
     kept = np.concatenate(kept)
     assert store.take(np.arange(len(kept))).tobytes() == kept.tobytes()
+
+
+def test_csr_rows_cut_as_scipy_cuts_them():
+    """widening._CSRRows takes, slices, stacks and rounds rows to the arrays scipy's own
+    ``A[rows]``, ``A[a:b]``, ``vstack`` and single precision give, in the same order, so a
+    product with them has the same bits."""
+    import scipy.sparse as sp
+
+    from mocapflow.stages.skin.blend import _sparse_product
+
+    rng = np.random.default_rng(3)
+    A = sp.random(40, 30, density=0.2, format="csr", random_state=rng)
+    B = sp.random(7, 30, density=0.3, format="csr", random_state=rng)
+    rows = rng.integers(0, 40, 25)  # unsorted, with repeats
+    R = widening_module._CSRRows.of(A)
+    X = rng.standard_normal((30, 6))
+    cases = [(R.take(rows), A[rows]), (R.between(5, 17), A[5:17]),
+             (R.take(rows).above(widening_module._CSRRows.of(B)), sp.vstack([A[rows], B]).tocsr()),
+             (R.between(3, 3), A[3:3])]  # fmt: skip
+    for got, want in cases:
+        assert got.shape == want.shape and got.nnz == want.nnz
+        for name in ("indptr", "indices", "data"):
+            assert np.array_equal(getattr(got, name), getattr(want, name))
+        out = np.empty((got.shape[0], 6))
+        _sparse_product(got, X, out)
+        assert out.tobytes() == (want @ X).tobytes()
+    single = R.between(0, 40).single()
+    assert single.dtype == np.float32 and np.array_equal(single.data, A.data.astype(np.float32))
 
 
 # ----------------------------------------------------------------- sparse products (issue 15)
