@@ -479,6 +479,38 @@ def test_a_member_far_from_all_the_others_in_the_gap_is_left_out():
     np.testing.assert_array_equal(flagged[:, 0], [False, False, True, False, False])
 
 
+def test_a_run_nothing_scored_goes_to_the_members_consensus():
+    """A run no validation copy could score (every model's ``mse`` NaN) went to the local
+    fill alone, however far the other members put it (basket_sprint, seed 717: 90.6 mm
+    off where the four others agreed within 4-9 mm).  Now it goes to the medoid of the
+    members that estimate all of it: here the local fill 90 mm off and the four others
+    within 2 mm of the truth: one of those four, whole.  With two such members (no
+    majority) the local fill keeps it; a run any model was scored on keeps its weights."""
+    rng = np.random.default_rng(5)
+    L = 13
+    truth = np.cumsum(rng.normal(0, 0.002, (L, 3)), 0)
+    est = truth[None] + rng.uniform(-0.002, 0.002, (5, L, 3))
+    est[0] += [0.09, 0.0, 0.0]
+    est = np.concatenate([est[:, :, None], est[:, :, None]], 2)  # (K, F, M=2, 3)
+    runs = [(0, 0, L), (1, 0, L)]
+    mse = np.full((5, 2), np.nan)
+    mse[:, 1] = (np.array([0.5, 1.0, 2.0, 1.0, 3.0]) * 1e-3) ** 2  # run 1 scored
+    full = np.ones((5, 2), bool)
+    w = fill._blend_weights(mse)
+    scored = w[:, 1].copy()
+    np.testing.assert_array_equal(w[:, 0], [1, 0, 0, 0, 0])  # the old rule: the local fill
+    fill._consensus_where_unscored(w, mse, est, runs, full)
+    assert w[0, 0] == 0.0 and w[1:, 0].sum() == 1.0 and np.isin(w[1:, 0], (0.0, 1.0)).all()
+    k = int(np.argmax(w[:, 0]))
+    assert np.abs(est[k, :, 0] - truth).max() < 0.002
+    np.testing.assert_array_equal(w[:, 1], scored)
+    two = full.copy()
+    two[2:, 0] = False
+    w2 = fill._blend_weights(mse)
+    fill._consensus_where_unscored(w2, mse, est, runs, two)
+    np.testing.assert_array_equal(w2[:, 0], [1, 0, 0, 0, 0])
+
+
 @pytest.mark.parametrize("label, frames, before, bound", [
     ("LFHD", (184, 284), (7.67, 16.5), (2.0, 5.0)),
     ("RFHD", (184, 284), (5.40, 13.0), (2.0, 5.0)),
