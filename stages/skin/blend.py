@@ -35,11 +35,13 @@ Implementation notes (none changes the method):
   as before): the widening takes the rows of the pairs it predicts from them where
   the operator holds the pair, and builds only the pairs the diffused ``β`` adds (on
   the throughput body 1,332 of 4,967);
-* **threads** (the stage's ``threads``, :class:`Threads`): the evaluation pass and the
-  widening split the frames into one consecutive range per thread (the widening keeps
-  its stores of rows per range), and the binding runs beside the part fits; scipy's CSR
-  kernel and NumPy's copies and ufuncs release the GIL, every job writes its own frames,
-  and every value is computed as on one thread (below): the same bits on any number;
+* **threads** (the stage's ``threads``, :class:`Threads`): the evaluation pass's chunks of
+  frames are shared by the threads (each takes the next when done: the second thread
+  makes the binding, then the report, and joins late), the widening splits the frames
+  into one consecutive range per thread (it keeps its stores of rows per range), and
+  the binding runs beside the part fits; scipy's CSR kernel and NumPy's copies and
+  ufuncs release the GIL, every job writes its own frames, and every value is computed
+  as on one thread (below): the same bits on any number;
 * **bit-reproducible**: every vertex's result is computed by operations whose
   rounding does not depend on which other vertices, frames or parts are computed
   in the same call, nor on BLAS or its thread count: ``H``'s rows come from their
@@ -543,7 +545,7 @@ def _frames_per_product(operator: VertexOperator) -> int:
 def frame_ranges(n_frames: int, threads: Threads | None) -> list[tuple[int, int]]:
     """The frames ``0..n_frames-1`` as one consecutive range ``(start, stop)`` per thread of
     ``threads`` (one range without; never an empty one but for no frame at all), as the
-    evaluation pass and the widening split them."""
+    widening splits them."""
     n = 1 if threads is None else min(threads.n, max(1, n_frames))
     cuts = np.linspace(0, n_frames, n + 1).round().astype(int).tolist()
     return list(zip(cuts[:-1], cuts[1:]))

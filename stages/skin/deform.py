@@ -512,9 +512,10 @@ def deform(
         time, rigidly, and pulls (the demo's body: 3.3x the cost).  Off by default; the
         skin graph's config turns it on (the demo: 344 flipped triangles -> 0).
     threads : int or None
-        Threads of this process evaluating the frames and widening the blends (each
-        thread its own range of frames), the binding running on a second one beside the
-        per-part fits (on all of them without a second thread or an executor);
+        Threads of this process evaluating the frames (chunks of frames shared by the
+        threads) and widening the blends (each thread its own range of frames), the
+        binding and then the report running on a second one beside the per-part fits (the
+        fits on all of them without a second thread or an executor);
         ``None``: ``ctx.workers`` (the engine's worker
         count; 1 for a plain Python call).  The result is the same bits on any number
         (every vertex, frame and part is computed apart from the others: see

@@ -91,7 +91,11 @@ beside the part fits and the non-rigid terms went to single precision): the bind
 operator and mesh topology (about 0.14 s) run beside the part fits and report (about
 0.16 s), the evaluation pass takes about 0.21 s and the widening about 0.28 s; the
 passes over memory scale by only 1.2-1.8 (the two cores share about 30 GB/s) and the
-widening's bookkeeping (about 0.07 s) stays on one thread.
+widening's bookkeeping (about 0.07 s) stays on one thread.  Since, the second thread
+makes the report (and the first-pass gap) after the binding while the first starts the
+evaluation pass, whose chunks of frames the two share, and the binding's closest points
+are found in chunks of points: paired whole-process runs on 2 threads against the code
+before, 0.88-0.96 of its wall time on a noisy day (no change on one thread).
 Held-out markers (``benchmarks/deform.py`` table 2) are points without
 triangles, so they are not affected; table 3 (the simulator's true mesh)
 measures it.  Not fixed by this: triangles that turn over against the rigid
