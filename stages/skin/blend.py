@@ -542,15 +542,6 @@ def _frames_per_product(operator: VertexOperator) -> int:
     return max(1, _VALUES_PER_PRODUCT // (3 * max(1, operator.rigid.shape[0])))
 
 
-def frame_ranges(n_frames: int, threads: Threads | None) -> list[tuple[int, int]]:
-    """The frames ``0..n_frames-1`` as one consecutive range ``(start, stop)`` per thread of
-    ``threads`` (one range without; never an empty one but for no frame at all), as the
-    widening splits them."""
-    n = 1 if threads is None else min(threads.n, max(1, n_frames))
-    cuts = np.linspace(0, n_frames, n + 1).round().astype(int).tolist()
-    return list(zip(cuts[:-1], cuts[1:]))
-
-
 def _edge_vectors(edges: np.ndarray, n_vertices: int) -> sp.csr_matrix:
     """``(E, V)`` rows with ``-1`` at each edge's first vertex and ``1`` at its second:
     times positions ``(V, n)`` the edge vectors ``x[second] - x[first]``, the same bits

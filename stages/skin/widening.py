@@ -122,7 +122,6 @@ from mocapflow.stages.skin.blend import (
     _sparse_product,
     csr_matvecs,
     frame_coefficients,
-    frame_ranges,
     vertex_operator,
 )
 from mocapflow.stages.skin.parts import PartFit, PartModel
@@ -243,6 +242,15 @@ def _longest_edges(verts: np.ndarray, edges: np.ndarray) -> np.ndarray:
     return most
 
 
+def _frame_ranges(n_frames: int, threads: Threads | None) -> list[tuple[int, int]]:
+    """The frames ``0..n_frames-1`` as one consecutive range ``(start, stop)`` per thread of
+    ``threads`` (one range without; never an empty one but for no frame at all), as the
+    widening splits them (each range then keeps its own stores)."""
+    n = 1 if threads is None else min(threads.n, max(1, n_frames))
+    cuts = np.linspace(0, n_frames, n + 1).round().astype(int).tolist()
+    return list(zip(cuts[:-1], cuts[1:]))
+
+
 def widening_steps(mesh: Mesh, reach: float) -> int:
     """Most diffusion steps of :func:`_widen_blends` for a blend to spread ``reach`` metres.
 
@@ -343,7 +351,7 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     # product, sum and measurement below is made range by range, each range on its own
     # thread with its own stores and work arrays; a value is computed as over all frames
     # at once, and the largest over the frames is the largest of the ranges' largest
-    ranges = frame_ranges(F, threads)
+    ranges = _frame_ranges(F, threads)
     n_rows = max(1, _EDGE_FRAMES_PER_SLICE // max(1, max(b - a for a, b in ranges)))
     spans = threads.run(lambda r, _: _FrameRange(*r, C, deviation, n_rows), ranges)
 
