@@ -485,7 +485,8 @@ def test_a_run_nothing_scored_goes_to_the_members_consensus():
     off where the four others agreed within 4-9 mm).  Now it goes to the medoid of the
     members that estimate all of it: here the local fill 90 mm off and the four others
     within 2 mm of the truth: one of those four, whole.  With two such members (no
-    majority) the local fill keeps it; a run any model was scored on keeps its weights."""
+    majority) the local fill keeps it; a run any model was scored on keeps its weights; an
+    estimate two members give counts once."""
     rng = np.random.default_rng(5)
     L = 13
     truth = np.cumsum(rng.normal(0, 0.002, (L, 3)), 0)
@@ -509,6 +510,13 @@ def test_a_run_nothing_scored_goes_to_the_members_consensus():
     w2 = fill._blend_weights(mse)
     fill._consensus_where_unscored(w2, mse, est, runs, two)
     np.testing.assert_array_equal(w2[:, 0], [1, 0, 0, 0, 0])
+    # two members giving one estimate (the rigid-body fills on the same donors), 22 mm
+    # off towards the local fill, are one voice: counted twice they would be the medoid
+    twins = est.copy()
+    twins[3, :, 0] = twins[4, :, 0] = truth + [0.01, 0.02, 0.0]
+    w3 = fill._blend_weights(mse)
+    fill._consensus_where_unscored(w3, mse, twins, runs, full)
+    assert w3[1, 0] + w3[2, 0] == 1.0, w3[:, 0]
 
 
 @pytest.mark.parametrize("label, frames, before, bound", [
