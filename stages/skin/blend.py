@@ -72,8 +72,8 @@ Implementation notes (none changes the method):
 from __future__ import annotations
 
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, replace
 from threading import Lock
 
 import numpy as np
@@ -122,6 +122,18 @@ class Threads:
     def __exit__(self, *exc) -> None:
         if self.pool is not None:
             self.pool.shutdown()
+
+    def submit(self, fn, *args, **kwargs) -> Future:
+        """``fn(*args, **kwargs)`` on the pooled thread (after the work submitted before it), or
+        at once on this one without a pool; its result (or error) from ``.result()``."""
+        if self.pool is not None:
+            return self.pool.submit(fn, *args, **kwargs)
+        done: Future = Future()
+        try:
+            done.set_result(fn(*args, **kwargs))
+        except Exception as error:
+            done.set_exception(error)
+        return done
 
     def run(self, fn, jobs: list, works: list | None = None) -> list:
         """``fn(job, work)`` for every job (``work``: thread ``t``'s ``works[t]``, None
@@ -393,8 +405,8 @@ def _clamp_weighted(u: np.ndarray, beta: np.ndarray, part: np.ndarray, deviation
         return
     i, j = np.divmod(near, r2.shape[1])
     u3 = u.reshape(len(u), -1, 3)
+    c = u3[i, j].astype(np.float64)  # the candidates in double precision (a copy)
     if single:
-        c = u3[i, j].astype(np.float64)
         r2 = c[:, 0] * c[:, 0] + c[:, 1] * c[:, 1]
         r2 += c[:, 2] * c[:, 2]
     else:
@@ -402,11 +414,10 @@ def _clamp_weighted(u: np.ndarray, beta: np.ndarray, part: np.ndarray, deviation
     over = r2 / b2[i] > d2[part[i], j]
     if over.any():
         i, j = i[over], j[over]
-        u3[i, j] = soft_clamp(u3[i, j].astype(np.float64), beta[i] * deviation[part[i], j],
-                              margin[i])  # fmt: skip
+        u3[i, j] = soft_clamp(c[over], beta[i] * deviation[part[i], j], margin[i])
 
 
-def _sparse_product(A: sp.csr_matrix, X: np.ndarray, out: np.ndarray, *,
+def _sparse_product(A: sp.csr_matrix | _CSRRows, X: np.ndarray, out: np.ndarray, *,
                     add: bool = False) -> None:  # fmt: skip
     """``out[:] = A @ X`` for C-contiguous ``X (K, n)`` and ``out (N, n)``, by scipy's CSR
     kernel (the one ``A @ X`` calls, without its fresh result array and copy): it adds
@@ -433,9 +444,61 @@ def _sparse_product(A: sp.csr_matrix, X: np.ndarray, out: np.ndarray, *,
 _NONRIGID = np.float32
 
 
-def _single_rows(A: sp.csr_matrix) -> sp.csr_matrix:
-    """``A`` with its entries rounded to :data:`_NONRIGID` (the same rows and terms)."""
-    return sp.csr_matrix((A.data.astype(_NONRIGID), A.indices, A.indptr), shape=A.shape)
+@dataclass(frozen=True)
+class _CSRRows:
+    """Rows of a CSR matrix as its arrays ``indptr``, ``indices`` and ``data`` (``shape``
+    ``(rows, columns)``), cut and stacked with NumPy alone: :func:`_widen_blends` cuts a few
+    hundred row sets a call, and a scipy matrix costs tens of microseconds to build each
+    time.  Each row keeps its terms in their order, so a product with them
+    (:func:`~mocapflow.stages.skin.blend._sparse_product`, which takes either) has the
+    bits of the scipy rows'."""
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    data: np.ndarray
+    shape: tuple[int, int]
+
+    @classmethod
+    def of(cls, A: sp.csr_matrix) -> _CSRRows:
+        """The rows of ``A`` (its own arrays, not copied)."""
+        return cls(A.indptr, A.indices, A.data, A.shape)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self.data.dtype
+
+    @property
+    def nnz(self) -> int:
+        return int(self.indptr[-1])
+
+    def take(self, rows: np.ndarray) -> _CSRRows:
+        """Rows ``rows (k,)`` in that order (repeats allowed), as ``A[rows]``."""
+        lo = self.indptr[rows]
+        n = self.indptr[rows + 1] - lo
+        indptr = np.zeros(len(rows) + 1, self.indices.dtype)
+        np.cumsum(n, out=indptr[1:])
+        at = np.arange(indptr[-1]) + np.repeat(lo - indptr[:-1], n)
+        return _CSRRows(indptr, self.indices[at], self.data[at], (len(rows), self.shape[1]))
+
+    def between(self, a: int, b: int) -> _CSRRows:
+        """Rows ``a..b-1`` (views of the arrays), as ``A[a:b]``."""
+        lo, hi = int(self.indptr[a]), int(self.indptr[b])
+        return _CSRRows(self.indptr[a : b + 1] - lo, self.indices[lo:hi], self.data[lo:hi],
+                        (b - a, self.shape[1]))  # fmt: skip
+
+    def above(self, other: _CSRRows) -> _CSRRows:
+        """These rows, then ``other``'s (same columns)."""
+        indptr = np.concatenate([self.indptr, other.indptr[1:] + self.indptr[-1]])
+        return _CSRRows(indptr.astype(self.indices.dtype, copy=False),
+                        np.concatenate([self.indices, other.indices]),
+                        np.concatenate([self.data, other.data]),
+                        (self.shape[0] + other.shape[0], self.shape[1]))  # fmt: skip
+
+    def single(self) -> _CSRRows:
+        """The same rows, their entries rounded to the precision of the non-rigid products
+        (:data:`_NONRIGID`)."""
+        return replace(self, data=self.data.astype(_NONRIGID))
+
 
 
 def deform_positions(
@@ -588,7 +651,7 @@ def _blended_chunks(models: list[PartModel], fits: list[PartFit], n_vertices: in
     # precision (_NONRIGID), into work arrays reused by every chunk (fresh pages cost more
     # than the products here)
     N = operator.rigid.shape[0]
-    bent = _single_rows(operator.nonrigid) if nonrigid else None
+    bent = _CSRRows.of(operator.nonrigid).single() if nonrigid else None
     n = min(F, _frames_per_product(operator))  # frames per product
     Y_full = np.empty((N, 3 * n))
     U_full = np.empty((N if nonrigid else 0, 3 * n), _NONRIGID)

@@ -575,34 +575,29 @@ def deform(
     with Threads(n_threads) as pool:  # the evaluation's threads (the same bits on any number)
         # with a second thread the binding runs there while this one fits the parts (mostly
         # Python): neither needs the other; on one thread it runs before the fits, as ever
-        pending = None if pool.pool is None else pool.pool.submit(mesh_setup)
-        setup = mesh_setup() if pending is None else None
+        pending = pool.submit(mesh_setup)
         try:
             fits = _fit_parts(models, x, mode=mode, min_quadratic_markers=min_quadratic_markers,
                               damping=quadratic_damping, ctx=ctx,
                               threads=pool if pool.pool is None else None)
             # with a second thread the report is made there after the binding, while this
             # one starts the evaluation pass (whose chunks of frames it joins when done)
-            reporting = None if pool.pool is None else \
-                pool.pool.submit(_deform_report, models, fits, x, V, mode=mode)  # fmt: skip
+            reporting = pool.submit(_deform_report, models, fits, x, V, mode=mode)
             # computed once for both passes when the blend widens; else the evaluation pass
             # computes them where it runs (in process, or per chunk on the workers)
             C = frame_coefficients(models, fits, residual=residual) if widen else None
-            report = _deform_report(models, fits, x, V, mode=mode) if reporting is None else None
         except Exception:
-            if pending is not None:
-                pending.result()  # the binding's error first, as on one thread
+            pending.result()  # the binding's error first, as on one thread
             raise
-        binding, watch, ends, operator, topology = setup if pending is None else \
-            pending.result()  # fmt: skip
+        binding, watch, ends, operator, topology = pending.result()
         # and there, after the report, the widening's bound of how far the evaluation
         # pass's positions can lie from its own (needs the operator and the coefficients)
-        gapping = None if reporting is None or not widen or operator.unit is None else \
-            pool.pool.submit(_first_pass_gap, operator, C)  # fmt: skip
+        gapping = pool.submit(_first_pass_gap, operator, C) if widen and \
+            operator.unit is not None else None  # fmt: skip
         verts, longest = _deform_frames(
             models, fits, x.shape[0], operator, residual=residual,
             chunk_frames=chunk_frames, ctx=ctx, edges=ends, coefficients=C, threads=pool)
-        report = report if reporting is None else reporting.result()
+        report = reporting.result()
         report["max_vertex_distance_to_markers_mm"] = float(binding.distance.max() * 1000)
         beta, widened = binding.beta, {"steps": 0, "vertices": 0}
         if widen:

@@ -893,8 +893,9 @@ def fill_by_validated_blend(
     mse = _validation_mse(errs, ok, full)
     _floor_rigid_errors(mse, disagreement, run, _disagreement_shares(runs, rate))
     wr = _blend_weights(mse)
-    _consensus_where_unscored(wr, mse, est, runs, full)
-    _count_once(wr, _earlier_twins(est, runs))  # a model given twice weighs once
+    twins = _earlier_twins(est, runs)
+    _consensus_where_unscored(wr, mse, est, runs, full, twins)
+    _count_once(wr, twins)  # a model given twice weighs once
     wr[_outlying_estimates(est, runs, mse, wr, positions)] = 0.0  # far off in the gap
     w = np.where(holes[None], wr[:, np.maximum(run, 0)], 0.0)  # (K, F, M)
     have = finite_rows(est) & holes[None]  # (K, F, M)
@@ -1246,12 +1247,13 @@ def _blend_weights(mse: np.ndarray) -> np.ndarray:
 
 
 def _consensus_where_unscored(weights: np.ndarray, mse: np.ndarray, est: np.ndarray,
-                              runs: list[tuple[int, int, int]], full: np.ndarray) -> None:
+                              runs: list[tuple[int, int, int]], full: np.ndarray,
+                              twins: np.ndarray) -> None:  # fmt: skip
     """Give each run that no model was scored on (no validation copy of it could be placed
     on measured samples; ``mse (K, R)`` all NaN, :func:`_validation_mse`) to the member
     whose estimate lies nearest the others' (the medoid: the least sum of RMS distances over
     the run to the other members that estimate all of it, ``full (K, R)``, an estimate given
-    twice counted once), in place in
+    twice counted once: ``twins (K, R)``, :func:`_earlier_twins`), in place in
     ``weights (K, R)`` (:func:`_blend_weights`, which gives such a run to the local fill);
     with fewer than 3 such members there is no majority to follow and the local fill keeps
     it.  Runs any model was scored on are left as they are.
@@ -1261,14 +1263,12 @@ def _consensus_where_unscored(weights: np.ndarray, mse: np.ndarray, est: np.ndar
     90.6 mm off where the four other members agreed within 4-9 mm of the truth."""
     for r in np.flatnonzero(~np.isfinite(mse).any(0)):
         m, a, b = runs[r]
-        members = np.flatnonzero(full[:, r] & np.isfinite(est[:, a:b, m]).all((1, 2)))
-        e = est[members, a:b, m]  # (n, L, 3)
         # an estimate given twice (the two rigid-body fills on the same donors) is one voice
-        once = [i for i in range(len(members)) if not any(
-            np.abs(e[i] - e[j]).max() <= SAME_ESTIMATE_TOLERANCE for j in range(i))]
-        members, e = members[once], e[once]
+        members = np.flatnonzero(full[:, r] & (twins[:, r] < 0)
+                                 & np.isfinite(est[:, a:b, m]).all((1, 2)))  # fmt: skip
         if len(members) < 3:
             continue
+        e = est[members, a:b, m]  # (n, L, 3)
         d = np.sqrt(np.mean(np.sum((e[:, None] - e[None]) ** 2, -1), -1))  # (n, n) RMS
         weights[:, r] = 0.0
         weights[members[np.argmin(d.sum(1))], r] = 1.0

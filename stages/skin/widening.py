@@ -105,7 +105,7 @@ mode (see ``tests/stages/skin/test_artifacts.py``; the stage's ``unflip``,
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -118,6 +118,7 @@ from mocapflow.stages.skin.blend import (
     Threads,
     VertexOperator,
     _clamp_weighted,
+    _CSRRows,
     _pair_rows,
     _sparse_product,
     csr_matvecs,
@@ -679,63 +680,6 @@ def _row_differences(a: np.ndarray, b: np.ndarray, store: _Rows,
     out = np.empty((len(a), 3 * store.shape[0])) if work is None else work[: len(a)]
     store.combine(np.stack([a, b], 1), np.tile([-1.0, 1.0], (len(a), 1)), out)
     return out.reshape(len(a), *store.shape)
-
-
-@dataclass(frozen=True)
-class _CSRRows:
-    """Rows of a CSR matrix as its arrays ``indptr``, ``indices`` and ``data`` (``shape``
-    ``(rows, columns)``), cut and stacked with NumPy alone: :func:`_widen_blends` cuts a few
-    hundred row sets a call, and a scipy matrix costs tens of microseconds to build each
-    time.  Each row keeps its terms in their order, so a product with them
-    (:func:`~mocapflow.stages.skin.blend._sparse_product`, which takes either) has the
-    bits of the scipy rows'."""
-
-    indptr: np.ndarray
-    indices: np.ndarray
-    data: np.ndarray
-    shape: tuple[int, int]
-
-    @classmethod
-    def of(cls, A: sp.csr_matrix) -> _CSRRows:
-        """The rows of ``A`` (its own arrays, not copied)."""
-        return cls(A.indptr, A.indices, A.data, A.shape)
-
-    @property
-    def dtype(self) -> np.dtype:
-        return self.data.dtype
-
-    @property
-    def nnz(self) -> int:
-        return int(self.indptr[-1])
-
-    def take(self, rows: np.ndarray) -> _CSRRows:
-        """Rows ``rows (k,)`` in that order (repeats allowed), as ``A[rows]``."""
-        lo = self.indptr[rows]
-        n = self.indptr[rows + 1] - lo
-        indptr = np.zeros(len(rows) + 1, self.indices.dtype)
-        np.cumsum(n, out=indptr[1:])
-        at = np.arange(indptr[-1]) + np.repeat(lo - indptr[:-1], n)
-        return _CSRRows(indptr, self.indices[at], self.data[at], (len(rows), self.shape[1]))
-
-    def between(self, a: int, b: int) -> _CSRRows:
-        """Rows ``a..b-1`` (views of the arrays), as ``A[a:b]``."""
-        lo, hi = int(self.indptr[a]), int(self.indptr[b])
-        return _CSRRows(self.indptr[a : b + 1] - lo, self.indices[lo:hi], self.data[lo:hi],
-                        (b - a, self.shape[1]))  # fmt: skip
-
-    def above(self, other: _CSRRows) -> _CSRRows:
-        """These rows, then ``other``'s (same columns)."""
-        indptr = np.concatenate([self.indptr, other.indptr[1:] + self.indptr[-1]])
-        return _CSRRows(indptr.astype(self.indices.dtype, copy=False),
-                        np.concatenate([self.indices, other.indices]),
-                        np.concatenate([self.data, other.data]),
-                        (self.shape[0] + other.shape[0], self.shape[1]))  # fmt: skip
-
-    def single(self) -> _CSRRows:
-        """The same rows, their entries rounded to the precision of the non-rigid products
-        (:data:`~mocapflow.stages.skin.blend._NONRIGID`), as
-        :func:`~mocapflow.stages.skin.blend._single_rows`."""
-        return replace(self, data=self.data.astype(_NONRIGID))
 
 
 class _FrameRange:

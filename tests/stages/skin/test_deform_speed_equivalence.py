@@ -174,7 +174,7 @@ def test_rows_store_takes_vertex_major_rows():
 
 
 def test_csr_rows_cut_as_scipy_cuts_them():
-    """widening._CSRRows takes, slices, stacks and rounds rows to the arrays scipy's own
+    """blend._CSRRows takes, slices, stacks and rounds rows to the arrays scipy's own
     ``A[rows]``, ``A[a:b]``, ``vstack`` and single precision give, in the same order, so a
     product with them has the same bits."""
     import scipy.sparse as sp
@@ -185,10 +185,10 @@ def test_csr_rows_cut_as_scipy_cuts_them():
     A = sp.random(40, 30, density=0.2, format="csr", random_state=rng)
     B = sp.random(7, 30, density=0.3, format="csr", random_state=rng)
     rows = rng.integers(0, 40, 25)  # unsorted, with repeats
-    R = widening_module._CSRRows.of(A)
+    R = blend_module._CSRRows.of(A)
     X = rng.standard_normal((30, 6))
     cases = [(R.take(rows), A[rows]), (R.between(5, 17), A[5:17]),
-             (R.take(rows).above(widening_module._CSRRows.of(B)), sp.vstack([A[rows], B]).tocsr()),
+             (R.take(rows).above(blend_module._CSRRows.of(B)), sp.vstack([A[rows], B]).tocsr()),
              (R.between(3, 3), A[3:3])]  # fmt: skip
     for got, want in cases:
         assert got.shape == want.shape and got.nnz == want.nnz

@@ -500,7 +500,7 @@ def test_a_run_nothing_scored_goes_to_the_members_consensus():
     w = fill._blend_weights(mse)
     scored = w[:, 1].copy()
     np.testing.assert_array_equal(w[:, 0], [1, 0, 0, 0, 0])  # the old rule: the local fill
-    fill._consensus_where_unscored(w, mse, est, runs, full)
+    fill._consensus_where_unscored(w, mse, est, runs, full, fill._earlier_twins(est, runs))
     assert w[0, 0] == 0.0 and w[1:, 0].sum() == 1.0 and np.isin(w[1:, 0], (0.0, 1.0)).all()
     k = int(np.argmax(w[:, 0]))
     assert np.abs(est[k, :, 0] - truth).max() < 0.002
@@ -508,14 +508,15 @@ def test_a_run_nothing_scored_goes_to_the_members_consensus():
     two = full.copy()
     two[2:, 0] = False
     w2 = fill._blend_weights(mse)
-    fill._consensus_where_unscored(w2, mse, est, runs, two)
+    fill._consensus_where_unscored(w2, mse, est, runs, two, fill._earlier_twins(est, runs))
     np.testing.assert_array_equal(w2[:, 0], [1, 0, 0, 0, 0])
     # two members giving one estimate (the rigid-body fills on the same donors), 22 mm
     # off towards the local fill, are one voice: counted twice they would be the medoid
     twins = est.copy()
     twins[3, :, 0] = twins[4, :, 0] = truth + [0.01, 0.02, 0.0]
     w3 = fill._blend_weights(mse)
-    fill._consensus_where_unscored(w3, mse, twins, runs, full)
+    fill._consensus_where_unscored(w3, mse, twins, runs, full,
+                                   fill._earlier_twins(twins, runs))
     assert w3[1, 0] + w3[2, 0] == 1.0, w3[:, 0]
 
 
