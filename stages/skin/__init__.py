@@ -43,18 +43,20 @@ the paper lives in one function (modules of this package):
   coefficients from visible members      local_pca.model_estimates_batch
   average of the models with the marker  fill._average_estimates
   passes re-using estimates              fill.fill_by_local_pca
-  sparse captures (beyond the paper):    fill.fill_by_validated_blend (each run of holes
-  local fill, whole-body PCA without     scored on copies of it moved nearby:
-  complete frames, spline, rigid body,   fill._shifted_runs, fill._validation_errors;
-  blended by validation on the take      models compared on the copies they all reached:
-                                         fill._validation_mse), lowrank.whole_body_pca,
-                                         fill._rigid_body_fill (most rigid / nearest donors)
-                                         at least a share of the carries'
-                                         disagreement: fill.RIGID_DISAGREEMENT_SHARE;
-                                         a member the gap shows far off (from the
-                                         others, or missing the trajectory at the
-                                         gap's ends) left out: fill._outlying_estimates,
-                                         fill._boundary_misses
+  sparse captures (beyond the paper):    fill_blend.fill_by_validated_blend (each run of
+  local fill, whole-body PCA without     holes scored on copies of it moved nearby:
+  complete frames, spline, rigid body,   fill_blend._shifted_runs,
+  blended by validation on the take      fill_blend._validation_errors; models compared
+                                         on the copies they all reached:
+                                         fill_blend._validation_mse),
+                                         lowrank.whole_body_pca, fill_blend._rigid_body_fill
+                                         (most rigid / nearest donors) at least a share of
+                                         the carries' disagreement:
+                                         fill_blend.RIGID_DISAGREEMENT_SHARE; a member the
+                                         gap shows far off (from the others, or missing the
+                                         trajectory at the gap's ends) left out:
+                                         fill_blend._outlying_estimates,
+                                         fill_blend._boundary_misses
 §4.4 smoothing x ← x − λ Δ⁴x in the      clean.smooth_local (the iteration, every run
   local frames                           at once: clean._smooth_runs)
 §5.1–5.2 near-rigid segmentation         segment.segment
@@ -97,11 +99,11 @@ Departures from the paper (each module docstring says why, with measurements):
 * hole filling: the default is a wider regression (``fill_model="regression"``:
   fill.fill_by_regression, regress.regression_estimates), the paper's local PCA
   fills what it cannot reach (``"pca"``: the paper alone); on captures of at
-  most fill.WHOLE_BODY_MAX_MARKERS (120) markers the fill is then blended with a
+  most fill_blend.WHOLE_BODY_MAX_MARKERS (120) markers the fill is then blended with a
   whole-body PCA (Gløersen & Federolf R2 trained on the filled take, no complete
   frame needed), a spline in time and a rigid-body fill, weighted per run of
   holes by their errors on copies of it knocked out nearby
-  (fill.fill_by_validated_blend); a neighbour's model
+  (fill_blend.fill_by_validated_blend); a neighbour's model
   weighs fill.NEIGHBOUR_MODEL_WEIGHT (0.1) in the §4.3 average; interior holes no
   model reaches are interpolated in time, then rigidly predicted
   (fill.fill_by_rigid_fit);

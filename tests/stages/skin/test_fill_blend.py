@@ -11,10 +11,11 @@ import pytest
 from scipy.interpolate import CubicSpline
 
 import mocapflow.stages.skin.fill as fill
+import mocapflow.stages.skin.fill_blend as fb
 from mocapflow.pipeline import Context
 from mocapflow.stages.motion.rotations import quat_from_rotvec, quat_to_matrix
 from mocapflow.stages.skin.clean import clean
-from mocapflow.stages.skin.fill import _rigid_body_fill, _runs, _shifted_runs
+from mocapflow.stages.skin.fill_blend import _rigid_body_fill, _runs, _shifted_runs
 from mocapflow.stages.skin.lowrank import whole_body_pca
 
 BENCHMARKS = Path(__file__).resolve().parents[3] / "benchmarks"
@@ -213,7 +214,7 @@ def test_blend_compares_models_on_the_copies_they_all_reached():
     err = np.linalg.norm(out["markers"].positions[8:18, 0] - X[8:18, 0], axis=-1)
     spline = np.full_like(gapped, np.nan)
     holes = ~np.isfinite(gapped).all(-1)
-    fill._interpolate_interior(spline, gapped, holes, 10)
+    fb._interpolate_interior(spline, gapped, holes, 10)
     err_spline = np.linalg.norm(spline[8:18, 0] - X[8:18, 0], axis=-1)
     assert err_spline.mean() < 1e-5  # measured 5.6e-7 m
     assert err.mean() < 1.5 * err_spline.mean() + 1e-5, (err.mean(), err_spline.mean())
@@ -224,19 +225,19 @@ def test_validation_mse_on_common_copies():
     # every model did badly): the others are scored on copies 1-2 only
     mse = np.array([[9.0, 1.0, 3.0], [0.0, 0.5, 0.5], [9.0, 4.0, 4.0]])[..., None]
     ok = np.array([[1, 1, 1], [0, 1, 1], [1, 1, 1]], bool)[..., None]
-    got = fill._validation_mse(mse, ok, np.ones((3, 1), bool))
+    got = fb._validation_mse(mse, ok, np.ones((3, 1), bool))
     np.testing.assert_allclose(got[:, 0], [3 ** 0.5, 0.5, 4.0])  # geometric means
     # a model that cannot estimate the run itself does not narrow the comparison
-    got = fill._validation_mse(mse, ok, np.array([[True], [False], [True]]))
+    got = fb._validation_mse(mse, ok, np.array([[True], [False], [True]]))
     np.testing.assert_allclose(got[:, 0], [3.0, 0.5, 144 ** (1 / 3)])
     # a third copy on a glitch (every model 100x off there): the geometric mean keeps
     # model 1's lead at 24^(1/3) = 2.9x (arithmetic: 2.0x)
     glitch = np.concatenate([mse[:, 1:], 100 * mse[:, 1:2]], 1)
-    got = fill._validation_mse(glitch, np.ones_like(glitch, bool), np.ones((3, 1), bool))
+    got = fb._validation_mse(glitch, np.ones_like(glitch, bool), np.ones((3, 1), bool))
     np.testing.assert_allclose(got[:, 0], np.array([300, 12.5, 6400]) ** (1 / 3))
     # no copy common to the usable models: each model on its own copies
     ok2 = np.array([[1, 0, 0], [0, 1, 1], [0, 0, 0]], bool)[..., None]
-    got = fill._validation_mse(mse, ok2, np.ones((3, 1), bool))
+    got = fb._validation_mse(mse, ok2, np.ones((3, 1), bool))
     np.testing.assert_allclose(got[:2, 0], [9.0, 0.5])
     assert np.isnan(got[2, 0])
 
@@ -276,17 +277,17 @@ def test_spline_support_can_be_limited_per_hole():
     labels = np.full((F, 1), -1)
     labels[20:30] = 0
     out = np.full_like(X, np.nan)
-    assert fill._interpolate_interior(out, measured, holes, 8,
+    assert fb._interpolate_interior(out, measured, holes, 8,
                                       sides=(labels, np.array([[3, 2]]))) == 20
     for (a, b), idx in (((20, 30), [17, 18, 19, 30, 31]),
                         ((45, 55), [*range(37, 45), *range(55, 60)])):
         want = CubicSpline(idx, X[idx, 0], axis=0)(np.arange(a, b))
         np.testing.assert_allclose(out[a:b, 0], want, rtol=0, atol=1e-12)
     out = np.full_like(X, np.nan)  # one sample left on a side: no spline
-    assert fill._interpolate_interior(out, measured, holes, 8,
+    assert fb._interpolate_interior(out, measured, holes, 8,
                                       sides=(labels, np.array([[1, 8]]))) == 10
     assert np.isnan(out[20:30]).all()
-    np.testing.assert_array_equal(fill._gap_support(~holes, _runs(holes), 8), [[8, 8], [8, 5]])
+    np.testing.assert_array_equal(fb._gap_support(~holes, _runs(holes), 8), [[8, 8], [8, 5]])
 
 
 @pytest.fixture(scope="module")
@@ -312,10 +313,10 @@ def _clean_errors(m, mask: np.ndarray) -> tuple[np.ndarray, dict]:
 
 def _spline_errors(m, mask: np.ndarray) -> np.ndarray:
     """``mask (F, M)`` knocked out of ``m`` and every hole interpolated by a plain cubic
-    (``fill._interpolate_interior``, 10 samples a side): the errors at ``mask`` ``(n,)`` (m)."""
+    (``fb._interpolate_interior``, 10 samples a side): the errors at ``mask`` ``(n,)`` (m)."""
     gapped = np.where(mask[..., None], np.nan, m.positions)
     spline = np.full_like(gapped, np.nan)
-    fill._interpolate_interior(spline, gapped, ~np.isfinite(gapped).all(-1), 10)
+    fb._interpolate_interior(spline, gapped, ~np.isfinite(gapped).all(-1), 10)
     return np.linalg.norm(spline - m.positions, axis=-1)[mask]
 
 
@@ -385,11 +386,11 @@ def test_rigid_floor_keeps_unscored_models_out():
     dis = np.full((12, 2), np.nan)
     dis[2:6, 0] = 0.02  # run 0: carries 20 mm apart; runs 1, 2: none from both ends
     mse = np.array([[1e-6, 1e-6, 1e-6]] * 3 + [[1e-6, 2e-4, np.nan], [np.nan, 1e-6, 1e-6]])
-    fill._floor_rigid_errors(mse, {3: dis, 4: dis.copy()}, run)
+    fb._floor_rigid_errors(mse, {3: dis, 4: dis.copy()}, run)
     np.testing.assert_allclose(mse[3], [0.25**2 * 0.02**2, 2e-4, np.nan])
     assert np.isnan(mse[4, 0]) and mse[4, 1] == 1e-6 and mse[4, 2] == 1e-6
     np.testing.assert_array_equal(mse[:3], 1e-6)
-    w = fill._blend_weights(mse)
+    w = fb._blend_weights(mse)
     assert w[4, 0] == 0 and w[3, 2] == 0
 
 
@@ -398,18 +399,18 @@ def test_rigid_floor_share_grows_with_the_run_s_duration():
     proportional to the duration below (10 frames at 100 Hz: a fifth); without the rate,
     the share on every run."""
     runs = [(0, 0, 10), (0, 20, 70), (1, 0, 200), (1, 300, 301)]
-    np.testing.assert_allclose(fill._disagreement_shares(runs, 100.0),
+    np.testing.assert_allclose(fb._disagreement_shares(runs, 100.0),
                                [0.05, 0.25, 0.25, 0.005])
-    np.testing.assert_allclose(fill._disagreement_shares(runs, 20.0), [0.25] * 3 + [0.025])
-    assert fill._disagreement_shares(runs, None) == fill.RIGID_DISAGREEMENT_SHARE
+    np.testing.assert_allclose(fb._disagreement_shares(runs, 20.0), [0.25] * 3 + [0.025])
+    assert fb._disagreement_shares(runs, None) == fb.RIGID_DISAGREEMENT_SHARE
     holes = np.zeros((80, 1), bool)
     holes[20:30, 0] = True
     run = np.where(holes, 0, -1)
     dis = np.where(holes, 0.0028, np.nan)  # carries 2.8 mm apart
     mse = np.full((5, 1), 0.00034**2)
-    fill._floor_rigid_errors(mse, {4: dis}, run, fill._disagreement_shares([(0, 20, 30)], 100.0))
+    fb._floor_rigid_errors(mse, {4: dis}, run, fb._disagreement_shares([(0, 20, 30)], 100.0))
     np.testing.assert_allclose(np.sqrt(mse[4]), 0.00034)  # 0.05 x 2.8 mm = 0.14 < 0.34
-    fill._floor_rigid_errors(mse, {4: dis}, run)
+    fb._floor_rigid_errors(mse, {4: dis}, run)
     np.testing.assert_allclose(np.sqrt(mse[4]), 0.25 * 0.0028)
 
 
@@ -434,7 +435,7 @@ def test_a_head_turning_in_its_gap_is_not_left_to_the_rigid_body_fills(pig_calib
     0.5-0.6 mm and got half the weight; their carries from before and after the gap are
     56-70 mm apart and their error is 15-18 mm.  Mean 11.2 mm before (spline 6.2, G&F
     5.5); after, with their validation error at least a quarter of that disagreement
-    (``fill.RIGID_DISAGREEMENT_SHARE``), 6.2 mm."""
+    (``fb.RIGID_DISAGREEMENT_SHARE``), 6.2 mm."""
     m = pig_calibration
     err, _ = _clean_errors(m, _knocked_out(m, (220, 270), ("LFHD", "RFHD", "LBHD", "RBHD")))
     assert err.mean() < 0.008, err.mean()
@@ -459,23 +460,23 @@ def test_a_member_far_from_all_the_others_in_the_gap_is_left_out():
     w = np.ones((5, 1))
     far = est.copy()
     far[2, :, 0] += [0.02, 0, 0]
-    flagged = fill._outlying_estimates(far, runs, mse, w)
+    flagged = fb._outlying_estimates(far, runs, mse, w)
     np.testing.assert_array_equal(flagged[:, 0], [False, False, True, False, False])
     near = est.copy()
     near[2, :, 0] += [0.004, 0, 0]
-    assert not fill._outlying_estimates(near, runs, mse, w).any()
+    assert not fb._outlying_estimates(near, runs, mse, w).any()
     two = np.array([[1.0], [0], [1], [0], [0]])
-    assert not fill._outlying_estimates(far, runs, mse, two).any()
+    assert not fb._outlying_estimates(far, runs, mse, two).any()
     w0 = w.copy()
     w0[2] = 0.0
-    assert not fill._outlying_estimates(far, runs, mse, w0).any()
+    assert not fb._outlying_estimates(far, runs, mse, w0).any()
     # the LPSI case's validated errors (mm): the far member 0.04, the others 0.3-1.2, the
     # best of them 1 mm off the other way: the others' weighted mean flagged that one
     mse_lead = (np.array([[1.2], [0.45], [0.04], [0.45], [0.3]]) * 1e-3) ** 2
-    w_lead = fill._blend_weights(mse_lead)
+    w_lead = fb._blend_weights(mse_lead)
     assert w_lead[2, 0] > 100 * w_lead[[0, 1, 3, 4], 0].sum()
     far[4, :, 0] -= [0.001, 0, 0]
-    flagged = fill._outlying_estimates(far, runs, mse_lead, w_lead)
+    flagged = fb._outlying_estimates(far, runs, mse_lead, w_lead)
     np.testing.assert_array_equal(flagged[:, 0], [False, False, True, False, False])
 
 
@@ -497,26 +498,26 @@ def test_a_run_nothing_scored_goes_to_the_members_consensus():
     mse = np.full((5, 2), np.nan)
     mse[:, 1] = (np.array([0.5, 1.0, 2.0, 1.0, 3.0]) * 1e-3) ** 2  # run 1 scored
     full = np.ones((5, 2), bool)
-    w = fill._blend_weights(mse)
+    w = fb._blend_weights(mse)
     scored = w[:, 1].copy()
     np.testing.assert_array_equal(w[:, 0], [1, 0, 0, 0, 0])  # the old rule: the local fill
-    fill._consensus_where_unscored(w, mse, est, runs, full, fill._earlier_twins(est, runs))
+    fb._consensus_where_unscored(w, mse, est, runs, full, fb._earlier_twins(est, runs))
     assert w[0, 0] == 0.0 and w[1:, 0].sum() == 1.0 and np.isin(w[1:, 0], (0.0, 1.0)).all()
     k = int(np.argmax(w[:, 0]))
     assert np.abs(est[k, :, 0] - truth).max() < 0.002
     np.testing.assert_array_equal(w[:, 1], scored)
     two = full.copy()
     two[2:, 0] = False
-    w2 = fill._blend_weights(mse)
-    fill._consensus_where_unscored(w2, mse, est, runs, two, fill._earlier_twins(est, runs))
+    w2 = fb._blend_weights(mse)
+    fb._consensus_where_unscored(w2, mse, est, runs, two, fb._earlier_twins(est, runs))
     np.testing.assert_array_equal(w2[:, 0], [1, 0, 0, 0, 0])
     # two members giving one estimate (the rigid-body fills on the same donors), 22 mm
     # off towards the local fill, are one voice: counted twice they would be the medoid
     twins = est.copy()
     twins[3, :, 0] = twins[4, :, 0] = truth + [0.01, 0.02, 0.0]
-    w3 = fill._blend_weights(mse)
-    fill._consensus_where_unscored(w3, mse, twins, runs, full,
-                                   fill._earlier_twins(twins, runs))
+    w3 = fb._blend_weights(mse)
+    fb._consensus_where_unscored(w3, mse, twins, runs, full,
+                                   fb._earlier_twins(twins, runs))
     assert w3[1, 0] + w3[2, 0] == 1.0, w3[:, 0]
 
 
@@ -535,7 +536,7 @@ def test_a_member_far_from_the_others_in_a_real_gap_is_left_out(
     frames 2-11, where its recorded trajectory jumps 30 mm: the spline (0.03-0.07 mm on
     copies later in the take) is 33 mm off, the others 5-7 mm.  The blend was ``before``
     (mean, max mm) off; leaving out the member far from the others' median
-    (``fill._outlying_estimates``): LFHD 1.1 / 2.3, RFHD 1.5 / 3.1, LPSI 4.9 / 32 mm."""
+    (``fb._outlying_estimates``): LFHD 1.1 / 2.3, RFHD 1.5 / 3.1, LPSI 4.9 / 32 mm."""
     m = pig_calibration
     err, _ = _clean_errors(m, _knocked_out(m, frames, [label]))
     err *= 1e3
@@ -568,11 +569,11 @@ def test_boundary_misses_are_the_ends_off_the_carried_trajectory():
     est[1, 0] += [0.001, 0.002, 0.003]
     est[1, -1] += [0, 0, 0.004]
     x[a:b] = np.nan
-    np.testing.assert_allclose(fill._boundary_misses(est, x, 0, a, b), [0, 0.004], atol=1e-12)
+    np.testing.assert_allclose(fb._boundary_misses(est, x, 0, a, b), [0, 0.004], atol=1e-12)
     x[a - 2] = np.nan  # the start has one measured sample before it: the end alone
-    np.testing.assert_allclose(fill._boundary_misses(est, x, 0, a, b), [0, 0.004], atol=1e-12)
+    np.testing.assert_allclose(fb._boundary_misses(est, x, 0, a, b), [0, 0.004], atol=1e-12)
     x[b + 1] = np.nan
-    assert np.isnan(fill._boundary_misses(est, x, 0, a, b)).all()
+    assert np.isnan(fb._boundary_misses(est, x, 0, a, b)).all()
 
 
 def test_a_member_off_at_the_gap_ends_is_left_out_sooner():
@@ -592,26 +593,26 @@ def test_a_member_off_at_the_gap_ends_is_left_out_sooner():
     mse = np.full((5, 1), 0.002**2)
     grown = est.copy()
     grown[1, 10:50, 0] += bump + [0.003, 0, 0]
-    np.testing.assert_array_equal(fill._outlying_estimates(grown, runs, mse, w, x)[:, 0],
+    np.testing.assert_array_equal(fb._outlying_estimates(grown, runs, mse, w, x)[:, 0],
                                   [False, True, False, False, False])
-    assert not fill._outlying_estimates(grown, runs, mse, w).any()  # no positions: 5 x
+    assert not fb._outlying_estimates(grown, runs, mse, w).any()  # no positions: 5 x
     joined = est.copy()
     joined[1, 10:50, 0] += 1.2 * bump  # 24 mm in the middle, 0 at the ends
     d = np.sqrt(np.mean(np.sum((joined[1, 10:50, 0] - truth[10:50, 0]) ** 2, -1)))
     assert 3 * 0.004 < d < 5 * 0.004, d
-    assert not fill._outlying_estimates(joined, runs, mse, w, x).any()
+    assert not fb._outlying_estimates(joined, runs, mse, w, x).any()
     offset = est.copy()
     offset[3, 10:50, 0] += [0.010, 0, 0]
     mse_c = np.array([[0.004], [0.004], [0.004], [0.0015], [0.004]]) ** 2
-    np.testing.assert_array_equal(fill._outlying_estimates(offset, runs, mse_c, w, x)[:, 0],
+    np.testing.assert_array_equal(fb._outlying_estimates(offset, runs, mse_c, w, x)[:, 0],
                                   [False, False, False, True, False])
     # validated at 1 mm, 4 x better than every other member: its misses do not hand the
     # run to members the copies scored far worse (ktk racing's head)
     mse_g = np.array([[0.004], [0.004], [0.004], [0.001], [0.004]]) ** 2
-    assert not fill._outlying_estimates(offset, runs, mse_g, w, x).any()
+    assert not fb._outlying_estimates(offset, runs, mse_g, w, x).any()
     two = grown.copy()
     two[4, 10:50, 0] -= bump + [0.003, 0, 0]
-    np.testing.assert_array_equal(fill._outlying_estimates(two, runs, mse, w, x)[:, 0],
+    np.testing.assert_array_equal(fb._outlying_estimates(two, runs, mse, w, x)[:, 0],
                                   [False, True, False, False, True])
     # pyomeca's box marker (1 s hole): the local fill and the whole-body PCA agree, 10 mm
     # off in the middle and joined at the ends; the spline 60 mm off; the rigid-body fill
@@ -624,7 +625,7 @@ def test_a_member_off_at_the_gap_ends_is_left_out_sooner():
     box[2, 10:50, 0] += 3.0 * bump
     mse_box = (np.array([[0.9], [1.3], [2.2], [0.1], [0.1]]) * 1e-3) ** 2
     w_box = np.array([[1.0], [1], [1], [1], [0]])
-    np.testing.assert_array_equal(fill._outlying_estimates(box, runs, mse_box, w_box, x)[:, 0],
+    np.testing.assert_array_equal(fb._outlying_estimates(box, runs, mse_box, w_box, x)[:, 0],
                                   [False, False, True, False, False])
 
 
@@ -635,7 +636,7 @@ def test_members_off_at_the_ends_of_a_real_cluster_gap_are_left_out(eb015):
     are 64-132 mm off on RSK2-4 and miss the measured trajectory at the gap's ends by 10-71
     mm, where the spline and the rigid-body fills miss it by 0.2-4 mm.  Their distance from
     the others left out one of the two and the other held the weight: 41.7 / 48.3 / 46.1 mm
-    mean.  Both left out (``fill._outlying_estimates``): 4.1 / 11.4 / 5.0 mm (a cubic spline
+    mean.  Both left out (``fb._outlying_estimates``): 4.1 / 11.4 / 5.0 mm (a cubic spline
     alone 4.1 / 12.5 / 3.2)."""
     m = eb015
     names = ("RFT1", "RFT2", "RFT3", "RSK1", "RSK2", "RSK3", "RSK4", "LSK4")
@@ -653,7 +654,7 @@ def test_end_misses_do_not_hand_a_gap_to_members_validated_far_worse(shared_data
     seed 610), the head turning fast (12-13 mm a frame).  The local fill, validated at
     4.7-5.5 mm, is 46-54 mm off and misses the ends by 61-73 mm; every other member,
     validated at 38-124 mm, is 62-326 mm off.  Left out for its misses, the run went to
-    them: 263 / 282 mm; kept (``fill.BOUNDARY_GUARD``): 46 / 54 mm."""
+    them: 263 / 282 mm; kept (``fb.BOUNDARY_GUARD``): 46 / 54 mm."""
     m = _real_take(shared_data, "ktk_kinematics_racing_full.c3d")
     mask = _knocked_out(m, (497, 532), ("Head1", "Head2", "Head3", "AcromionR"))
     _, out = _clean_errors(m, mask)
@@ -747,7 +748,7 @@ def test_a_long_hole_in_a_short_take_scores_the_spline(pig_calibration):
     on a still subject) was never scored and took no weight; the blend came out 1.30 mm
     (frames 62-161) and 1.01 mm (150-249) from the truth against the spline's 1.08 / 0.88.
     Copies kept in the spline's reach: spline weight 0.47 / 0.42, 1.06 / 0.80 mm; copies
-    placed on measured samples only (:func:`fill._placed_copies`: none overlaps the hole
+    placed on measured samples only (:func:`fb._placed_copies`: none overlaps the hole
     itself): 0.30 / 0.25, 0.97 / 0.92 mm."""
     m = pig_calibration
     names = ["C7", "T10", "CLAV", "STRN", "RBAK", "LSHO", "RSHO", "LASI", "RASI", "LPSI", "RPSI"]
@@ -770,7 +771,7 @@ def test_repeated_estimates_count_once():
     est[[0, 3], 20:30, 1] = est[2, 20:30, 1] + np.array([1e-6, 0, 0])  # 1 µm off model 2
     est[1, 20:30, 1] = est[2, 20:30, 1]
     est[4, 20:30, 1] = np.nan  # cannot estimate this run
-    got = fill._earlier_twins(est, [(0, 5, 15), (1, 20, 30)]) >= 0
+    got = fb._earlier_twins(est, [(0, 5, 15), (1, 20, 30)]) >= 0
     np.testing.assert_array_equal(got[:, 0], [False, False, False, False, True])
     # 2 repeats 1, 3 repeats 0; 1 is not 0 (1 µm apart)
     np.testing.assert_array_equal(got[:, 1], [False, False, True, True, False])
@@ -838,10 +839,10 @@ def test_donors_at_copies_are_the_run_s_own():
     moved[45:55, 0] = 0  # donor 3 measured over 44-55
     moved[50:60, 1] = 1  # donor 3 missing at 58-59
     own = {(0, 10, 20): frozenset({2, 3, 4}), (1, 30, 40): frozenset({2, 3, 4})}
-    np.testing.assert_array_equal(fill._donors_at_copies(moved, runs, own, measured),
+    np.testing.assert_array_equal(fb._donors_at_copies(moved, runs, own, measured),
                                   [True, False, True])
     measured[55, 3] = False  # the frame after the first copy
-    assert not fill._donors_at_copies(moved, runs, own, measured)[0]
+    assert not fb._donors_at_copies(moved, runs, own, measured)[0]
 
 
 def test_a_rigid_fill_is_judged_where_its_own_donors_carry_it(shared_data):
@@ -870,5 +871,5 @@ def test_a_repeated_estimate_keeps_its_best_giver_s_weight():
     est[4, 5:15, 0] = est[3, 5:15, 0]  # the two rigid fills agree
     weights = np.array([[1e-4], [1e-2], [0.9], [0.3], [0.5]])
     runs = [(0, 5, 15)]
-    fill._count_once(weights, fill._earlier_twins(est, runs))
+    fb._count_once(weights, fb._earlier_twins(est, runs))
     np.testing.assert_array_equal(weights[:, 0], [0.9, 1e-2, 0.0, 0.5, 0.0])

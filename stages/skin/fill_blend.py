@@ -1,0 +1,965 @@
+"""Gap filling on sparse captures: the local fill blended with four other models, each
+scored per run of holes on copies of it (beyond Park & Hodgins 2006).
+
+:func:`fill_by_validated_blend` is called by :func:`mocapflow.stages.skin.fill.fill_holes`
+(``whole_body``) after its local fill; :func:`_interpolate_interior` (the spline member)
+is also the last resort of the paper's passes
+(:func:`~mocapflow.stages.skin.fill.fill_by_local_pca`).
+
+On sparse captures (at most :data:`WHOLE_BODY_MAX_MARKERS` markers,
+``whole_body``), :func:`fill_by_validated_blend`: the local fill blended
+with a whole-body PCA trained on the take
+(:func:`mocapflow.stages.skin.lowrank.whole_body_pca`), a cubic spline in
+time and two rigid-body fills from 3 donors (the most rigid, the nearest),
+each weighted per run of holes by its error on copies of that run knocked
+out nearby, the models compared on the copies they all reached.  On the real shared
+C3Ds (26-55 markers) the local fill alone had the lowest mean error (or
+within 5 % of it) in 38-75 % of the gap protocol's configurations; see
+``benchmarks/clean.py`` for the blend's table.  Comparing the models on
+the copies they all reached (a spline was shut out of every run with a
+copy on the take's edge) and adding the nearest-donor rigid-body fill, on
+mask seeds 200-209 (not used while tuning): PiG calibration 50 -> 67 %
+(worst ratio to the best peer 3.10 -> 2.23), Qualisys 83 -> 92 % (1.54 ->
+1.23), Eb015pr 83 -> 92 % (1.18 -> 1.10).  With the copies kept where the
+spline reaches them, a fifth copy on the run's own margins, the copies'
+errors combined geometrically (:func:`_shifted_runs`,
+:func:`_validation_mse`) and a model given twice counted once
+(:func:`_earlier_twins`), on the same-sample criterion (ours within
+5 % of every peer on the samples it filled), mask seeds 400-409 (drawn after
+the tuning): PiG 17 of 18 configurations (worst 1.23, 0.5 s holes in one
+marker), Qualisys 11 of 12 (1.06).  With a member far from all the others in
+the gap left out (:func:`_outlying_estimates`: the copies cannot see what the
+marker does inside its own gap; PiG LFHD turning with the head near the take's
+end 7.7 -> 1.1 mm, LPSI over its recorded 30 mm jump 32.8 -> 4.9 mm), on mask
+seeds 570-589 (20 repetitions, drawn after all tuning): PiG 18 of 18 (worst
+0.97), Qualisys 12 of 12 (0.96); seeds 550-569: PiG 16 of 18 (1.16); the
+90 repetitions of seeds 500-589 pooled: PiG 18 of 18 (0.97), Qualisys 12 of
+12 (0.95).  With the members that miss the measured trajectory at the gap's
+ends left out too (:func:`_boundary_misses`, :data:`BOUNDARY_GUARD`; Eb015pr,
+the right foot and shank gone for 0.5 s: RSK2-4 41.7-48.3 -> 4.1-11.4 mm; that
+configuration's worst ratio on mask seeds 530-539 1.39 -> 0.98), 10 repetitions:
+mask seeds 620-629 (drawn after all tuning): PiG 16 of 18 (worst 1.22),
+Qualisys 11 of 12 (1.06), Eb015pr 24 of 24 (1.02; 23 of 24, 1.17 without the
+rule), racing 24 of 24 (0.79), pyomeca 24 of 24 (0.95); seeds 610-619 (one
+racing repetition inspected for the guard): 18 of 18 (1.03), 12 of 12 (0.96),
+24 of 24 (0.96), 24 of 24 (0.83), 24 of 24 (0.94).  What is left loses on holes
+in one marker (the 1 % configurations), where one run decides a repetition and
+one or two repetitions a 10-20 repetition mean: copies 15-30 frames away see
+motion its gap does not (the PiG calibration's left wrist, Qualisys' R_IAS), a
+copy at the take's end shows one model 30 mm off and the geometric mean damps
+it (PiG RBHD), or the spline alone is right and nothing says so (PiG LFIN over
+frames 31-40, seed 605 of the 0.1 s / 1 % / independent masks: spline 0.06 mm,
+the four others 0.7-0.9 mm and agreeing, validated alike: blend 0.41 mm; that
+configuration's worst ratio over seeds 600-609, 1.74).  20 repetitions (as
+METRICS §3 asks), mask seeds 630-649: PiG 17 of 18 (worst 1.20: seed 646, a
+spline with 3 samples after its hole left out, see :data:`SPLINE_MIN_SUPPORT_SHARE`),
+Qualisys 12 of 12 (0.97), Eb015pr 24 of 24 (0.94), racing 24 of 24 (0.91),
+pyomeca 24 of 24 (1.00).  With the spline's copies given the support its hole has
+(:func:`_gap_support`), mask seeds 650-669 (20 repetitions, drawn after that
+change): PiG 18 of 18 (worst 0.98), Qualisys 12 of 12 (0.94), Eb015pr 24 of 24
+(0.92), racing 24 of 24 (0.88), pyomeca 24 of 24 (0.96); the coefficient of
+variation of ours' mean error over the repetitions, median over a file's
+configurations, 51-78 %.  On its own samples (a spline or rigid-body fill leaves
+edge holes unfilled, which ours fills) PiG 0.1 s / 30 % / clustered is 1.37 x the
+spline: 0.099 mm over 2,200 samples against 0.072 mm over the 2,070 it filled
+(0.98 x on those).  ``ktk_kinematics_basket_sprint.c3d`` (120 Hz, 3,678 frames, 26
+markers on a wheelchair, its push-rim, the arm and the trunk; 39 % of the samples
+missing, no complete frame, so no G&F), mask seeds 670-679 (10 repetitions, run after
+the regression's fits were batched, which cut a repetition from 44 to 30 CPU-s):
+on the same samples 22 of 24 configurations within 5 % of the spline and the
+rigid-body fill, but 0.1 s / 10 % / independent at 1.11 x and 0.1 s / 1 % /
+clustered at 4.91 x the spline (one repetition, seed 677: the push-rim marker
+SWL:Marker1 moving 22 mm a frame, frames 2904-2915 knocked out: spline 0.86 mm, ours
+44.6 mm).  That marker is missing for most of the sprint (runs 2175-2413, 2415-2670,
+2672-2880, 2894-2902), and each validation pass knocks out the copies of all its runs
+at once: the 12-frame copy lies inside gaps of 231, 777, 238 and 928 frames, where the
+spline is scored at 407 mm and the local fill at 176 mm.  Spread of ours' mean over the
+repetitions 173 % (median over configurations).  Copies are now placed where they pose
+the run's own problem (:func:`_placed_copies`): that repetition 44.6 -> 0.86 mm; the
+six 0.1 s configurations on the same seeds: 0.1 s / 1 % / clustered 4.91 -> 0.91 x the
+spline but 1.51 -> 1.59 x the rigid-body fill (single-marker holes where the rigid fill
+is best: seeds 675, 678, 679), 0.1 s / 10 % / independent 1.11 -> 0.73 x, the others
+0.39-0.92 x.  On fresh mask seeds 680-689 (10 repetitions, drawn after the change), same
+samples: PiG 17 of 18 (worst 1.06), Qualisys 12 of 12 (0.98), Eb015pr 24 of 24 (1.01),
+pyomeca 24 of 24 (0.98), racing 23 of 24 but 0.5 s / 1 % / independent at 1.30 x
+G&F (0.87 x before the change: seed 684, Sternum over frames 385-421, 3 samples
+knocked out: no start qualified for any copy of that run, so the local fill alone, 88.8
+mm off where the whole-body PCA was 5.3 mm; falling back to the shifted place gives
+31.9 mm there, but buried the basket copy above again, 9.96 mm: not kept).  The rigid-body
+fills are misjudged alike where the run's donors are missing at every copy
+(ArmL:Marker1 over 2 s, seed 672: rigid 1.16 mm, its two carries agreeing within
+0.75 mm, scored at 9.7 mm on copies carried by other donors; ours 1.76 mm).
+Two changes since: a run with no start on measured samples is copied where the copies
+placed on measured samples leave room (:func:`_placed_copies`' second pass: that
+Sternum run 88.8 -> 23 mm, the basket copy above stays at 0.86 mm), and a rigid-body
+fill is scored on the copies where the run's own donors are measured, where it has any
+(:func:`_donors_at_copies`: basket SWL:Marker1 over frames 1818-1829, 0.1 s / 1 % /
+clustered, seed 679, carried 0.64 mm off by its push-rim donors and scored 24-32 mm
+off on copies carried by others: 2.05 -> 0.66 mm).  Fresh mask seeds 690-699 (10
+repetitions, drawn after both), same samples: PiG 17 of 18 (worst 1.14, 0.1 s / 10 % /
+independent, 0.08 against the spline's 0.07 mm; 1.07 with the first change alone),
+Qualisys 12 of 12 (0.93), Eb015pr 24 of 24 (0.95), racing 24 of 24 (0.88; 0.86),
+pyomeca 24 of 24 (1.02); the donor rule alone moves the five files' pooled mean error
+by +0.02 to +1.0 % (397 of 1,020 cases changed: 186 better, 211 worse).
+basket_sprint, same seeds (the 0.1 s configurations on all ten; the 0.5-2 s ones on
+690-694 and some on 695-696, for lack of time; many masks miss its sparse samples,
+so 3-10 repetitions have samples): 22 of 24 within 5 % of the spline and the
+rigid-body fill, 0.1 s / 10 % / clustered at 6.57 x (seed 699: one knocked-out sample
+502 mm off, :func:`_count_once`) and 0.1 s / 1 % / clustered at 1.24 x; with
+:func:`_count_once` (its configurations re-run): 23 of 24, worst 1.24 x (0.21 against
+the spline's 0.11 mm on seed 695's 12 samples, 0.39 against 0.13 on seed 699's), the
+other 0.96 x; PiG, Qualisys, Eb015pr, pyomeca re-run: 17 of 18 (1.14), 12 of 12
+(0.93), 24 of 24 (0.95), 24 of 24 (0.96).  Fresh mask seeds 710-719, every
+configuration of all six files, 10 repetitions: pyomeca 0.1 s / 1 % / independent at
+1.22 x the rigid-body fill (0.16 against 0.13 mm), which :data:`RIGID_DISAGREEMENT_DURATION`
+came from (its seed 714); the 0.5-2 s configurations, whose outputs that leaves
+unchanged, with the 0.1 s ones on fresh seeds 720-729 after it, same samples: PiG 17 of
+18 (worst 1.11, 0.1 s / 1 % / independent, spline), Eb015pr 24 of 24 (0.99), Qualisys 11
+of 12 (1.06), racing 24 of 24 (0.64), pyomeca 24 of 24 (0.95), basket_sprint 22 of 24
+(1.15, 2 s / 10 % / independent).  Each method's mean over its own samples: basket 18
+of 24, 4.91 x the rigid-body fill at 2 s / 1 % / independent, which leaves 34 % of
+those samples unfilled.  A run no copy could score kept the local fill alone
+(basket 0.1 s / 10 % / independent, seed 717: ForearmL:Marker4, 90.6 mm off where
+the other four members agree within 4-9 mm of the truth); it now goes to the members'
+medoid (:func:`_consensus_where_unscored`): that case 20.6 -> 1.26 mm mean over its
+masked samples.  On fresh seeds 730-761 (38 cases, every file, basket's 24
+configurations) the masked samples change in one case only (basket 1 s / 30 % /
+independent, seed 756: 17.55 -> 17.37 mm); the other files had no unscored run and are
+bit-identical.  Seeds 770-779, basket's six 0.1 s configurations (60 cases): one
+changes, the other way (0.1 s / 30 % / independent, seed 774: 1.24 -> 1.40 mm; its
+ForearmL:Marker3 run 1910-1921 went from the local fill, 7.6 mm off, to the rigid-body
+fill, 9.4 mm off); the table's criteria read the same.  basket's own holes hold 55
+unscored runs (3 frames median, 41 at most): where the medoid replaces the local fill
+(51 runs), the local fill lies a median 42.3 mm (90th percentile 225 mm, at most 4.1 m)
+from the measured samples either side, the medoid 13.9 mm (39, 83 mm), nearer in 45.
+
+See :mod:`mocapflow.stages.skin.fill` for the local fill it starts from.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Literal
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+
+from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
+from mocapflow.stages.motion.contacts import true_runs
+from mocapflow.stages.skin.lowrank import whole_body_pca
+from mocapflow.stages.skin.predict import finite_rows
+from mocapflow.stages.skin.regress import predictor_ranking
+from mocapflow.stages.skin.surface import MarkerSurface
+
+__all__ = [
+    "BLEND_MODELS",
+    "BLEND_POWER",
+    "RIGID_BODY_POOL",
+    "RIGID_DISAGREEMENT_SHARE",
+    "RIGID_MODELS",
+    "SPLINE_MIN_SUPPORT_SHARE",
+    "VALIDATION_SHIFTS",
+    "WHOLE_BODY_MAX_MARKERS",
+    "fill_by_validated_blend",
+]
+
+#: ``fill_holes(whole_body=None)`` blends in the whole-body model on captures with
+#: at most this many markers (sparse lab sets; on dense captures the local
+#: models have the neighbours they need and the SVDs would cost seconds).
+WHOLE_BODY_MAX_MARKERS = 120
+
+#: Donors of the rigid-body estimate: the most rigid of this many nearest markers
+#: first (a cluster's own markers; ranking by rigidity alone over 40 preferred a
+#: foot marker to a shank cluster's third marker on Eb015pr).
+RIGID_BODY_POOL = 6
+
+#: Copies of each run of holes that :func:`fill_by_validated_blend` scores the
+#: models on: moved by these multiples of 1.5 times its length (nearby motion);
+#: 0: the run's own margins, :data:`VALIDATION_MARGIN` of its length on each side
+#: (:func:`_shifted_runs`).
+VALIDATION_SHIFTS = (-1, 1, -2, 2, 0)
+
+#: Length of the margins scored as a run's copy 0 in :data:`VALIDATION_SHIFTS`, as a
+#: share of the run's length (at least 2 frames each side): the samples next to the
+#: run, where the moved copies can miss what the marker does there (a still wrist
+#: in its gap on the PiG calibration, moving 15-30 frames away).
+VALIDATION_MARGIN = 0.5
+
+#: Weights of :func:`fill_by_validated_blend`: ∝ (mean squared validation error)^-p.
+BLEND_POWER = 2.0
+
+#: Validation copies of a hole are kept this share of its length (up to
+#: ``interpolate``, at least 2 frames) from the take's ends, so that the spline reaches
+#: them (:func:`_shifted_runs`).  It was also the least support the blend's spline had
+#: to have on each side of the hole itself: a cubic through the 4 samples left before a
+#: 0.5 s hole near the start of the PiG calibration swung 17-169 mm off while the
+#: copies, moved into the take with full support, gave it the weight.  The copies now
+#: take the support the hole has (:func:`_gap_support`), which scores such a spline as
+#: it is (that hole 1.03 -> 0.84 mm mean), and the spline of a hole with 2 samples on a
+#: side is a member: PiG, the head turning over the take's last 53 frames, 3 samples
+#: after the hole, blend 6.3 -> 3.0 mm
+#: (``test_a_spline_short_of_samples_on_one_side_is_scored_as_it_is``).
+SPLINE_MIN_SUPPORT_SHARE = 0.2
+
+#: The estimates :func:`fill_by_validated_blend` weighs, in order.
+BLEND_MODELS = ("local", "whole_body", "spline", "rigid_body", "rigid_nearest")
+
+#: Indices in :data:`BLEND_MODELS` of the rigid-body fills (most rigid, nearest donors).
+RIGID_MODELS = (BLEND_MODELS.index("rigid_body"), BLEND_MODELS.index("rigid_nearest"))
+
+#: A rigid-body fill's blend weight comes from a validation error of at least this
+#: share of how far its two carries (from before and from after the gap) disagree,
+#: root mean square over the run (:func:`fill_by_validated_blend`): the marker's
+#: motion against its donors between the gap's two ends.  The carries assume the
+#: marker rigid with its donors; where it moves against them within the gap,
+#: copies of the gap at other times (where it may not) vouch for them wrongly.
+#: With the carries blended linearly the error is the part of that motion that is
+#: not linear in time: on the real PiG calibration (gap protocol, 0.5 s, 10 %,
+#: clustered, mask seed 104) the whole head (LFHD, RFHD, LBHD, RBHD) is gone for
+#: 0.5 s while it turns against the trunk: carries 56-70 mm apart, the rigid-body
+#: fills 15-18 mm off (about a quarter), validated at 0.5-0.6 mm, so they had half
+#: the weight.  Tried instead and dropped: scaling their validation error by the
+#: ratio of the squared disagreement in the gap to that in its copies (gap
+#: protocol, PiG + Qualisys seeds 100-109 and 200-209, Eb015pr / pyomeca / racing
+#: 200-204: as good or worse in every file, e.g. Qualisys worst ratio 1.15 against
+#: 1.07); stacking the members (non-negative weights minimising the blend's own
+#: validation error, ridge 0.1: PiG 15 -> 13 of 18 within 5 %); a sharper
+#: ``BLEND_POWER`` 3 or 4 (Qualisys 10 -> 10 and 9 of 12, worst 1.07 -> 1.17, 1.24).
+RIGID_DISAGREEMENT_SHARE = 0.25
+
+#: Runs shorter than this (s) get a proportionally smaller :data:`RIGID_DISAGREEMENT_SHARE` (with
+#: the take's rate, :func:`~mocapflow.stages.skin.fill.fill_holes`' ``rate``).  The linear blend of
+#: the carries misses the part of the marker's motion against its donors that is not linear in time:
+#: for a smooth motion ``d(t)`` over a gap of ``T`` about ``|d''| T² / (2 √30)`` (rms of the
+#: parabola), against a disagreement of about ``|d'| T``, so the share grows with ``T``; 0.25 was
+#: set on 0.5 s gaps (the head above) and is kept for longer ones.  At 0.1 s the full share raised
+#: the rigid fills of a wrist marker turning slowly against its donors (pyomeca, ``Daphnee:STYLr``,
+#: gap protocol 0.1 s / 1 % / independent, mask seed 714: carries 2.8 mm apart, so validated at 0.71
+#: mm against 0.34 from its copies) above the spline's 0.69 though 0.20 mm off in the gap against
+#: the spline's 1.05.
+RIGID_DISAGREEMENT_DURATION = 0.5
+
+
+def _spline_support_needed(length: int, support: int, min_support_share: float) -> int:
+    """Frames a validation copy of a hole of ``length`` frames is kept from the take's ends
+    (:func:`_shifted_runs`): ``min_support_share`` of its length, at least 2 (the fewest
+    measured samples :func:`_interpolate_interior` interpolates from) and at most
+    ``support``."""
+    return max(2, min(support, int(np.ceil(min_support_share * length))))
+
+
+def _interpolate_interior(X: np.ndarray, measured: np.ndarray, holes: np.ndarray,
+                          support: int,
+                          sides: tuple[np.ndarray, np.ndarray] | None = None) -> int:
+    """Cubic interpolation (in place) of interior holes still empty, from up to
+    ``support`` measured samples on each side; a hole with fewer than 2 on a side is
+    left empty.  ``sides``, optional ``(labels (F, M) int, limits (R, 2) int)``: a hole
+    with samples labelled ``r >= 0`` takes at most ``limits[r]`` measured samples before
+    and after it (the smallest over its labels; :func:`_gap_support`).  Returns the
+    samples filled."""
+    obs = finite_rows(measured)
+    todo = holes & ~finite_rows(X)
+    n = 0
+    for m in np.flatnonzero(todo.any(0)):
+        d = np.diff(np.concatenate([[0], todo[:, m].astype(np.int8), [0]]))
+        for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)):
+            before = after = support
+            if sides is not None:
+                lab = sides[0][a:b, m]
+                if (lab >= 0).any():
+                    before, after = np.minimum(sides[1][lab[lab >= 0]].min(0), support)
+            seen = np.flatnonzero(obs[:a, m])
+            left = seen[max(len(seen) - before, 0):]
+            right = b + np.flatnonzero(obs[b:, m])[:after]
+            if len(left) < 2 or len(right) < 2:
+                continue  # an edge hole: nothing (or too little) to interpolate between
+            idx = np.concatenate([left, right])
+            X[a:b, m] = CubicSpline(idx, measured[idx, m], axis=0)(np.arange(a, b))
+            n += b - a
+    return n
+
+
+def _runs(holes: np.ndarray) -> list[tuple[int, int, int]]:
+    """``(marker, start, stop)`` of every run of holes, marker by marker."""
+    return [(int(m), a, b) for m in np.flatnonzero(holes.any(0))
+            for a, b in true_runs(holes[:, m])]
+
+
+def _measured_before(measured: np.ndarray) -> np.ndarray:
+    """``(F + 1, M)`` int: the samples of ``measured (F, M)`` before each frame (and in all)."""
+    return np.concatenate([np.zeros((1, measured.shape[1]), np.int64),
+                           np.cumsum(measured, axis=0)])
+
+
+def _gap_support(measured: np.ndarray, runs: list[tuple[int, int, int]],
+                 support: int) -> np.ndarray:
+    """``(R, 2)`` int: the measured samples (``measured (F, M)`` bool) a spline of each run
+    has before and after it, at most ``support`` each (:func:`_interpolate_interior`)."""
+    seen = _measured_before(measured)
+    m, a, b = (np.array([run[i] for run in runs], dtype=np.int64) for i in range(3))
+    return np.minimum(np.stack([seen[a, m], seen[-1, m] - seen[b, m]], 1), support)
+
+
+def _shifted_runs(runs: list[tuple[int, int, int]], shape: tuple[int, int],
+                  k: int, *, support: int = 0, measured: np.ndarray | None = None) -> np.ndarray:
+    """``(F, M)`` int: each run's copy moved by ``k`` times its length plus half of it
+    (at least 5 frames), kept inside the take, labelled with the run's index (-1
+    elsewhere).  Runs of equal start and length (gaps at once) move together.
+
+    With ``support`` (the spline's, :func:`_interpolate_interior`), a copy is kept
+    :func:`_spline_support_needed` frames (:data:`SPLINE_MIN_SUPPORT_SHARE`) from the
+    take's ends where the take is long enough, so that every model can be scored on
+    it: a 1 s hole in the 3 s PiG calibration had every copy moved onto an end, the
+    spline (the best model on that still subject) was never scored and took no weight
+    (1 s holes in 30 % of the markers at once, mask seeds 100-109: blend 1.60 mm mean,
+    spline 0.94 mm).
+    With ``measured`` (``(F, M)`` bool, the take's measured samples), a copy poses the
+    run's own problem: :func:`_placed_copies` moves it on from that place to where it
+    lands on measured samples only, apart from the marker's other holes and copies.
+    With ``k`` 0, the copy is the run's margins instead: the
+    :data:`VALIDATION_MARGIN` share of its length (at least 2 frames) before and
+    after it, within the take, knocked out together with the run itself.
+    """
+    F, M = shape
+    out = np.full(shape, -1, dtype=np.int64)
+    if k != 0 and measured is not None:
+        return _placed_copies(runs, measured, k, support=support)
+    for r, (m, a, b) in enumerate(runs):
+        L = b - a
+        if k == 0:
+            w = max(2, int(round(VALIDATION_MARGIN * L)))
+            out[max(a - w, 0):a, m] = r
+            out[b:b + w, m] = r
+            continue
+        edge = _spline_support_needed(L, support, SPLINE_MIN_SUPPORT_SHARE) if support else 0
+        if F - L - 2 * edge < 0:
+            edge = 0
+        s0 = int(np.clip(a + k * (L + max(L // 2, 5)), edge, F - L - edge))
+        out[s0:s0 + L, m] = r
+    return out
+
+
+def _placed_copies(runs: list[tuple[int, int, int]], measured: np.ndarray, k: int, *,
+                   support: int) -> np.ndarray:
+    """``(F, M)`` int: the validation copies of :func:`_shifted_runs` (shift ``k`` != 0)
+    placed so that each poses its run's own problem, labelled with the run's index.
+
+    Runs of equal start and length (gaps at once) move together.  A group's copy goes to
+    the start nearest ``k`` × (its length plus half of it, at least 5 frames) from the
+    run, at or beyond it in ``k``'s direction (else on the other side), where every
+    marker of the group is measured (``measured (F, M)``) over the copy and one frame on
+    each side, no copy placed before of one of its markers lies within ``support`` frames
+    (so the copy's gap has the run's length, and the spline's samples next to it are not
+    knocked out by another run's copy), and the take's ends are
+    :func:`_spline_support_needed` frames away.  Groups are placed in the order of
+    ``runs``; then the groups with no such start are copied where the same holds but for
+    the measured samples (nearest the same place), so that their runs are still scored on
+    what is measured there, away from the copies placed on measured samples; no such
+    start either, no copy.  Without that second pass the real racing take's sternum marker
+    (measured in 21 of 700 frames), knocked out over frames 408-410 (0.5 s / 1 % /
+    independent, mask seed 684), got no copy of its 37-frame run, the local fill, never
+    scored, decided alone and the blend came out 88.8 mm off (the whole-body fill: 5.3 mm);
+    with it, 23 mm.
+
+    Without this, the copies were moved by the shift alone, and in a take with long holes
+    they merged with the marker's holes and with the copies of its other runs, knocked out
+    in the same pass: ``ktk_kinematics_basket_sprint.c3d``, the push-rim marker
+    SWL:Marker1, missing over frames 2175-2413, 2415-2670, 2672-2880 and 2894-2902, and
+    knocked out over 2904-2915 (gap protocol 0.1 s / 1 % / clustered, mask seed 677):
+    its 12-frame copies lay in gaps of 231, 777, 238 and 928 frames, the spline, 0.86 mm
+    off in the gap, was scored at 407 mm and the blend came out 44.6 mm off; with the
+    copies placed, 0.86 mm.
+    """
+    F, M = measured.shape
+    out = np.full((F, M), -1, dtype=np.int64)
+    near = np.zeros((F, M), dtype=bool)  # within `support` frames of a copy placed
+    groups: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for r, (m, a, b) in enumerate(runs):
+        groups.setdefault((a, b), []).append((r, m))
+    fallback = []
+    for on_measured in (True, False):
+        for (a, b), members in (groups.items() if on_measured else fallback):
+            L = b - a
+            ms = np.array([m for _, m in members])
+            edge = _spline_support_needed(L, support, SPLINE_MIN_SUPPORT_SHARE) if support else 0
+            if F - L - 2 * edge < 2:
+                edge = 0
+            ok = ~near[:, ms].any(1)
+            if on_measured:
+                ok &= measured[:, ms].all(1)
+            free = np.concatenate([[0], np.cumsum(ok)])
+            starts = np.arange(max(edge, 1), F - L - max(edge, 1) + 1)  # frames s-1..s+L free
+            starts = starts[free[starts + L + 1] - free[starts - 1] == L + 2]
+            if not len(starts):
+                if on_measured:
+                    fallback.append(((a, b), members))
+                continue
+            nominal = a + k * (L + max(L // 2, 5))
+            ahead = starts[(starts - nominal) * np.sign(k) >= 0]
+            pick = ahead if len(ahead) else starts
+            s0 = int(pick[np.argmin(np.abs(pick - nominal))])
+            for r, m in members:
+                out[s0:s0 + L, m] = r
+            near[max(s0 - support, 0):s0 + L + support, ms] = True
+    return out
+
+
+def _rigid_body_fill(positions: np.ndarray, holes: np.ndarray,
+                     reference: np.ndarray, *,
+                     donors: Literal["rigid", "nearest"] = "rigid",
+                     disagreement: np.ndarray | None = None,
+                     donor_sets: dict | None = None) -> np.ndarray:
+    """Rigid-body estimates of the holes from 3 donors (as Vicon's rigid-body fill).
+
+    Per run of holes, 3 donors measured through it and at the marker's last /
+    first measured frame around it carry the marker from those frames through
+    the gap (Horn fit of the donors at the anchor frame onto the donors at
+    each gap frame), the two blended linearly.  ``donors="rigid"``: the most
+    rigid of the marker's :data:`RIGID_BODY_POOL` nearest markers first (then
+    of its 40 nearest; :func:`~mocapflow.stages.skin.regress.predictor_ranking`);
+    ``"nearest"``: the nearest in the reference pose (Vicon's choice, the
+    better one when a segment's cluster is the nearest markers).
+
+    ``disagreement``, optional ``(F, M)`` float array: set to the distance between the
+    two carries (from before and from after the gap) at the holes carried from both,
+    NaN elsewhere (how far the marker moves against its donors within the gap).
+    ``donor_sets``, optional dict: set to ``{(marker, start, stop): donors}`` (a
+    ``frozenset`` of marker indices) for every run of holes carried.
+
+    Returns
+    -------
+    (F, M, 3) float ndarray
+        Estimates at ``holes``, NaN elsewhere and where no 3 donors qualify.
+    """
+    F, M, _ = positions.shape
+    vis = finite_rows(positions)
+    out = np.full(positions.shape, np.nan)
+    markers = np.flatnonzero(holes.any(0))
+    src, tgt, anchor, frame, mark, wt, side = [], [], [], [], [], [], []
+    if donors == "nearest":
+        known = np.isfinite(reference).all(1)
+        dist = np.linalg.norm(reference[markers, None] - reference[None], axis=-1)
+        dist[:, ~known] = np.inf
+        dist[np.arange(len(markers)), markers] = np.inf
+        ranked = [o[np.isfinite(d[o])] for d, o in zip(dist, np.argsort(dist, axis=1))]
+    elif donors == "rigid":
+        near = predictor_ranking(positions, reference, markers, pool=RIGID_BODY_POOL)
+        wide = predictor_ranking(positions, reference, markers, pool=40)
+        ranked = [np.concatenate([c1, c2[~np.isin(c2, c1)]]) for c1, c2 in zip(near, wide)]
+    else:
+        raise ValueError(f"rigid-body fill: donors must be 'rigid' or 'nearest', got {donors!r}")
+    for m, cand in zip(markers, ranked):
+        for a, b in true_runs(holes[:, m]):
+            anchors = [f for f in (a - 1, b) if 0 <= f < F and vis[f, m]]
+            if not anchors:
+                continue
+            need = vis[a:b][:, cand].all(0) & vis[anchors][:, cand].all(0)
+            d = cand[need][:3]
+            if len(d) < 3:
+                continue
+            if donor_sets is not None:
+                donor_sets[(int(m), a, b)] = frozenset(d.tolist())
+            s = (np.arange(a, b) - a + 1) / (b - a + 1)
+            for f in anchors:
+                src.append(np.broadcast_to(positions[f, d], (b - a, 3, 3)))
+                tgt.append(positions[a:b][:, d])
+                anchor.append(np.broadcast_to(positions[f, m], (b - a, 3)))
+                frame.append(np.arange(a, b))
+                mark.append(np.full(b - a, m))
+                wt.append(np.ones(b - a) if len(anchors) == 1 else (1 - s if f < a else s))
+                side.append(np.full(b - a, 0.0 if len(anchors) == 1 else (1.0 if f < a else -1.0)))
+    if disagreement is not None:
+        disagreement[:] = np.nan
+    if not src:
+        return out
+    R, t = absolute_orientation_batch(np.concatenate(src), np.concatenate(tgt))
+    e = np.einsum("nij,nj->ni", R, np.concatenate(anchor)) + t
+    f, m, w = np.concatenate(frame), np.concatenate(mark), np.concatenate(wt)
+    acc = np.zeros((F, M, 3))
+    np.add.at(acc, (f, m), e * w[:, None])
+    got = np.zeros((F, M), dtype=bool)
+    got[f, m] = True
+    out[got] = acc[got]
+    if disagreement is not None:
+        sd = np.concatenate(side)
+        two = sd != 0
+        diff = np.zeros((F, M, 3))
+        np.add.at(diff, (f[two], m[two]), e[two] * sd[two, None])
+        both = np.zeros((F, M), dtype=bool)
+        both[f[two], m[two]] = True
+        disagreement[both] = np.linalg.norm(diff[both], axis=-1)
+    return out
+
+
+def fill_by_validated_blend(
+    X: np.ndarray,
+    positions: np.ndarray,
+    holes: np.ndarray,
+    surface: MarkerSurface,
+    *,
+    interpolate: int,
+    local_fill: Callable[[np.ndarray], np.ndarray],
+    n_shifts: int = len(VALIDATION_SHIFTS),
+    rate: float | None = None,
+) -> tuple[np.ndarray, dict[str, float]]:
+    """The local fill blended with a whole-body PCA, a spline and two rigid-body fills.
+
+    Five estimates of every hole (:data:`BLEND_MODELS`, :func:`_blend_members`):
+    the local fill ``X`` (regression, PCA passes, rigid fallback); the
+    whole-body PCA trained on the take completed by it
+    (:func:`~mocapflow.stages.skin.lowrank.whole_body_pca`, Gløersen &
+    Federolf R2 without complete frames); for interior holes, a cubic spline
+    in time through ``interpolate`` measured samples each side (at least 2;
+    its copies take the samples the hole has, :func:`_gap_support`); and the
+    rigid-body fill from 3 donors (:func:`_rigid_body_fill`), the most rigid
+    nearby markers and the 3 nearest (Vicon's choice).  Which is best
+    depends on the capture, the marker, the gap's length and what else is
+    missing with it, so each is scored on the take itself: every run of
+    holes is copied next to itself (:func:`_shifted_runs`, ``n_shifts`` of
+    :data:`VALIDATION_SHIFTS`; runs that start together move together, so a
+    cluster's gaps are validated as a cluster; kept far enough from the take's
+    ends for the spline to reach them, and placed where each copy's gap is its run's
+    length, :func:`_placed_copies`) onto measured samples, which
+    are knocked out and filled by the same models (the local fill without the
+    blend; :func:`_validation_errors`).  A run's models are compared on the
+    copies that every model able to estimate the whole run estimated in full
+    (:func:`_validation_mse`: a copy moved onto the take's edge, where a
+    spline cannot reach, no longer shuts the spline out of the run), and its
+    estimates are averaged with weights ∝ (mean squared error on those
+    copies)^-:data:`BLEND_POWER`, a rigid-body fill's (:data:`RIGID_MODELS`)
+    error taken as at least :data:`RIGID_DISAGREEMENT_SHARE` of how far its
+    carries from before and after the gap disagree (the marker moving against
+    its donors there, which the copies need not see; a smaller share on runs
+    shorter than :data:`RIGID_DISAGREEMENT_DURATION` when ``rate`` is given), a model whose estimate
+    repeats an earlier one's counted once (:func:`_earlier_twins`), and the
+    models the gap itself shows far off left out of it (:func:`_outlying_estimates`:
+    an estimate far beyond its and the others' validated errors from the others'
+    median, sooner where it does not join the measured trajectory at the gap's ends, or
+    missing those ends alone; what the marker does inside its own gap, which no copy
+    sees); a run with no copy scored keeps the local fill.
+
+    Parameters
+    ----------
+    X : (F, M, 3) float ndarray
+        The local fill (``holes`` filled where it could).
+    positions : (F, M, 3) float ndarray
+        Measured positions, NaN at holes.
+    holes : (F, M) bool ndarray
+    surface : MarkerSurface
+    interpolate : int
+        Measured samples on each side of a spline.
+    local_fill : callable
+        The local fill of the validation copies: ``(F, M, 3)`` positions with NaN at holes
+        to the same with the holes filled (:func:`~mocapflow.stages.skin.fill.fill_holes`
+        with its own arguments, without the blend).
+    n_shifts : int
+        Copies of each run (the first of :data:`VALIDATION_SHIFTS`).
+    rate : float, optional
+        Frames per second (see :data:`RIGID_DISAGREEMENT_DURATION`; None: the full share
+        on every run).
+
+    Returns
+    -------
+    filled : (F, M, 3) float ndarray
+    weights : dict
+        Mean weight of each of :data:`BLEND_MODELS` over the filled holes.
+    """
+    F, M, _ = X.shape
+    disagreement = {k: np.full(holes.shape, np.nan) for k in RIGID_MODELS}
+    donor_sets: dict[int, dict] = {k: {} for k in RIGID_MODELS}
+    est = _blend_members(X, positions, holes, surface, interpolate=interpolate,
+                         disagreement=disagreement, donor_sets=donor_sets)
+    runs = _runs(holes)
+    run = np.full((F, M), -1, dtype=np.int64)
+    for r, (m, a, b) in enumerate(runs):
+        run[a:b, m] = r
+    # the models that estimate the whole of a run are the ones its copies compare
+    full = np.ones((len(BLEND_MODELS), len(runs)), dtype=bool)
+    reach = finite_rows(est) | ~holes[None]  # (K, F, M)
+    for r, (m, a, b) in enumerate(runs):
+        full[:, r] = reach[:, a:b, m].all(1)
+    errs, ok = _validation_errors(positions, holes, runs, surface, interpolate=interpolate,
+                                  local_fill=local_fill, shifts=VALIDATION_SHIFTS[:n_shifts],
+                                  donor_sets=donor_sets)
+    mse = _validation_mse(errs, ok, full)
+    _floor_rigid_errors(mse, disagreement, run, _disagreement_shares(runs, rate))
+    wr = _blend_weights(mse)
+    twins = _earlier_twins(est, runs)
+    _consensus_where_unscored(wr, mse, est, runs, full, twins)
+    _count_once(wr, twins)  # a model given twice weighs once
+    wr[_outlying_estimates(est, runs, mse, wr, positions)] = 0.0  # far off in the gap
+    w = np.where(holes[None], wr[:, np.maximum(run, 0)], 0.0)  # (K, F, M)
+    have = finite_rows(est) & holes[None]  # (K, F, M)
+    wf = np.where(have, w, 0.0)
+    tot = wf.sum(0)
+    blend = (np.nan_to_num(est) * wf[..., None]).sum(0) / np.maximum(tot, 1e-300)[..., None]
+    out = X.copy()
+    sel = holes & (tot > 0)
+    out[sel] = blend[sel]
+    share = wf[:, sel] / tot[sel]
+    return out, {n: float(share[k].mean()) if sel.any() else 0.0
+                 for k, n in enumerate(BLEND_MODELS)}
+
+
+#: Two blend members whose estimates of a run agree within this (m) are one model
+#: (:func:`_earlier_twins`): the same donors, their terms added in another order.
+SAME_ESTIMATE_TOLERANCE = 1e-9
+
+
+def _earlier_twins(est: np.ndarray, runs: list[tuple[int, int, int]]) -> np.ndarray:
+    """``(K, R)`` int: the first earlier model whose estimate of run ``r`` is model ``k``'s
+    (within :data:`SAME_ESTIMATE_TOLERANCE` at every sample; ``est`` ``(K, F, M, 3)``,
+    :func:`_blend_members`), -1 where none is: ``>= 0`` marks a repeated estimate.
+
+    On a sparse capture the most rigid markers near a marker are often its 3 nearest:
+    the two rigid-body fills then give one estimate, which weighed twice in the blend
+    (PiG calibration, left wrist, 0.1 s holes: both at 0.59-0.82 mm where the spline
+    was 0.25-0.36 mm, blend 0.36-0.61 mm; counted once 0.29-0.53 mm)."""
+    K = est.shape[0]
+    out = np.full((K, len(runs)), -1, dtype=np.int64)
+    for r, (m, a, b) in enumerate(runs):
+        e = est[:, a:b, m]  # (K, L, 3)
+        fin = np.isfinite(e).all((1, 2))
+        for k in range(1, K):
+            if fin[k]:
+                out[k, r] = next((j for j in range(k) if fin[j] and np.abs(e[k] - e[j]).max()
+                                  <= SAME_ESTIMATE_TOLERANCE), -1)
+    return out
+
+
+def _count_once(weights: np.ndarray, twins: np.ndarray) -> None:
+    """Set the weights ``(K, R)`` of the repeated estimates (``twins (K, R)``: the earlier
+    model giving each, :func:`_earlier_twins`) to 0, in place, the first model giving it
+    taking the largest weight of them: the estimate weighs once, as much as its best
+    validated giver.  Before, the repeat alone lost its weight: on basket_sprint
+    (0.1 s / 10 % / clustered, mask seed 699) the local fill of SWL:Marker2's run
+    2242-2259 was the spline's (1.04 mm off, validated 1.09 mm against the local fill's
+    48 mm on other copies), the spline's weight went, the rigid-body fills could not
+    reach the knocked-out sample and the whole-body PCA filled it alone, 502 mm off."""
+    repeated = twins >= 0
+    for k, r in zip(*np.nonzero(repeated)):
+        j = twins[k, r]
+        while twins[j, r] >= 0:  # the first giver of that estimate
+            j = twins[j, r]
+        weights[j, r] = max(weights[j, r], weights[k, r])
+    weights[repeated] = 0.0
+
+
+#: A blend member whose estimate of a run lies farther from the other members' median
+#: than this many times the validated RMS errors (its own plus the others' median) is
+#: left out of that run (:func:`_outlying_estimates`).  At 3 it also dropped a spline that
+#: was right: PiG calibration, the whole right arm gone for 0.5 s (the gap protocol's
+#: 0.5 s / 10 % / clustered mask of seed 555), where the four spatial members share their
+#: error (4-16 mm, donors gone with the arm) and the spline, 1-2 mm off, lay 4-5 mm from
+#: them: 1.43 -> 3.31 mm; at 5 that stays 1.43 mm and the cases of
+#: :func:`_outlying_estimates` keep their gains.
+OUTLIER_FACTOR = 5.0
+
+
+#: The same test at this factor for a member that also misses the measured trajectory at
+#: the run's ends by more than :data:`BOUNDARY_FACTOR` × the others' median miss
+#: (:func:`_boundary_misses`): the gap itself shows it off where the others join.  The arm
+#: case above is not touched by it: the spline joins the trajectory at the ends.
+JOINLESS_OUTLIER_FACTOR = 3.0
+
+
+#: A member whose miss at the run's ends (:func:`_boundary_misses`) exceeds this many
+#: times its validated RMS error plus the others' median miss is left out whatever its
+#: distance from the others (:func:`_outlying_estimates`).
+BOUNDARY_FACTOR = 2.0
+
+
+#: The end-miss rules of :func:`_outlying_estimates` leave a member out only while a member
+#: validated within this many times its RMS error remains: the misses tell apart members
+#: the copies scored alike, and never hand a run to members they scored far worse.  ktk
+#: racing, Head1 and Head2 over a 0.5 s hole (the 0.5 s / 10 % / clustered mask of seed
+#: 610): the local fill, validated at 4.7-5.5 mm and 46-54 mm off, misses the ends by
+#: 61-73 mm; the others, validated at 38-124 mm, are 62-326 mm off: without this bound it
+#: was left out and the repetition's blend went 33 -> 180 mm.
+BOUNDARY_GUARD = 3.0
+
+
+def _boundary_misses(est: np.ndarray, positions: np.ndarray, m: int, a: int,
+                     b: int) -> np.ndarray:
+    """``(K,)``: how far each member's estimate ``est (K, b - a, 3)`` of marker ``m``'s run
+    ``a..b-1`` lies, at the run's first and last frame, from the measured trajectory carried
+    one frame on (``2 x[a-1] - x[a-2]``, ``2 x[b] - x[b+1]``; ``positions (F, M, 3)``, NaN
+    where not measured): the larger miss of the two ends, an end without two measured
+    samples left out; NaN when neither has them.  A sample of each member's error inside the
+    gap that no validation copy gives; carrying the trajectory on errs by about its change
+    of velocity over a frame (at 50 Hz on the Eb015pr walk, 0.2-2.4 mm where the markers
+    move 1-3 mm a frame)."""
+    x = positions[:, m]
+    seen = np.isfinite(x).all(-1)
+    miss = [np.linalg.norm(est[:, at] - (2 * x[near] - x[far]), axis=-1)
+            for at, near, far in ((0, a - 1, a - 2), (-1, b, b + 1))  # start, end
+            if 0 <= min(near, far) and max(near, far) < len(x) and seen[[near, far]].all()]
+    return np.max(miss, axis=0) if miss else np.full(est.shape[0], np.nan)
+
+
+def _outlying_estimates(est: np.ndarray, runs: list[tuple[int, int, int]], mse: np.ndarray,
+                        weights: np.ndarray, positions: np.ndarray | None = None) -> np.ndarray:
+    """``(K, R)`` bool: the members of each run whose estimate the gap itself shows far off,
+    beyond what the validation copies predicted.
+
+    For each run with at least 3 weighted members (``weights (K, R)``, :func:`_blend_weights`
+    with repeats already at 0; ``mse (K, R)``, :func:`_validation_mse`; ``est (K, F, M, 3)``,
+    :func:`_blend_members`), member ``k`` with validated scale ``s_k = √mse_k`` + the median
+    of the others' ``√mse`` and RMS distance ``d_k`` over the run from the others'
+    per-sample median is off when
+
+    * ``d_k > OUTLIER_FACTOR s_k`` (:data:`OUTLIER_FACTOR`), or
+    * ``d_k > JOINLESS_OUTLIER_FACTOR s_k`` and its miss at the run's ends
+      (:func:`_boundary_misses`, from ``positions (F, M, 3)``) exceeds
+      :data:`BOUNDARY_FACTOR` × the others' median miss, or
+    * that miss exceeds :data:`BOUNDARY_FACTOR` × (``√mse_k`` + the others' median miss).
+
+    The last two apply only while another member's ``√mse`` is within
+    :data:`BOUNDARY_GUARD` × ``√mse_k``.  The member off by the largest ratio is left
+    out, and the last two tests are repeated on the rest while 3 remain.  The first alone
+    leaves out at most one member: of the three left after it, two wrong ones that agree
+    outvote a right one (pyomeca's box marker ``boite:droite_ext``, the 1 s / 1 % /
+    independent mask of seed 594: after the spline, 61 mm off, the local fill and the
+    whole-body PCA, 8 mm off together, left out the rigid-body fill, 0.6 mm off: blend
+    0.6 -> 8.2 mm).  Without ``positions``, the first
+    rule alone.  The median, unweighted: the others' weighted mean is the outlier itself
+    when it holds the weight, and then every other member looks as far off as it does.
+
+    The copies cannot see what a marker does inside its own gap; the other members'
+    estimates there can, and so can the measured samples at its ends.  PiG calibration
+    (100 Hz, 300 frames): LFHD knocked out over frames 184-283 (1 s, the head turning near
+    the take's end): the copies scored the spline lowest (0.56 mm), but in the gap it is
+    18 mm off where the four spatial members agree within 2 mm (the nearest-donor rigid fill
+    0.7 mm off): blend 7.7 mm mean, 1.1 mm without the spline.  LPSI knocked out over
+    frames 2-11 (its first frames jump 30 mm): the spline, scored 0.03-0.07 mm on copies
+    later in the take, is 33 mm off, the others 5-7 mm: blend 32.8 -> 4.9 mm.  Eb015pr
+    (50 Hz walk, 26 markers), the right foot and shank and LSK4 gone for 0.5 s over frames
+    152-176 (the 0.5 s / 30 % / clustered mask of seed 531): the local fill and the
+    whole-body PCA, scored 7-11 mm on the copies, are 64-132 mm off on RSK2-4 and miss
+    the trajectory at the ends by 10-71 mm, where the spline and the rigid-body fills
+    (3-13 mm off) miss it by 0.2-4 mm.  The distance alone left out one of the two (1.05-1.33
+    × its bound) and the other held the weight: blend 42-48 mm; it also lies beyond 3 × its
+    scale and misses the ends by more than twice the others do, so it goes too: 4-11 mm."""
+    K = est.shape[0]
+    out = np.zeros((K, len(runs)), dtype=bool)
+    for r, (m, a, b) in enumerate(runs):
+        e = est[:, a:b, m]  # (K, L, 3)
+        live = np.flatnonzero(np.isfinite(e).all((1, 2)) & (weights[:, r] > 0)
+                              & np.isfinite(mse[:, r]))  # fmt: skip
+        miss = (np.full(K, np.nan) if positions is None else
+                _boundary_misses(e, positions, m, a, b))  # fmt: skip
+        rms = np.sqrt(mse[:, r])
+        while len(live) >= 3:
+            worst, flagged = 1.0, -1
+            for k in live:
+                o = live[live != k]
+                d = np.sqrt(np.mean(np.sum((e[k] - np.median(e[o], axis=0)) ** 2, -1)))
+                scale = rms[k] + np.median(rms[o])
+                ratio = 0.0 if out[:, r].any() else d / (OUTLIER_FACTOR * scale)
+                others_miss = np.median(miss[o])
+                if (miss[k] > BOUNDARY_FACTOR * others_miss  # False where NaN
+                        and rms[o].min() <= BOUNDARY_GUARD * rms[k]):  # fmt: skip
+                    ratio = max(ratio, d / (JOINLESS_OUTLIER_FACTOR * scale),
+                                miss[k] / (BOUNDARY_FACTOR * (rms[k] + others_miss)))
+                if ratio > worst:
+                    worst, flagged = ratio, k
+            if flagged < 0:
+                break
+            out[flagged, r] = True
+            live = live[live != flagged]
+    return out
+
+
+def _floor_rigid_errors(mse: np.ndarray, disagreement: dict[int, np.ndarray],
+                        run: np.ndarray, share: float | np.ndarray = RIGID_DISAGREEMENT_SHARE,
+                        ) -> None:  # fmt: skip
+    """Raise the validation errors ``mse`` ``(K, R)`` of the rigid-body fills, in place, to
+    ``share``² (:data:`RIGID_DISAGREEMENT_SHARE`, or one per run ``(R,)``,
+    :func:`_disagreement_shares`) × the mean squared disagreement of their carries over
+    each run (``disagreement``: ``{model index: (F, M)}``, :func:`_rigid_body_fill`; ``run``
+    ``(F, M)``: the run of each hole, -1 elsewhere).  A model not scored on a run (NaN)
+    stays unscored; a run carried from one side only is not raised."""
+    R = mse.shape[1]
+    for k, dis in disagreement.items():
+        at = (run >= 0) & np.isfinite(dis)
+        n = np.bincount(run[at], minlength=R)
+        d2 = np.bincount(run[at], weights=dis[at] ** 2, minlength=R) / np.maximum(n, 1)
+        mse[k] = np.maximum(mse[k], share ** 2 * d2)  # NaN stays NaN
+
+
+def _disagreement_shares(runs: list[tuple[int, int, int]], rate: float | None
+                         ) -> float | np.ndarray:  # fmt: skip
+    """The share of :func:`_floor_rigid_errors` per run ``(R,)``:
+    :data:`RIGID_DISAGREEMENT_SHARE` × the run's duration ÷
+    :data:`RIGID_DISAGREEMENT_DURATION`, at most the share (``rate`` None: the share)."""
+    if rate is None or not runs:
+        return RIGID_DISAGREEMENT_SHARE
+    frames = np.array([b - a for _, a, b in runs], dtype=float)
+    return RIGID_DISAGREEMENT_SHARE * np.minimum(
+        1.0, frames / (rate * RIGID_DISAGREEMENT_DURATION))
+
+
+def _blend_members(X: np.ndarray, positions: np.ndarray, holes: np.ndarray,
+                   surface: MarkerSurface, *, interpolate: int,
+                   disagreement: dict[int, np.ndarray] | None = None,
+                   spline_sides: tuple[np.ndarray, np.ndarray] | None = None,
+                   donor_sets: dict[int, dict] | None = None) -> np.ndarray:
+    """``(K, F, M, 3)``: the estimates of :data:`BLEND_MODELS` at ``holes`` (NaN elsewhere
+    and where a model cannot estimate), ``X`` being the local fill; ``disagreement``,
+    optional ``{model index: (F, M) array}``: the rigid-body fills' (filled in, see
+    :func:`_rigid_body_fill`); ``spline_sides``: the spline's support per hole
+    (``sides`` of :func:`_interpolate_interior`); ``donor_sets``, optional ``{model
+    index: dict}``: the rigid-body fills' donors per run (filled in, see
+    :func:`_rigid_body_fill`)."""
+    dis = disagreement or {}
+    dons = donor_sets or {}
+    low = whole_body_pca(X, finite_rows(positions), holes)
+    spl = np.full_like(positions, np.nan)
+    _interpolate_interior(spl, positions, holes, interpolate, sides=spline_sides)
+    rig = _rigid_body_fill(positions, holes, surface.reference,
+                           disagreement=dis.get(RIGID_MODELS[0]),
+                           donor_sets=dons.get(RIGID_MODELS[0]))
+    near = _rigid_body_fill(positions, holes, surface.reference, donors="nearest",
+                            disagreement=dis.get(RIGID_MODELS[1]),
+                            donor_sets=dons.get(RIGID_MODELS[1]))
+    return np.stack([np.where(holes[..., None], X, np.nan), low, spl, rig, near])
+
+
+def _validation_errors(positions: np.ndarray, holes: np.ndarray,
+                       runs: list[tuple[int, int, int]], surface: MarkerSurface, *,
+                       interpolate: int, local_fill: Callable[[np.ndarray], np.ndarray],
+                       shifts: tuple[int, ...],
+                       donor_sets: dict[int, dict] | None = None,
+                       ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Each model's errors on the validation copies of each run.
+
+    Every run of holes is copied next to itself (:func:`_shifted_runs`, once
+    per shift) onto measured samples, which are knocked out and estimated by
+    the models (``local_fill``, the local fill without the blend; the spline with at
+    most the measured samples the run itself has on each side, :func:`_gap_support`, so that a
+    spline short of samples at the hole is scored as it will be used).
+    With ``donor_sets`` (``{model index: {(marker, start, stop): donors}}``, the
+    rigid-body fills' donors of each run, :func:`_rigid_body_fill`), a rigid-body fill
+    is scored only on the copies where the run's own donors are measured, where it has
+    any (:func:`_donors_at_copies`).
+
+    Returns
+    -------
+    mse : (K, S, R) float ndarray
+        Mean squared error of model ``k`` on copy ``s`` of run ``r``.
+    ok : (K, S, R) bool ndarray
+        The copy has measured samples and the model estimated all of them.
+    """
+    F, M, _ = positions.shape
+    obs = finite_rows(positions)
+    n_runs = len(runs)
+    K = len(BLEND_MODELS)
+    support = _gap_support(obs, runs, interpolate)
+    mse = np.zeros((K, len(shifts), n_runs))
+    ok = np.zeros((K, len(shifts), n_runs), dtype=bool)
+    same = np.ones((K, len(shifts), n_runs), dtype=bool)  # carried with the run's donors
+    for s, k in enumerate(shifts):
+        moved = _shifted_runs(runs, (F, M), k, support=interpolate, measured=obs)
+        val = (moved >= 0) & obs
+        if not val.any():
+            continue
+        Pv = np.where(val[..., None], np.nan, positions)
+        Xv = local_fill(Pv)
+        ev = _blend_members(Xv, Pv, holes | val, surface, interpolate=interpolate,
+                            spline_sides=(np.where(val, moved, -1), support))
+        err = ((ev[:, val] - positions[val][None]) ** 2).sum(-1)  # (K, n)
+        for j, sets in (donor_sets or {}).items():
+            same[j, s] = _donors_at_copies(moved, runs, sets, obs & ~val)
+        rid = moved[val]
+        cnt = np.bincount(rid, minlength=n_runs)
+        for j in range(K):
+            fin = np.isfinite(err[j])
+            mse[j, s] = np.bincount(rid[fin], weights=err[j][fin], minlength=n_runs) / \
+                np.maximum(cnt, 1)
+            ok[j, s] = (cnt > 0) & (np.bincount(rid[~fin], minlength=n_runs) == 0)
+    ok &= same | ~(ok & same).any(1, keepdims=True)  # the run's donors, where they carry any
+    return mse, ok
+
+
+def _donors_at_copies(moved: np.ndarray, runs: list[tuple[int, int, int]], own: dict,
+                      measured: np.ndarray) -> np.ndarray:
+    """``(R,)`` bool: the donors a rigid-body fill carries each run with (``own``:
+    ``{(marker, start, stop): donors}``, :func:`_rigid_body_fill`) are all measured
+    (``measured (F, M)``, in the copies' pass) over the run's copy in ``moved``
+    (``(F, M)``, :func:`_shifted_runs`) and one frame on each side, so that the fill
+    carries the copy as it carries the run.  True where the run is not carried or has no
+    copy."""
+    F, _ = moved.shape
+    out = np.ones(len(runs), dtype=bool)
+    seen = _measured_before(measured)
+    hit, col = np.nonzero(moved >= 0)
+    rid = moved[hit, col]
+    lo = np.full(len(runs), F, dtype=np.int64)
+    hi = np.full(len(runs), -1, dtype=np.int64)
+    np.minimum.at(lo, rid, hit)
+    np.maximum.at(hi, rid, hit)
+    for r in np.flatnonzero(hi >= 0):
+        d = own.get(runs[r])
+        if d is None:
+            continue
+        a, b = max(lo[r] - 1, 0), min(hi[r] + 2, F)
+        out[r] = bool((seen[b, list(d)] - seen[a, list(d)] == b - a).all())
+    return out
+
+
+def _validation_mse(mse: np.ndarray, ok: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """``(K, R)``: each model's validation error on a run, the geometric mean of its mean
+    squared errors on the run's copies.
+
+    Geometric, so that one copy on a glitch does not decide the run: on the PiG
+    calibration a copy moved onto LPSI's first 6 frames (jumps of 30 mm) raised all
+    five models' arithmetic means to 4-18 mm (0.1-0.7 mm with that copy elsewhere),
+    and the blend of a 0.1 s hole the spline fills within 0.1 mm came out 0.6 mm off.
+    A run's models are compared on the same copies: those that every model in
+    ``usable`` (``(K, R)`` bool: it estimates the whole run) estimated in
+    full (a spline cannot reach a copy moved onto the take's edge, where every
+    model does worse); when no copy is common, each model's own full copies.
+    NaN where a model estimated no copy in full.  ``mse`` and ``ok`` are
+    ``(K, S, R)`` (:func:`_validation_errors`).
+    """
+    common = (ok | ~usable[:, None]).all(0) & ok.any(0)  # (S, R)
+    use = np.where(common.any(0)[None, None], common[None] & ok, ok)  # (K, S, R)
+    n = use.sum(1)
+    log_mse = np.log(np.maximum(mse, np.finfo(float).tiny))
+    return np.where(n > 0, np.exp((log_mse * use).sum(1) / np.maximum(n, 1)), np.nan)
+
+
+def _blend_weights(mse: np.ndarray) -> np.ndarray:
+    """``(K, R)`` blend weights of each run from the validation errors ``mse`` ``(K, R)``:
+    ∝ mse^-:data:`BLEND_POWER`; a run with no model scored keeps the local fill."""
+    wr = np.where(np.isfinite(mse), np.maximum(mse, 1e-12) ** -BLEND_POWER, 0.0)
+    wr[0, ~np.isfinite(mse).any(0)] = 1.0  # nothing scored: the local fill only
+    return wr
+
+
+def _consensus_where_unscored(weights: np.ndarray, mse: np.ndarray, est: np.ndarray,
+                              runs: list[tuple[int, int, int]], full: np.ndarray,
+                              twins: np.ndarray) -> None:  # fmt: skip
+    """Give each run that no model was scored on (no validation copy of it could be placed
+    on measured samples; ``mse (K, R)`` all NaN, :func:`_validation_mse`) to the member
+    whose estimate lies nearest the others' (the medoid: the least sum of RMS distances over
+    the run to the other members that estimate all of it, ``full (K, R)``, an estimate given
+    twice counted once: ``twins (K, R)``, :func:`_earlier_twins`), in place in
+    ``weights (K, R)`` (:func:`_blend_weights`, which gives such a run to the local fill);
+    with fewer than 3 such members there is no majority to follow and the local fill keeps
+    it.  Runs any model was scored on are left as they are.
+
+    basket_sprint (120 Hz, 26 markers), the 0.1 s / 10 % / independent mask of seed 717:
+    ``ForearmL:Marker4``, frames 3234-3246, had no copy scored; the local fill alone was
+    90.6 mm off where the four other members agreed within 4-9 mm of the truth."""
+    for r in np.flatnonzero(~np.isfinite(mse).any(0)):
+        m, a, b = runs[r]
+        # an estimate given twice (the two rigid-body fills on the same donors) is one voice
+        members = np.flatnonzero(full[:, r] & (twins[:, r] < 0)
+                                 & np.isfinite(est[:, a:b, m]).all((1, 2)))  # fmt: skip
+        if len(members) < 3:
+            continue
+        e = est[members, a:b, m]  # (n, L, 3)
+        d = np.sqrt(np.mean(np.sum((e[:, None] - e[None]) ** 2, -1), -1))  # (n, n) RMS
+        weights[:, r] = 0.0
+        weights[members[np.argmin(d.sum(1))], r] = 1.0
