@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import os
+import threading
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -60,3 +62,37 @@ def test_chunk_layout(monkeypatch):
     monkeypatch.setattr(store_zarr, "MAX_CHUNK_BYTES", 1000)
     assert f((100, 10), ("a", "b"), 8, 4) == ((12, 10), 0)  # big non-frame array: rows
     assert f((100, 10), ("frame", "b"), 8, 64) == ((12, 10), 0)  # frames capped by bytes
+
+
+class _Discard:
+    def put_many(self, items) -> None:
+        pass
+
+
+def test_zarr_notices_stay_quiet_when_threads_write_at_once():
+    """Zarr's notices about what an entry holds on purpose (consolidated metadata, str
+    dtypes) are ignored however the writes interleave: entries written from several
+    threads run as coroutines on Zarr's one event-loop thread, and a
+    ``warnings.catch_warnings`` block around each write let the consolidated-metadata
+    notice through when another write's block ended first (8 threads x 30 writes: it
+    failed 2 runs of 3)."""
+    failures: list[str] = []
+
+    def write(i: int) -> None:
+        try:
+            for k in range(50):
+                enc = Encoded(type="x", arrays={
+                    "a": (np.arange(200.0 + k + i).reshape(-1, 1), ("frame", "c")),
+                    "s": (np.array(["ab", "cd"]), ("n",))})
+                store_zarr.write_entry(_Discard(), {"o1": enc, "o2": enc}, {}, 64)
+        except Exception as e:  # noqa: BLE001 (reported below)
+            failures.append(repr(e)[:200])
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        threads = [threading.Thread(target=write, args=(i,)) for i in range(8)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    assert not failures, failures
