@@ -7,7 +7,7 @@ is also the last resort of the paper's passes
 (:func:`~mocapflow.stages.skin.fill.fill_by_local_pca`).
 
 On sparse captures (at most :data:`WHOLE_BODY_MAX_MARKERS` markers,
-``whole_body``), :func:`fill_by_validated_blend`: the local fill blended
+``whole_body``), :func:`fill_by_validated_blend` blends the local fill
 with a whole-body PCA trained on the take
 (:func:`mocapflow.stages.skin.lowrank.whole_body_pca`), a cubic spline in
 time and two rigid-body fills from 3 donors (the most rigid, the nearest),
@@ -919,7 +919,20 @@ def _validation_mse(mse: np.ndarray, ok: np.ndarray, usable: np.ndarray) -> np.n
     ``usable`` (``(K, R)`` bool: it estimates the whole run) estimated in
     full (a spline cannot reach a copy moved onto the take's edge, where every
     model does worse); when no copy is common, each model's own full copies.
-    NaN where a model estimated no copy in full.  ``mse`` and ``ok`` are
+    NaN where a model estimated no copy in full.
+
+    Tried and dropped: every copy a model was scored on counted, each copy's difficulty
+    fitted from the models scored on it (least squares, ``log mse = a_model + b_copy``).
+    basket_sprint's ``ArmL:Marker4`` (0.1 s / 1 % / independent, mask seed 779), whose
+    rigid-body fills were scored on the run's margins alone (copy 0), so that all five
+    models were judged there (23-72 mm each; in the gap 3.3-9.5 mm): blend 5.14 -> 3.36 mm
+    (the spline's 3.37), and basket's six 0.1 s configurations on mask seeds 770-779, same
+    samples, 5 -> 6 of 6 within 5 % (worst 1.26 -> 1.00).  But the copies that are hard for
+    the spatial models are not hard for the spline: the push-rim run of
+    ``test_a_rigid_fill_is_judged_where_its_own_donors_carry_it`` (copies at which the
+    local and whole-body fills erred by 76-120 mm, the spline by 0.9-1.3) gave the spline
+    the run over the rigid-body fill, 0.64 -> 1.76 mm; and a rigid capture's exact models
+    (errors of 1e-30 on some copies) set the scale of all the others.  ``mse`` and ``ok`` are
     ``(K, S, R)`` (:func:`_validation_errors`).
     """
     common = (ok | ~usable[:, None]).all(0) & ok.any(0)  # (S, R)
