@@ -242,6 +242,27 @@ def test_validation_mse_on_common_copies():
     assert np.isnan(got[2, 0])
 
 
+@pytest.mark.xfail(strict=True, reason="open (issue 15, gap protocol <= 1.2 x): a run "
+                   "judged on its margins alone, where every member errs by 23-72 mm")
+def test_a_run_judged_on_its_margins_alone(shared_data):
+    """Real basket sprint (120 Hz, 26 markers, no complete frame), the whole take:
+    ``ArmL:Marker4`` missing over frames 3242-3252 and knocked out over 3253-3259 (the gap
+    protocol's 0.1 s / 1 % / independent mask of seed 779, the case that puts that
+    configuration at 1.26 x the rigid-body fill on seeds 770-779).  The rigid-body fills
+    could be scored only on the run's margins (their donors are not measured at the moved
+    copies), so all five members were judged there, each 23-72 mm off, though 3.3-9.5 mm
+    off in the gap: the local fill (9.5 mm) keeps a third of the weight, the whole-body
+    fill (3.3 mm) is left out for missing the trajectory by 259 mm at the run's start, and
+    the blend is 5.14 mm against the spline's 3.37 (fitting each copy's difficulty fixed
+    this case and broke ``test_a_rigid_fill_is_judged_where_its_own_donors_carry_it``,
+    see :func:`fb._validation_mse`)."""
+    m = _real_take(shared_data, "ktk_kinematics_basket_sprint.c3d")
+    mask = _knocked_out(m, (3253, 3260), ["ArmL:Marker4"])
+    err, _ = _clean_errors(m, mask)
+    spline = _spline_errors(m, mask)
+    assert err.mean() <= 1.05 * spline.mean(), (err.mean(), spline.mean())
+
+
 def test_rigid_body_fill_with_the_nearest_donors():
     """Vicon's donor choice: the 3 nearest markers.  A 4-marker cluster (the
     marker and its 3 nearest) on a rotating segment and 3 farther markers that
