@@ -280,7 +280,7 @@ def write_entry(
 
 def _ignore_zarr_notices() -> None:
     """Ignore, in the whole process, the two notices Zarr gives about what an entry holds on
-    purpose: "Consolidated metadata is currently not part of the Zarr format 3
+    purpose: "Consolidated metadata is currently not part in the Zarr format 3
     specification" (xarray opens an output by it) and fixed-width str dtypes having "no
     Zarr V3 specification yet" (they round-trip).  In the whole process because a
     ``warnings.catch_warnings`` block cannot hold them back here: entries written from
