@@ -500,7 +500,6 @@ class _CSRRows:
         return replace(self, data=self.data.astype(_NONRIGID))
 
 
-
 def deform_positions(
     models: list[PartModel], fits: list[PartFit], n_vertices: int,
     operator: VertexOperator | None = None, *, residual: bool | None = None,

@@ -124,8 +124,6 @@ NEIGHBOUR_MODEL_WEIGHT = 0.1
 # --------------------------------------------------------------------------- PCA fill (§4.3)
 
 
-
-
 def _train_item(X: np.ndarray, specs: list[tuple], reference: np.ndarray, frames: np.ndarray,
                 variance: float, per_coordinate: int) -> tuple:
     """The work of one :func:`_train_chunk`, cut down to the columns its models read."""
