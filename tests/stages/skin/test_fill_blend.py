@@ -926,6 +926,31 @@ def test_a_member_far_from_the_others_weighted_mean_is_left_out(shared_data, mon
     assert err.mean() > 4e-3, err.mean()
 
 
+def test_two_members_apart_from_each_other_alone_are_both_kept(shared_data, monkeypatch):
+    """Real pyomeca take (100 Hz, 580 frames): the box's 8 markers and 8 thorax markers
+    knocked out over frames 3-202 (the gap protocol's 2 s / 30 % / clustered mask of seed
+    802).  On the box, every donor gone, the local fill (validated at 17-28 mm) is 78-165
+    mm off and the spline (8-26 mm) 53-66 mm; the two disagree with each other alike, 5.2
+    and 5.0 standard deviations from the others' weighted mean on ``boite:gauche_int``
+    (9.8 and 9.6 on ``boite:gauche_ext``), and nothing says which is off.  Leaving out the
+    farther of the two handed the box to the local fill: 49.0 mm mean over the 3,200
+    samples (box 92 mm).  A member is left out by that test only where it stands apart
+    (:data:`fb.CONSENSUS_MARGIN` x the next member's deviations): 26.4 mm (28.9 before
+    the test)."""
+    m = _real_take(shared_data, "pyomeca_markers_analogs.c3d")
+    names = [f"boite:{n}" for n in ("gauche_ext", "gauche_int", "droite_int", "droite_ext",
+                                     "avant_gauche", "avant_droit", "arriere_droit",
+                                     "arriere_gauche")]  # fmt: skip
+    names += [f"Daphnee:{n}" for n in ("STERr", "STERl", "STER", "XIPH", "CLAV_SC", "CLAVm",
+                                       "CLAV_ant", "SCAP_CP")]  # fmt: skip
+    mask = _knocked_out(m, (3, 203), names)
+    err, _ = _clean_errors(m, mask)
+    assert err.mean() < 30e-3, err.mean()
+    monkeypatch.setattr(fb, "CONSENSUS_MARGIN", 1.0)  # the farthest, however near the next
+    err, _ = _clean_errors(m, mask)
+    assert err.mean() > 40e-3, err.mean()
+
+
 def test_a_repeated_estimate_keeps_its_best_giver_s_weight():
     """The local fill gives the spline's estimate of a run, validated far worse than the
     spline on other copies: the estimate weighs as the spline's validation says, once.
