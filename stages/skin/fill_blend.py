@@ -140,12 +140,11 @@ configuration of all six files), against the rule before: 54 cases change, 38 fo
 better; the pooled error x 0.979 (basket) to 1.000 (racing); basket 0.1 s / 1 % /
 independent 0.82 x the spline and 0.37 x the rigid-body fill.  Those seeds show two
 failures the rule leaves as they were: PiG 15 of 18 configurations within 5 % on the
-same samples (0.1 s holes: 1.06 and 1.13 x the spline at 1 %, where every method is
-0.02-0.13 mm off, 1.05 x at 10 % / independent), and basket 0.1 s / 10 % / clustered at
-3.07 x the spline (seed 814:
-WheelchairL:Marker2 missing over frames 2333-2581, one sample knocked out beside that
-gap, where the local fill and the whole-body PCA are 2.4-2.7 m off and the spline 0.28 m:
-blend 1.61 m).
+same samples (0.1 s holes: 1.06 and 1.13 x the spline at 1 %, where it and ours are
+0.02-0.17 mm off, 1.05 x at 10 % / independent), and basket 0.1 s / 10 % / clustered at
+3.07 x the spline (seed 814: WheelchairL:Marker2 missing over frames 2333-2581, one
+sample knocked out beside that gap, where the local fill and the whole-body PCA are
+2.4-2.7 m off and the spline 0.28 m: blend 1.61 m).
 
 See :mod:`mocapflow.stages.skin.fill` for the local fill it starts from.
 """
