@@ -821,13 +821,13 @@ def _outlying_estimates(est: np.ndarray, runs: list[tuple[int, int, int]], mse: 
         rms = np.sqrt(mse[:, r])
         while len(live) >= 3:
             worst, flagged = 1.0, -1
-            apart = (np.zeros(K) if out[:, r].any() else
-                     _standing_apart(e, mse[:, r], live) / CONSENSUS_FACTOR)  # fmt: skip
+            first = not out[:, r].any()  # the distance tests leave out one member at most
+            apart = _standing_apart(e, mse[:, r], live) / CONSENSUS_FACTOR if first else None
             for k in live:
                 o = live[live != k]
                 d = np.sqrt(np.mean(np.sum((e[k] - np.median(e[o], axis=0)) ** 2, -1)))
                 scale = rms[k] + np.median(rms[o])
-                ratio = 0.0 if out[:, r].any() else max(d / (OUTLIER_FACTOR * scale), apart[k])
+                ratio = max(d / (OUTLIER_FACTOR * scale), apart[k]) if first else 0.0
                 others_miss = np.median(miss[o])
                 if (miss[k] > BOUNDARY_FACTOR * others_miss  # False where NaN
                         and rms[o].min() <= BOUNDARY_GUARD * rms[k]):  # fmt: skip
