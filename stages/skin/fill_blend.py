@@ -600,6 +600,7 @@ def fill_by_validated_blend(
     twins = _earlier_twins(est, runs)
     _consensus_where_unscored(wr, mse, est, runs, full, twins)
     _count_once(wr, twins)  # a model given twice weighs once
+    _keep_plausible(wr, est, runs, positions)  # leaving its partners, or too fast
     wr[_outlying_estimates(est, runs, mse, wr, positions)] = 0.0  # far off in the gap
     w = np.where(holes[None], wr[:, np.maximum(run, 0)], 0.0)  # (K, F, M)
     have = finite_rows(est) & holes[None]  # (K, F, M)
@@ -840,6 +841,119 @@ def _outlying_estimates(est: np.ndarray, runs: list[tuple[int, int, int]], mse: 
             out[flagged, r] = True
             live = live[live != flagged]
     return out
+
+
+#: Two markers are rigid partners (:func:`_take_bounds`) where their measured distance
+#: varies by at most this (m) over the frames both are measured, and those are at least
+#: :data:`PARTNER_MIN_FRAMES`: markers on one segment or object.
+PARTNER_MAX_SPREAD = 0.02
+
+#: See :data:`PARTNER_MAX_SPREAD`.
+PARTNER_MIN_FRAMES = 100
+
+#: A blend member whose estimate of a run does what the marker never does in its measured
+#: samples by more than this (m, :func:`_implausibility`) plus :data:`PLAUSIBILITY_FACTOR`
+#: times the least such excess of the run's members is left out of it
+#: (:func:`_keep_plausible`).  On the six shared real C3Ds, mask seeds 810-819 (every
+#: configuration of the gap protocol), the knocked-out samples themselves lie at most
+#: 88.7 mm outside their markers' ranges to rigid partners (Eb015pr; PiG calibration
+#: 86.5 mm: a static take whose subject moves inside some gaps; 99 % within 0-14 mm), and
+#: their steps over a run exceed the marker's fastest measured step by at most 5.8 mm
+#: RMS (Eb015pr, LSK4).
+PLAUSIBILITY_FLOOR = 0.1
+
+#: See :data:`PLAUSIBILITY_FLOOR`.
+PLAUSIBILITY_FACTOR = 2.0
+
+
+def _take_bounds(positions: np.ndarray, markers: np.ndarray
+                 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:  # fmt: skip
+    """Per marker of ``markers``, what its measured samples never do (``positions (F, M,
+    3)``, NaN where not measured): its rigid partners (:data:`PARTNER_MAX_SPREAD`) with
+    the least and greatest distance to each over the frames both are measured, and its
+    fastest step between two measured consecutive frames (inf where it has none):
+    ``(partners (P,) int, lo (P,), hi (P,), step)``."""
+    out = []
+    for m in markers:
+        d = np.linalg.norm(positions - positions[:, m:m + 1], axis=-1)  # (F, M)
+        seen = np.isfinite(d)
+        lo = np.where(seen, d, np.inf).min(0)
+        hi = np.where(seen, d, -np.inf).max(0)
+        ok = (seen.sum(0) >= PARTNER_MIN_FRAMES) & (hi - lo <= PARTNER_MAX_SPREAD)
+        ok[m] = False
+        p = np.flatnonzero(ok)
+        steps = np.linalg.norm(np.diff(positions[:, m], axis=0), axis=-1)
+        fast = np.max(steps, where=np.isfinite(steps), initial=-np.inf)
+        out.append((p, lo[p], hi[p], float(fast) if np.isfinite(fast) else np.inf))
+    return out
+
+
+def _implausibility(e: np.ndarray, bounds: tuple[np.ndarray, np.ndarray, np.ndarray, float],
+                    measured: np.ndarray, before: np.ndarray, after: np.ndarray
+                    ) -> np.ndarray:  # fmt: skip
+    """``(K,)``: how far each member's estimate ``e (K, L, 3)`` of a run goes beyond what
+    the marker's measured samples do (``bounds``, :func:`_take_bounds`): the larger of
+    (a) its distance outside the ranges to the rigid partners measured in the run's frames
+    (``measured (L, M, 3)``, NaN where not), per frame the largest over the partners,
+    RMS over the frames with any, and (b) its steps beyond the marker's fastest measured
+    step, RMS over the run's steps, joined to the measured sample before and after the
+    run where there is one (``before``, ``after`` ``(3,)``, NaN where not)."""
+    partners, lo, hi, fast = bounds
+    K = e.shape[0]
+    d = np.linalg.norm(e[:, :, None] - measured[None, :, partners], axis=-1)  # (K, L, P)
+    x = np.maximum(0.0, np.maximum(d - hi, lo - d))
+    seen = np.isfinite(measured[:, partners]).all(-1)  # (L, P)
+    x = np.where(seen[None], x, 0.0).max(-1, initial=0.0)  # (K, L)
+    at = seen.any(-1)
+    apart = np.sqrt(np.mean(x[:, at] ** 2, -1)) if at.any() else np.zeros(K)
+    path = np.concatenate([np.broadcast_to(before, (K, 1, 3)), e,
+                           np.broadcast_to(after, (K, 1, 3))], axis=1)
+    steps = np.linalg.norm(np.diff(path, axis=1), axis=-1)  # (K, L + 1), NaN at a missing end
+    over = np.maximum(0.0, steps - fast) ** 2
+    n = np.isfinite(steps[0]).sum()
+    speed = np.sqrt(np.nansum(over, -1) / n) if n else np.zeros(K)
+    return np.maximum(apart, speed)
+
+
+def _keep_plausible(weights: np.ndarray, est: np.ndarray, runs: list[tuple[int, int, int]],
+                    positions: np.ndarray) -> None:
+    """Leave out of each run, in place in ``weights (K, R)``, the members whose estimate
+    goes beyond what the marker's measured samples do (:func:`_implausibility`: leaving the
+    distances it keeps to its rigid partners, or moving faster than it ever does) by more
+    than :data:`PLAUSIBILITY_FLOOR` + :data:`PLAUSIBILITY_FACTOR` × the least such excess
+    of the members estimating all of the run; where that leaves no weighted member, the run
+    goes to the least excessive (``est (K, F, M, 3)``, :func:`_blend_members`; ``positions
+    (F, M, 3)``, NaN where not measured).  The copies score a model where its donors and
+    inputs were measured; over a long gap of a marker whose segment is half hidden a model
+    may extrapolate far, and the take's own measured samples say which leave the body.
+    Before :func:`_outlying_estimates`, whose median a member metres off would move.
+
+    basket_sprint (120 Hz, the 0.1 s / 10 % / clustered mask of seed 814):
+    WheelchairL:Marker2, missing over frames 2333-2581 with one more sample knocked out
+    inside, keeps 206.7-214.5 mm from WheelchairL:Marker1 over the take; the local fill and
+    the whole-body PCA put it 2.4-2.7 m from where it was, the spline 0.28 m: blend 1.61 m.
+    SWL:Marker2 (a push-rim marker, at most 33 mm a frame), frames 2467-2506: the local
+    fill jumps metres within the run, which left the spline (9 mm off, validated best)
+    far from the median of two and out (:func:`_outlying_estimates`), the whole-body PCA
+    (150 mm off) holding the weight."""
+    F = positions.shape[0]
+    markers = np.unique([m for m, _, _ in runs])
+    bounds = dict(zip(markers.tolist(), _take_bounds(positions, markers)))
+    nowhere = np.full(3, np.nan)
+    for r, (m, a, b) in enumerate(runs):
+        e = est[:, a:b, m]
+        live = np.flatnonzero(np.isfinite(e).all((1, 2)))
+        if not len(live):
+            continue
+        x = _implausibility(e[live], bounds[m], positions[a:b],
+                            positions[a - 1, m] if a > 0 else nowhere,
+                            positions[b, m] if b < F else nowhere)
+        off = x > PLAUSIBILITY_FLOOR + PLAUSIBILITY_FACTOR * x.min()
+        if not off.any():
+            continue
+        weights[live[off], r] = 0.0
+        if not weights[:, r].any():
+            weights[live[np.argmin(x)], r] = 1.0
 
 
 def _floor_rigid_errors(mse: np.ndarray, disagreement: dict[int, np.ndarray],
