@@ -544,7 +544,9 @@ def fill_by_validated_blend(
     carries from before and after the gap disagree (the marker moving against
     its donors there, which the copies need not see; a smaller share on runs
     shorter than :data:`RIGID_DISAGREEMENT_DURATION` when ``rate`` is given), a model whose estimate
-    repeats an earlier one's counted once (:func:`_earlier_twins`), and the
+    repeats an earlier one's counted once (:func:`_earlier_twins`), the models that
+    leave the marker's rigid partners or outrun its fastest step, as its measured samples
+    never do, left out of the run (:func:`_keep_plausible`), and the
     models the gap itself shows far off left out of it (:func:`_outlying_estimates`:
     an estimate far beyond its and the others' validated errors from the others'
     median, sooner where it does not join the measured trajectory at the gap's ends, or
@@ -926,16 +928,19 @@ def _keep_plausible(weights: np.ndarray, est: np.ndarray, runs: list[tuple[int, 
     (F, M, 3)``, NaN where not measured).  The copies score a model where its donors and
     inputs were measured; over a long gap of a marker whose segment is half hidden a model
     may extrapolate far, and the take's own measured samples say which leave the body.
-    Before :func:`_outlying_estimates`, whose median a member metres off would move.
+    Run before :func:`_outlying_estimates`, so that a member metres off does not move the
+    median those tests measure from (the case below reads the same in either order).
 
     basket_sprint (120 Hz, the 0.1 s / 10 % / clustered mask of seed 814):
     WheelchairL:Marker2, missing over frames 2333-2581 with one more sample knocked out
     inside, keeps 206.7-214.5 mm from WheelchairL:Marker1 over the take; the local fill and
     the whole-body PCA put it 2.4-2.7 m from where it was, the spline 0.28 m: blend 1.61 m.
-    SWL:Marker2 (a push-rim marker, at most 33 mm a frame), frames 2467-2506: the local
-    fill jumps metres within the run, which left the spline (9 mm off, validated best)
-    far from the median of two and out (:func:`_outlying_estimates`), the whole-body PCA
-    (150 mm off) holding the weight."""
+    SWL:Marker2 (a push-rim marker, at most 33 mm a frame), frames 2467-2506, three samples
+    knocked out: the local fill jumps metres within the run, which put the spline (9 mm
+    off, validated best) far from the median of two and out of the run
+    (:func:`_outlying_estimates`), the whole-body PCA (150 mm off) holding the weight:
+    blend 135 mm.  Both are left out here: 505 -> 76 mm over the case's four samples, as
+    the spline fills them."""
     F = positions.shape[0]
     markers = np.unique([m for m, _, _ in runs])
     bounds = dict(zip(markers.tolist(), _take_bounds(positions, markers)))
