@@ -122,6 +122,7 @@ from mocapflow.stages.motion.contacts import true_runs
 from mocapflow.stages.motion.datatypes import Markers
 from mocapflow.stages.skin.assign import assign_fragments
 from mocapflow.stages.skin.fill import fill_holes
+from mocapflow.stages.skin.fill_blend import PLAUSIBILITY_LIMIT
 from mocapflow.stages.skin.labelling import (
     LabellingError,
     fragment_frames,
@@ -664,16 +665,28 @@ def _merge(
 
 
 def _fill(
-    X: np.ndarray, surf: MarkerSurface, *, fill: bool, variance: float, fill_model: str,
-    fill_predictors: int, rate: float, ctx: Context,
+    X: np.ndarray, surf: MarkerSurface, labels: list[str], *, fill: bool, variance: float,
+    fill_model: str, fill_predictors: int, rate: float, ctx: Context,
 ) -> tuple[np.ndarray, dict[str, Any]]:
-    """Step 3 (§4.3): hole filling; the info without the models and the pass map."""
+    """Step 3 (§4.3): hole filling; the info without the models and the pass map, the
+    samples left unfilled as implausible per marker label (warned)."""
     if not fill:
         return X, {"filled_by_pass": []}
     Xf, finfo = fill_holes(X, surf, variance=variance, model=fill_model,
                            n_predictors=fill_predictors, rate=rate, ctx=ctx)
     finfo.pop("model_list", None)
     finfo.pop("pass", None)
+    left = np.asarray(finfo.pop("implausible", np.zeros(len(labels), dtype=int)))
+    finfo["implausible"] = {labels[m]: int(left[m]) for m in np.flatnonzero(left)}
+    if left.any():
+        ctx.warn(f"clean: {int(left.sum())} samples of {int((left > 0).sum())} marker(s) left "
+                 f"unfilled: every estimate of their gaps leaves the marker's rigid partners "
+                 f"or outruns its fastest measured step by more than "
+                 f"{PLAUSIBILITY_LIMIT * 1000:.0f} mm: "
+                 f"{_names(labels, np.flatnonzero(left))}",
+                 hint="little is measured near them there (their segment is hidden with "
+                      "them); they stay holes rather than estimates far off "
+                      "(report: fill.implausible)")
     return Xf, finfo
 
 
@@ -972,7 +985,7 @@ def _clean_subject(markers: Markers, *, reference_frame: int | None, opts: dict[
                                    max_break=o["max_break"], ctx=ctx)
     vis1 = finite_rows(X)
     with ctx.timer("fill"):
-        Xf, finfo = _fill(X, surf, fill=fill, variance=o["variance"],
+        Xf, finfo = _fill(X, surf, markers.labels, fill=fill, variance=o["variance"],
                           fill_model=o["fill_model"], fill_predictors=o["fill_predictors"],
                           rate=markers.rate, ctx=ctx)
     vis2 = finite_rows(Xf)

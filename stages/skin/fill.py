@@ -305,7 +305,10 @@ def fill_holes(
         a model, -1 = interpolated in time; with ``model="regression"`` pass 1
         is the regression), ``interpolated`` (samples), ``regression``
         (samples filled by the regression), ``blend`` (with ``whole_body``: the
-        mean weight of each model over the filled samples).
+        mean weight of each model over the filled samples), ``implausible`` (with
+        ``whole_body``: ``(M,)`` int, the samples per marker left unfilled because every
+        estimate of their run leaves the marker's rigid partners or outruns it,
+        :func:`~mocapflow.stages.skin.fill_blend._keep_plausible`).
     """
     ctx = ctx or Context()
     X = positions.copy()
@@ -344,9 +347,11 @@ def fill_holes(
         def local_fill(p: np.ndarray) -> np.ndarray:  # the validation copies' local fill
             return fill_holes(p, surface, **local, whole_body=False, ctx=ctx)[0]
 
+        before = finite_rows(X)
         X, info["blend"] = fill_by_validated_blend(X, positions, holes, surface,
                                                    interpolate=interpolate,
                                                    local_fill=local_fill, rate=rate)
+        info["implausible"] = (before & ~finite_rows(X)).sum(0)  # (M,) samples
     return X, info
 
 

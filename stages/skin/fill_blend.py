@@ -602,7 +602,7 @@ def fill_by_validated_blend(
     twins = _earlier_twins(est, runs)
     _consensus_where_unscored(wr, mse, est, runs, full, twins)
     _count_once(wr, twins)  # a model given twice weighs once
-    _keep_plausible(wr, est, runs, positions)  # leaving its partners, or too fast
+    unfit = _keep_plausible(wr, est, runs, positions)  # leaving its partners, or too fast
     wr[_outlying_estimates(est, runs, mse, wr, positions)] = 0.0  # far off in the gap
     w = np.where(holes[None], wr[:, np.maximum(run, 0)], 0.0)  # (K, F, M)
     have = finite_rows(est) & holes[None]  # (K, F, M)
@@ -612,6 +612,7 @@ def fill_by_validated_blend(
     out = X.copy()
     sel = holes & (tot > 0)
     out[sel] = blend[sel]
+    out[holes & (tot == 0) & unfit[0, np.maximum(run, 0)]] = np.nan  # nothing plausible
     share = wf[:, sel] / tot[sel]
     return out, {n: float(share[k].mean()) if sel.any() else 0.0
                  for k, n in enumerate(BLEND_MODELS)}
@@ -853,19 +854,16 @@ PARTNER_MAX_SPREAD = 0.02
 #: See :data:`PARTNER_MAX_SPREAD`.
 PARTNER_MIN_FRAMES = 100
 
-#: A blend member whose estimate of a run does what the marker never does in its measured
-#: samples by more than this (m, :func:`_implausibility`) plus :data:`PLAUSIBILITY_FACTOR`
-#: times the least such excess of the run's members is left out of it
-#: (:func:`_keep_plausible`).  On the six shared real C3Ds, mask seeds 810-819 (every
-#: configuration of the gap protocol), the knocked-out samples themselves lie at most
-#: 88.7 mm outside their markers' ranges to rigid partners (Eb015pr; PiG calibration
-#: 86.5 mm: a static take whose subject moves inside some gaps; 99 % within 0-14 mm), and
-#: their steps over a run exceed the marker's fastest measured step by at most 5.8 mm
-#: RMS (Eb015pr, LSK4).
-PLAUSIBILITY_FLOOR = 0.1
-
-#: See :data:`PLAUSIBILITY_FLOOR`.
-PLAUSIBILITY_FACTOR = 2.0
+#: A blend member whose estimate of a run goes beyond what the marker's measured samples
+#: ever do by more than this (m, RMS over the run, :func:`_implausibility`) is left out of
+#: the run (:func:`_keep_plausible`); where no member is left, the run stays a hole.  On
+#: the six shared real C3Ds, mask seeds 810-819 (every configuration of the gap protocol),
+#: the knocked-out samples themselves lie at most 88.7 mm outside their markers' ranges to
+#: rigid partners (Eb015pr; PiG calibration 86.5 mm: a static take whose subject moves
+#: inside some gaps; 99 % within 0-14 mm), and their steps (from the sample before a run
+#: to the one after it) exceed the marker's fastest measured step by at most 48 mm
+#: (Eb015pr; 13 mm on basket_sprint).
+PLAUSIBILITY_LIMIT = 0.1
 
 
 def _take_bounds(positions: np.ndarray, markers: np.ndarray
@@ -893,43 +891,44 @@ def _take_bounds(positions: np.ndarray, markers: np.ndarray
 def _implausibility(e: np.ndarray, bounds: tuple[np.ndarray, np.ndarray, np.ndarray, float],
                     measured: np.ndarray, before: np.ndarray, after: np.ndarray
                     ) -> np.ndarray:  # fmt: skip
-    """``(K,)``: how far each member's estimate ``e (K, L, 3)`` of a run goes beyond what
-    the marker's measured samples do (``bounds``, :func:`_take_bounds`): the larger of
-    (a) its distance outside the ranges to the rigid partners measured in the run's frames
-    (``measured (L, M, 3)``, NaN where not), per frame the largest over the partners,
-    RMS over the frames with any, and (b) its steps beyond the marker's fastest measured
-    step, RMS over the run's steps, joined to the measured sample before and after the
-    run where there is one (``before``, ``after`` ``(3,)``, NaN where not)."""
+    """``(K,)``: how far each member's estimate ``e (K, L, 3)`` of a run (NaN where it has
+    none) goes beyond what the marker's measured samples do (``bounds``,
+    :func:`_take_bounds`): the larger of (a) its distance outside the ranges to the rigid
+    partners measured in the run's frames (``measured (L, M, 3)``, NaN where not), per
+    frame the largest over the partners, RMS over the frames it estimates with any, and
+    (b) its largest step beyond the marker's fastest measured step, over its steps between
+    consecutive estimates and from and to the measured sample before and after the run
+    where there is one (``before``, ``after`` ``(3,)``, NaN where not); 0 where it has
+    none.  A few steps metres long are as wrong as a whole run off, and an RMS over a
+    long run hides them."""
     partners, lo, hi, fast = bounds
     K = e.shape[0]
     d = np.linalg.norm(e[:, :, None] - measured[None, :, partners], axis=-1)  # (K, L, P)
-    x = np.maximum(0.0, np.maximum(d - hi, lo - d))
-    seen = np.isfinite(measured[:, partners]).all(-1)  # (L, P)
-    x = np.where(seen[None], x, 0.0).max(-1, initial=0.0)  # (K, L)
-    at = seen.any(-1)
-    apart = np.sqrt(np.mean(x[:, at] ** 2, -1)) if at.any() else np.zeros(K)
+    x = np.fmax.reduce(np.maximum(d - hi, lo - d), axis=-1, initial=-np.inf)  # (K, L)
+    at = x > -np.inf  # NaN (no estimate, partner unmeasured) never wins fmax
+    apart = np.sqrt(np.sum(np.where(at, np.maximum(x, 0.0), 0.0) ** 2, -1)
+                    / np.maximum(at.sum(-1), 1))  # fmt: skip
     path = np.concatenate([np.broadcast_to(before, (K, 1, 3)), e,
                            np.broadcast_to(after, (K, 1, 3))], axis=1)
     steps = np.linalg.norm(np.diff(path, axis=1), axis=-1)  # (K, L + 1), NaN at a missing end
-    over = np.maximum(0.0, steps - fast) ** 2
-    n = np.isfinite(steps[0]).sum()
-    speed = np.sqrt(np.nansum(over, -1) / n) if n else np.zeros(K)
+    speed = np.where(np.isfinite(steps), steps - fast, 0.0).max(-1, initial=0.0)
     return np.maximum(apart, speed)
 
 
 def _keep_plausible(weights: np.ndarray, est: np.ndarray, runs: list[tuple[int, int, int]],
-                    positions: np.ndarray) -> None:
-    """Leave out of each run, in place in ``weights (K, R)``, the members whose estimate
-    goes beyond what the marker's measured samples do (:func:`_implausibility`: leaving the
-    distances it keeps to its rigid partners, or moving faster than it ever does) by more
-    than :data:`PLAUSIBILITY_FLOOR` + :data:`PLAUSIBILITY_FACTOR` × the least such excess
-    of the members estimating all of the run; where that leaves no weighted member, the run
-    goes to the least excessive (``est (K, F, M, 3)``, :func:`_blend_members`; ``positions
-    (F, M, 3)``, NaN where not measured).  The copies score a model where its donors and
-    inputs were measured; over a long gap of a marker whose segment is half hidden a model
-    may extrapolate far, and the take's own measured samples say which leave the body.
-    Run before :func:`_outlying_estimates`, so that a member metres off does not move the
-    median those tests measure from (the case below reads the same in either order).
+                    positions: np.ndarray) -> np.ndarray:
+    """``(K, R)`` bool: the members of each run whose estimate goes beyond what the
+    marker's measured samples ever do (:func:`_implausibility`: leaving the distances it
+    keeps to its rigid partners, or moving faster than it ever does) by more than
+    :data:`PLAUSIBILITY_LIMIT`; their ``weights (K, R)`` are set to 0 in place.  Where that
+    leaves no weighted member, the run goes to the plausible member estimating all of it
+    with the least excess; where there is none, to nobody (``est (K, F, M, 3)``,
+    :func:`_blend_members`; ``positions (F, M, 3)``, NaN where not measured).  The copies
+    score a model where its donors and inputs were measured; over a long gap of a marker
+    whose segment is hidden with it a model may extrapolate anywhere, and the take's own
+    measured samples say which leave the body.  Run before :func:`_outlying_estimates`, so
+    that a member metres off does not move the median those tests measure from (the case
+    below reads the same in either order).
 
     basket_sprint (120 Hz, the 0.1 s / 10 % / clustered mask of seed 814):
     WheelchairL:Marker2, missing over frames 2333-2581 with one more sample knocked out
@@ -939,26 +938,33 @@ def _keep_plausible(weights: np.ndarray, est: np.ndarray, runs: list[tuple[int, 
     knocked out: the local fill jumps metres within the run, which put the spline (9 mm
     off, validated best) far from the median of two and out of the run
     (:func:`_outlying_estimates`), the whole-body PCA (150 mm off) holding the weight:
-    blend 135 mm.  Both are left out here: 505 -> 76 mm over the case's four samples, as
-    the spline fills them."""
+    blend 135 mm.  As captured, the take loses the head, trunk and hand markers from about
+    frame 2100 to its end (1,500-1,600 frames): the local fill and the whole-body PCA, the
+    only members reaching all of it, jump up to 8-10 m a frame there."""
     F = positions.shape[0]
+    K, R = weights.shape
+    out = np.zeros((K, R), dtype=bool)
     markers = np.unique([m for m, _, _ in runs])
     bounds = dict(zip(markers.tolist(), _take_bounds(positions, markers)))
     nowhere = np.full(3, np.nan)
     for r, (m, a, b) in enumerate(runs):
         e = est[:, a:b, m]
-        live = np.flatnonzero(np.isfinite(e).all((1, 2)))
-        if not len(live):
+        some = np.flatnonzero(np.isfinite(e).all(-1).any(-1))
+        if not len(some):
             continue
-        x = _implausibility(e[live], bounds[m], positions[a:b],
-                            positions[a - 1, m] if a > 0 else nowhere,
-                            positions[b, m] if b < F else nowhere)
-        off = x > PLAUSIBILITY_FLOOR + PLAUSIBILITY_FACTOR * x.min()
-        if not off.any():
+        x = np.full(K, np.inf)
+        x[some] = _implausibility(e[some], bounds[m], positions[a:b],
+                                  positions[a - 1, m] if a > 0 else nowhere,
+                                  positions[b, m] if b < F else nowhere)
+        out[some, r] = x[some] > PLAUSIBILITY_LIMIT
+        if not out[:, r].any():
             continue
-        weights[live[off], r] = 0.0
+        weights[out[:, r], r] = 0.0
         if not weights[:, r].any():
-            weights[live[np.argmin(x)], r] = 1.0
+            full = np.isfinite(e).all((1, 2)) & ~out[:, r]
+            if full.any():
+                weights[np.argmin(np.where(full, x, np.inf)), r] = 1.0
+    return out
 
 
 def _floor_rigid_errors(mse: np.ndarray, disagreement: dict[int, np.ndarray],
