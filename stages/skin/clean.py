@@ -45,7 +45,11 @@ one place:
    measured samples: the filled ones are left as filled, see below).
 
 Nothing is invented: a marker never visible, or with fewer than 3 surface
-neighbours, keeps its NaNs (warning naming it, listed in the report).
+neighbours, keeps its NaNs (warning naming it, listed in the report); on sparse
+captures, so does a gap every estimate of which leaves the marker's rigid partners or
+outruns its fastest measured step by more than
+:data:`~mocapflow.stages.skin.fill_blend.PLAUSIBILITY_LIMIT` (warning naming the
+markers, samples per marker in the report's ``fill.implausible``).
 
 Where this implementation goes beyond the paper (each measured on simulated
 captures with ground truth, see ``benchmarks/clean.py``):
@@ -903,7 +907,8 @@ def clean(
         1 merged, 2 filled) and JSON: reference frame, surface, ``table1``
         (fragments before/after, merges, holes, filled, left), ``merges`` /
         ``rejections`` / ``conflicts`` (fragment, label, reason), fill passes and
-        models, never-visible and too-few-neighbour markers (step timings go to
+        models, samples left unfilled as implausible per marker (``fill.implausible``),
+        never-visible and too-few-neighbour markers (step timings go to
         ``ctx.timer``: the manifest, never the report);
         ``surface``: the marker surface as a
         :class:`~mocapflow.stages.motion.datatypes.Mesh` (vertices = reference pose
