@@ -544,14 +544,16 @@ def fill_by_validated_blend(
     carries from before and after the gap disagree (the marker moving against
     its donors there, which the copies need not see; a smaller share on runs
     shorter than :data:`RIGID_DISAGREEMENT_DURATION` when ``rate`` is given), a model whose estimate
-    repeats an earlier one's counted once (:func:`_earlier_twins`), the models that
-    leave the marker's rigid partners or outrun its fastest step, as its measured samples
-    never do, left out of the run (:func:`_keep_plausible`), and the
+    repeats an earlier one's counted once (:func:`_earlier_twins`), the
     models the gap itself shows far off left out of it (:func:`_outlying_estimates`:
     an estimate far beyond its and the others' validated errors from the others'
     median, sooner where it does not join the measured trajectory at the gap's ends, or
     missing those ends alone; what the marker does inside its own gap, which no copy
-    sees); a run with no copy scored keeps the local fill.
+    sees); a run with no copy scored keeps the local fill.  Then what the marker's
+    measured samples never do is taken out (:func:`_keep_plausible`): a model off the
+    distances the marker keeps to its rigid partners leaves the run, a model's samples next
+    to a jump longer than the marker ever steps leave the blend there, and samples no
+    model is left for stay holes.
 
     Parameters
     ----------
@@ -602,8 +604,11 @@ def fill_by_validated_blend(
     twins = _earlier_twins(est, runs)
     _consensus_where_unscored(wr, mse, est, runs, full, twins)
     _count_once(wr, twins)  # a model given twice weighs once
-    unfit = _keep_plausible(wr, est, runs, positions)  # leaving its partners, or too fast
+    bounds = _take_bounds(positions, np.unique([m for m, _, _ in runs]))
+    jumps = _jumps_in_runs(est, runs, positions, bounds)  # steps no measured sample makes
+    est = np.where(jumps[..., None], np.nan, est)  # those samples out of every test
     wr[_outlying_estimates(est, runs, mse, wr, positions)] = 0.0  # far off in the gap
+    unfit = _keep_plausible(wr, est, runs, positions, bounds)  # off its rigid partners
     w = np.where(holes[None], wr[:, np.maximum(run, 0)], 0.0)  # (K, F, M)
     have = finite_rows(est) & holes[None]  # (K, F, M)
     wf = np.where(have, w, 0.0)
@@ -612,7 +617,8 @@ def fill_by_validated_blend(
     out = X.copy()
     sel = holes & (tot > 0)
     out[sel] = blend[sel]
-    out[holes & (tot == 0) & unfit[0, np.maximum(run, 0)]] = np.nan  # nothing plausible
+    nothing = holes & (tot == 0) & (unfit[0, np.maximum(run, 0)] | jumps[0])
+    out[nothing] = np.nan  # no plausible member: the local fill is not either
     share = wf[:, sel] / tot[sel]
     return out, {n: float(share[k].mean()) if sel.any() else 0.0
                  for k, n in enumerate(BLEND_MODELS)}
@@ -854,26 +860,28 @@ PARTNER_MAX_SPREAD = 0.02
 #: See :data:`PARTNER_MAX_SPREAD`.
 PARTNER_MIN_FRAMES = 100
 
-#: A blend member whose estimate of a run goes beyond what the marker's measured samples
-#: ever do by more than this (m, RMS over the run, :func:`_implausibility`) is left out of
-#: the run (:func:`_keep_plausible`); where no member is left, the run stays a hole.  On
-#: the six shared real C3Ds, mask seeds 810-819 (every configuration of the gap protocol),
-#: the knocked-out samples themselves lie at most 88.7 mm outside their markers' ranges to
-#: rigid partners (Eb015pr; PiG calibration 86.5 mm: a static take whose subject moves
-#: inside some gaps; 99 % within 0-14 mm), and their steps (from the sample before a run
-#: to the one after it) exceed the marker's fastest measured step by at most 48 mm
-#: (Eb015pr; 13 mm on basket_sprint).
+#: A blend member is left out of a run where its estimate lies farther than this (m, RMS
+#: over the run) outside the distance ranges the marker keeps to its rigid partners over
+#: the take (:func:`_partner_excess`), and out of the samples either side of a step this
+#: much longer than the marker's fastest measured step (:func:`_jumps`); where no member
+#: is left, the samples stay holes (:func:`_keep_plausible`).  On the six shared real
+#: C3Ds, mask seeds 810-819 (every configuration of the gap protocol), the knocked-out
+#: samples themselves lie at most 88.7 mm outside their markers' ranges to rigid partners
+#: (Eb015pr; PiG calibration 86.5 mm: a static take whose subject moves inside some gaps;
+#: 99 % within 0-14 mm), and their steps (from the sample before a run to the one after
+#: it) exceed the marker's fastest measured step by at most 48 mm (Eb015pr; 13 mm on
+#: basket_sprint).
 PLAUSIBILITY_LIMIT = 0.1
 
 
 def _take_bounds(positions: np.ndarray, markers: np.ndarray
-                 ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:  # fmt: skip
+                 ) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, float]]:  # fmt: skip
     """Per marker of ``markers``, what its measured samples never do (``positions (F, M,
     3)``, NaN where not measured): its rigid partners (:data:`PARTNER_MAX_SPREAD`) with
     the least and greatest distance to each over the frames both are measured, and its
     fastest step between two measured consecutive frames (inf where it has none):
-    ``(partners (P,) int, lo (P,), hi (P,), step)``."""
-    out = []
+    ``{marker: (partners (P,) int, lo (P,), hi (P,), step)}``."""
+    out = {}
     for m in markers:
         d = np.linalg.norm(positions - positions[:, m:m + 1], axis=-1)  # (F, M)
         seen = np.isfinite(d)
@@ -884,79 +892,93 @@ def _take_bounds(positions: np.ndarray, markers: np.ndarray
         p = np.flatnonzero(ok)
         steps = np.linalg.norm(np.diff(positions[:, m], axis=0), axis=-1)
         fast = np.max(steps, where=np.isfinite(steps), initial=-np.inf)
-        out.append((p, lo[p], hi[p], float(fast) if np.isfinite(fast) else np.inf))
+        out[int(m)] = (p, lo[p], hi[p], float(fast) if np.isfinite(fast) else np.inf)
     return out
 
 
-def _implausibility(e: np.ndarray, bounds: tuple[np.ndarray, np.ndarray, np.ndarray, float],
-                    measured: np.ndarray, before: np.ndarray, after: np.ndarray
-                    ) -> np.ndarray:  # fmt: skip
+def _partner_excess(e: np.ndarray, partners: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                    measured: np.ndarray) -> np.ndarray:
     """``(K,)``: how far each member's estimate ``e (K, L, 3)`` of a run (NaN where it has
-    none) goes beyond what the marker's measured samples do (``bounds``,
-    :func:`_take_bounds`): the larger of (a) its distance outside the ranges to the rigid
-    partners measured in the run's frames (``measured (L, M, 3)``, NaN where not), per
-    frame the largest over the partners, RMS over the frames it estimates with any, and
-    (b) its largest step beyond the marker's fastest measured step, over its steps between
-    consecutive estimates and from and to the measured sample before and after the run
-    where there is one (``before``, ``after`` ``(3,)``, NaN where not); 0 where it has
-    none.  A few steps metres long are as wrong as a whole run off, and an RMS over a
-    long run hides them."""
-    partners, lo, hi, fast = bounds
-    K = e.shape[0]
+    none) lies outside the marker's distance ranges ``lo``, ``hi`` ``(P,)`` to its rigid
+    ``partners`` (:func:`_take_bounds`) measured in the run's frames (``measured (L, M,
+    3)``, NaN where not): per frame the largest over the partners, RMS over the frames it
+    estimates with any; 0 where it has none."""
     d = np.linalg.norm(e[:, :, None] - measured[None, :, partners], axis=-1)  # (K, L, P)
     x = np.fmax.reduce(np.maximum(d - hi, lo - d), axis=-1, initial=-np.inf)  # (K, L)
     at = x > -np.inf  # NaN (no estimate, partner unmeasured) never wins fmax
-    apart = np.sqrt(np.sum(np.where(at, np.maximum(x, 0.0), 0.0) ** 2, -1)
-                    / np.maximum(at.sum(-1), 1))  # fmt: skip
+    return np.sqrt(np.sum(np.where(at, np.maximum(x, 0.0), 0.0) ** 2, -1)
+                   / np.maximum(at.sum(-1), 1))  # fmt: skip
+
+
+def _jumps(e: np.ndarray, fast: float, before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """``(K, L)`` bool: the samples of each member's estimate ``e (K, L, 3)`` of a run next
+    to a step longer than the marker's fastest measured step ``fast`` +
+    :data:`PLAUSIBILITY_LIMIT`, its steps taken between consecutive estimates and from and
+    to the measured sample before and after the run where there is one (``before``,
+    ``after`` ``(3,)``, NaN where not)."""
+    K = e.shape[0]
     path = np.concatenate([np.broadcast_to(before, (K, 1, 3)), e,
                            np.broadcast_to(after, (K, 1, 3))], axis=1)
     steps = np.linalg.norm(np.diff(path, axis=1), axis=-1)  # (K, L + 1), NaN at a missing end
-    speed = np.where(np.isfinite(steps), steps - fast, 0.0).max(-1, initial=0.0)
-    return np.maximum(apart, speed)
+    bad = steps > fast + PLAUSIBILITY_LIMIT  # False where NaN
+    return bad[:, :-1] | bad[:, 1:]  # the step into a sample, the step out of it
+
+
+def _jumps_in_runs(est: np.ndarray, runs: list[tuple[int, int, int]], positions: np.ndarray,
+                   bounds: dict) -> np.ndarray:
+    """``(K, F, M)`` bool: the samples of each member's estimate (``est (K, F, M, 3)``,
+    :func:`_blend_members`) next to a step longer than its marker ever makes
+    (:func:`_jumps`; ``bounds``, :func:`_take_bounds`; ``positions (F, M, 3)``, NaN where
+    not measured).  A jump is local: the same member is often the best one a few frames
+    away (basket_sprint, the 1 s / 10 % / clustered mask of seed 820: ForearmL:Marker1, 2
+    and 4 over frames 2383-2526, where the local fill and the whole-body PCA jump 1.3-2.3 m
+    in a frame somewhere in the run and are 84-117 mm off at the knocked-out samples, the
+    spline 263-315 mm; leaving them out of the whole run took that repetition from 95 to
+    276 mm, out of those samples alone 101 mm)."""
+    F = positions.shape[0]
+    jumps = np.zeros(est.shape[:3], dtype=bool)
+    nowhere = np.full(3, np.nan)
+    for m, a, b in runs:
+        jumps[:, a:b, m] = _jumps(est[:, a:b, m], bounds[m][3],
+                                  positions[a - 1, m] if a > 0 else nowhere,
+                                  positions[b, m] if b < F else nowhere)
+    return jumps
 
 
 def _keep_plausible(weights: np.ndarray, est: np.ndarray, runs: list[tuple[int, int, int]],
-                    positions: np.ndarray) -> np.ndarray:
-    """``(K, R)`` bool: the members of each run whose estimate goes beyond what the
-    marker's measured samples ever do (:func:`_implausibility`: leaving the distances it
-    keeps to its rigid partners, or moving faster than it ever does) by more than
-    :data:`PLAUSIBILITY_LIMIT`; their ``weights (K, R)`` are set to 0 in place.  Where that
-    leaves no weighted member, the run goes to the plausible member estimating all of it
-    with the least excess; where there is none, to nobody (``est (K, F, M, 3)``,
-    :func:`_blend_members`; ``positions (F, M, 3)``, NaN where not measured).  The copies
-    score a model where its donors and inputs were measured; over a long gap of a marker
-    whose segment is hidden with it a model may extrapolate anywhere, and the take's own
-    measured samples say which leave the body.  Run before :func:`_outlying_estimates`, so
-    that a member metres off does not move the median those tests measure from (the case
-    below reads the same in either order).
+                    positions: np.ndarray, bounds: dict) -> np.ndarray:
+    """``(K, R)`` bool: the members of each run whose estimate lies more than
+    :data:`PLAUSIBILITY_LIMIT` outside the distances the marker keeps to its rigid partners
+    over the take (:func:`_partner_excess`; ``bounds``, :func:`_take_bounds`), their
+    ``weights (K, R)`` set to 0 in place.  Where that leaves a run no weighted member, it
+    goes to the member estimating all of it that stays within that bound, the least
+    outside it; where there is none, to nobody (``est (K, F, M, 3)``,
+    :func:`_blend_members`, NaN where a member has no estimate; ``positions (F, M, 3)``,
+    NaN where not measured).  The copies score a model where its donors and inputs were
+    measured; over a long gap of a marker whose segment is hidden with it a model may
+    extrapolate anywhere, and the take's own measured samples show where.
 
     basket_sprint (120 Hz, the 0.1 s / 10 % / clustered mask of seed 814):
     WheelchairL:Marker2, missing over frames 2333-2581 with one more sample knocked out
     inside, keeps 206.7-214.5 mm from WheelchairL:Marker1 over the take; the local fill and
     the whole-body PCA put it 2.4-2.7 m from where it was, the spline 0.28 m: blend 1.61 m.
-    SWL:Marker2 (a push-rim marker, at most 33 mm a frame), frames 2467-2506, three samples
-    knocked out: the local fill jumps metres within the run, which put the spline (9 mm
-    off, validated best) far from the median of two and out of the run
-    (:func:`_outlying_estimates`), the whole-body PCA (150 mm off) holding the weight:
-    blend 135 mm.  As captured, the take loses the head, trunk and hand markers from about
-    frame 2100 to its end (1,500-1,600 frames): the local fill and the whole-body PCA, the
-    only members reaching all of it, jump up to 8-10 m a frame there."""
-    F = positions.shape[0]
+    In the same repetition SWL:Marker2 (a push-rim marker, at most 33 mm a frame), frames
+    2467-2506, three samples knocked out: the local fill jumps metres within the run, which
+    put the spline (9 mm off, validated best) far from the median of two and out of the
+    run (:func:`_outlying_estimates`), the whole-body PCA (150 mm off) holding the weight:
+    blend 135 mm; with the jumps out of the tests (:func:`_jumps_in_runs`) the spline
+    stays.  As captured, the take loses the head, trunk and hand markers from about frame
+    2100 to its end (1,500-1,600 frames): the local fill and the whole-body PCA, the only
+    members reaching all of it, jump up to 8-10 m a frame there."""
     K, R = weights.shape
     out = np.zeros((K, R), dtype=bool)
-    markers = np.unique([m for m, _, _ in runs])
-    bounds = dict(zip(markers.tolist(), _take_bounds(positions, markers)))
-    nowhere = np.full(3, np.nan)
     for r, (m, a, b) in enumerate(runs):
-        e = est[:, a:b, m]
-        some = np.flatnonzero(np.isfinite(e).all(-1).any(-1))
-        if not len(some):
+        partners, lo, hi, _ = bounds[m]
+        if not len(partners):
             continue
-        x = np.full(K, np.inf)
-        x[some] = _implausibility(e[some], bounds[m], positions[a:b],
-                                  positions[a - 1, m] if a > 0 else nowhere,
-                                  positions[b, m] if b < F else nowhere)
-        out[some, r] = x[some] > PLAUSIBILITY_LIMIT
+        e = est[:, a:b, m]
+        x = _partner_excess(e, partners, lo, hi, positions[a:b])
+        out[:, r] = x > PLAUSIBILITY_LIMIT
         if not out[:, r].any():
             continue
         weights[out[:, r], r] = 0.0
