@@ -549,11 +549,12 @@ def fill_by_validated_blend(
     an estimate far beyond its and the others' validated errors from the others'
     median, sooner where it does not join the measured trajectory at the gap's ends, or
     missing those ends alone; what the marker does inside its own gap, which no copy
-    sees); a run with no copy scored keeps the local fill.  Then what the marker's
-    measured samples never do is taken out (:func:`_keep_plausible`): a model off the
-    distances the marker keeps to its rigid partners leaves the run, a model's samples next
-    to a jump longer than the marker ever steps leave the blend there, and samples no
-    model is left for stay holes.
+    sees); a run with no copy scored keeps the local fill.  What the marker's measured
+    samples never do is taken out: a model's samples next to a jump longer than the marker
+    ever steps leave the blend and the tests there (:func:`_jumps_in_runs`), a model off
+    the distances the marker keeps to its rigid partners leaves the run
+    (:func:`_keep_plausible`), and samples no model is left for, or where the blend itself
+    jumps, stay holes.
 
     Parameters
     ----------
@@ -619,6 +620,7 @@ def fill_by_validated_blend(
     out[sel] = blend[sel]
     nothing = holes & (tot == 0) & (unfit[0, np.maximum(run, 0)] | jumps[0])
     out[nothing] = np.nan  # no plausible member: the local fill is not either
+    out[_jumps_in_runs(out[None], runs, positions, bounds)[0]] = np.nan  # members that part
     share = wf[:, sel] / tot[sel]
     return out, {n: float(share[k].mean()) if sel.any() else 0.0
                  for k, n in enumerate(BLEND_MODELS)}
@@ -934,7 +936,10 @@ def _jumps_in_runs(est: np.ndarray, runs: list[tuple[int, int, int]], positions:
     and 4 over frames 2383-2526, where the local fill and the whole-body PCA jump 1.3-2.3 m
     in a frame somewhere in the run and are 84-117 mm off at the knocked-out samples, the
     spline 263-315 mm; leaving them out of the whole run took that repetition from 95 to
-    276 mm, out of those samples alone 101 mm)."""
+    276 mm, out of those samples alone 101 mm).  Applied to the blend too
+    (:func:`fill_by_validated_blend`, ``est`` ``(1, F, M, 3)``): where its members part by
+    metres the blend jumps between them (basket_sprint as captured, 5.4 m in a frame), and
+    the samples either side stay holes."""
     F = positions.shape[0]
     jumps = np.zeros(est.shape[:3], dtype=bool)
     nowhere = np.full(3, np.nan)
