@@ -1068,3 +1068,32 @@ def test_a_member_metres_off_a_rigid_object_is_left_out(shared_data, monkeypatch
     monkeypatch.setattr(fb, "PLAUSIBILITY_LIMIT", np.inf)  # the rule off
     err, _ = _clean_errors(m, mask)
     assert err[1] > 1.0 and (err[[0, 2, 3]] > 20e-3).all(), err
+
+
+def _worst_step_beyond_fastest(positions: np.ndarray, filled: np.ndarray) -> float:
+    """The longest step (m) of ``filled (F, M, 3)`` into or out of a hole of ``positions``
+    beyond its marker's fastest step between measured samples."""
+    holes = ~np.isfinite(positions).all(-1)
+    worst = 0.0
+    for m in np.flatnonzero(holes.any(0)):
+        fast = np.fmax.reduce(np.linalg.norm(np.diff(positions[:, m], axis=0), axis=-1))
+        s = np.linalg.norm(np.diff(filled[:, m], axis=0), axis=-1)
+        near = holes[1:, m] | holes[:-1, m]
+        worst = max(worst, float(np.fmax.reduce(s[near] - fast, initial=0.0)))  # NaN-blind
+    return worst
+
+
+def test_a_fill_never_steps_farther_than_its_marker_does(shared_data, monkeypatch):
+    """Real basket sprint as captured, frames 2000-3000, where the head, trunk, hand and
+    wheelchair markers are gone for hundreds of frames: the local fill and the whole-body
+    PCA extrapolate metres off and jump between frames, and the blend with them.  No filled
+    step is longer than its marker's fastest measured step + :data:`fb.PLAUSIBILITY_LIMIT`
+    (the samples either side stay holes); without the rule the fill jumps metres."""
+    m = _real_take(shared_data, "ktk_kinematics_basket_sprint.c3d").take_frames(slice(2000, 3000))
+    out = clean(m, merge=False, ctx=Context())
+    filled = out["markers"].positions
+    assert _worst_step_beyond_fastest(m.positions, filled) <= fb.PLAUSIBILITY_LIMIT
+    assert sum(out["report"]["fill"]["implausible"].values()) > 0
+    monkeypatch.setattr(fb, "PLAUSIBILITY_LIMIT", np.inf)  # the rule off
+    filled = clean(m, merge=False, ctx=Context())["markers"].positions
+    assert _worst_step_beyond_fastest(m.positions, filled) > 1.0
