@@ -306,9 +306,9 @@ def fill_holes(
         is the regression), ``interpolated`` (samples), ``regression``
         (samples filled by the regression), ``blend`` (with ``whole_body``: the
         mean weight of each model over the filled samples), ``implausible`` (with
-        ``whole_body``: ``(M,)`` int, the samples per marker left unfilled because every
-        estimate of their run leaves the marker's rigid partners or outruns it,
-        :func:`~mocapflow.stages.skin.fill_blend._keep_plausible`).
+        ``whole_body``: ``(M,)`` int, the samples per marker left unfilled because no
+        estimate of them stays within the marker's rigid partners' distances or its
+        fastest step, :data:`~mocapflow.stages.skin.fill_blend.PLAUSIBILITY_LIMIT`).
     """
     ctx = ctx or Context()
     X = positions.copy()
