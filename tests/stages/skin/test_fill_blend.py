@@ -242,25 +242,29 @@ def test_validation_mse_on_common_copies():
     assert np.isnan(got[2, 0])
 
 
-@pytest.mark.xfail(strict=True, reason="open (issue 15, gap protocol <= 1.2 x): a run "
-                   "judged on its margins alone, where every member errs by 23-72 mm")
-def test_a_run_judged_on_its_margins_alone(shared_data):
+def test_a_run_judged_on_its_margins_alone(shared_data, monkeypatch):
     """Real basket sprint (120 Hz, 26 markers, no complete frame), the whole take:
     ``ArmL:Marker4`` missing over frames 3242-3252 and knocked out over 3253-3259 (the gap
     protocol's 0.1 s / 1 % / independent mask of seed 779, the case that puts that
     configuration at 1.26 x the rigid-body fill on seeds 770-779).  The rigid-body fills
     could be scored only on the run's margins (their donors are not measured at the moved
     copies), so all five members were judged there, each 23-72 mm off, though 3.3-9.5 mm
-    off in the gap: the local fill (9.5 mm) keeps a third of the weight, the whole-body
-    fill (3.3 mm) is left out for missing the trajectory by 259 mm at the run's start, and
-    the blend is 5.14 mm against the spline's 3.37 (fitting each copy's difficulty fixed
-    this case and broke ``test_a_rigid_fill_is_judged_where_its_own_donors_carry_it``,
-    see :func:`fb._validation_mse`)."""
+    off in the gap: the local fill (9.5 mm) kept a third of the weight and the whole-body
+    fill (3.3 mm) was left out for missing the trajectory by 259 mm at the run's start:
+    blend 5.14 mm against the spline's 3.37 (fitting each copy's difficulty fixed this case
+    and broke ``test_a_rigid_fill_is_judged_where_its_own_donors_carry_it``, see
+    :func:`fb._validation_mse`).  That miss is a jump no measured step of the marker makes
+    (at most 38 mm a frame): the whole-body fill's samples next to its jumps (3242, and
+    3246-3247) leave the blend and the tests (:func:`fb._jumps_in_runs`), the other 15
+    samples of its run stay: 2.75 mm."""
     m = _real_take(shared_data, "ktk_kinematics_basket_sprint.c3d")
     mask = _knocked_out(m, (3253, 3260), ["ArmL:Marker4"])
     err, _ = _clean_errors(m, mask)
     spline = _spline_errors(m, mask)
-    assert err.mean() <= 1.05 * spline.mean(), (err.mean(), spline.mean())
+    assert err.mean() <= 0.9 * spline.mean(), (err.mean(), spline.mean())
+    monkeypatch.setattr(fb, "PLAUSIBILITY_LIMIT", np.inf)  # the rule off
+    err, _ = _clean_errors(m, mask)
+    assert err.mean() > 1.3 * spline.mean(), (err.mean(), spline.mean())
 
 
 def test_rigid_body_fill_with_the_nearest_donors():
