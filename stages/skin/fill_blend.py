@@ -167,6 +167,9 @@ from mocapflow.stages.skin.surface import MarkerSurface
 __all__ = [
     "BLEND_MODELS",
     "BLEND_POWER",
+    "PARTNER_MAX_SPREAD",
+    "PARTNER_MIN_FRAMES",
+    "PLAUSIBILITY_LIMIT",
     "RIGID_BODY_POOL",
     "RIGID_DISAGREEMENT_SHARE",
     "RIGID_MODELS",
