@@ -255,9 +255,9 @@ def result_rows(r: dict, data: str | None = None) -> list[dict]:
     """One JSON-able row per method of a :func:`run_case` result.
 
     Every row carries which of the case's deleted samples the method filled
-    (``filled``: hex of the packed bits, in the mask's order); ours' row also every
-    sample's error in micrometres (``err_um``), so ours can be compared with a
-    baseline on the samples that baseline filled (:func:`same_sample_ratios`)."""
+    (``filled``: hex of the packed bits, in the mask's order) and every sample's error
+    in micrometres (``err_um``, -1 where unfilled), so ours can be compared with a
+    baseline on the samples both filled (:func:`same_sample_ratios`)."""
     key = {k: r[k] for k in ("dataset", "duration", "fraction", "clustered", "rep")}
     rows = []
     for name, sc in r["methods"].items():
@@ -265,7 +265,7 @@ def result_rows(r: dict, data: str | None = None) -> list[dict]:
                "n_gapped": r.get("n_gapped"), **score_stats(sc)}
         if "filled" in sc:
             row["filled"] = np.packbits(sc["filled"]).tobytes().hex()
-        if name == "ours" and "err_all" in sc:
+        if "err_all" in sc:
             row["err_um"] = np.round(np.nan_to_num(sc["err_all"], nan=-1e-6) * 1e6
                                      ).astype(np.int64).tolist()
         rows.append(row)
@@ -273,10 +273,12 @@ def result_rows(r: dict, data: str | None = None) -> list[dict]:
 
 
 def same_sample_ratios(common: list[dict]) -> dict[str, float]:
-    """Ours' mean error over the samples each baseline filled ÷ that baseline's mean
-    error (the same samples), pooled over the repetitions ``common`` (``{method: row}``
-    per repetition, one mask; a baseline that failed on one is left out); empty when a
-    row lacks ``filled`` / ``err_um``."""
+    """Ours' mean error over the samples both ours and each baseline filled ÷ that
+    baseline's mean error over the same samples, pooled over the repetitions ``common``
+    (``{method: row}`` per repetition, one mask; a baseline that failed on one is left
+    out); empty when a row lacks ``filled`` / ``err_um``.  A baseline row written before
+    baselines carried ``err_um`` is taken over all the samples it filled (ours' unfilled
+    ones then count in the baseline's mean only)."""
     num: dict = collections.defaultdict(float)
     cnt: dict = collections.defaultdict(int)
     base: dict = collections.defaultdict(float)
@@ -299,8 +301,13 @@ def same_sample_ratios(common: list[dict]) -> dict[str, float]:
             f = f.astype(bool) & (e >= 0)
             num[name] += float(e[f].sum())
             cnt[name] += int(f.sum())
-            base[name] += float(row["sum_err"])
-            base_n[name] += int(row["n_err"])
+            if "err_um" in row:  # the baseline on the same samples
+                b = np.asarray(row["err_um"], float) * 1e-6
+                base[name] += float(b[f].sum())
+                base_n[name] += int(f.sum())
+            else:
+                base[name] += float(row["sum_err"])
+                base_n[name] += int(row["n_err"])
     return {n: (num[n] / cnt[n]) / (base[n] / base_n[n]) for n in num
             if n not in failed and cnt[n] and base[n] > 0}
 
