@@ -45,11 +45,15 @@ one place:
    measured samples: the filled ones are left as filled, see below).
 
 Nothing is invented: a marker never visible, or with fewer than 3 surface
-neighbours, keeps its NaNs (warning naming it, listed in the report); on sparse
-captures, so does a gap every estimate of which leaves the marker's rigid partners or
-outruns its fastest measured step by more than
-:data:`~mocapflow.stages.skin.fill_blend.PLAUSIBILITY_LIMIT` (warning naming the
-markers, samples per marker in the report's ``fill.implausible``).
+neighbours, keeps its NaNs (warning naming it, listed in the report), except on
+sparse captures a marker with 1 or 2 neighbours (the third marker of a cluster),
+which the whole-body blend fills with its models that need no neighbourhood
+(:func:`~mocapflow.stages.skin.fill._thinly_connected_holes`); on sparse captures a
+gap every estimate of which leaves the marker's rigid partners or outruns its
+fastest measured step by more than
+:data:`~mocapflow.stages.skin.fill_blend.PLAUSIBILITY_LIMIT` stays a hole too
+(warning naming the markers, samples per marker in the report's
+``fill.implausible``).
 
 Where this implementation goes beyond the paper (each measured on simulated
 captures with ground truth, see ``benchmarks/clean.py``):
@@ -126,7 +130,7 @@ from mocapflow.stages.motion.contacts import true_runs
 from mocapflow.stages.motion.datatypes import Markers
 from mocapflow.stages.skin.assign import assign_fragments
 from mocapflow.stages.skin.fill import fill_holes
-from mocapflow.stages.skin.fill_blend import PLAUSIBILITY_LIMIT
+from mocapflow.stages.skin.fill_blend import PLAUSIBILITY_LIMIT, WHOLE_BODY_MAX_MARKERS
 from mocapflow.stages.skin.labelling import (
     LabellingError,
     fragment_frames,
@@ -444,8 +448,8 @@ def _marker_surface(
 ) -> tuple[MarkerSurface, np.ndarray]:
     """Step 1 (§4.1): the marker surface, from the ``surface`` file or automatic.
 
-    Returns the surface and the markers with fewer than 3 neighbours (warned:
-    neither merged nor filled).
+    Returns the surface and the markers with fewer than 3 neighbours (warned: not
+    merged, filled only by the whole-body blend, and only with 1-2 neighbours).
     """
     if surface is not None:
         faces = read_surface_file(surface, labels)
@@ -457,8 +461,10 @@ def _marker_surface(
     few = np.flatnonzero(np.isfinite(reference).all(1) & (surf.n_neighbours < MIN_NEIGHBOURS))
     if len(few):
         ctx.warn(
-            f"clean: marker(s) with fewer than {MIN_NEIGHBOURS} surface neighbours are neither "
-            f"merged nor filled (holes stay NaN): {_names(labels, few)}",
+            f"clean: marker(s) with fewer than {MIN_NEIGHBOURS} surface neighbours are not "
+            f"merged, and filled only by the models that need no neighbourhood (with 1-2 "
+            f"neighbours, on captures of at most {WHOLE_BODY_MAX_MARKERS} markers; else their "
+            f"holes stay NaN): {_names(labels, few)}",
             hint="give clean.surface a marker-surface file that connects them to their "
                  "neighbours; harmless if they are never occluded",
         )

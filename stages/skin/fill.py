@@ -202,6 +202,20 @@ def _holes(observed: np.ndarray, surface: MarkerSurface,
     return fillable, holes
 
 
+def _thinly_connected_holes(observed: np.ndarray, surface: MarkerSurface) -> np.ndarray:
+    """``(F, M)``: the missing samples of the markers with a reference position and 1 or 2
+    surface neighbours (fewer than :data:`MIN_NEIGHBOURS`): no local model can be built
+    for them, but the blend's models that need no neighbourhood can fill them (the whole
+    body, the spline, the rigid-body fills; ``whole_body`` of :func:`fill_holes`).  The
+    third marker of a 3-marker cluster is often one: Eb015pr's ``RFT1`` (neighbours
+    ``RFT2``, ``RFT3``), ktk racing's ``ScapulaR1`` and ``Head3``.  A marker with no
+    neighbour (basket_sprint's ``Sync:Sync``, a sync light) is not part of the surface and
+    keeps its holes."""
+    n = surface.n_neighbours
+    thin = np.isfinite(surface.reference).all(1) & (n >= 1) & (n < MIN_NEIGHBOURS)
+    return ~observed & thin[None, :]
+
+
 def fill_holes(
     positions: np.ndarray,
     surface: MarkerSurface,
@@ -282,7 +296,9 @@ def fill_holes(
         Blend the local fill with a whole-body PCA, a spline in time and two
         rigid-body fills, each weighted per run of holes by its error on copies
         of the run moved onto measured samples nearby
-        (:func:`~mocapflow.stages.skin.fill_blend.fill_by_validated_blend`).  Default
+        (:func:`~mocapflow.stages.skin.fill_blend.fill_by_validated_blend`); it also
+        fills the markers with 1 or 2 surface neighbours, for which no local model is
+        built (:func:`_thinly_connected_holes`).  Default
         (None): on captures of at most
         :data:`~mocapflow.stages.skin.fill_blend.WHOLE_BODY_MAX_MARKERS` markers, with
         ``model="regression"``.
@@ -300,7 +316,9 @@ def fill_holes(
         ``filled_by_pass`` (samples per pass), ``rigid_fallback`` (samples left
         to the rigid predictor: reduced models that saw < 3 members where the
         full one-ring saw 3), ``models`` (counts per kind, mean components),
-        ``fillable`` (markers that may be filled), ``model_list`` (the models),
+        ``fillable`` (markers the local models may fill), ``thinly_connected``
+        (markers with 1-2 surface neighbours and holes the blend fills, with
+        ``whole_body``), ``model_list`` (the models),
         ``pass`` (``(F, M)`` int8: the pass that filled each sample, 0 = not by
         a model, -1 = interpolated in time; with ``model="regression"`` pass 1
         is the regression), ``interpolated`` (samples), ``regression``
@@ -314,14 +332,18 @@ def fill_holes(
     X = positions.copy()
     F, M, _ = X.shape
     obs = finite_rows(X)
+    if model not in ("regression", "pca"):
+        raise ValueError(f"fill_holes: model must be 'regression' or 'pca', got {model!r}")
     fillable, holes = _holes(obs, surface, frames)
-    info: dict[str, Any] = {"filled_by_pass": [], "fillable": int(fillable.sum())}
-    if not holes.any():
+    if whole_body is None:
+        whole_body = model == "regression" and M <= WHOLE_BODY_MAX_MARKERS and frames is None
+    thin = _thinly_connected_holes(obs, surface) if whole_body else np.zeros_like(holes)
+    info: dict[str, Any] = {"filled_by_pass": [], "fillable": int(fillable.sum()),
+                            "thinly_connected": int(thin.any(0).sum())}
+    if not holes.any() and not thin.any():
         info["models"] = {}
         info["pass"] = np.zeros((F, M), dtype=np.int8)
         return X, info
-    if model not in ("regression", "pca"):
-        raise ValueError(f"fill_holes: model must be 'regression' or 'pca', got {model!r}")
     parts = max(1, ctx.workers) * 2 if ctx.mapper is not None else 1
     fill_pass = np.zeros((F, M), dtype=np.int8)
     info["pass"] = fill_pass
@@ -336,8 +358,6 @@ def fill_holes(
                       parts=parts, ctx=ctx)
     info["rigid_fallback"] = (fill_by_rigid_fit(X, positions, holes, obs, surface)
                               if rigid_fallback else 0)
-    if whole_body is None:
-        whole_body = model == "regression" and M <= WHOLE_BODY_MAX_MARKERS and frames is None
     if whole_body:
         local = dict(variance=variance, max_passes=max_passes, min_support=min_support,
                      interpolate=interpolate, neighbour_weight=neighbour_weight, model=model,
@@ -348,7 +368,7 @@ def fill_holes(
             return fill_holes(p, surface, **local, whole_body=False, ctx=ctx)[0]
 
         before = finite_rows(X)
-        X, info["blend"] = fill_by_validated_blend(X, positions, holes, surface,
+        X, info["blend"] = fill_by_validated_blend(X, positions, holes | thin, surface,
                                                    interpolate=interpolate,
                                                    local_fill=local_fill, rate=rate)
         info["implausible"] = (before & ~finite_rows(X)).sum(0)  # (M,) samples

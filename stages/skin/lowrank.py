@@ -100,25 +100,30 @@ def whole_body_pca(
     with np.errstate(invalid="ignore"), warnings.catch_warnings():  # a frame with no
         warnings.simplefilter("ignore", RuntimeWarning)  # marker: NaN centroid, unused
         centroid = np.nanmean(np.where(fin[..., None], filled, np.nan), axis=1)  # (F, 3)
-    for i in np.flatnonzero((holes & fin).any(0)):
+    for i in np.flatnonzero(holes.any(0)):
         h = holes[:, i] & fin[:, i]
+        origin, itself = centroid, np.zeros(M, dtype=bool)
+        if not h.any():  # nothing filled this marker (no local model): its holes as they are
+            h = holes[:, i].copy()
+            origin = _centroid_without(filled, fin, i)  # the same markers in every frame
+            itself[i] = True  # however few its measured frames (at least 10, below)
         # the markers filled wherever this one is to be estimated; frames where all are
-        cols = np.flatnonzero(fin[h].all(0) & (fin.sum(0) >= 0.5 * F))
+        cols = np.flatnonzero(itself | (fin[h].all(0) & (fin.sum(0) >= 0.5 * F)))
         seen = observed[h].all(0)  # as G&F: markers measured through the holes, if enough
         seen[i] = True
         if seen[cols].sum() >= min_measured:
             cols = cols[seen[cols]]
         if i not in cols or len(cols) < 4:
             continue
-        rows = fin[:, cols].all(1)
+        rows = fin[:, cols[cols != i]].all(1)
         h &= rows
-        train = np.flatnonzero(observed[:, i] & rows)
+        train = np.flatnonzero(observed[:, i] & rows & fin[:, i])
         if not h.any() or len(train) < 10:
             continue
         train = train[np.unique(np.linspace(0, len(train) - 1, min(len(train), max_train))
                                 .round().astype(int))]
         ki = int(np.flatnonzero(cols == i)[0])
-        Y = filled[:, cols] - centroid[:, None]  # moving origin: the frame's centroid
+        Y = filled[:, cols] - origin[:, None]  # moving origin: the frame's centroid
         d = np.linalg.norm(Y[train] - Y[train, ki:ki + 1], axis=-1).mean(0)  # (K,)
         w = np.exp(-(d**2) / (2 * sigma**2))
         w[ki] = marker_weight
@@ -137,5 +142,18 @@ def whole_body_pca(
         q = (Y[h].reshape(int(h.sum()), -1) - mean) * scale
         q[:, g] = 0.0
         rec = (q @ Vz) @ (Vz.T @ V) @ V[g].T
-        out[h, i] = centroid[h] + mean[g] + rec / scale[g]
+        out[h, i] = origin[h] + mean[g] + rec / scale[g]
     return out
+
+
+def _centroid_without(filled: np.ndarray, fin: np.ndarray, i: int) -> np.ndarray:
+    """``(F, 3)``: each frame's centroid of the finite samples of every marker but ``i``
+    (``filled (F, M, 3)``, ``fin (F, M)``): the origin of :func:`whole_body_pca` for a
+    marker missing at its holes, so that its training frames (where it is measured) and
+    its holes have their origin on the same markers."""
+    keep = fin.copy()
+    keep[:, i] = False
+    n = keep.sum(1)
+    tot = np.where(keep[..., None], filled, 0.0).sum(1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return tot / n[:, None]

@@ -308,24 +308,32 @@ def test_never_visible_marker_stays_nan_with_a_warning(sim):
 def test_markers_with_fewer_than_three_neighbours(tmp_path):
     P, rest = rigid_capture(F=40)
     M = P.shape[1]
-    # the surface file: an isolated triangle (p0, p1, p2), the rest automatic-like strips
+    # the surface file: an isolated triangle (p0, p1, p2), p3 in no triangle, the rest
+    # automatic-like strips
     surf = build_marker_surface(P[0])
-    faces = [f for f in surf.faces.tolist() if not set(f) & {0, 1, 2}]
+    faces = [f for f in surf.faces.tolist() if not set(f) & {0, 1, 2, 3}]
     faces.append([0, 1, 2])
     path = tmp_path / "surface.txt"
     path.write_text("\n".join(" ".join(f"p{i}" for i in f) for f in faces))
     pos = P.copy()
     pos[10:20, 1] = np.nan
+    pos[10:20, 3] = np.nan
     pos[10:20, 30] = np.nan
+    labels = [f"p{i}" for i in range(M)]
     ctx = Context()
-    res = clean(Markers(pos, [f"p{i}" for i in range(M)], 100.0),
-                surface=str(path), smooth_iterations=0, ctx=ctx)
+    res = clean(Markers(pos, labels, 100.0), surface=str(path), smooth_iterations=0, ctx=ctx)
     out, rep = res["markers"], res["report"]
-    assert rep["too_few_neighbours"] == ["p0", "p1", "p2"]
-    assert any("fewer than 3" in w and "p1" in w for w in ctx.warnings)
-    assert not np.isfinite(out.positions[10:20, 1]).any()  # nothing invented
+    assert rep["too_few_neighbours"] == ["p0", "p1", "p2", "p3"]
+    assert any("fewer than 3" in w and "p1" in w and "p3" in w for w in ctx.warnings)
+    assert not np.isfinite(out.positions[10:20, 3]).any()  # no neighbour: nothing invented
+    # two neighbours: the blend's models that need none (rigid capture: exact)
+    assert np.abs(out.positions[10:20, 1] - P[10:20, 1]).max() < 1e-6
     assert np.abs(out.positions[10:20, 30] - P[10:20, 30]).max() < 1e-6
-    assert rep["unfillable_markers"] == ["p1"] and rep["surface"]["source"] == "surface.txt"
+    assert rep["unfillable_markers"] == ["p3"] and rep["surface"]["source"] == "surface.txt"
+    # the paper's fill alone (no whole-body blend) leaves both
+    out = clean(Markers(pos, labels, 100.0), surface=str(path), smooth_iterations=0,
+                fill_model="pca", ctx=Context())
+    assert out["report"]["unfillable_markers"] == ["p1", "p3"]
 
 
 def test_reference_frame_with_missing_markers(sim):

@@ -53,6 +53,24 @@ def test_whole_body_pca_without_complete_frames():
         whole_body_pca(start, ~holes, holes, variance=0.0)
 
 
+def test_whole_body_pca_estimates_a_marker_nothing_filled():
+    """A marker no local model could fill (NaN at its holes in ``filled``: fewer than 3
+    surface neighbours) is estimated from the others as well as if its holes had been
+    filled with the truth.  Its frames' origin leaves it out everywhere: with the
+    centroid of whatever is finite (the marker counted in its training frames, not at
+    its holes) the same holes came out 42 mm off."""
+    truth = low_rank_take()
+    F, M, _ = truth.shape
+    holes = np.zeros((F, M), bool)
+    holes[100:160, 3] = True
+    holes[40:70, 7] = True
+    est = whole_body_pca(np.where(holes[..., None], np.nan, truth), ~holes, holes)
+    err = np.linalg.norm(est - truth, axis=-1)[holes]
+    given = np.linalg.norm(whole_body_pca(truth, ~holes, holes) - truth, axis=-1)[holes]
+    assert np.isfinite(err).all() and np.isnan(est[~holes]).all()
+    assert err.mean() < 1.1 * given.mean() and err.mean() < 2e-3  # 1.15 / 1.18 mm measured
+
+
 def test_rigid_body_fill_is_exact_on_a_rigid_cluster():
     F = 200
     t = np.arange(F) / 100.0
@@ -1101,3 +1119,34 @@ def test_a_fill_never_steps_farther_than_its_marker_does(shared_data, monkeypatc
     monkeypatch.setattr(fb, "PLAUSIBILITY_LIMIT", np.inf)  # the rule off
     filled = clean(m, merge=False, ctx=Context())["markers"].positions
     assert _worst_step_beyond_fastest(m.positions, filled) > 1.0
+
+
+def test_a_cluster_s_third_marker_is_filled(shared_data):
+    """A marker with 2 surface neighbours (the third of a 3-marker cluster) has no local
+    model; the blend's models that need no neighbourhood fill it (before, its holes stayed
+    NaN).  Eb015pr (50 Hz), RFT1 knocked out over frames 200-224: 3.8 mm mean, the spline
+    4.4, G&F 4.0.  ktk racing (70 Hz), Head3 over frames 300-349: 1.4 mm, the spline 87 mm
+    (G&F 1.3).  racing as captured: ScapulaR1's 290 missing samples filled, within 5.1 mm of
+    the distances it keeps to ScapulaR2-3 and never stepping farther than its fastest
+    measured step."""
+    for name, frames, label, bound in (("btkdata_c3dorg_Eb015pr.c3d", (200, 225), "RFT1", 4.0e-3),
+                                       ("ktk_kinematics_racing_full.c3d", (300, 350), "Head3",
+                                        2.0e-3)):  # fmt: skip
+        m = _real_take(shared_data, name)
+        i = m.labels.index(label)
+        mask = _knocked_out(m, frames, [label])
+        err, out = _clean_errors(m, mask)
+        assert label in out["report"]["too_few_neighbours"]
+        assert np.isfinite(err).all(), f"{label}: {np.isnan(err).sum()} samples left holes"
+        assert err.mean() < bound and err.mean() < 0.9 * _spline_errors(m, mask).mean()
+        assert label not in out["report"]["unfillable_markers"]
+        assert np.isfinite(out["markers"].positions[:, i]).all()
+    m = _real_take(shared_data, "ktk_kinematics_racing_full.c3d")
+    out = clean(m, merge=False, ctx=Context())["markers"].positions
+    i = m.labels.index("ScapulaR1")
+    holes = ~m.visible[:, i]
+    assert holes.sum() == 290 and np.isfinite(out[holes, i]).all()
+    partners, lo, hi, fastest = fb._take_bounds(m.positions, np.array([i]))[i]
+    d = np.linalg.norm(out[holes, i][:, None] - m.positions[holes][:, partners], axis=-1)
+    assert np.nanmax(np.maximum(d - hi, lo - d)) < 0.01  # 5.1 mm measured
+    assert _worst_step_beyond_fastest(m.positions[:, [i]], out[:, [i]]) <= 0.0
