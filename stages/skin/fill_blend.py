@@ -162,6 +162,15 @@ samples 16 -> 18 of 24 configurations within 5 %.  On those seeds, with or witho
 the rule, racing 0.1 s / 1 % / independent is 1.34 x G&F, pyomeca 0.5 s / 30 % /
 clustered 1.26 x the spline, basket 0.1 s / 1 % / clustered 3.34 x the spline and PiG
 0.1 s / 1 % / independent 1.18 x: the misses of earlier seeds were not the only ones.
+The third marker of a cluster (1-2 surface neighbours, so no local model;
+:func:`~mocapflow.stages.skin.fill._thinly_connected_holes`) has been a blend run since,
+filled by the four other members, and the copies of a cluster's gap knock it out with the
+rest of the cluster as the gap does: Eb015pr 0.5 s / 30 % / clustered, mask seed 843,
+RFT2-3 83.9-94.7 -> 16.7-27.7 mm, RSK1-4 24-58 -> 9-15 mm.  Fresh mask seeds 840-849
+(every configuration of the six files), same samples: PiG 17 of 18 (worst 1.15, 0.1 s /
+1 % / independent, the spline; unchanged by it), Eb015pr 24 of 24 (0.99; 23 of 24 and
+1.25 before it), Qualisys 12 of 12 (0.96), racing 24 of 24 (0.91), pyomeca 24 of 24
+(0.91), basket_sprint 22 of 24 (1.21, 0.5 s / 30 % / clustered, the spline; unchanged).
 
 See :mod:`mocapflow.stages.skin.fill` for the local fill it starts from.
 """
