@@ -61,7 +61,11 @@ def whole_body_pca(
     frames where the marker is measured; with ``V`` the leading principal
     directions of those frames and ``Vz`` those with the marker's columns
     zeroed, a hole frame ``z`` (the marker's columns zero) is reconstructed as
-    ``z Vz (Vᵀ Vz)ᵀ V_gᵀ`` (Federolf 2013).
+    ``z Vz (Vᵀ Vz)ᵀ V_gᵀ`` (Federolf 2013).  A marker that ``filled`` leaves NaN at
+    every one of its holes (no local model: fewer than 3 surface neighbours) is
+    estimated there all the same, from the others, each frame relative to the centroid
+    of the other markers (:func:`_centroid_without`), so that its holes and its training
+    frames have the same origin.
 
     Parameters
     ----------
@@ -87,8 +91,9 @@ def whole_body_pca(
     Returns
     -------
     (F, M, 3) float ndarray
-        The estimates at ``holes`` (NaN where the frame has an unfilled sample
-        or the marker fewer than 10 measured frames), NaN elsewhere.
+        The estimates at ``holes`` (NaN where the frame has an unfilled sample of
+        another marker of the model, or the marker fewer than 10 measured frames), NaN
+        elsewhere.
     """
     if not 0 < variance <= 1:
         raise ValueError(f"whole_body_pca: variance must be in (0, 1], got {variance}")
