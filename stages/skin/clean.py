@@ -463,8 +463,8 @@ def _marker_surface(
         ctx.warn(
             f"clean: marker(s) with fewer than {MIN_NEIGHBOURS} surface neighbours are not "
             f"merged, and filled only by the models that need no neighbourhood (with 1-2 "
-            f"neighbours, on captures of at most {WHOLE_BODY_MAX_MARKERS} markers; else their "
-            f"holes stay NaN): {_names(labels, few)}",
+            f"neighbours, the regression fill, at most {WHOLE_BODY_MAX_MARKERS} markers; "
+            f"else their holes stay NaN): {_names(labels, few)}",
             hint="give clean.surface a marker-surface file that connects them to their "
                  "neighbours; harmless if they are never occluded",
         )

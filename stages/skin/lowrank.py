@@ -18,8 +18,6 @@ the whole body reconstructs a marker from distant ones as much as from near ones
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
 __all__ = ["WHOLE_BODY_MARKER_WEIGHT", "WHOLE_BODY_SIGMA", "WHOLE_BODY_VARIANCE",
@@ -64,8 +62,8 @@ def whole_body_pca(
     ``z Vz (Vᵀ Vz)ᵀ V_gᵀ`` (Federolf 2013).  A marker that ``filled`` leaves NaN at
     every one of its holes (no local model: fewer than 3 surface neighbours) is
     estimated there all the same, from the others, each frame relative to the centroid
-    of the other markers (:func:`_centroid_without`), so that its holes and its training
-    frames have the same origin.
+    of the other markers, so that its holes and its training frames have the same
+    origin.
 
     Parameters
     ----------
@@ -102,15 +100,20 @@ def whole_body_pca(
     F, M, _ = filled.shape
     out = np.full(filled.shape, np.nan)
     fin = np.isfinite(filled).all(-1)  # (F, M)
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():  # a frame with no
-        warnings.simplefilter("ignore", RuntimeWarning)  # marker: NaN centroid, unused
-        centroid = np.nanmean(np.where(fin[..., None], filled, np.nan), axis=1)  # (F, 3)
+    total = np.where(fin[..., None], filled, 0.0).sum(1)  # (F, 3) over the finite samples
+    count = fin.sum(1)[:, None]  # (F, 1)
+    with np.errstate(invalid="ignore", divide="ignore"):  # a frame with no marker: unused
+        centroid = total / count
     for i in np.flatnonzero(holes.any(0)):
         h = holes[:, i] & fin[:, i]
         origin, itself = centroid, np.zeros(M, dtype=bool)
         if not h.any():  # nothing filled this marker (no local model): its holes as they are
             h = holes[:, i].copy()
-            origin = _centroid_without(filled, fin, i)  # the same markers in every frame
+            # the centroid of the other markers: the same origin at its holes and in its
+            # training frames (where it is measured)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                origin = ((total - np.where(fin[:, i, None], filled[:, i], 0.0))
+                          / (count - fin[:, i, None]))  # fmt: skip
             itself[i] = True  # however few its measured frames (at least 10, below)
         # the markers filled wherever this one is to be estimated; frames where all are
         cols = np.flatnonzero(itself | (fin[h].all(0) & (fin.sum(0) >= 0.5 * F)))
@@ -150,15 +153,3 @@ def whole_body_pca(
         out[h, i] = origin[h] + mean[g] + rec / scale[g]
     return out
 
-
-def _centroid_without(filled: np.ndarray, fin: np.ndarray, i: int) -> np.ndarray:
-    """``(F, 3)``: each frame's centroid of the finite samples of every marker but ``i``
-    (``filled (F, M, 3)``, ``fin (F, M)``): the origin of :func:`whole_body_pca` for a
-    marker missing at its holes, so that its training frames (where it is measured) and
-    its holes have their origin on the same markers."""
-    keep = fin.copy()
-    keep[:, i] = False
-    n = keep.sum(1)
-    tot = np.where(keep[..., None], filled, 0.0).sum(1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return tot / n[:, None]

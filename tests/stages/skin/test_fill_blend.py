@@ -1129,10 +1129,12 @@ def test_a_cluster_s_third_marker_is_filled(shared_data):
     (G&F 1.3).  racing as captured: ScapulaR1's 290 missing samples filled, within 5.1 mm of
     the distances it keeps to ScapulaR2-3 and never stepping farther than its fastest
     measured step."""
+    takes = {n: _real_take(shared_data, n)
+             for n in ("btkdata_c3dorg_Eb015pr.c3d", "ktk_kinematics_racing_full.c3d")}
     for name, frames, label, bound in (("btkdata_c3dorg_Eb015pr.c3d", (200, 225), "RFT1", 4.0e-3),
                                        ("ktk_kinematics_racing_full.c3d", (300, 350), "Head3",
                                         2.0e-3)):  # fmt: skip
-        m = _real_take(shared_data, name)
+        m = takes[name]
         i = m.labels.index(label)
         mask = _knocked_out(m, frames, [label])
         err, out = _clean_errors(m, mask)
@@ -1141,12 +1143,12 @@ def test_a_cluster_s_third_marker_is_filled(shared_data):
         assert err.mean() < bound and err.mean() < 0.9 * _spline_errors(m, mask).mean()
         assert label not in out["report"]["unfillable_markers"]
         assert np.isfinite(out["markers"].positions[:, i]).all()
-    m = _real_take(shared_data, "ktk_kinematics_racing_full.c3d")
+    m = takes["ktk_kinematics_racing_full.c3d"]
     out = clean(m, merge=False, ctx=Context())["markers"].positions
     i = m.labels.index("ScapulaR1")
     holes = ~m.visible[:, i]
     assert holes.sum() == 290 and np.isfinite(out[holes, i]).all()
-    partners, lo, hi, fastest = fb._take_bounds(m.positions, np.array([i]))[i]
+    partners, lo, hi, _ = fb._take_bounds(m.positions, np.array([i]))[i]
     d = np.linalg.norm(out[holes, i][:, None] - m.positions[holes][:, partners], axis=-1)
     assert np.nanmax(np.maximum(d - hi, lo - d)) < 0.01  # 5.1 mm measured
     assert _worst_step_beyond_fastest(m.positions[:, [i]], out[:, [i]]) <= 0.0
