@@ -156,7 +156,18 @@ class SearchParams:
         0.3, "usage_weight": 0.5}'`` gives local 0.090 / 0.115 / 0.110 on salsa /
         walk / figure-8 walk (the baseline's 0.109 / 0.129 / 0.168) but global 0.085 /
         0.105 / 0.102 (its 0.117 / 0.157 / 0.204); no setting had both local ≤ 1.2 ×
-        and global ≥ the baseline's on all three.  ``benchmarks/texture.py --seeds 5``
+        and global ≥ the baseline's on all three.  Part of why: with a strong pose
+        term the finest joins take lines a few frames from the left line's own
+        continuation (salsa, ``pose_weight`` 1, ``pose_lines`` 8: median jump 3
+        frames), seams in name only.  Tried and dropped: finest joins kept ≥ 0.3-1 s
+        from that continuation; pose lines tried only when their poses 8-30 frames
+        from the join differ from the left line's at least 0.7 × as much as the drawn
+        line's do; the coarsest level's jumps also costed by the finest-level pose
+        distance of the lines they join.  The best of these (``pose_weight`` 1,
+        ``pose_lines`` 8, 0.3 s, 0.7, that cost at 3 cost units per median), seeds 0-4:
+        local 0.135 / 0.151 / 0.156 (baseline 0.104 / 0.133 / 0.169), global 0.148 /
+        0.188 / 0.190 (0.108 / 0.162 / 0.210), salsa coverage 0.85: the figure-8's
+        global and salsa's local and coverage still fail.  ``benchmarks/texture.py --seeds 5``
         (1,024 frames from the first 512 input frames), the previous default values
         (0, 4, 0.3, 0.3, 0.5, no cross-fade; on this code) -> these: global
         0.164 -> 0.144, 0.185 -> 0.182, 0.167 -> 0.210 (baseline 0.108, 0.162,
