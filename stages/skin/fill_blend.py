@@ -248,6 +248,7 @@ BLEND_MODELS = ("local", "whole_body", "spline", "rigid_body", "rigid_nearest")
 
 #: Indices in :data:`BLEND_MODELS` of the rigid-body fills (most rigid, nearest donors).
 RIGID_MODELS = (BLEND_MODELS.index("rigid_body"), BLEND_MODELS.index("rigid_nearest"))
+#: Index in :data:`BLEND_MODELS` of the spline (:data:`SPLINE_PRIOR`).
 SPLINE = BLEND_MODELS.index("spline")
 
 #: A rigid-body fill's blend weight comes from a validation error of at least this
