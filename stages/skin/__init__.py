@@ -53,7 +53,8 @@ the paper lives in one function (modules of this package):
                                          (most rigid / nearest donors) at least a share of
                                          the carries' disagreement:
                                          fill_blend.RIGID_DISAGREEMENT_SHARE; a hole of
-                                         ≤ 0.2 s the spline's unless another member
+                                         ≤ 0.2 s the spline fills within noise on its
+                                         copies is the spline's unless another member
                                          validates clearly better: fill_blend.SPLINE_PRIOR
                                          (fill_blend._spline_prior); a member the
                                          gap shows far off (from the others, or missing the

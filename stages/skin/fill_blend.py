@@ -575,8 +575,9 @@ def fill_by_validated_blend(
     carries from before and after the gap disagree (the marker moving against
     its donors there, which the copies need not see; a smaller share on runs
     shorter than :data:`RIGID_DISAGREEMENT_DURATION` when ``rate`` is given), on runs of at
-    most :data:`SPLINE_PRIOR_DURATION` (with ``rate``) the other models' errors taken as
-    :data:`SPLINE_PRIOR` × theirs for the weights (:func:`_spline_prior`), a model whose estimate
+    most :data:`SPLINE_PRIOR_DURATION` (with ``rate``) where the spline is validated within
+    :data:`SPLINE_PRIOR_NOISE` the other models' errors taken as :data:`SPLINE_PRIOR` ×
+    theirs for the weights (:func:`_spline_prior`), a model whose estimate
     repeats an earlier one's counted once (:func:`_earlier_twins`), the
     models the gap itself shows far off left out of it (:func:`_outlying_estimates`:
     an estimate far beyond its and the others' validated errors from the others'
@@ -1029,8 +1030,9 @@ def _keep_plausible(weights: np.ndarray, est: np.ndarray, runs: list[tuple[int, 
 
 #: On runs of at most :data:`SPLINE_PRIOR_DURATION` the other models' validation errors
 #: (mean squared) are taken as this many times what their copies gave, for the weights
-#: (:func:`_spline_prior`): a short hole is the spline's unless another model validates
-#: clearly better (by more than √2 in rms).  In a gap of a tenth of a second the spline
+#: (:func:`_spline_prior`): a short hole the spline fills within the measurements' noise
+#: on its copies (:data:`SPLINE_PRIOR_NOISE`) is the spline's unless another model
+#: validates clearly better (by more than √2 in rms).  In a gap of a tenth of a second the spline
 #: is rarely far off, and copies of a few frames score the models on little more than
 #: noise: on the PiG calibration (a subject standing still, 100 Hz) the rigid-body fills
 #: were validated within a few hundredths of a millimetre of the spline and took part of
@@ -1051,17 +1053,26 @@ SPLINE_PRIOR = 2.0
 #: Longest run (s) :data:`SPLINE_PRIOR` applies to (with the take's rate; none without).
 SPLINE_PRIOR_DURATION = 0.2
 
+#: ... and only where the spline's validation error (RMS, m) is at most this: copies that
+#: score it within the noise of the measurements.  Without this bound the prior handed
+#: fast short gaps to the spline: the real Qualisys take (200 Hz, a subject moving),
+#: ``L_FME`` knocked out over frames 156-175 (0.1 s / 1 % / independent, mask seed 854),
+#: spline 8.5 mm off and the rigid-body fill 1.2: blend 1.5 -> 4.3 mm, and that
+#: configuration on fresh mask seeds 850-859 went from 1.29 to 1.64 × the rigid-body fill.
+SPLINE_PRIOR_NOISE = 2e-4
+
 
 def _spline_prior(mse: np.ndarray, runs: list[tuple[int, int, int]],
                   rate: float | None) -> np.ndarray:
     """``(K, R)``: the validation errors ``mse (K, R)`` with every model's but the spline's
     multiplied by :data:`SPLINE_PRIOR` on the runs of at most :data:`SPLINE_PRIOR_DURATION`
-    that the spline was scored on (``rate`` None: ``mse`` as it is).  For the weights only:
+    where the spline was validated within :data:`SPLINE_PRIOR_NOISE` (``rate`` None:
+    ``mse`` as it is).  For the weights only:
     the tests that measure a member against the validated errors take them as they are."""
     if rate is None or not runs:
         return mse
     frames = np.array([b - a for _, a, b in runs], dtype=float)
-    short = (frames <= SPLINE_PRIOR_DURATION * rate) & np.isfinite(mse[SPLINE])
+    short = (frames <= SPLINE_PRIOR_DURATION * rate) & (mse[SPLINE] <= SPLINE_PRIOR_NOISE**2)
     others = np.arange(len(mse)) != SPLINE
     out = mse.copy()
     out[np.ix_(others, short)] *= SPLINE_PRIOR  # NaN stays NaN
