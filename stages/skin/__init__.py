@@ -52,11 +52,7 @@ the paper lives in one function (modules of this package):
                                          lowrank.whole_body_pca, fill_blend._rigid_body_fill
                                          (most rigid / nearest donors) at least a share of
                                          the carries' disagreement:
-                                         fill_blend.RIGID_DISAGREEMENT_SHARE; a hole of
-                                         ≤ 0.2 s the spline fills within noise on its
-                                         copies is the spline's unless another member
-                                         validates clearly better: fill_blend.SPLINE_PRIOR
-                                         (fill_blend._spline_prior); a member the
+                                         fill_blend.RIGID_DISAGREEMENT_SHARE; a member the
                                          gap shows far off (from the others, or missing the
                                          trajectory at the gap's ends) left out:
                                          fill_blend._outlying_estimates,

@@ -171,6 +171,20 @@ RFT2-3 83.9-94.7 -> 16.7-27.7 mm, RSK1-4 24-58 -> 9-15 mm.  Fresh mask seeds 840
 1 % / independent, the spline; unchanged by it), Eb015pr 24 of 24 (0.99; 23 of 24 and
 1.25 before it), Qualisys 12 of 12 (0.96), racing 24 of 24 (0.91), pyomeca 24 of 24
 (0.91), basket_sprint 22 of 24 (1.21, 0.5 s / 30 % / clustered, the spline; unchanged).
+The same code on fresh seeds 850-859: PiG 15 of 18 (1.23: 1 s / 10 % / clustered, the
+rigid-body fill; 0.1 s / 1 % at 1.21 and 1.11 x the spline), Qualisys 11 of 12 (1.29,
+0.1 s / 1 % / independent, the rigid-body fill), basket 20 of 24 (1.63), the other three
+files all within 5 %.  Tried and dropped: a prior for the spline on short holes (on runs
+of at most 0.2 s the other members' validated mean squared errors doubled for the
+weights).  Offline on the stored blend states of seeds 820-829: PiG 16 -> 18 of 18, the
+other files -1.0 to +0.7 %.  Fresh seeds 850-859: PiG 15 -> 17 of 18, but Qualisys 0.1 s
+/ 1 % / independent 1.29 -> 1.64 x the rigid-body fill (L_FME, frames 156-175, seed 854:
+the spline 8.5 mm off, the blend 1.5 -> 4.3 mm).  Bounded to runs whose spline validated
+within 0.2 mm, on fresh seeds 860-869: PiG 17 -> 17 of 18, pyomeca 0.1 s / 1 % /
+clustered 1.04 -> 1.06 x the spline (seeds 868-869: the spline, validated within 0.2 mm,
+0.13-0.21 mm off in the gap where the rigid-body fill is 0.04-0.05), pooled errors
+unchanged within 0.01 %: at a tenth of a millimetre the spline is not the better model
+often enough to be preferred.
 
 See :mod:`mocapflow.stages.skin.fill` for the local fill it starts from.
 """
@@ -248,8 +262,6 @@ BLEND_MODELS = ("local", "whole_body", "spline", "rigid_body", "rigid_nearest")
 
 #: Indices in :data:`BLEND_MODELS` of the rigid-body fills (most rigid, nearest donors).
 RIGID_MODELS = (BLEND_MODELS.index("rigid_body"), BLEND_MODELS.index("rigid_nearest"))
-#: Index in :data:`BLEND_MODELS` of the spline (:data:`SPLINE_PRIOR`).
-SPLINE = BLEND_MODELS.index("spline")
 
 #: A rigid-body fill's blend weight comes from a validation error of at least this
 #: share of how far its two carries (from before and from after the gap) disagree,
@@ -574,10 +586,7 @@ def fill_by_validated_blend(
     error taken as at least :data:`RIGID_DISAGREEMENT_SHARE` of how far its
     carries from before and after the gap disagree (the marker moving against
     its donors there, which the copies need not see; a smaller share on runs
-    shorter than :data:`RIGID_DISAGREEMENT_DURATION` when ``rate`` is given), on runs of at
-    most :data:`SPLINE_PRIOR_DURATION` (with ``rate``) where the spline is validated within
-    :data:`SPLINE_PRIOR_NOISE` the other models' errors taken as :data:`SPLINE_PRIOR` ×
-    theirs for the weights (:func:`_spline_prior`), a model whose estimate
+    shorter than :data:`RIGID_DISAGREEMENT_DURATION` when ``rate`` is given), a model whose estimate
     repeats an earlier one's counted once (:func:`_earlier_twins`), the
     models the gap itself shows far off left out of it (:func:`_outlying_estimates`:
     an estimate far beyond its and the others' validated errors from the others'
@@ -607,8 +616,8 @@ def fill_by_validated_blend(
     n_shifts : int
         Copies of each run (the first of :data:`VALIDATION_SHIFTS`).
     rate : float, optional
-        Frames per second (see :data:`RIGID_DISAGREEMENT_DURATION` and
-        :data:`SPLINE_PRIOR_DURATION`; None: the full share on every run, and no prior).
+        Frames per second (see :data:`RIGID_DISAGREEMENT_DURATION`; None: the full share
+        on every run).
 
     Returns
     -------
@@ -635,7 +644,7 @@ def fill_by_validated_blend(
                                   donor_sets=donor_sets)
     mse = _validation_mse(errs, ok, full)
     _floor_rigid_errors(mse, disagreement, run, _disagreement_shares(runs, rate))
-    wr = _blend_weights(_spline_prior(mse, runs, rate))
+    wr = _blend_weights(mse)
     twins = _earlier_twins(est, runs)
     _consensus_where_unscored(wr, mse, est, runs, full, twins)
     _count_once(wr, twins)  # a model given twice weighs once
@@ -1025,57 +1034,6 @@ def _keep_plausible(weights: np.ndarray, est: np.ndarray, runs: list[tuple[int, 
             full = np.isfinite(e).all((1, 2)) & ~out[:, r]
             if full.any():
                 weights[np.argmin(np.where(full, x, np.inf)), r] = 1.0
-    return out
-
-
-#: On runs of at most :data:`SPLINE_PRIOR_DURATION` the other models' validation errors
-#: (mean squared) are taken as this many times what their copies gave, for the weights
-#: (:func:`_spline_prior`): a short hole the spline fills within the measurements' noise
-#: on its copies (:data:`SPLINE_PRIOR_NOISE`) is the spline's unless another model
-#: validates clearly better (by more than √2 in rms).  In a gap of a tenth of a second the spline
-#: is rarely far off, and copies of a few frames score the models on little more than
-#: noise: on the PiG calibration (a subject standing still, 100 Hz) the rigid-body fills
-#: were validated within a few hundredths of a millimetre of the spline and took part of
-#: the weight (``RHEE`` knocked out over frames 16-25, the gap protocol's 0.1 s / 1 % /
-#: independent mask of seed 823: 0.080 mm against the spline's 0.038; with the prior
-#: 0.047).  Offline, on the stored blend states of the gap protocol's mask seeds 820-829
-#: (every file; the code before the cluster's third marker was filled), factors 1.5 / 2
-#: / 3: PiG 17 / 18 / 18 of 18 configurations within 5 % of every peer on the same
-#: samples (16 without; worst 1.12 -> 1.05 / 1.02 / 1.005); the other files' blend errors
-#: moved by -0.6 to +0.2 % / -1.0 to +0.7 % / -1.4 to +1.9 % (geometric mean over their
-#: configurations), all of theirs staying within 5 %.  Not for the tests that measure a
-#: member against the validated errors (:func:`_outlying_estimates`): with the inflated
-#: errors there too, the real racing take's ``ScapulaL3`` as captured (missing over frames
-#: 77-83) came out 10.1 mm outside the distances it keeps to its rigid partners (1.2 mm
-#: before), with the whole-body fill (12.0 mm outside them); for the weights only, 0.4 mm.
-SPLINE_PRIOR = 2.0
-
-#: Longest run (s) :data:`SPLINE_PRIOR` applies to (with the take's rate; none without).
-SPLINE_PRIOR_DURATION = 0.2
-
-#: ... and only where the spline's validation error (RMS, m) is at most this: copies that
-#: score it within the noise of the measurements.  Without this bound the prior handed
-#: fast short gaps to the spline: the real Qualisys take (200 Hz, a subject moving),
-#: ``L_FME`` knocked out over frames 156-175 (0.1 s / 1 % / independent, mask seed 854),
-#: spline 8.5 mm off and the rigid-body fill 1.2: blend 1.5 -> 4.3 mm, and that
-#: configuration on fresh mask seeds 850-859 went from 1.29 to 1.64 × the rigid-body fill.
-SPLINE_PRIOR_NOISE = 2e-4
-
-
-def _spline_prior(mse: np.ndarray, runs: list[tuple[int, int, int]],
-                  rate: float | None) -> np.ndarray:
-    """``(K, R)``: the validation errors ``mse (K, R)`` with every model's but the spline's
-    multiplied by :data:`SPLINE_PRIOR` on the runs of at most :data:`SPLINE_PRIOR_DURATION`
-    where the spline was validated within :data:`SPLINE_PRIOR_NOISE` (``rate`` None:
-    ``mse`` as it is).  For the weights only:
-    the tests that measure a member against the validated errors take them as they are."""
-    if rate is None or not runs:
-        return mse
-    frames = np.array([b - a for _, a, b in runs], dtype=float)
-    short = (frames <= SPLINE_PRIOR_DURATION * rate) & (mse[SPLINE] <= SPLINE_PRIOR_NOISE**2)
-    others = np.arange(len(mse)) != SPLINE
-    out = mse.copy()
-    out[np.ix_(others, short)] *= SPLINE_PRIOR  # NaN stays NaN
     return out
 
 

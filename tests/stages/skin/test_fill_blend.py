@@ -457,51 +457,6 @@ def test_rigid_floor_share_grows_with_the_run_s_duration():
     np.testing.assert_allclose(np.sqrt(mse[4]), 0.25 * 0.0028)
 
 
-def test_spline_prior_weighs_the_other_models_on_short_runs_only():
-    """SPLINE_PRIOR multiplies the validation errors of every model but the spline on
-    runs of at most SPLINE_PRIOR_DURATION (20 frames at 100 Hz) where the spline was
-    validated within SPLINE_PRIOR_NOISE, in a copy for the weights; longer runs, runs the
-    spline was not scored on or scored above that, and any run without the rate keep
-    their errors."""
-    runs = [(0, 0, 10), (0, 20, 40), (1, 0, 21), (1, 50, 55), (2, 0, 5)]
-    mse = np.arange(1.0, 26.0).reshape(5, 5) * 1e-9  # (0.03-0.16 mm)^2
-    mse[fb.SPLINE, 3] = np.nan
-    mse[fb.SPLINE, 4] = (1.01 * fb.SPLINE_PRIOR_NOISE) ** 2  # the spline not within noise
-    given = mse.copy()
-    new = fb._spline_prior(mse, runs, 100.0)
-    want = mse.copy()
-    others = [k for k in range(5) if k != fb.SPLINE]
-    want[others, 0:2] *= fb.SPLINE_PRIOR  # 10 and 20 frames; not 21, the unscored, the noisy
-    np.testing.assert_array_equal(new, want)
-    np.testing.assert_array_equal(mse, given)  # for the weights only: mse as it was
-    np.testing.assert_array_equal(fb._spline_prior(mse, runs, None), mse)
-
-
-@pytest.mark.parametrize("label, frames", [("RHEE", (16, 26)), ("LKNE", (13, 23))])
-def test_a_short_hole_of_a_still_subject_stays_the_spline_s(pig_calibration, label, frames):
-    """Real PiG calibration (a subject standing still, 100 Hz), one marker knocked out for
-    0.1 s (the gap protocol's 0.1 s / 1 % / independent masks of seeds 823 and 824): the
-    copies score every model on noise, the rigid-body fills came within a few hundredths
-    of a millimetre of the spline and took part of the weight, and the blend came out 2.1 ×
-    (RHEE: 0.080 mm against 0.038) and 1.7 × (LKNE) the spline.  With SPLINE_PRIOR:
-    1.26 × and 1.22 ×."""
-    m = pig_calibration
-    mask = _knocked_out(m, frames, [label])
-    err, _ = _clean_errors(m, mask)
-    assert err.mean() < 1.4 * _spline_errors(m, mask).mean()
-
-
-def test_a_fast_short_hole_is_not_handed_to_the_spline(shared_data):
-    """Real Qualisys take (200 Hz, a subject moving): L_FME knocked out over frames 156-175
-    (the gap protocol's 0.1 s / 1 % / independent mask of seed 854).  The spline is 8.5 mm
-    off, the rigid-body baseline 1.2; the blend 1.5 mm.  SPLINE_PRIOR without its noise
-    bound (SPLINE_PRIOR_NOISE) gave the spline the weight here: 4.3 mm."""
-    m = _real_take(shared_data, "ezc3d-testFiles_Qualisys.c3d")
-    mask = _knocked_out(m, (156, 176), ["L_FME"])
-    err, _ = _clean_errors(m, mask)
-    assert err.mean() < 2.5e-3, err.mean()
-
-
 def test_a_short_gap_is_not_taken_from_the_rigid_fill_by_a_slow_turn(shared_data):
     """Real pyomeca take (100 Hz): the wrist marker Daphnee:STYLr knocked out over frames
     93-102 (the gap protocol's 0.1 s / 1 % / independent mask of seed 714).  Its carries
