@@ -163,8 +163,8 @@ class SearchParams:
         from that continuation; pose lines tried only when their poses 8-30 frames
         from the join differ from the left line's at least 0.7 × as much as the drawn
         line's do; the coarsest level's jumps also costed by the finest-level pose
-        distance of the lines they join.  The best of these (``pose_weight`` 1,
-        ``pose_lines`` 8, 0.3 s, 0.7, that cost at 3 cost units per median), seeds 0-4:
+        distance of the lines they join (divided by its median, times 3 cost units).
+        The best of these (``pose_weight`` 1, ``pose_lines`` 8, 0.3 s, 0.7, 3), seeds 0-4:
         local 0.135 / 0.151 / 0.156 (baseline 0.104 / 0.133 / 0.169), global 0.148 /
         0.188 / 0.190 (0.108 / 0.162 / 0.210), salsa coverage 0.85; with those joins
         also costing 0.5 cost units per use of the input they would play, salsa's
@@ -172,10 +172,9 @@ class SearchParams:
         0.187: the figure-8's global and salsa's local still fail.
         ``benchmarks/texture.py --seeds 5`` (1,024 frames from the first 512 input
         frames), the previous default values (0, 4, 0.3, 0.3, 0.5, no cross-fade; on
-        this code) -> these: global
-        0.164 -> 0.144, 0.185 -> 0.182, 0.167 -> 0.210 (baseline 0.108, 0.162,
-        0.210); local 0.158 -> 0.157, 0.217 -> 0.193, 0.180 -> 0.183 (baseline
-        0.104, 0.133, 0.169); jerk and skate ratios 0.94-1.02; coverage ≥ 0.98.
+        this code) -> these: global 0.164 -> 0.144, 0.185 -> 0.182, 0.167 -> 0.210
+        (baseline 0.108, 0.162, 0.210); local 0.158 -> 0.157, 0.217 -> 0.193, 0.180 ->
+        0.183 (baseline 0.104, 0.133, 0.169); jerk and skate ratios 0.94-1.02; coverage ≥ 0.98.
     pose_span : int
         Half span (finest frames) of the pose term's comparison of two lines
         (:meth:`~mocapflow.stages.texture.refine.LevelRefinement.line_costs`): the half
