@@ -353,8 +353,15 @@ def _widen_blends(models: list[PartModel], fits: list[PartFit], mesh: Mesh, beta
     # thread with its own stores and work arrays; a value is computed as over all frames
     # at once, and the largest over the frames is the largest of the ranges' largest
     ranges = _frame_ranges(F, threads)
-    n_rows = max(1, _EDGE_FRAMES_PER_SLICE // max(1, max(b - a for a, b in ranges)))
-    spans = threads.run(lambda r, _: _FrameRange(*r, C, deviation, n_rows), ranges)
+    longest = max(b - a for a, b in ranges)
+    n_rows = max(1, _EDGE_FRAMES_PER_SLICE // max(1, longest))
+    # every range's stores in the same blocks (sized for the longest range): the products
+    # below cut the new rows at the first range's block edges for all of them (with blocks
+    # sized per range, 675 frames in ranges of 337 and 338 cut them apart: the BTS capture
+    # of ezc3d's test files on 2 threads failed with "_Rows.view: rows across blocks")
+    first_block = max(_FIRST_BLOCK_ROWS, -(-_FIRST_BLOCK_BYTES // (24 * max(1, longest))))
+    spans = threads.run(lambda r, _: _FrameRange(*r, C, deviation, n_rows, first_block),
+                        ranges)  # fmt: skip
 
     def in_ranges(fn) -> list:
         """``fn(span)`` for every frame range, one thread each (they write disjoint frames:
@@ -687,17 +694,17 @@ class _FrameRange:
     thread: their frame coefficients ``C (K, 3 n)`` (from ``(K, F, 3)``) and ``C_single``, them
     in the precision of the non-rigid products (:data:`~mocapflow.stages.skin.blend._NONRIGID`),
     the parts' marker deviations ``(P, n)`` and their squares, the stores ``pos`` and
-    ``pred`` of ``(n, 3)`` rows and the work arrays ``work`` and ``single`` (that precision),
+    ``pred`` of ``(n, 3)`` rows (first blocks of ``first_block`` rows, the same in every
+    range) and the work arrays ``work`` and ``single`` (that precision),
     ``(2, n_rows, 3 n)`` each."""
 
     def __init__(self, start: int, stop: int, C: np.ndarray, deviation: np.ndarray,
-                 n_rows: int):  # fmt: skip
+                 n_rows: int, first_block: int):  # fmt: skip
         self.start, self.stop, self.n = start, stop, stop - start
         self.C = np.ascontiguousarray(C[:, start:stop]).reshape(len(C), 3 * self.n)
         self.deviation = deviation[:, start:stop]
         self.deviation_squared = np.square(self.deviation)
-        rows = max(_FIRST_BLOCK_ROWS, -(-_FIRST_BLOCK_BYTES // (24 * max(1, self.n))))
-        self.pos, self.pred = _Rows(self.n, rows), _Rows(self.n, rows)
+        self.pos, self.pred = _Rows(self.n, first_block), _Rows(self.n, first_block)
         self.work = np.empty((2, n_rows, 3 * self.n))
         self.C_single = self.C.astype(_NONRIGID)
         self.single = np.empty((2, n_rows, 3 * self.n), _NONRIGID)

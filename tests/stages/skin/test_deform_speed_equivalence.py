@@ -160,6 +160,26 @@ def test_stage_on_threads_equals_one_thread(limb_fits, monkeypatch):
         deform(d["markers"], seg, mesh, threads=0, ctx=Context())
 
 
+def test_widening_on_frame_ranges_of_unequal_length(monkeypatch):
+    """An odd number of frames on 2 threads (the widening's ranges of 30 and 29 frames) gives
+    the bytes of one thread.  The stores' first blocks were sized per range (at least
+    ``_FIRST_BLOCK_BYTES``): with 7,200 bytes, 10 rows for 30 frames and 11 for 29, so the
+    new rows were cut at the first range's block edges and the second's products failed
+    with "_Rows.view: rows across blocks" (ezc3d's ``BTS.c3d``, 675 frames, on 2 threads)."""
+    L = limb_deform_setup(n_frames=59)
+    d, seg, mesh = L["d"], L["seg"], L["mesh"]
+    with blend_module.Threads(2) as two:
+        assert widening_module._frame_ranges(59, two) == [(0, 30), (30, 59)]
+    monkeypatch.setattr(widening_module, "_FIRST_BLOCK_ROWS", 1)
+    monkeypatch.setattr(widening_module, "_FIRST_BLOCK_BYTES", 7200)
+    runs = [deform(d["markers"], seg, mesh, max_blend_stretch=1.3, threads=n, ctx=Context())
+            for n in (1, 2)]  # fmt: skip
+    report = runs[0]["report"]["blend_widening"]
+    assert report["vertices"] > 10 and report["torn_after"] < report["torn_before"]
+    assert runs[1]["report"] == runs[0]["report"]
+    assert runs[1]["mesh"].vertices.tobytes() == runs[0]["mesh"].vertices.tobytes()
+
+
 def test_rows_store_takes_vertex_major_rows():
     """_Rows.append of vertex-major rows ``(k, F, 3)`` stores them as they are, across
     blocks, next to frame-major appends."""
