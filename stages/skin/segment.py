@@ -151,8 +151,10 @@ def rotation_features(
     X = X / np.sqrt(len(idx))
     bad = ~np.isfinite(X)
     if bad.any():
-        col_mean = np.nanmean(np.where(bad, np.nan, X), axis=0)
-        col_mean = np.where(np.isfinite(col_mean), col_mean, 0.0)
+        # np.nanmean's sum and count, without its warning for columns with no value (frames
+        # where no triangle is measured: ezc3d's BTS.c3d before the subject walks in), 0 there
+        count = (~bad).sum(0)
+        col_mean = np.where(count > 0, np.where(bad, 0.0, X).sum(0) / np.maximum(count, 1), 0.0)
         X = np.where(bad, col_mean[None, :], X)
     Xc = X - X.mean(0)
     if Xc.shape[1] <= max_dims:

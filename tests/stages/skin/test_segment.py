@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -10,7 +11,13 @@ import pytest
 from mocapflow.pipeline import Context
 from mocapflow.pipeline.codecs import decode, encode
 from mocapflow.stages.motion.datatypes import Mesh
-from mocapflow.stages.skin.segment import mean_shift, part_frames, segment, triangle_rotations
+from mocapflow.stages.skin.segment import (
+    mean_shift,
+    part_frames,
+    rotation_features,
+    segment,
+    triangle_rotations,
+)
 from mocapflow.stages.skin.segmentation import Segmentation, SegmentationError, adjusted_rand_index
 from tests.stages.skin.conftest import deform_limb, limb_capture, rot_x, rot_y
 
@@ -180,3 +187,23 @@ def test_segmentation_codec_round_trip(limb_seg):
     for name in ("weights", "reference", "faces", "origins", "axes", "triangle_clusters"):
         assert np.array_equal(getattr(back, name), getattr(seg, name))
     assert back.labels == seg.labels and back.part_names == seg.part_names
+
+
+def test_rotation_features_with_frames_where_nothing_is_measured():
+    """Frames where no triangle is measured (a subject walking into the volume: ezc3d's
+    ``BTS.c3d`` has no marker in its first 243 frames) fill with 0 and raise no NumPy
+    warning; the other missing values take their column's mean as before."""
+    rng = np.random.default_rng(0)
+    R = rng.standard_normal((50, 12, 3, 3))
+    R[:10] = np.nan  # no triangle measured
+    R[20, 3] = np.nan  # one triangle hidden
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = rotation_features(R, max_frames=50, max_dims=1000)
+    X = R.reshape(50, 12, 9).transpose(1, 0, 2).reshape(12, -1) / np.sqrt(50)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mean = np.nan_to_num(np.nanmean(X, axis=0))
+    want = np.where(np.isfinite(X), X, mean)
+    assert got.tobytes() == (want - want.mean(0)).tobytes()
+    assert not got[:, : 10 * 9].any()  # the unmeasured frames' columns: 0
