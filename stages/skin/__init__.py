@@ -69,7 +69,9 @@ the paper lives in one function (modules of this package):
   part local frames                      segment.part_frames
   the parts (type, codec)                segmentation.Segmentation
   range-of-motion trial                  rom.ingest_rom, rom.match_markers
-§5.3 detailed mesh registration          mesh_fit.fit_detailed_mesh (Allen et al. 2003 style)
+§5.3 detailed mesh registration          mesh_fit.fit_detailed_mesh (Allen et al. 2003 style);
+                                         below the density, mesh_fit.upright_fit (named
+                                         markers on their region: marker_regions)
   vertex weights β (barycentric α)       binding.bind_mesh
   rigid: Horn per part                   parts._rigid_fits (in parts.fit_part)
   quadratic p̂ ≈ A q(p̄) (P&H Eq. 6)       parts._quadratic_fits, kernels.quadratic_basis

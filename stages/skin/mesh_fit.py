@@ -30,6 +30,7 @@ from mocapflow.stages.motion.simulate.makehuman import load_makehuman_body
 from mocapflow.stages.motion.simulate.markers import find_joint
 from mocapflow.stages.motion.simulate.skeleton import procedural_skeleton
 from mocapflow.stages.skin.binding import DeformError, closest_points_on_triangles
+from mocapflow.stages.skin.marker_regions import marker_region, region_vertices
 from mocapflow.stages.skin.registration import DEFAULT_SCHEDULE, affine_registration
 from mocapflow.stages.skin.segmentation import Segmentation
 
@@ -102,6 +103,38 @@ def _marker_correspondences(Y: np.ndarray, X: np.ndarray, faces: np.ndarray, off
         n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
         pt = pt + offset * n
     return tri, bary, pt, np.linalg.norm(Y - pt, axis=1)
+
+
+_Group = tuple[str, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _region_groups(marker_regions: list[str | None] | None,
+                   region_masks: dict[str, np.ndarray] | None,
+                   faces: np.ndarray) -> list[_Group]:  # fmt: skip
+    """``[(region, markers (k,), faces (n,), vertices (v,))]`` per region of
+    ``region_masks`` that ``marker_regions`` names: the named markers, the faces with a
+    corner in the region and the region's vertices (indices)."""
+    if not marker_regions or not region_masks:
+        return []
+    names = np.array([r or "" for r in marker_regions], dtype=object)
+    out = []
+    for region, mask in region_masks.items():
+        mi = np.flatnonzero(names == region)
+        fi = np.flatnonzero(mask[faces].any(1))
+        if len(mi) and len(fi):
+            out.append((region, mi, fi, np.flatnonzero(mask)))
+    return out
+
+
+def _region_correspondences(Y: np.ndarray, X: np.ndarray, faces: np.ndarray, offset: float,
+                            groups: list[_Group]):
+    """:func:`_marker_correspondences`, each marker of ``groups`` (:func:`_region_groups`)
+    on its region's faces only."""
+    tri, bary, pt, dist = _marker_correspondences(Y, X, faces, offset)
+    for _, mi, fi, _ in groups:
+        t, b, p, d = _marker_correspondences(Y[mi], X, faces[fi], offset)
+        tri[mi], bary[mi], pt[mi], dist[mi] = fi[t], b, p, d
+    return tri, bary, pt, dist
 
 
 def _barycentric_matrix(tri: np.ndarray, bary: np.ndarray, faces: np.ndarray, V: int):
@@ -352,6 +385,8 @@ def upright_fit(
     trim: float = 0.25,
     iterations: int = 15,
     scale_range: tuple[float, float] | None = None,
+    marker_regions: list[str | None] | None = None,
+    region_masks: dict[str, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Fit a body template to sparse markers keeping it upright: scale, turn, shift.
 
@@ -385,6 +420,15 @@ def upright_fit(
         (the body holds the markers; a partial set -- trunk and arm -- keeps about
         the template's adult size: sparse markers inside a T-pose otherwise pull
         the scale up, measured 1.4 on the Qualisys capture).
+    marker_regions : list of (str or None), optional
+        ``M`` body regions the markers' labels name
+        (:func:`~mocapflow.stages.skin.marker_regions.marker_region`), with
+        ``region_masks`` (``{region: (V,) bool}``,
+        :func:`~mocapflow.stages.skin.marker_regions.region_vertices`): a named marker is
+        matched to the skin of its region only, and a 13th start per heading puts the
+        named markers' mean height at their regions'.  Without them a partial set can
+        settle on the wrong part of the body: pyomeca's seated trunk-and-arm capture
+        had the standing template's legs laid through its trunk markers.
 
     Returns
     -------
@@ -403,19 +447,25 @@ def upright_fit(
     if scale_range is None:
         r = float(np.ptp(hy) / max(np.ptp(hv), 1e-12))
         scale_range = (min(max(0.8, r), 1.3), min(max(1.05, 1.1 * r), 1.4))
+    groups = _region_groups(marker_regions, region_masks, faces)
+    heights = {"top": (hv.max(), hy.max()), "middle": ((hv.max() + hv.min()) / 2,
+               (hy.max() + hy.min()) / 2), "bottom": (hv.min(), hy.min())}  # fmt: skip
+    if groups:  # the named markers' mean height at their regions' mean height
+        named = np.concatenate([mi for _, mi, _, _ in groups])
+        region_height = np.concatenate([np.full(len(mi), hv[vi].mean())
+                                        for _, mi, _, vi in groups])  # fmt: skip
+        heights["named"] = (region_height.mean(), hy[named].mean())
     best = None
     for heading in range(4):
         K = np.array([[0, -up[2], up[1]], [up[2], 0, -up[0]], [-up[1], up[0], 0]])
         ang = heading * np.pi / 2
         R0 = np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * K @ K
-        for where in ("top", "middle", "bottom"):
-            c_v = {"top": hv.max(), "middle": (hv.max() + hv.min()) / 2, "bottom": hv.min()}[where]
-            c_y = {"top": hy.max(), "middle": (hy.max() + hy.min()) / 2, "bottom": hy.min()}[where]
+        for c_v, c_y in heights.values():
             mv, my = V0.mean(0) - (V0.mean(0) @ up) * up, Y.mean(0) - (Y.mean(0) @ up) * up
             A, t = R0, my - R0 @ mv + (c_y - c_v) * up
             for _ in range(iterations):
                 X = V0 @ A.T + t
-                _, _, src, dist = _marker_correspondences(Y, X, faces, offset)
+                _, _, src, dist = _region_correspondences(Y, X, faces, offset, groups)
                 w = (dist <= np.quantile(dist, 1 - trim)).astype(float)
                 A_s, t_s = _upright_step(src, Y, w, up, (0.5, 2.0))
                 A_new, t_new = A_s @ A, A_s @ t + t_s
@@ -426,13 +476,13 @@ def upright_fit(
                 A, t = A_new, t_new
                 if step < 1e-6:
                     break
-            dist = _marker_correspondences(Y, V0 @ A.T + t, faces, offset)[3]
+            dist = _region_correspondences(Y, V0 @ A.T + t, faces, offset, groups)[3]
             score = float(np.mean(np.sort(dist)[: max(1, int(len(dist) * (1 - trim)))] ** 2))
             if best is None or score < best[0]:
                 best = (score, A, t)
     _, A, t = best
     out = V0 @ A.T + t
-    dist = _marker_correspondences(Y, out, faces, offset)[3]
+    dist = _region_correspondences(Y, out, faces, offset, groups)[3]
     s = float(np.cbrt(abs(np.linalg.det(A))))
     R = A / s
     stats = {"rms_mm": float(np.sqrt(np.mean(dist**2)) * 1000),
@@ -441,6 +491,7 @@ def upright_fit(
              "max_mm": float(dist.max() * 1000)}  # fmt: skip
     info = {
         "method": "upright",
+        "named_markers": {region: int(len(mi)) for region, mi, _, _ in groups},
         "scale": s,
         "axis_scales": [s, s, s],
         "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))),
@@ -475,6 +526,7 @@ def fit_mesh(
     template_frame: int | None = None,
     method: Literal["allen", "icp"] = "allen",
     schedule: list[list[float]] | None = None,
+    named_regions: bool = True,
     ctx: Context,
 ) -> dict[str, Any]:
     """Fit a detailed template mesh to the marker surface's reference pose.
@@ -505,6 +557,14 @@ def fit_mesh(
     schedule : list of [landmark, smoothness, data, iterations], optional
         ``allen``'s coarse-to-fine weights (default
         :data:`~mocapflow.stages.skin.registration.DEFAULT_SCHEDULE`).
+    named_regions : bool
+        Below the density (the upright fit): match the markers whose labels name a
+        place on the pelvis, trunk, head or shoulder girdle (``LASI``, ``C7``,
+        ``STRN``, ``L_HDF``, ``Daphnee:ASISr``, ...;
+        :func:`~mocapflow.stages.skin.marker_regions.marker_region`) to that region of
+        the template only (its rig names the regions); the report's
+        ``named_markers`` counts them per region.  False: every marker to the whole
+        template.
 
     Returns
     -------
@@ -541,9 +601,15 @@ def fit_mesh(
     lm = {index[k]: int(v) for k, v in (landmarks or {}).items()}
     if (segmentation.attrs.get("density") or {}).get("suited") is False:
         # below Park & Hodgins' density (segment warned once): the upright fit
+        regions = masks = None
+        if named_regions and "joint_names" in template.attrs and "vertex_part" in template.attrs:
+            regions = [marker_region(label) for label in segmentation.labels]
+            masks = region_vertices(list(template.attrs["joint_names"]),
+                                    np.asarray(template.attrs["vertex_part"]))  # fmt: skip
         fitted, info = upright_fit(V, template.faces, segmentation.reference,
                                    frame_basis(axes["up"], axes["forward"])[:, 1],
-                                   marker_offset=marker_offset)  # fmt: skip
+                                   marker_offset=marker_offset, marker_regions=regions,
+                                   region_masks=masks)  # fmt: skip
         report = {**info, "vertices": int(len(V)), "template_frame": template_frame}
         ctx.figure("fit", f"upright x{info['scale']:.2f}")
         mesh = Mesh(vertices=fitted, faces=template.faces, attrs={**template.attrs, **axes})

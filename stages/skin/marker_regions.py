@@ -1,0 +1,96 @@
+"""Body regions named by a capture's marker labels (the upright fit of sparse captures).
+
+Labs name markers by their anatomical place, each marker set in its own words: Plug-in
+Gait's ``LASI``, ``C7``, ``STRN``, ``LFHD``; Qualisys' ``L_IAS``, ``CV7``, ``SXS``,
+``L_HDF``; ISB-style ``ASISr``, ``T10``, ``XIPH``, ``CLAV_AC``; BTS' ``r asis``, ``c7``,
+``sacrum``.  :func:`marker_region` reads the few places that hold still relative to the
+trunk in any pose, standing or seated (pelvis, trunk, head, shoulder girdle) from such a
+label; :func:`region_vertices` gives the template's vertices of each region from its rig
+(the dominant joint of each vertex, :func:`~mocapflow.stages.skin.mesh_fit.template_mesh`).
+:func:`~mocapflow.stages.skin.mesh_fit.upright_fit` then matches a named marker to its
+region's skin only.  Limbs are left unnamed on purpose: the template's T-pose puts them
+where few captures have them (a seated subject's thighs, arms down), so their markers
+match the whole skin as before.
+
+Without the names, the upright fit of pyomeca's seated trunk-and-arm capture
+(``pyomeca_markers_analogs.c3d``: pelvis 0.17 m and sternum 0.6 m above the origin) laid
+the standing template's legs through the trunk markers.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+__all__ = ["REGION_JOINTS", "marker_region", "region_vertices"]
+
+#: The template joints (procedural CMU skeleton) whose vertices make each region.
+REGION_JOINTS: dict[str, tuple[str, ...]] = {
+    "pelvis": ("Hips", "LHipJoint", "RHipJoint", "LowerBack"),
+    "trunk": ("LowerBack", "Spine", "Spine1"),
+    "head": ("Head",),
+    "shoulder": ("Spine1", "LeftShoulder", "RightShoulder"),
+}
+
+# names (lower case, spaces, '_' and '-' removed, a side letter or word stripped) per
+# region; vertebrae and the sacrum only without a side ("RT1" is a right thigh's first
+# marker, "RS1" a shank's, not T1 or S1)
+_SIDED = {
+    "pelvis": r"asis?|ias|psis?|ips",
+    "trunk": r"bak|back|clav\w*|ster\w*|scap\w*|scapula\w*|scapularspine\w*",
+    "head": r"fhd|bhd|hdf|hdb|head\d*|forehead|temple|ear",
+    "shoulder": r"sho|should|shoulder|acro\w*|acromion\w*|saj|ac",
+}
+_UNSIDED = {
+    "pelvis": r"asis?|sacr|sacrum|sacral|sa|s1",
+    "trunk": r"c7|cv7|t\d{1,2}|tv\d{1,2}|th\d{1,2}|strn|ster\w*|sternum|stern|xiph\w*|sxs|px|"
+             r"snj|sjn|ij|jn|clav\w*|rbak|lbak|back|scap\w*",
+    "head": r"head\d*|forehead|vertex|hdt|glabella|nasion",
+    "shoulder": r"acro\w*",
+}  # fmt: skip
+_SIDE = re.compile(r"^(?:left|right|l|r)(?=.)|(?<=.)(?:left|right|l|r)$")
+
+
+def _normal(label: str) -> str:
+    name = label.rsplit(":", 1)[-1].lower()
+    return re.sub(r"[\s_\-.]+", "", name)
+
+
+def marker_region(label: str) -> str | None:
+    """The body region (a key of :data:`REGION_JOINTS`) a marker label names, or None.
+
+    The subject prefix (``Daphnee:``) and case are dropped; a left or right side
+    (``L``/``R``/``Left``/``Right`` before or after the name, ``_`` or a space between
+    allowed) is stripped for the sided names.  Numbered cluster markers (``Head1``) keep
+    their region.
+
+    Examples: ``LASI``, ``L_IAS``, ``Daphnee:ASISr``, ``r asis`` -> pelvis; ``C7``,
+    ``CV7``, ``T10``, ``STRN``, ``SXS``, ``CLAV_AC`` -> trunk; ``LFHD``, ``R_HDB``,
+    ``Head2``, ``BodyL:TempleL`` -> head; ``LSHO``, ``AcromionR``, ``L_SAJ`` -> shoulder;
+    ``RT1`` (a thigh cluster), ``LKNE``, ``ArmL1`` -> None.
+    """
+    name = _normal(label)
+    for region, pattern in _UNSIDED.items():
+        if re.fullmatch(pattern, name):
+            return region
+    bare = _SIDE.sub("", name, count=1)
+    if bare and bare != name:
+        for region, pattern in _SIDED.items():
+            if re.fullmatch(rf"(?:{pattern})\d*", bare):
+                return region
+    return None
+
+
+def region_vertices(joint_names: list[str], vertex_part: np.ndarray) -> dict[str, np.ndarray]:
+    """``{region: (V,) bool}``: the template vertices of each region of
+    :data:`REGION_JOINTS` (``vertex_part (V,)``: each vertex's dominant joint, an index
+    into ``joint_names``); regions with no vertex are left out."""
+    part = np.asarray(vertex_part)
+    out = {}
+    for region, joints in REGION_JOINTS.items():
+        ids = [joint_names.index(j) for j in joints if j in joint_names]
+        mask = np.isin(part, ids)
+        if mask.any():
+            out[region] = mask
+    return out
