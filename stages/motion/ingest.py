@@ -311,8 +311,10 @@ def _static_root_dropped(motion: Motion) -> tuple[Motion, str | None]:
     Returns
     -------
     motion : Motion
-        The re-rooted motion (``attrs["dropped_root"]``: the old root's name), or
-        ``motion`` itself.
+        The re-rooted motion (``attrs["dropped_root"]``: the old root's name;
+        ``attrs["dropped_root_joint"]``: its name, offset, channels and constant position,
+        metres, from which :func:`~mocapflow.stages.motion.formats.bvh.write_bvh` writes it
+        back, so a file keeps its hierarchy through the graphs), or ``motion`` itself.
     message : str or None
         One line naming both joints when the root was dropped.
     """
@@ -341,9 +343,14 @@ def _static_root_dropped(motion: Motion) -> tuple[Motion, str | None]:
         sk, names=sk.names[1:], parents=np.maximum(sk.parents[keep] - 1, -1),
         offsets=offsets, channels=sk.channels[1:], end_parents=sk.end_parents - 1)
     has_pos = [any(ch.endswith("position") for ch in chans) for chans in skeleton.channels]
+    # what write_bvh needs to put the static root back around the new one
+    joint = {"name": sk.names[0], "offset": [float(v) for v in sk.offsets[0]],
+             "channels": list(sk.channels[0]),
+             "position": [float(v) for v in motion.root_position[0]]}  # fmt: skip
     out = motion.replace(skeleton=skeleton, root_position=root_position, rotations=rotations,
                          translations=translations if any(has_pos[1:]) else None,
-                         attrs={**motion.attrs, "dropped_root": sk.names[0]})
+                         attrs={**motion.attrs, "dropped_root": sk.names[0],
+                                "dropped_root_joint": joint})  # fmt: skip
     return out, (f"root joint {sk.names[0]!r} never moves and its child {sk.names[c]!r} carries "
                  f"the travel: {sk.names[c]!r} is the root, {sk.names[0]!r} is dropped")
 

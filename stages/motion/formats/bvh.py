@@ -662,7 +662,11 @@ def write_bvh(
     motion : Motion
         ``F`` frames; its skeleton's channels give the layout and rotation orders
         (a joint without channels gets none; a skeleton with no channels at all
-        gets BVH's usual 6 root / 3 joint channels in ZXY order).
+        gets BVH's usual 6 root / 3 joint channels in ZXY order).  A static root
+        that :func:`~mocapflow.stages.motion.ingest.ingest_bvh` dropped
+        (``attrs["dropped_root_joint"]``, Bandai-Namco's ``joint_Root``) is written
+        back around the root, with its offset, channels and constant values, so the
+        file has the source's hierarchy.
     path : str or path-like
     unit : str or float, optional
         Unit written (a :data:`BVH_UNITS` name or metres per unit); default the
@@ -699,8 +703,21 @@ def write_bvh(
             for j in range(sk.n_joints)
         ]
     F = motion.n_frames
-    data = _frame_columns(motion, channels, scale, p)
-    out = ["HIERARCHY", *_hierarchy_lines(sk, channels, scale, precision)]
+    static = _static_root(motion)
+    shift = np.zeros(3) if static is None else np.asarray(static["position"], dtype=float)
+    data = _frame_columns(motion, channels, scale, p, root_shift=shift)
+    lines = _hierarchy_lines(sk, channels, scale, precision, root_shift=shift)
+    if static is not None:  # the static root ingest dropped, back around the root
+        values = [shift["XYZ".index(c[0])] / scale if c.endswith("position") else 0.0
+                  for c in static["channels"]]  # fmt: skip
+        data = np.concatenate([np.tile(values, (F, 1)), data], axis=1)
+        offset = " ".join(_fmt(x / scale, precision) for x in static["offset"])
+        head = [f"ROOT {static['name']}", "{", f"\tOFFSET {offset}"]
+        if static["channels"]:
+            head.append(f"\tCHANNELS {len(static['channels'])} {' '.join(static['channels'])}")
+        lines = [*head, "\tJOINT" + lines[0][len("ROOT"):],
+                 *("\t" + line for line in lines[1:]), "}"]  # fmt: skip
+    out = ["HIERARCHY", *lines]
     out += ["MOTION", f"Frames: {F}", f"Frame Time: {_frame_time_text(motion)}"]
     with open(p, "w", newline="\n") as f:
         f.write("\n".join(out) + "\n")
@@ -711,12 +728,24 @@ def write_bvh(
     return p
 
 
-def _frame_columns(motion: Motion, channels: list[list[str]], scale: float, p: Path) -> np.ndarray:
+def _static_root(motion: Motion) -> dict | None:
+    """The static root joint that :func:`~mocapflow.stages.motion.ingest.ingest_bvh` dropped
+    (``motion.attrs["dropped_root_joint"]``: name, offset, channels, position in metres),
+    when the motion's root is still the joint that replaced it, else None."""
+    joint = motion.attrs.get("dropped_root_joint")
+    if not isinstance(joint, dict) or joint.get("name") in motion.skeleton.names:
+        return None
+    return joint
+
+
+def _frame_columns(motion: Motion, channels: list[list[str]], scale: float, p: Path, *,
+                   root_shift: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
     """``(F, C)`` frame values, one column per channel in hierarchy order.
 
     Positions in file units (metres / ``scale``), angles in degrees (unwrapped
     along frames); raises :class:`BVHError` where the channels cannot hold the
-    joint's rotation or translation.
+    joint's rotation or translation.  ``root_shift`` (3,): taken off the root's
+    positions (a static root put back around it holds it).
     """
     sk = motion.skeleton
     F = motion.n_frames
@@ -731,7 +760,8 @@ def _frame_columns(motion: Motion, channels: list[list[str]], scale: float, p: P
         for c in chans:
             if c.endswith("position"):
                 if j == 0:
-                    src = motion.root_position
+                    src = motion.root_position if root_shift is None else (
+                        motion.root_position - root_shift)  # fmt: skip
                 elif trans is not None:
                     src = trans[:, j]
                 else:
@@ -772,9 +802,11 @@ def _joint_angles(motion: Motion, j: int, rot: str, padded: str, p: Path) -> np.
 
 
 def _hierarchy_lines(
-    sk: Skeleton, channels: list[list[str]], scale: float, precision: int
+    sk: Skeleton, channels: list[list[str]], scale: float, precision: int, *,
+    root_shift: np.ndarray | None = None,
 ) -> list[str]:
-    """The ``ROOT`` … ``End Site`` lines (tab-indented, offsets in file units)."""
+    """The ``ROOT`` … ``End Site`` lines (tab-indented, offsets in file units; the root's
+    offset less ``root_shift`` (3,), metres)."""
     ends: dict[int, list[np.ndarray]] = {}
     for e, j in enumerate(sk.end_parents):
         ends.setdefault(int(j), []).append(sk.end_offsets[e])
@@ -797,7 +829,8 @@ def _hierarchy_lines(
             continue
         out.append(f"{ind}{'ROOT' if j == 0 else 'JOINT'} {sk.names[j]}")
         out.append(f"{ind}{{")
-        out.append(f"{ind}\tOFFSET {vec(sk.offsets[j])}")
+        off = sk.offsets[j] if j or root_shift is None else sk.offsets[j] - root_shift
+        out.append(f"{ind}\tOFFSET {vec(off)}")
         out.append(f"{ind}\tCHANNELS {len(channels[j])} {' '.join(channels[j])}".rstrip())
         stack.append((j, depth, True))
         stack.extend((c, depth + 1, False) for c in reversed(children.get(j, [])))

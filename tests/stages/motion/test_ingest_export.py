@@ -370,9 +370,18 @@ def test_ingest_bvh_drops_a_static_root_whose_child_travels(tmp_path):
     (pos, ends), (ref_pos, ref_ends) = world(m), world(ref)
     np.testing.assert_allclose(pos, ref_pos[:, 1:], atol=1e-9)  # every other joint unchanged
     np.testing.assert_allclose(ends, ref_ends, atol=1e-9)
-    back = ingest_bvh(str(write_bvh(m, tmp_path / "back.bvh")), up="+y", ctx=ctx())["motion"]
+    back_path = write_bvh(m, tmp_path / "back.bvh")
+    back = ingest_bvh(str(back_path), up="+y", ctx=ctx())["motion"]
     assert back.skeleton.names == m.skeleton.names
     np.testing.assert_allclose(world(back)[0], pos, atol=1e-8)
+    # the file written keeps the source's hierarchy: the static root put back around Hips,
+    # with its offset, channels and values, the Hips' offset and channels as read
+    raw = read_bvh(back_path, unit="cm")
+    assert raw.skeleton.names == ref.skeleton.names and raw.skeleton.channels == ref.skeleton.channels
+    np.testing.assert_allclose(raw.skeleton.offsets, ref.skeleton.offsets, atol=1e-8)
+    np.testing.assert_allclose(raw.root_position, ref.root_position, atol=1e-8)
+    np.testing.assert_allclose(raw.translations, ref.translations, atol=1e-8)
+    np.testing.assert_allclose(world(raw)[0], ref_pos, atol=1e-8)
     # a root that moves (or turns) is kept
     p.write_text(STATIC_ROOT.replace("\n5 0 7 0 0 0 3 92", "\n5 0 8 0 0 0 3 92"))
     kept = ingest_bvh(str(p), up="+y", unit="cm", ctx=(c := ctx()))["motion"]
