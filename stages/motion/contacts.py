@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import re
 from typing import Literal
 
 import numpy as np
@@ -149,6 +150,22 @@ def foot_contacts(
 
 
 _FOOT_NAMES = ("foot", "ankle")
+#: A side before the name (``LeftFoot``, ``l_ankle``, ``lfoot``) or after it behind a
+#: separator (Bandai-Namco's ``Foot_L``, Blender's ``foot.L``, ``Foot Left``), the
+#: namespace of a rig (``mixamorig:``) dropped.
+_SIDE_FIRST = re.compile(r"(?P<side>left|right|l|r)[_.\- ]?(?P<stem>.+)")
+_SIDE_LAST = re.compile(r"(?P<stem>.+?)(?:[_.\- ](?P<s1>l|r)|[_.\- ]?(?P<s2>left|right))")
+
+
+def _sided_names(name: str) -> list[tuple[str, str]]:
+    """``(side, stem)`` readings of a joint name (side ``"left"``/``"right"``)."""
+    low = name.lower().rsplit(":", 1)[-1]
+    out = []
+    if m := _SIDE_FIRST.fullmatch(low):
+        out.append((m["side"], m["stem"]))
+    if m := _SIDE_LAST.fullmatch(low):
+        out.append((m["s1"] or m["s2"], m["stem"]))
+    return [("left" if side[0] == "l" else "right", stem) for side, stem in out]
 
 
 def foot_joint(skeleton: Skeleton, side: Literal["left", "right"] = "left") -> int:
@@ -163,14 +180,14 @@ def foot_joint(skeleton: Skeleton, side: Literal["left", "right"] = "left") -> i
     -------
     int
         ``-1`` when no joint is named like a foot or ankle of that side
-        (``LeftFoot``, ``LeftAnkle``, ``lfoot``, ``l_ankle``...).
+        (``LeftFoot``, ``LeftAnkle``, ``lfoot``, ``l_ankle``, ``Foot_L``, ``foot.L``,
+        ``mixamorig:LeftFoot``...; not a toe or an end joint).
     """
-    prefixes = ("left", "l_", "l") if side == "left" else ("right", "r_", "r")
     for j, n in enumerate(skeleton.names):
         low = n.lower()
         if "toe" in low or "end" in low:
             continue
-        for p in prefixes:
-            if low.startswith(p) and any(low[len(p) :].startswith(f) for f in _FOOT_NAMES):
+        for s, stem in _sided_names(n):
+            if s == side and stem.startswith(_FOOT_NAMES):
                 return j
     return -1
