@@ -312,9 +312,10 @@ def _static_root_dropped(motion: Motion) -> tuple[Motion, str | None]:
     -------
     motion : Motion
         The re-rooted motion (``attrs["dropped_root"]``: the old root's name;
-        ``attrs["dropped_root_joint"]``: its name, offset, channels and constant position,
-        metres, from which :func:`~mocapflow.stages.motion.formats.bvh.write_bvh` writes it
-        back, so a file keeps its hierarchy through the graphs), or ``motion`` itself.
+        ``attrs["dropped_root_joint"]``, also in the skeleton's ``attrs``: its name,
+        offset, channels and constant position, metres, from which
+        :func:`~mocapflow.stages.motion.formats.bvh.write_bvh` writes it back, so a file
+        keeps its hierarchy through the graphs), or ``motion`` itself.
     message : str or None
         One line naming both joints when the root was dropped.
     """
@@ -339,14 +340,16 @@ def _static_root_dropped(motion: Motion) -> tuple[Motion, str | None]:
     translations[:, 0] = root_position
     offsets = sk.offsets[keep].copy()
     offsets[0] += motion.root_position[0]
-    skeleton = dataclasses.replace(
-        sk, names=sk.names[1:], parents=np.maximum(sk.parents[keep] - 1, -1),
-        offsets=offsets, channels=sk.channels[1:], end_parents=sk.end_parents - 1)
-    has_pos = [any(ch.endswith("position") for ch in chans) for chans in skeleton.channels]
-    # what write_bvh needs to put the static root back around the new one
+    # what write_bvh needs to put the static root back around the new one (on the
+    # skeleton too: stages that make new motions on it keep it, as the source unit)
     joint = {"name": sk.names[0], "offset": [float(v) for v in sk.offsets[0]],
              "channels": list(sk.channels[0]),
              "position": [float(v) for v in motion.root_position[0]]}  # fmt: skip
+    skeleton = dataclasses.replace(
+        sk, names=sk.names[1:], parents=np.maximum(sk.parents[keep] - 1, -1),
+        offsets=offsets, channels=sk.channels[1:], end_parents=sk.end_parents - 1,
+        attrs={**sk.attrs, "dropped_root_joint": joint})
+    has_pos = [any(ch.endswith("position") for ch in chans) for chans in skeleton.channels]
     out = motion.replace(skeleton=skeleton, root_position=root_position, rotations=rotations,
                          translations=translations if any(has_pos[1:]) else None,
                          attrs={**motion.attrs, "dropped_root": sk.names[0],

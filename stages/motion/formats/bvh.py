@@ -664,7 +664,8 @@ def write_bvh(
         (a joint without channels gets none; a skeleton with no channels at all
         gets BVH's usual 6 root / 3 joint channels in ZXY order).  A static root
         that :func:`~mocapflow.stages.motion.ingest.ingest_bvh` dropped
-        (``attrs["dropped_root_joint"]``, Bandai-Namco's ``joint_Root``) is written
+        (``attrs["dropped_root_joint"]``, the motion's or its skeleton's; Bandai-Namco's
+        ``joint_Root``) is written
         back around the root, with its offset, channels and constant values, so the
         file has the source's hierarchy.
     path : str or path-like
@@ -730,9 +731,10 @@ def write_bvh(
 
 def _static_root(motion: Motion) -> dict | None:
     """The static root joint that :func:`~mocapflow.stages.motion.ingest.ingest_bvh` dropped
-    (``motion.attrs["dropped_root_joint"]``: name, offset, channels, position in metres),
-    when the motion's root is still the joint that replaced it, else None."""
-    joint = motion.attrs.get("dropped_root_joint")
+    (``motion.attrs["dropped_root_joint"]``, else its skeleton's: name, offset, channels,
+    position in metres), when the motion's root is still the joint that replaced it, else None."""
+    joint = motion.attrs.get("dropped_root_joint",
+                             motion.skeleton.attrs.get("dropped_root_joint"))  # fmt: skip
     if not isinstance(joint, dict) or joint.get("name") in motion.skeleton.names:
         return None
     return joint

@@ -377,11 +377,17 @@ def test_ingest_bvh_drops_a_static_root_whose_child_travels(tmp_path):
     # the file written keeps the source's hierarchy: the static root put back around Hips,
     # with its offset, channels and values, the Hips' offset and channels as read
     raw = read_bvh(back_path, unit="cm")
-    assert raw.skeleton.names == ref.skeleton.names and raw.skeleton.channels == ref.skeleton.channels
+    assert raw.skeleton.names == ref.skeleton.names
+    assert raw.skeleton.channels == ref.skeleton.channels
     np.testing.assert_allclose(raw.skeleton.offsets, ref.skeleton.offsets, atol=1e-8)
     np.testing.assert_allclose(raw.root_position, ref.root_position, atol=1e-8)
     np.testing.assert_allclose(raw.translations, ref.translations, atol=1e-8)
     np.testing.assert_allclose(world(raw)[0], ref_pos, atol=1e-8)
+    # a new motion made on the skeleton alone (the variation graph's variants) keeps it too
+    bare = m.replace(attrs={})
+    assert "dropped_root_joint" in bare.skeleton.attrs
+    again = read_bvh(write_bvh(bare, tmp_path / "bare.bvh"), unit="cm")
+    assert again.skeleton.names == ref.skeleton.names
     # a root that moves (or turns) is kept
     p.write_text(STATIC_ROOT.replace("\n5 0 7 0 0 0 3 92", "\n5 0 8 0 0 0 3 92"))
     kept = ingest_bvh(str(p), up="+y", unit="cm", ctx=(c := ctx()))["motion"]
