@@ -158,13 +158,17 @@ _SIDE_LAST = re.compile(r"(?P<stem>.+?)(?:[_.\- ](?P<s1>l|r)|[_.\- ]?(?P<s2>left
 
 
 def _sided_names(name: str) -> list[tuple[str, str]]:
-    """``(side, stem)`` readings of a joint name (side ``"left"``/``"right"``)."""
+    """``(side, stem)`` readings of a joint name (side ``"left"``/``"right"``), of the
+    whole name and of each tail after a separator (3ds Max's ``Bip01 L Foot``,
+    ``Character1_LeftFoot``)."""
     low = name.lower().rsplit(":", 1)[-1]
+    tails = [low] + [low[m.end():] for m in re.finditer(r"[_.\- ]", low) if m.end() < len(low)]
     out = []
-    if m := _SIDE_FIRST.fullmatch(low):
-        out.append((m["side"], m["stem"]))
-    if m := _SIDE_LAST.fullmatch(low):
-        out.append((m["s1"] or m["s2"], m["stem"]))
+    for tail in tails:
+        if m := _SIDE_FIRST.fullmatch(tail):
+            out.append((m["side"], m["stem"]))
+        if m := _SIDE_LAST.fullmatch(tail):
+            out.append((m["s1"] or m["s2"], m["stem"]))
     return [("left" if side[0] == "l" else "right", stem) for side, stem in out]
 
 
@@ -181,7 +185,7 @@ def foot_joint(skeleton: Skeleton, side: Literal["left", "right"] = "left") -> i
     int
         ``-1`` when no joint is named like a foot or ankle of that side
         (``LeftFoot``, ``LeftAnkle``, ``lfoot``, ``l_ankle``, ``Foot_L``, ``foot.L``,
-        ``mixamorig:LeftFoot``...; not a toe or an end joint).
+        ``mixamorig:LeftFoot``, ``Bip01 L Foot``...; not a toe or an end joint).
     """
     for j, n in enumerate(skeleton.names):
         low = n.lower()

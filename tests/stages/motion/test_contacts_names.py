@@ -19,6 +19,8 @@ from mocapflow.stages.motion.contacts import foot_joint
         (["pelvis", "thigh.L", "foot.L", "foot.R"], 2, 3),  # Blender (Rigify-like)
         (["l_ankle", "r_ankle"], 0, 1),
         (["Foot Left", "Foot Right"], 0, 1),
+        (["Bip01 Pelvis", "Bip01 L Thigh", "Bip01 L Foot", "Bip01 R Foot"], 2, 3),  # 3ds Max
+        (["Character1_Hips", "Character1_LeftFoot", "Character1_RightFoot"], 1, 2),  # HumanIK
         (["LeftFootEnd", "LeftToe", "Root", "LowerLeg_L"], -1, -1),  # no foot
     ],
 )
