@@ -38,6 +38,11 @@ What :func:`read_c3d` makes of the points of a file
   ``attrs["excluded_points"]`` with the reason and their missing-frame count.
 * **unlabelled trajectories** (``*12`` style labels) go to ``fragments`` /
   ``fragment_labels``; they are not dropped.
+* **frames with analog words ezc3d does not count** (the parameters leave
+  ``ANALOG:RATE`` out or declare no channel, the header and the data block hold them):
+  ezc3d would read every frame after the first from the wrong place, so the points
+  are read with the header's frame size instead (c3d.org sample28, BTKData's
+  ``561xxa01_anonym.C3D``); no analog data then.
 * **notes**: each departure from the file above (zeros read as missing, a unit
   word read, labels joined or renamed, parameters left out) is one line of
   ``attrs["read_notes"]`` (absent when there is none), for the ingest to warn with.
@@ -260,9 +265,9 @@ def read_c3d(path: str | os.PathLike) -> Markers:
         Empty, truncated, corrupt or unsupported file; unknown POINT:UNITS.
     """
     path = Path(path)
-    params, pts, res, analogs, first_frame, header_rate = _read_points(path)
-    n_points = pts.shape[1]
     notes: list[str] = []
+    params, pts, res, analogs, first_frame, header_rate = _read_points(path, notes)
+    n_points = pts.shape[1]
     rate = _point_rate(params, header_rate, path)
     unit, unit_assumed = _point_unit(params, path, notes)
     k = UNIT_SCALE[unit]
@@ -315,13 +320,21 @@ def read_c3d(path: str | os.PathLike) -> Markers:
     )
 
 
-def _read_points(path: Path) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, int, float]:
-    """:func:`check_file`, then :func:`_ezc3d_points`, checked against the header's sizes."""
+def _read_points(path: Path, notes: list[str]
+                 ) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, int, float]:  # fmt: skip
+    """:func:`check_file`, then :func:`_ezc3d_points`, checked against the header's sizes
+    (the points of a file whose frames hold analog words ezc3d does not count read by
+    :func:`_points_by_header` instead, with a line in ``notes``)."""
     layout = check_file(path)
     try:
         params, pts, res, analogs, first_frame, header_rate = _ezc3d_points(str(path))
     except Exception as e:  # ezc3d raises RuntimeError/OSError/IndexError …
         raise _fail(path, f"corrupt C3D file: ezc3d could not read it ({e})") from None
+    words = _misread_analog_words(layout, analogs)
+    if words is not None:
+        pts, res = _points_by_header(path, layout, words, params)
+        notes.append(f"points read with the header's frame size: {words} analog words a frame "
+                     "that the ANALOG parameters do not size (no analog data read)")
     if pts.ndim != 3 or pts.shape[1] != layout.n_points or pts.shape[2] != layout.n_frames:
         raise _fail(
             path,
@@ -330,6 +343,68 @@ def _read_points(path: Path) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray, 
             f"{layout.n_frames} frames of {layout.n_points} points",
         )
     return params, pts, res, analogs, first_frame, header_rate
+
+
+def _misread_analog_words(layout, analogs: np.ndarray) -> int | None:
+    """The header's analog words per frame where ezc3d read the frames with another count
+    and the data block holds exactly the header's frames (not ezc3d's), else None.
+
+    ezc3d sizes a frame from the parameters (``ANALOG:USED`` x ``ANALOG:RATE`` /
+    ``POINT:RATE``); files whose parameters leave the analog rate out or declare no
+    channel while every frame holds analog words (c3d.org sample28, BTKData's
+    ``561xxa01_anonym.C3D``: 6 or 18 words a frame) are then read from the wrong place
+    after the first frame."""
+    P, F, word = layout.n_points, layout.n_frames, layout.word
+    if not (P and F and layout.header_analog_words):
+        return None
+    read = analogs.shape[1] * (analogs.shape[2] // F) if analogs.ndim == 3 else 0
+    if read == layout.header_analog_words:
+        return None
+    header_frames = F * (4 * P + layout.header_analog_words) * word
+    read_frames = F * (4 * P + read) * word
+    if 0 <= layout.data_bytes - header_frames < 512 and not (
+            0 <= layout.data_bytes - read_frames < 512):  # fmt: skip
+        return layout.header_analog_words
+    return None
+
+
+def _points_by_header(path: Path, layout, analog_words: int,
+                      params: dict) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Points ``(4, P, F)`` and residuals ``(1, P, F)`` as ezc3d gives them, read from the
+    data block with the header's frame size (points, then ``analog_words`` analog words,
+    skipped; :func:`_misread_analog_words`): c3d.org sample28 ``standing.C3D`` as ezc3d
+    read it had shoulders at 2 cm and every step of every marker over 10 cm.
+    Coordinates are floats (DEC's converted) or 16-bit integers times ``POINT:SCALE``; the
+    fourth word is a missing sample when negative, else its integer's high byte times
+    ``|POINT:SCALE|`` is the residual, as ezc3d reads its own files back.
+    """
+    buf = path.read_bytes()
+    P, F = layout.n_points, layout.n_frames
+    word = layout.word
+    frame = (4 * P + analog_words) * word
+    start = (layout.data_start - 1) * 512
+    raw = np.frombuffer(buf, np.uint8, count=F * frame, offset=start).reshape(F, frame)
+    raw = np.ascontiguousarray(raw[:, : 4 * P * word]).reshape(F, P, 4, word)
+    scale_v = _param(params, "POINT", "SCALE")  # the header's (-1: floats) where absent
+    scale = float(np.ravel(scale_v)[0]) if scale_v is not None and np.size(scale_v) else (
+        -1.0 if word == 4 else 1.0)  # fmt: skip
+    if word == 4:
+        if layout.processor == 85:  # DEC F-float: 16-bit words swapped, 4 x the value
+            values = raw[..., [2, 3, 0, 1]].copy().view("<f4")[..., 0] / 4.0
+        else:
+            values = raw.copy().view("<f4")[..., 0]  # (F, P, 4)
+        xyz, fourth = values[..., :3], values[..., 3]
+    else:
+        values = raw.copy().view("<i2")[..., 0].astype(np.float64)  # (F, P, 4)
+        xyz, fourth = values[..., :3] * scale, values[..., 3]
+    # the fourth word as ezc3d reads it back from its own files: negative, missing; else
+    # its integer's high byte times |POINT:SCALE| (the low byte: camera mask)
+    code = np.where(np.isfinite(fourth), fourth, -1.0)
+    residual = np.where(code < 0, -1.0, ((np.maximum(code, 0).astype(np.int64) >> 8) & 0xFF)
+                        * abs(scale))  # fmt: skip
+    pts = np.ones((4, P, F))
+    pts[:3] = np.asarray(xyz, dtype=np.float64).transpose(2, 1, 0)
+    return pts, residual.T[None].astype(np.float64)
 
 
 def _analog_samples(path: Path, analogs: np.ndarray, n_frames: int) -> np.ndarray | None:

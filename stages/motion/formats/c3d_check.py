@@ -71,6 +71,11 @@ class Layout:
     word: int
     data_start: int
     processor: int
+    #: Analog words per frame the header declares (word 3) and the bytes of the data
+    #: block: what :func:`~mocapflow.stages.motion.formats.c3d._read_points` checks the
+    #: frames ezc3d read against.
+    header_analog_words: int = 0
+    data_bytes: int = 0
 
 
 @dataclass(frozen=True)
@@ -404,7 +409,8 @@ def check_file(path: Path) -> Layout:
         _check_rotations(
             path, params, n_frames, size=size, point_rate=float(_first(params, "POINT:RATE", 0.0))
         )
-    return Layout(n_points, channels * per_frame, first0, n_frames, word, data_start, processor)
+    return Layout(n_points, channels * per_frame, first0, n_frames, word, data_start, processor,
+                  header["analogs"], size - (data_start - 1) * _BLOCK)  # fmt: skip
 
 
 def _check_rotations(

@@ -87,3 +87,34 @@ def test_parameters_of_an_undefined_group_are_skipped(fuzz, tmp_path):
     assert m.attrs["read_notes"] == ["parameters of an undefined group skipped: SOFTWARE"]
     assert "SOFTWARE" not in m.attrs["c3d_parameters"]["MOCAPFLOW"]["parameters"]
     assert (m.positions.tobytes(), m.labels) == (ref.positions.tobytes(), ref.labels)
+
+
+def test_frames_with_analog_words_the_parameters_do_not_size(fuzz, tmp_path):
+    """A file whose frames hold analog words that ezc3d does not count (here ANALOG:RATE 0;
+    c3d.org sample28 has no ANALOG:RATE at all) is read with the header's frame size:
+    ezc3d alone reads every frame after the first from the wrong place (c3d.org
+    sample28 ``standing.C3D``: every step of every marker over 10 cm)."""
+    import dataclasses
+
+    import numpy as np
+
+    m = _synthetic(5, 30, seed=4)
+    m = dataclasses.replace(m, analogs=np.arange(30 * 2 * 3, dtype=float).reshape(60, 3))
+    buf = bytearray(write_c3d(m, tmp_path / "analog.c3d").read_bytes())
+    rate = next(e for e in fuzz.c3d_entries(bytes(buf)) if e["full"] == "ANALOG:RATE")
+    struct.pack_into("<f", buf, rate["data_at"], 0.0)
+    p = tmp_path / "analog_rate_0.c3d"
+    p.write_bytes(bytes(buf))
+    h = ezc3d.ezc3d.c3d(str(p)).header()
+    assert h.nbAnalogByFrame() == 0 and check_file(p).header_analog_words == 6
+    plain = np.asarray(ezc3d.c3d(str(p))["data"]["points"])[:3].transpose(2, 1, 0) / 1000
+    seen = np.isfinite(m.positions).all(-1) & np.isfinite(plain).all(-1)
+    assert np.abs(plain[seen] - m.positions[seen]).max() > 0.1  # ezc3d alone: misread
+    back = read_c3d(p)
+    assert back.labels == m.labels
+    assert back.attrs["read_notes"] == ["points read with the header's frame size: 6 analog "
+                                        "words a frame that the ANALOG parameters do not size "
+                                        "(no analog data read)"]
+    np.testing.assert_array_equal(np.isnan(back.positions), np.isnan(m.positions))
+    np.testing.assert_allclose(back.positions, m.positions, atol=1e-6, equal_nan=True)
+    np.testing.assert_allclose(back.residuals, m.residuals, atol=1e-4, equal_nan=True)
