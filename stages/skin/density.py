@@ -10,9 +10,13 @@ only helps between markers that are a few centimetres apart.  The rule
 (:func:`marker_density`):
 
     a capture suits the method when the median nearest-neighbour spacing of its
-    body markers in the reference pose is at most ``MAX_SPACING`` (75 mm) and at
+    body markers in the reference pose is at most ``MAX_SPACING`` (75 mm), at
     least ``MIN_COVERED`` (75 %) of its body markers lie in near-rigid parts of at
-    least ``MIN_PART_MARKERS`` (10) markers.
+    least ``MIN_PART_MARKERS`` (10) markers, and there are at least ``MIN_PARTS`` (2)
+    parts: a trial in which the body never bends at a joint (a static standing
+    trial) segments into one rigid part, where the per-part models say nothing (c3d.org
+    sample28 ``standing.C3D``, 32 body markers 45 mm apart, one part: it passed the
+    first two tests and was deformed with the quadratic and residual terms).
 
 Measured (reference pose of ``clean``, parts of ``segment``): the demo's simulated
 350-marker capture 59 mm, 95 %; ``ezc3d-testFiles_Qualisys.c3d`` 90 mm, 62 %;
@@ -42,6 +46,7 @@ from scipy.spatial import cKDTree
 __all__ = [
     "MAX_SPACING",
     "MIN_COVERED",
+    "MIN_PARTS",
     "MIN_PART_MARKERS",
     "OBJECT_WORDS",
     "density_warning",
@@ -55,6 +60,8 @@ MAX_SPACING = 0.075
 MIN_PART_MARKERS = 10
 #: Smallest fraction of the body's markers in parts of at least MIN_PART_MARKERS.
 MIN_COVERED = 0.75
+#: Fewest near-rigid parts: one part is a body that never bent at a joint in the trial.
+MIN_PARTS = 2
 #: Words naming objects, matched at the start of a word of the label's prefix
 #: (``boite:avant_gauche``) or, without a prefix, of the label (``WheelchairFront``).
 OBJECT_WORDS = ("box", "boite", "wheelchair", "chair", "wand", "probe", "sync", "ball",
@@ -130,7 +137,8 @@ def marker_density(reference: np.ndarray, part: np.ndarray) -> dict[str, Any]:
     dict
         ``markers``, ``spacing_mm`` (median nearest-neighbour distance),
         ``part_markers`` (markers per part), ``covered`` (fraction of the markers
-        in parts of at least :data:`MIN_PART_MARKERS`), ``suited`` (bool) and
+        in parts of at least :data:`MIN_PART_MARKERS`), ``suited`` (bool: also at
+        least :data:`MIN_PARTS` parts) and
         ``rule`` (the rule in words).
     """
     ref = np.asarray(reference, dtype=np.float64)
@@ -139,7 +147,8 @@ def marker_density(reference: np.ndarray, part: np.ndarray) -> dict[str, Any]:
     spacing = float(np.median(cKDTree(ref).query(ref, k=2)[0][:, 1])) if M >= 2 else np.inf
     counts = np.bincount(part, minlength=int(part.max()) + 1 if M else 0)
     covered = float(np.sum(counts[part] >= MIN_PART_MARKERS) / M) if M else 0.0
-    suited = bool(spacing <= MAX_SPACING and covered >= MIN_COVERED)
+    n_parts = int(np.count_nonzero(counts))
+    suited = bool(spacing <= MAX_SPACING and covered >= MIN_COVERED and n_parts >= MIN_PARTS)
     return {
         "markers": int(M),
         "spacing_mm": round(spacing * 1000, 1),
@@ -148,7 +157,7 @@ def marker_density(reference: np.ndarray, part: np.ndarray) -> dict[str, Any]:
         "suited": suited,
         "rule": (f"median marker spacing <= {MAX_SPACING * 1000:.0f} mm and >= "
                  f"{MIN_COVERED:.0%} of the markers in near-rigid parts of >= "
-                 f"{MIN_PART_MARKERS} markers"),
+                 f"{MIN_PART_MARKERS} markers, in >= {MIN_PARTS} parts"),
     }  # fmt: skip
 
 
@@ -156,7 +165,8 @@ def density_warning(density: dict[str, Any], name: str = "capture") -> str:
     """The one warning of a capture below the rule (names the capture and the numbers)."""
     return (
         f"{name}: {density['markers']} body markers, spacing {density['spacing_mm']:.0f} mm, "
-        f"{density['covered']:.0%} in parts of >= {MIN_PART_MARKERS} markers: below the "
+        f"{density['covered']:.0%} in parts of >= {MIN_PART_MARKERS} markers, "
+        f"{len(density['part_markers'])} part(s): below the "
         f"density Park & Hodgins' deformation needs ({density['rule']}; their captures: "
         "~350 markers); falling back to rigid skinning of the fitted body"
     )
