@@ -120,8 +120,14 @@ def reference_labelling(
     if markers.positions.shape[1]:
         return markers, {}
     if frags.shape[1] == 0 or frags.shape[0] == 0:
-        raise LabellingError("clean: the capture has no labelled markers or no frames "
-                             "(and no fragments to label)")
+        source = markers.attrs.get("source", "the capture")
+        if markers.positions.shape[0] == 0:
+            raise LabellingError(f"clean: {source} has no frames")
+        points = markers.attrs.get("n_points")
+        why = ("" if points is None else
+               " (the file holds no points: analog or rotation data only)" if points == 0 else
+               f" ({points} points in the file, none a marker: model outputs only?)")
+        raise LabellingError(f"clean: {source} has no marker trajectories to clean{why}")
     vis = np.isfinite(frags).all(-1)
     lasting = _runs_length(vis) >= max(1, int(round(min_duration * markers.rate)))
     if reference_frame is None:

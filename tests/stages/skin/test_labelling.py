@@ -279,3 +279,16 @@ def test_a_body_part_apart_in_space_is_not_a_subject():
     two = np.concatenate([ref, ref + [3.0, 0.0, 0.0]])
     mk = Markers(np.repeat(two[None], 2, 0), [f"m{i}" for i in range(70)], 100.0)
     assert [len(i) for _, i in subject_groups(mk, two)] == [35, 35]
+
+
+def test_a_take_with_no_marker_trajectory_is_refused_in_one_line():
+    """A C3D of rotation or analog data only (ezc3d's C3DRotationExample.c3d: POINT:USED 0)
+    reaches clean with no marker and no fragment: one line naming the file and why."""
+    from mocapflow.stages.motion.datatypes import Markers  # noqa: PLC0415
+
+    empty = Markers(positions=np.zeros((85, 0, 3)), labels=[], rate=85.0,
+                    attrs={"source": "C3DRotationExample.c3d", "n_points": 0})  # fmt: skip
+    with pytest.raises(CleanError, match=r"^clean: C3DRotationExample.c3d has no marker "
+                       r"trajectories to clean \(the file holds no points: analog or rotation "
+                       r"data only\)$"):
+        clean(empty, ctx=Context())
