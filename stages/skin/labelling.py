@@ -122,7 +122,7 @@ def reference_labelling(
     if frags.shape[1] == 0 or frags.shape[0] == 0:
         source = markers.attrs.get("source", "the capture")
         if markers.positions.shape[0] == 0:
-            raise LabellingError(f"clean: {source} has no frames")
+            raise LabellingError(f"clean: {source} has no labelled markers or no frames")
         points = markers.attrs.get("n_points")
         why = ("" if points is None else
                " (the file holds no points: analog or rotation data only)" if points == 0 else
