@@ -193,7 +193,13 @@ def _walk(
     else:  # pragma: no cover - bounded by the section size anyway
         raise _fail(path, "corrupt parameter section: too many entries")
     if "POINT" not in groups.values():
-        raise _fail(path, "no POINT group in the parameter section")
+        holds = sorted(set(groups.values()) & {"ANALOG", "FORCE_PLATFORM", "ROTATION"})
+        points = u16(2)  # the header's (word 2)
+        if points:  # c3d.org sample20 (PhaseSpace): 40 points, no POINT group
+            raise _fail(path, f"no POINT group in the parameter section: the header's "
+                        f"{points} points have no labels, rate or unit to read them with")
+        raise _fail(path, "no POINT group in the parameter section: no marker data"
+                    + (f" (the file holds {', '.join(holds)} only)" if holds else ""))
     params: dict[str, _Param] = {}
     for gid, name, param in raw:
         if gid in groups:

@@ -118,3 +118,22 @@ def test_frames_with_analog_words_the_parameters_do_not_size(fuzz, tmp_path):
     np.testing.assert_array_equal(np.isnan(back.positions), np.isnan(m.positions))
     np.testing.assert_allclose(back.positions, m.positions, atol=1e-6, equal_nan=True)
     np.testing.assert_allclose(back.residuals, m.residuals, atol=1e-4, equal_nan=True)
+
+
+def test_a_file_without_a_point_group_says_what_it_holds(fuzz, tmp_path):
+    """No POINT group: a file of analog data only (ezc3d's Kistler.c3d) says so; a file
+    whose header still counts points (c3d.org sample20, PhaseSpace: 40) says they cannot
+    be read."""
+    buf = bytearray(write_c3d(_synthetic(5, 30, seed=3), tmp_path / "ok.c3d").read_bytes())
+    group = next(e for e in fuzz.c3d_entries(bytes(buf)) if e["full"] == "POINT")
+    buf[group["pos"] + 2 : group["pos"] + 7] = b"PXINT"  # the group renamed
+    p = tmp_path / "no_point_group.c3d"
+    p.write_bytes(bytes(buf))
+    with pytest.raises(C3DError, match=r"no POINT group in the parameter section: the "
+                       r"header's 5 points have no labels, rate or unit to read them with$"):
+        check_file(p)
+    struct.pack_into("<H", buf, 2, 0)  # the header's point count 0: no marker data
+    p.write_bytes(bytes(buf))
+    with pytest.raises(C3DError, match=r"no POINT group in the parameter section: no marker "
+                       r"data \(the file holds ANALOG, FORCE_PLATFORM, ROTATION only\)$"):
+        check_file(p)
