@@ -23,7 +23,7 @@ import re
 
 import numpy as np
 
-__all__ = ["REGION_JOINTS", "marker_region", "region_vertices"]
+__all__ = ["REGION_JOINTS", "body_facing", "marker_face", "marker_region", "region_vertices"]
 
 #: The template joints (procedural CMU skeleton) whose vertices make each region.
 REGION_JOINTS: dict[str, tuple[str, ...]] = {
@@ -49,6 +49,11 @@ _UNSIDED = {
     "head": r"head\d*|forehead|vertex|hdt|glabella|nasion",
     "shoulder": r"acro\w*",
 }  # fmt: skip
+# which face of the body a named marker sits on (front: ASIS, sternum, clavicle; back:
+# PSIS, sacrum, spine, scapula), matched like the names
+_FRONT = r"asis?|ias|strn|ster\w*|stern|xiph\w*|sxs|px|snj|sjn|ij|jn|clav\w*"
+_BACK = (r"psis?|ips|sacr\w*|sa|s1|c7|cv7|t\d{1,2}|tv\d{1,2}|th\d{1,2}|bak|back|rbak|lbak|"
+         r"scap\w*")
 _SIDE = re.compile(r"^(?:left|right|l|r)(?=.)|(?<=.)(?:left|right|l|r)$")
 
 
@@ -80,6 +85,43 @@ def marker_region(label: str) -> str | None:
             if re.fullmatch(rf"(?:{pattern})\d*", bare):
                 return region
     return None
+
+
+def marker_face(label: str) -> str | None:
+    """``"front"`` or ``"back"``: the face of the trunk or pelvis a marker named by
+    :func:`marker_region` sits on (``LASI``, ``L_IAS``, ``STRN``, ``CLAV``, ``SXS`` in front;
+    ``LPSI``, ``SACR``, ``C7``, ``T10``, ``RBAK``, ``R_SCAP`` behind), else None."""
+    if marker_region(label) not in ("pelvis", "trunk"):
+        return None
+    name = _normal(label)
+    for bare in (name, _SIDE.sub("", name, count=1)):
+        for face, pattern in (("front", _FRONT), ("back", _BACK)):
+            if bare and re.fullmatch(rf"(?:{pattern})\d*", bare):
+                return face
+    return None
+
+
+def body_facing(labels: list[str], reference: np.ndarray, up: np.ndarray) -> np.ndarray | None:
+    """``(3,)`` unit horizontal direction the body faces, from its named front and back
+    markers (:func:`marker_face`): per region (pelvis, trunk) with both, the mean front
+    marker less the mean back one, off ``up``; the regions' directions averaged.  None
+    without such a pair or where they cancel out."""
+    ref = np.asarray(reference, dtype=np.float64)
+    up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    total = np.zeros(3)
+    for region in ("pelvis", "trunk"):
+        faces = [(i, marker_face(lb)) for i, lb in enumerate(labels)
+                 if marker_region(lb) == region and np.isfinite(ref[i]).all()]  # fmt: skip
+        front = [i for i, f in faces if f == "front"]
+        back = [i for i, f in faces if f == "back"]
+        if front and back:
+            d = ref[front].mean(0) - ref[back].mean(0)
+            d -= (d @ up) * up
+            n = np.linalg.norm(d)
+            if n > 1e-6:
+                total += d / n
+    n = np.linalg.norm(total)
+    return total / n if n > 1e-6 else None
 
 
 def region_vertices(joint_names: list[str], vertex_part: np.ndarray) -> dict[str, np.ndarray]:

@@ -30,7 +30,7 @@ from mocapflow.stages.motion.simulate.makehuman import load_makehuman_body
 from mocapflow.stages.motion.simulate.markers import find_joint
 from mocapflow.stages.motion.simulate.skeleton import procedural_skeleton
 from mocapflow.stages.skin.binding import DeformError, closest_points_on_triangles
-from mocapflow.stages.skin.marker_regions import marker_region, region_vertices
+from mocapflow.stages.skin.marker_regions import body_facing, marker_region, region_vertices
 from mocapflow.stages.skin.registration import DEFAULT_SCHEDULE, affine_registration
 from mocapflow.stages.skin.segmentation import Segmentation
 
@@ -353,9 +353,12 @@ def _nonrigid_fit(X: np.ndarray, Y: np.ndarray, faces: np.ndarray, lm_m: np.ndar
 
 
 def _upright_step(src: np.ndarray, Y: np.ndarray, w: np.ndarray, up: np.ndarray,
-                  scale_range: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted ``Y ≈ s R src + t`` with ``R`` a turn about ``up`` and ``s`` clipped to
-    ``scale_range``: returns ``A = s R (3, 3)`` and ``t (3,)``."""
+                  scale_range: tuple[float, float], *,
+                  turn: tuple[float, float] = (-np.pi, np.pi),
+                  ) -> tuple[np.ndarray, np.ndarray, float]:  # fmt: skip
+    """Weighted ``Y ≈ s R src + t`` with ``R`` a turn about ``up`` by an angle clipped to
+    ``turn`` (radians) and ``s`` clipped to ``scale_range``: returns ``A = s R (3, 3)``,
+    ``t (3,)`` and the angle."""
     w = w / w.sum()
     ms, mt = w @ src, w @ Y
     S, T = src - ms, Y - mt
@@ -365,14 +368,19 @@ def _upright_step(src: np.ndarray, Y: np.ndarray, w: np.ndarray, up: np.ndarray,
     e2 = np.cross(up, e1)
     a = np.sum(w * ((Sh @ e1) * (Th @ e1) + (Sh @ e2) * (Th @ e2)))
     b = np.sum(w * ((Sh @ e1) * (Th @ e2) - (Sh @ e2) * (Th @ e1)))
-    theta = np.arctan2(b, a)
+    theta = float(np.clip(np.arctan2(b, a), *turn))
     K = np.array([[0, -up[2], up[1]], [up[2], 0, -up[0]], [-up[1], up[0], 0]])
     R = np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K  # Rodrigues about up
     RS = S @ R.T
     var = float(np.sum(w * np.sum(S**2, 1)))
     s = float(np.sum(w * np.sum(RS * T, 1)) / var) if var > 0 else 1.0
     s = float(np.clip(s, *scale_range))
-    return s * R, mt - s * R @ ms
+    return s * R, mt - s * R @ ms, theta
+
+
+#: Most the upright fit turns the template away from the body's facing read from its
+#: named front and back markers (:func:`~mocapflow.stages.skin.marker_regions.body_facing`).
+FACING_TURN = float(np.radians(15.0))
 
 
 def upright_fit(
@@ -387,6 +395,8 @@ def upright_fit(
     scale_range: tuple[float, float] | None = None,
     marker_regions: list[str | None] | None = None,
     region_masks: dict[str, np.ndarray] | None = None,
+    facing: np.ndarray | None = None,
+    forward: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """Fit a body template to sparse markers keeping it upright: scale, turn, shift.
 
@@ -429,6 +439,13 @@ def upright_fit(
         named markers' mean height at their regions'.  Without them a partial set can
         settle on the wrong part of the body: pyomeca's seated trunk-and-arm capture
         had the standing template's legs laid through its trunk markers.
+    facing, forward : (3,) float ndarray, optional
+        The horizontal direction the body faces (from its named front and back
+        markers, :func:`~mocapflow.stages.skin.marker_regions.body_facing`) and the
+        template's own forward in ``vertices``' axes: with both, the template is
+        turned to face it, then turned at most :data:`FACING_TURN` from it (one heading
+        instead of four): the closest points alone turned it 82-98 degrees away on the
+        Qualisys capture (its left ASIS marker on the template's right thigh).
 
     Returns
     -------
@@ -456,18 +473,27 @@ def upright_fit(
                                         for _, mi, _, vi in groups])  # fmt: skip
         heights["named"] = (region_height.mean(), hy[named].mean())
     best = None
-    for heading in range(4):
-        K = np.array([[0, -up[2], up[1]], [up[2], 0, -up[0]], [-up[1], up[0], 0]])
-        ang = heading * np.pi / 2
+    K = np.array([[0, -up[2], up[1]], [up[2], 0, -up[0]], [-up[1], up[0], 0]])
+    fixed = facing is not None and forward is not None
+    if fixed:  # the turn about up taking the template's forward to the body's facing
+        f0 = np.asarray(forward, dtype=np.float64) - (np.asarray(forward) @ up) * up
+        f1 = np.asarray(facing, dtype=np.float64) - (np.asarray(facing) @ up) * up
+        start = float(np.arctan2(np.cross(f0, f1) @ up, f0 @ f1))
+    for heading in range(1 if fixed else 4):
+        ang = start if fixed else heading * np.pi / 2
         R0 = np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * K @ K
         for c_v, c_y in heights.values():
             mv, my = V0.mean(0) - (V0.mean(0) @ up) * up, Y.mean(0) - (Y.mean(0) @ up) * up
             A, t = R0, my - R0 @ mv + (c_y - c_v) * up
+            turned = 0.0  # from the start (with a facing, within FACING_TURN)
             for _ in range(iterations):
                 X = V0 @ A.T + t
                 _, _, src, dist = _region_correspondences(Y, X, faces, offset, groups)
                 w = (dist <= np.quantile(dist, 1 - trim)).astype(float)
-                A_s, t_s = _upright_step(src, Y, w, up, (0.5, 2.0))
+                bounds = ((-FACING_TURN - turned, FACING_TURN - turned) if fixed else
+                          (-np.pi, np.pi))  # fmt: skip
+                A_s, t_s, theta = _upright_step(src, Y, w, up, (0.5, 2.0), turn=bounds)
+                turned += theta
                 A_new, t_new = A_s @ A, A_s @ t + t_s
                 s_new = float(np.cbrt(abs(np.linalg.det(A_new))))
                 if not scale_range[0] <= s_new <= scale_range[1]:  # hold the scale in range
@@ -492,6 +518,7 @@ def upright_fit(
     info = {
         "method": "upright",
         "named_markers": {region: int(len(mi)) for region, mi, _, _ in groups},
+        "facing": None if not fixed else [float(v) for v in facing],
         "scale": s,
         "axis_scales": [s, s, s],
         "rotation_deg": float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))),
@@ -601,15 +628,17 @@ def fit_mesh(
     lm = {index[k]: int(v) for k, v in (landmarks or {}).items()}
     if (segmentation.attrs.get("density") or {}).get("suited") is False:
         # below Park & Hodgins' density (segment warned once): the upright fit
-        regions = masks = None
+        regions = masks = facing = None
+        basis = frame_basis(axes["up"], axes["forward"])
         if named_regions and "joint_names" in template.attrs and "vertex_part" in template.attrs:
             regions = [marker_region(label) for label in segmentation.labels]
             masks = region_vertices(list(template.attrs["joint_names"]),
                                     np.asarray(template.attrs["vertex_part"]))  # fmt: skip
-        fitted, info = upright_fit(V, template.faces, segmentation.reference,
-                                   frame_basis(axes["up"], axes["forward"])[:, 1],
+            facing = body_facing(segmentation.labels, segmentation.reference, basis[:, 1])
+        fitted, info = upright_fit(V, template.faces, segmentation.reference, basis[:, 1],
                                    marker_offset=marker_offset, marker_regions=regions,
-                                   region_masks=masks)  # fmt: skip
+                                   region_masks=masks, facing=facing,
+                                   forward=basis[:, 2])  # fmt: skip
         report = {**info, "vertices": int(len(V)), "template_frame": template_frame}
         ctx.figure("fit", f"upright x{info['scale']:.2f}")
         mesh = Mesh(vertices=fitted, faces=template.faces, attrs={**template.attrs, **axes})

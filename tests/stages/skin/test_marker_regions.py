@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from mocapflow.pipeline import Context
-from mocapflow.stages.skin.marker_regions import REGION_JOINTS, marker_region, region_vertices
+from mocapflow.stages.skin.marker_regions import (
+    REGION_JOINTS,
+    body_facing,
+    marker_face,
+    marker_region,
+    region_vertices,
+)
 from mocapflow.stages.skin.mesh_fit import template_mesh
 
 
@@ -48,3 +54,28 @@ def test_region_vertices_of_the_template():
     assert height["pelvis"] < height["trunk"] < height["shoulder"] < height["head"]
     assert abs(height["pelvis"]) < 0.1  # the hips at the root
     assert not masks["head"][y < 0.4].any()
+
+
+@pytest.mark.parametrize(
+    ("label", "face"),
+    [("LASI", "front"), ("L_IAS", "front"), ("Daphnee:ASISr", "front"), ("STRN", "front"),
+     ("SXS", "front"), ("CLAV", "front"), ("LPSI", "back"), ("R_IPS", "back"),
+     ("sacrum", "back"), ("C7", "back"), ("TV8", "back"), ("RBAK", "back"),
+     ("Daphnee:SCAP_IA", "back"), ("LFHD", None), ("LSHO", None), ("LKNE", None)],
+)  # fmt: skip
+def test_marker_face(label, face):
+    assert marker_face(label) == face
+
+
+def test_body_facing_from_front_and_back_markers():
+    """The pelvis' ASIS ahead of its PSIS and the sternum ahead of C7 give the facing, off
+    the up axis; a set with no such pair gives none."""
+    up = np.array([0.0, 0.0, 1.0])
+    labels = ["LASI", "RASI", "LPSI", "RPSI", "STRN", "C7", "LKNE"]
+    ref = np.array([[0.1, 0.12, 1.0], [0.1, -0.12, 1.0], [-0.08, 0.05, 1.05],
+                    [-0.08, -0.05, 1.05], [0.12, 0.0, 1.35], [-0.1, 0.0, 1.5],
+                    [0.0, 0.1, 0.5]])  # fmt: skip
+    np.testing.assert_allclose(body_facing(labels, ref, up), [1.0, 0.0, 0.0], atol=1e-12)
+    turned = ref @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).T
+    np.testing.assert_allclose(body_facing(labels, turned, up), [0.0, 1.0, 0.0], atol=1e-12)
+    assert body_facing(["LASI", "LKNE"], ref[[0, 6]], up) is None
