@@ -14,7 +14,11 @@ match the whole skin as before.
 
 Without the names, the upright fit of pyomeca's seated trunk-and-arm capture
 (``pyomeca_markers_analogs.c3d``: pelvis 0.17 m and sternum 0.6 m above the origin) laid
-the standing template's legs through the trunk markers.
+the standing template's legs through the trunk markers.  :func:`marker_face` reads
+whether a pelvis or trunk marker sits in front (ASIS, sternum, clavicle) or behind (PSIS,
+sacrum, spine, scapula), and :func:`body_facing` the way the body faces from them, which
+the upright fit turns the template to: the closest points alone had turned it 121 degrees
+away on the Qualisys capture.
 """
 
 from __future__ import annotations

@@ -406,7 +406,8 @@ def upright_fit(
     axis, so only a uniform scale (within ``scale_range`` of the template's,
     which is in metres), a turn about ``up`` and a shift are fitted, by trimmed
     iterated closest points from 12 starts (4 headings x the markers' top, middle
-    or bottom at the template's), the best kept.
+    or bottom at the template's; a fourth height with ``marker_regions``, one heading
+    with ``facing``), the best kept.
 
     Parameters
     ----------
@@ -444,7 +445,7 @@ def upright_fit(
         markers, :func:`~mocapflow.stages.skin.marker_regions.body_facing`) and the
         template's own forward in ``vertices``' axes: with both, the template is
         turned to face it, then turned at most :data:`FACING_TURN` from it (one heading
-        instead of four): the closest points alone turned it 82-98 degrees away on the
+        instead of four): the closest points alone turned it 121 degrees away on the
         Qualisys capture (its left ASIS marker on the template's right thigh).
 
     Returns
@@ -589,9 +590,12 @@ def fit_mesh(
         place on the pelvis, trunk, head or shoulder girdle (``LASI``, ``C7``,
         ``STRN``, ``L_HDF``, ``Daphnee:ASISr``, ...;
         :func:`~mocapflow.stages.skin.marker_regions.marker_region`) to that region of
-        the template only (its rig names the regions); the report's
-        ``named_markers`` counts them per region.  False: every marker to the whole
-        template.
+        the template only (its rig names the regions), and turn the template to face the
+        way the named front and back markers do
+        (:func:`~mocapflow.stages.skin.marker_regions.body_facing`, within
+        :data:`FACING_TURN`); the report's ``named_markers`` counts them per region and
+        ``facing`` gives the direction.  False: every marker to the whole template, four
+        headings tried.
 
     Returns
     -------
