@@ -42,22 +42,22 @@ REGION_JOINTS: dict[str, tuple[str, ...]] = {
 # marker, "RS1" a shank's, not T1 or S1)
 _SIDED = {
     "pelvis": r"asis?|ias|psis?|ips",
-    "trunk": r"bak|back|clav\w*|ster\w*|scap\w*|scapula\w*|scapularspine\w*",
+    "trunk": r"bak|back|clav\w*|ster\w*|scap\w*",
     "head": r"fhd|bhd|hdf|hdb|head\d*|forehead|temple|ear",
-    "shoulder": r"sho|should|shoulder|acro\w*|acromion\w*|saj|ac",
+    "shoulder": r"sho|should|shoulder|acro\w*|saj|ac",
 }
 _UNSIDED = {
     "pelvis": r"asis?|sacr|sacrum|sacral|sa|s1",
-    "trunk": r"c7|cv7|t\d{1,2}|tv\d{1,2}|th\d{1,2}|strn|ster\w*|sternum|stern|xiph\w*|sxs|px|"
+    "trunk": r"c7|cv7|t\d{1,2}|tv\d{1,2}|th\d{1,2}|strn|ster\w*|xiph\w*|sxs|px|"
              r"snj|sjn|ij|jn|clav\w*|rbak|lbak|back|scap\w*",
     "head": r"head\d*|forehead|vertex|hdt|glabella|nasion",
     "shoulder": r"acro\w*",
 }  # fmt: skip
 # which face of the body a named marker sits on (front: ASIS, sternum, clavicle; back:
-# PSIS, sacrum, spine, scapula), matched like the names
-_FRONT = r"asis?|ias|strn|ster\w*|stern|xiph\w*|sxs|px|snj|sjn|ij|jn|clav\w*"
-_BACK = (r"psis?|ips|sacr\w*|sa|s1|c7|cv7|t\d{1,2}|tv\d{1,2}|th\d{1,2}|bak|back|rbak|lbak|"
-         r"scap\w*")
+# PSIS, sacrum, spine, scapula), matched like the names, on the name with its side
+# stripped too (:func:`marker_face`)
+_FRONT = r"asis?|ias|strn|ster\w*|xiph\w*|sxs|px|snj|sjn|ij|jn|clav\w*"
+_BACK = r"psis?|ips|sacr\w*|sa|s1|c7|cv7|t\d{1,2}|tv\d{1,2}|th\d{1,2}|bak|back|scap\w*"
 _SIDE = re.compile(r"^(?:left|right|l|r)(?=.)|(?<=.)(?:left|right|l|r)$")
 
 

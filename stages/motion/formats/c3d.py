@@ -378,24 +378,23 @@ def _points_by_header(path: Path, layout, analog_words: int,
     fourth word is a missing sample when negative, else its integer's high byte times
     ``|POINT:SCALE|`` is the residual, as ezc3d reads its own files back.
     """
-    buf = path.read_bytes()
     P, F = layout.n_points, layout.n_frames
     word = layout.word
     frame = (4 * P + analog_words) * word
     start = (layout.data_start - 1) * 512
-    raw = np.frombuffer(buf, np.uint8, count=F * frame, offset=start).reshape(F, frame)
+    raw = np.fromfile(path, np.uint8, count=F * frame, offset=start).reshape(F, frame)
     raw = np.ascontiguousarray(raw[:, : 4 * P * word]).reshape(F, P, 4, word)
     scale_v = _param(params, "POINT", "SCALE")  # the header's (-1: floats) where absent
     scale = float(np.ravel(scale_v)[0]) if scale_v is not None and np.size(scale_v) else (
         -1.0 if word == 4 else 1.0)  # fmt: skip
     if word == 4:
         if layout.processor == 85:  # DEC F-float: 16-bit words swapped, 4 x the value
-            values = raw[..., [2, 3, 0, 1]].copy().view("<f4")[..., 0] / 4.0
+            values = raw[..., [2, 3, 0, 1]].view("<f4")[..., 0] / 4.0
         else:
-            values = raw.copy().view("<f4")[..., 0]  # (F, P, 4)
+            values = raw.view("<f4")[..., 0]  # (F, P, 4)
         xyz, fourth = values[..., :3], values[..., 3]
     else:
-        values = raw.copy().view("<i2")[..., 0].astype(np.float64)  # (F, P, 4)
+        values = raw.view("<i2")[..., 0].astype(np.float64)  # (F, P, 4)
         xyz, fourth = values[..., :3] * scale, values[..., 3]
     # the fourth word as ezc3d reads it back from its own files: negative, missing; else
     # its integer's high byte times |POINT:SCALE| (the low byte: camera mask)
@@ -403,8 +402,8 @@ def _points_by_header(path: Path, layout, analog_words: int,
     residual = np.where(code < 0, -1.0, ((np.maximum(code, 0).astype(np.int64) >> 8) & 0xFF)
                         * abs(scale))  # fmt: skip
     pts = np.ones((4, P, F))
-    pts[:3] = np.asarray(xyz, dtype=np.float64).transpose(2, 1, 0)
-    return pts, residual.T[None].astype(np.float64)
+    pts[:3] = xyz.transpose(2, 1, 0)
+    return pts, residual.T[None]
 
 
 def _analog_samples(path: Path, analogs: np.ndarray, n_frames: int) -> np.ndarray | None:
