@@ -129,11 +129,18 @@ def _region_groups(marker_regions: list[str | None] | None,
 def _region_correspondences(Y: np.ndarray, X: np.ndarray, faces: np.ndarray, offset: float,
                             groups: list[_Group]):
     """:func:`_marker_correspondences`, each marker of ``groups`` (:func:`_region_groups`)
-    on its region's faces only."""
-    tri, bary, pt, dist = _marker_correspondences(Y, X, faces, offset)
-    for _, mi, fi, _ in groups:
-        t, b, p, d = _marker_correspondences(Y[mi], X, faces[fi], offset)
-        tri[mi], bary[mi], pt[mi], dist[mi] = fi[t], b, p, d
+    on its region's faces only, the others on the whole mesh."""
+    if not groups:
+        return _marker_correspondences(Y, X, faces, offset)
+    tri, dist = np.zeros(len(Y), np.int64), np.zeros(len(Y))
+    bary, pt = np.zeros((len(Y), 3)), np.zeros((len(Y), 3))
+    named = np.concatenate([mi for _, mi, _, _ in groups])
+    rest = np.setdiff1d(np.arange(len(Y)), named)
+    for mi, fi in [(rest, None), *((mi, fi) for _, mi, fi, _ in groups)]:
+        if len(mi):
+            t, b, p, d = _marker_correspondences(Y[mi], X, faces if fi is None else faces[fi],
+                                                 offset)  # fmt: skip
+            tri[mi], bary[mi], pt[mi], dist[mi] = t if fi is None else fi[t], b, p, d
     return tri, bary, pt, dist
 
 
