@@ -705,7 +705,7 @@ def write_bvh(
         ]
     F = motion.n_frames
     static = _static_root(motion)
-    shift = np.zeros(3) if static is None else np.asarray(static["position"], dtype=float)
+    shift = None if static is None else np.asarray(static["position"], dtype=float)
     data = _frame_columns(motion, channels, scale, p, root_shift=shift)
     lines = _hierarchy_lines(sk, channels, scale, precision, root_shift=shift)
     if static is not None:  # the static root ingest dropped, back around the root
