@@ -9,6 +9,8 @@ from mocapflow.pipeline import Context
 from mocapflow.stages.skin.marker_regions import (
     REGION_JOINTS,
     body_facing,
+    joint_landmark,
+    label_side,
     marker_face,
     marker_region,
     region_vertices,
@@ -20,23 +22,27 @@ from mocapflow.stages.skin.mesh_fit import template_mesh
     ("label", "region"),
     [
         # Plug-in Gait (btkdata PiG, ezc3d read_NOTworking2)
-        ("LASI", "pelvis"), ("RPSI", "pelvis"), ("ASI", "pelvis"), ("C7", "trunk"),
-        ("T10", "trunk"), ("CLAV", "trunk"), ("STRN", "trunk"), ("RBAK", "trunk"),
+        ("LASI", "pelvis"), ("RPSI", "pelvis"), ("ASI", "pelvis"), ("C7", "upper_trunk"),
+        ("T10", "trunk"), ("CLAV", "upper_trunk"), ("STRN", "trunk"), ("RBAK", "trunk"),
         ("LFHD", "head"), ("RBHD", "head"), ("LSHO", "shoulder"), ("LKNE", None),
         ("LUPA1", None), ("RWRA", None),
         # Qualisys sports marker set
-        ("L_IAS", "pelvis"), ("R_IPS", "pelvis"), ("CV7", "trunk"), ("TV8", "trunk"),
-        ("SXS", "trunk"), ("SNJ", "trunk"), ("R_SCAP", "trunk"), ("L_HDF", "head"),
+        ("L_IAS", "pelvis"), ("R_IPS", "pelvis"), ("CV7", "upper_trunk"), ("TV8", "trunk"),
+        ("SXS", "trunk"), ("SNJ", "upper_trunk"), ("R_SCAP", "trunk"), ("L_HDF", "head"),
         ("L_SAJ", "shoulder"), ("L_FME", None), ("R_WAND1", None),
         # ISB-style names with a subject prefix (pyomeca), BTS, kineticstoolkit
         ("Daphnee:ASISr", "pelvis"), ("Daphnee:PSISl", "pelvis"), ("Daphnee:STERl", "trunk"),
-        ("Daphnee:XIPH", "trunk"), ("Daphnee:CLAV_AC", "trunk"), ("Daphnee:ACRO_tip", "shoulder"),
+        ("Daphnee:XIPH", "trunk"), ("Daphnee:CLAV_AC", "upper_trunk"),
+        ("Daphnee:ACRO_tip", "shoulder"),
         ("Daphnee:LASTC", None), ("Daphnee:EPICl", None), ("r asis", "pelvis"),
-        ("sacrum", "pelvis"), ("l should", "shoulder"), ("c7", "trunk"), ("r knee 1", None),
+        ("sacrum", "pelvis"), ("l should", "shoulder"), ("c7", "upper_trunk"), ("r knee 1", None),
         ("Head2", "head"), ("BodyL:TempleL", "head"), ("AcromionR", "shoulder"),
         ("ScapulaL3", "trunk"), ("Sternum", "trunk"), ("ArmL1", None),
         # thigh and shank clusters are not vertebrae or the sacrum
         ("RT1", None), ("LT4", None), ("RS1", None), ("LeftASIS", "pelvis"),
+        # the upper trunk: vertebrae T1-T2 and the jugular notch, not T8 or the xiphoid
+        ("T1", "upper_trunk"), ("Daphnee:T1", "upper_trunk"), ("Daphnee:T10", "trunk"),
+        ("IJ", "upper_trunk"), ("LCLAV", "upper_trunk"), ("PX", "trunk"),
     ],
 )  # fmt: skip
 def test_marker_region(label, region):
@@ -47,11 +53,18 @@ def test_region_vertices_of_the_template():
     """Each region holds the template's vertices of its joints, at its height: the pelvis
     about the hips, the head on top."""
     mesh = template_mesh(n_vertices=2000, ctx=Context())["mesh"]
-    masks = region_vertices(mesh.attrs["joint_names"], np.asarray(mesh.attrs["vertex_part"]))
-    assert set(masks) == set(REGION_JOINTS)
     y = mesh.vertices[:, 1]
+    masks = region_vertices(mesh.attrs["joint_names"], np.asarray(mesh.attrs["vertex_part"]), y)
+    assert set(masks) == set(REGION_JOINTS)
     height = {r: float(np.median(y[m])) for r, m in masks.items()}
     assert height["pelvis"] < height["trunk"] < height["shoulder"] < height["head"]
+    # the upper trunk: the chest's upper half, from about the armpits to the neck
+    assert height["trunk"] < height["upper_trunk"] and masks["upper_trunk"].sum() > 50
+    assert y[masks["upper_trunk"]].min() >= np.median(y[masks["trunk"] & ~masks["pelvis"]])
+    assert not (masks["upper_trunk"] & ~masks["trunk"]).any()
+    # without heights the upper trunk is left out (it is the upper half of its joints)
+    bare = region_vertices(mesh.attrs["joint_names"], np.asarray(mesh.attrs["vertex_part"]))
+    assert set(bare) == set(REGION_JOINTS) - {"upper_trunk"}
     assert abs(height["pelvis"]) < 0.1  # the hips at the root
     assert not masks["head"][y < 0.4].any()
 
@@ -79,3 +92,36 @@ def test_body_facing_from_front_and_back_markers():
     turned = ref @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]).T
     np.testing.assert_allclose(body_facing(labels, turned, up), [0.0, 1.0, 0.0], atol=1e-12)
     assert body_facing(["LASI", "LKNE"], ref[[0, 6]], up) is None
+
+
+@pytest.mark.parametrize(
+    ("label", "joint"),
+    [("LELB", "elbow"), ("L_HLE", "elbow"), ("R_HME", "elbow"), ("Daphnee:EPICl", "elbow"),
+     ("LateralEpicondyleL", "elbow"), ("BodyL:LateralEpicondyleL", "elbow"),
+     ("OlecraneR", "elbow"), ("LWRA", "wrist"), ("RWRB", "wrist"), ("R_RSP", "wrist"),
+     ("L_UHE", "wrist"), ("Daphnee:STYLu", "wrist"), ("Daphnee:WRIST", "wrist"),
+     ("RadialStyloidR", "wrist"), ("LKNE", "knee"), ("L_FLE", "knee"), ("R_FME", "knee"),
+     ("RightKnee", "knee"), ("RANK", "ankle"), ("L_FAL", "ankle"), ("R_TAM", "ankle"),
+     ("ankleL", "ankle"),
+     # clusters, segments and other places are no joint
+     ("LTHI", None), ("LTIB", None), ("RSK2", None), ("ArmL1", None), ("LSHO", None),
+     ("LASI", None), ("LHEE", None), ("LTOE", None), ("L_FM1", None), ("LFIN", None),
+     ("Daphnee:LARM_elb", None), ("BodyL:HandL", None)],
+)  # fmt: skip
+def test_joint_landmark(label, joint):
+    assert joint_landmark(label) == joint
+
+
+@pytest.mark.parametrize(
+    ("label", "side"),
+    [("LELB", "Left"), ("RWRA", "Right"), ("L_HLE", "Left"), ("R_FME", "Right"),
+     ("LeftKnee", "Left"), ("RightAnkle", "Right"), ("LateralEpicondyleL", "Left"),
+     ("RadialStyloidR", "Right"), ("BodyL:LateralEpicondyleL", "Left"), ("knee_R", "Right"),
+     ("L.Ankle", "Left"),
+     # a lateral (l), medial (m), radial (r) or ulnar (u) suffix is not a side, nor a
+     # leading capital of a word
+     ("Daphnee:EPICl", None), ("Daphnee:STYLr", None), ("Daphnee:EPICm", None),
+     ("LateralEpicondyle", None), ("Lelbow", None)],
+)  # fmt: skip
+def test_label_side(label, side):
+    assert label_side(label) == side
