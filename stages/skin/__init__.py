@@ -71,8 +71,12 @@ the paper lives in one function (modules of this package):
   range-of-motion trial                  rom.ingest_rom, rom.match_markers
 §5.3 detailed mesh registration          mesh_fit.fit_detailed_mesh (Allen et al. 2003 style);
                                          below the density, mesh_fit.upright_fit (named
-                                         markers on their region: marker_regions)
-  vertex weights β (barycentric α)       binding.bind_mesh
+                                         markers on their region: marker_regions), the
+                                         limbs turned to named joint markers
+                                         (mesh_fit._posed_fit, limb_pose.pose_limbs; an
+                                         addition)
+  vertex weights β (barycentric α)       binding.bind_mesh (a limb's skin held to its
+                                         limb's and the body's parts: limb_pose.limb_binding)
   rigid: Horn per part                   parts._rigid_fits (in parts.fit_part)
   quadratic p̂ ≈ A q(p̄) (P&H Eq. 6)       parts._quadratic_fits, kernels.quadratic_basis
   RBF residual, cubic B-spline           parts._residual_fits, kernels.rbf_matrix,

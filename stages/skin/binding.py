@@ -155,6 +155,7 @@ def bind_mesh(
     sharpness: float = 4.0,
     min_weight: float = 1e-3,
     name: str = "mesh",
+    allowed: np.ndarray | None = None,
 ) -> MeshBinding:
     """Vertex weights ``β`` by barycentric interpolation from the nearest marker triangle.
 
@@ -177,6 +178,11 @@ def bind_mesh(
         renormalised, so a vertex is not evaluated by parts it barely follows.
     name : str
         Name of the mesh in error messages.
+    allowed : (V, P) bool ndarray, optional
+        Parts each vertex may follow (a limb's skin its limb's and the body's parts:
+        :func:`~mocapflow.stages.skin.limb_pose.limb_binding`): weights on other parts are
+        dropped; a vertex left with none follows the parts of the nearest marker whose
+        own part it may follow.
 
     Returns
     -------
@@ -225,10 +231,40 @@ def bind_mesh(
     if sharpness != 1.0:
         beta = beta**sharpness
     beta /= beta.sum(1, keepdims=True)
+    if allowed is not None:
+        beta = _allowed_weights(beta, np.asarray(allowed, dtype=bool), V, ref, alpha)
     if min_weight > 0:
         beta[beta < min_weight] = 0.0
         beta /= beta.sum(1, keepdims=True)
     return MeshBinding(beta=beta, triangle=tri, barycentric=bary, distance=dist)
+
+
+def _allowed_weights(beta: np.ndarray, allowed: np.ndarray, V: np.ndarray, ref: np.ndarray,
+                     alpha: np.ndarray) -> np.ndarray:
+    """``beta (V, P)`` held to the ``allowed`` parts, rows renormalised; a row with no
+    allowed weight takes the nearest marker's ``alpha`` row among the markers whose largest
+    part that vertex may follow (held to the allowed parts too); with no such marker it
+    stays as it was."""
+    given = beta
+    beta = np.where(allowed, beta, 0.0)
+    lost = beta.sum(1) <= 0
+    if lost.any():
+        own = alpha.argmax(1)  # each marker's part
+        rows = np.flatnonzero(lost)
+        patterns, which = np.unique(allowed[rows], axis=0, return_inverse=True)
+        for k, pattern in enumerate(patterns):
+            markers = np.flatnonzero(pattern[own] & np.isfinite(ref).all(1))
+            if not markers.size:
+                continue
+            r = rows[which.ravel() == k]
+            _, m = cKDTree(ref[markers]).query(V[r])
+            nearest = markers[np.asarray(m)]
+            w = alpha[nearest] * pattern
+            w[np.arange(len(r)), own[nearest]] += w.sum(1) <= 0  # (its own part at least)
+            beta[r] = w
+    none = beta.sum(1) <= 0  # no marker of a part it may follow: as bound
+    beta[none] = given[none]
+    return beta / beta.sum(1, keepdims=True)
 
 
 def mesh_edges(faces: np.ndarray, n_vertices: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -166,6 +166,7 @@ from mocapflow.stages.skin.blend import (
     frame_coefficients,
     vertex_operator,
 )
+from mocapflow.stages.skin.limb_pose import limb_binding
 from mocapflow.stages.skin.parts import (
     Mode,
     PartFit,
@@ -564,8 +565,15 @@ def deform(
         """The mesh's binding, the edges of its triangles that blend (measured while the
         frames are evaluated), the vertex operator and, to widen the blends, the mesh's
         topology: NumPy over the rest vertices."""
+        allowed = None  # a limb's skin held to its limb's and the body's parts
+        if {"joint_names", "vertex_part"} <= set(mesh.attrs):
+            allowed = limb_binding(segmentation.labels, segmentation.reference,
+                                   segmentation.weights, mesh.vertices,
+                                   list(mesh.attrs["joint_names"]),
+                                   np.asarray(mesh.attrs["vertex_part"]))  # fmt: skip
         binding = bind_mesh(mesh.vertices, segmentation, sharpness=beta_sharpness,
-                            name="detailed mesh", min_overlap=0.0 if sparse else 0.9)
+                            name="detailed mesh", min_overlap=0.0 if sparse else 0.9,
+                            allowed=allowed)
         topology = _mesh_topology(mesh) if widen else None
         watch, ends = _blending_edges(mesh, binding.beta, topology) if widen else (None, None)
         operator = vertex_operator(models, V, residual=residual, rest=mesh.vertices,

@@ -29,6 +29,7 @@ from mocapflow.stages.motion.simulate.capsules import procedural_body
 from mocapflow.stages.motion.simulate.makehuman import load_makehuman_body
 from mocapflow.stages.motion.simulate.markers import find_joint
 from mocapflow.stages.motion.simulate.skeleton import procedural_skeleton
+from mocapflow.stages.skin import limb_pose
 from mocapflow.stages.skin.binding import DeformError, closest_points_on_triangles
 from mocapflow.stages.skin.marker_regions import body_facing, marker_region, region_vertices
 from mocapflow.stages.skin.registration import DEFAULT_SCHEDULE, affine_registration
@@ -454,14 +455,14 @@ def upright_fit(
         turned to face it, then turned at most :data:`FACING_TURN` from it (one heading
         instead of four): the closest points alone turned it 121 degrees away on the
         Qualisys capture (its left ASIS marker on the template's right thigh).
-
     Returns
     -------
     vertices : (V, 3) float ndarray
         The fitted template.
     info : dict
         As :func:`fit_detailed_mesh`'s (``scale``, ``rotation_deg``, ``aligned``,
-        ``fitted``), plus ``method="upright"``.
+        ``fitted``), plus ``method="upright"`` and ``trimmed_rms_mm`` (the RMS distance
+        of the best ``1 - trim`` of the markers, which the fit minimises).
     """
     V0 = np.asarray(vertices, dtype=np.float64)
     Y = np.asarray(targets, dtype=np.float64)
@@ -487,34 +488,34 @@ def upright_fit(
         f0 = np.asarray(forward, dtype=np.float64) - (np.asarray(forward) @ up) * up
         f1 = np.asarray(facing, dtype=np.float64) - (np.asarray(facing) @ up) * up
         start = float(np.arctan2(np.cross(f0, f1) @ up, f0 @ f1))
-    for heading in range(1 if fixed else 4):
+    starts = [(h, c) for h in range(1 if fixed else 4) for c in heights.values()]
+    for heading, (c_v, c_y) in starts:
         ang = start if fixed else heading * np.pi / 2
         R0 = np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * K @ K
-        for c_v, c_y in heights.values():
-            mv, my = V0.mean(0) - (V0.mean(0) @ up) * up, Y.mean(0) - (Y.mean(0) @ up) * up
-            A, t = R0, my - R0 @ mv + (c_y - c_v) * up
-            turned = 0.0  # from the start (with a facing, within FACING_TURN)
-            for _ in range(iterations):
-                X = V0 @ A.T + t
-                _, _, src, dist = _region_correspondences(Y, X, faces, offset, groups)
-                w = (dist <= np.quantile(dist, 1 - trim)).astype(float)
-                bounds = ((-FACING_TURN - turned, FACING_TURN - turned) if fixed else
-                          (-np.pi, np.pi))  # fmt: skip
-                A_s, t_s, theta = _upright_step(src, Y, w, up, (0.5, 2.0), turn=bounds)
-                turned += theta
-                A_new, t_new = A_s @ A, A_s @ t + t_s
-                s_new = float(np.cbrt(abs(np.linalg.det(A_new))))
-                if not scale_range[0] <= s_new <= scale_range[1]:  # hold the scale in range
-                    A_new = A_new * (np.clip(s_new, *scale_range) / s_new)
-                step = float(np.abs((V0 @ A_new.T + t_new) - X).max())
-                A, t = A_new, t_new
-                if step < 1e-6:
-                    break
-            dist = _region_correspondences(Y, V0 @ A.T + t, faces, offset, groups)[3]
-            score = float(np.mean(np.sort(dist)[: max(1, int(len(dist) * (1 - trim)))] ** 2))
-            if best is None or score < best[0]:
-                best = (score, A, t)
-    _, A, t = best
+        mv, my = V0.mean(0) - (V0.mean(0) @ up) * up, Y.mean(0) - (Y.mean(0) @ up) * up
+        A, t = R0, my - R0 @ mv + (c_y - c_v) * up
+        turned = 0.0  # from the start (with a facing, within FACING_TURN)
+        for _ in range(iterations):
+            X = V0 @ A.T + t
+            _, _, src, dist = _region_correspondences(Y, X, faces, offset, groups)
+            w = (dist <= np.quantile(dist, 1 - trim)).astype(float)
+            bounds = ((-FACING_TURN - turned, FACING_TURN - turned) if fixed else
+                      (-np.pi, np.pi))  # fmt: skip
+            A_s, t_s, theta = _upright_step(src, Y, w, up, (0.5, 2.0), turn=bounds)
+            turned += theta
+            A_new, t_new = A_s @ A, A_s @ t + t_s
+            s_new = float(np.cbrt(abs(np.linalg.det(A_new))))
+            if not scale_range[0] <= s_new <= scale_range[1]:  # hold the scale in range
+                A_new = A_new * (np.clip(s_new, *scale_range) / s_new)
+            step = float(np.abs((V0 @ A_new.T + t_new) - X).max())
+            A, t = A_new, t_new
+            if step < 1e-6:
+                break
+        dist = _region_correspondences(Y, V0 @ A.T + t, faces, offset, groups)[3]
+        score = float(np.mean(np.sort(dist)[: max(1, int(len(dist) * (1 - trim)))] ** 2))
+        if best is None or score < best[0]:
+            best = (score, A, t)
+    score, A, t = best
     out = V0 @ A.T + t
     dist = _region_correspondences(Y, out, faces, offset, groups)[3]
     s = float(np.cbrt(abs(np.linalg.det(A))))
@@ -533,8 +534,78 @@ def upright_fit(
         "translation_m": [float(v) for v in t],
         "aligned": stats,
         "fitted": stats,
+        "trimmed_rms_mm": float(np.sqrt(score) * 1000),
     }
     return out, info
+
+
+#: Rounds of turning the limbs and fitting again at most, and the largest turn (degrees)
+#: after which they stop.
+POSE_PASSES = 4
+POSE_SETTLED = 2.0
+
+
+def _affine_between(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(A (3, 3), t (3,))`` with ``b = a @ A.T + t`` (least squares; exact for the
+    upright fit's scale, turn and shift)."""
+    X = np.hstack([a, np.ones((len(a), 1))])
+    M = np.linalg.lstsq(X, b, rcond=None)[0]
+    return M[:3].T, M[3]
+
+
+def _posed_fit(V: np.ndarray, fitted: np.ndarray, info: dict[str, Any], template: Mesh,
+               segmentation: Segmentation, R: np.ndarray, fit) -> tuple[np.ndarray, dict]:
+    """The upright fit with the template's limbs turned to the named joint markers.
+
+    With the limbs' joints named (:func:`~mocapflow.stages.skin.limb_pose.joint_targets`),
+    in turn the template's limbs are turned to them
+    (:func:`~mocapflow.stages.skin.limb_pose.pose_limbs`) and it is fitted again with the
+    joints' markers on the skin around them
+    (:func:`~mocapflow.stages.skin.limb_pose.joint_regions`), until no bone turns more than
+    :data:`POSE_SETTLED` degrees (at most :data:`POSE_PASSES` times).  The T-pose's fit is
+    too large and low (the Qualisys walker's at the scale range's top, 1.05, its feet 0.3 m
+    under the floor, so the knee markers sat half a thigh from the hips, beyond
+    :data:`~mocapflow.stages.skin.limb_pose.BONE_REACH`); each round's fit of the turned
+    limbs brings it nearer (0.96 after the rounds).  ``fit``: the
+    upright fit of a template in the capture's axes; ``R``: the template's axes into the
+    capture's.  Without named joint markers: as fitted."""
+    names = list(template.attrs["joint_names"])
+    part = np.asarray(template.attrs["vertex_part"])
+    # the rig's bones in vertex_part order (joints without a bone keep their index)
+    order = {k: np.asarray(template.attrs["bones"].get(k, np.zeros((2, 3))),
+                           dtype=np.float64) @ R.T for k in names}  # fmt: skip
+    found: dict[str, int] = {}
+    turned: dict[str, float] = {}
+    beyond: dict[str, float] = {}
+    start = V
+
+    def placed():
+        A, t = _affine_between(start, fitted)
+        bones = {k: b @ A.T + t for k, b in order.items()}
+        targets = limb_pose.joint_targets(segmentation.labels, segmentation.reference, bones,
+                                          fitted)
+        return A, t, bones, targets
+
+    A, t, bones, targets = placed()
+    for _ in range(POSE_PASSES if targets else 0):
+        found = {f"{side} {joint}": len(i) for (side, joint), (_, i) in sorted(targets.items())}
+        posed, posed_bones, rep = limb_pose.pose_limbs(fitted, template.faces, bones, part,
+                                                       targets)
+        for bone, deg in rep["turned_deg"].items():
+            turned[bone] = round(turned.get(bone, 0.0) + deg, 2)
+        beyond = rep["beyond_reach"]
+        if not rep["turned_deg"]:
+            break
+        inverse = np.linalg.inv(A).T
+        start = (posed - t) @ inverse  # the posed template, as fit() takes it
+        order = {k: (b - t) @ inverse for k, b in posed_bones.items()}
+        joints = limb_pose.joint_regions(posed, posed_bones, targets, len(segmentation.labels))
+        fitted, info = fit(start, joints)
+        if max(rep["turned_deg"].values()) <= POSE_SETTLED:
+            break
+        A, t, bones, targets = placed()
+    info = {**info, "limbs": {"joints": found, "turned_deg": turned, "beyond_reach": beyond}}
+    return fitted, info
 
 
 def _closest_frame(vertices: np.ndarray, faces: np.ndarray, targets: np.ndarray) -> int:
@@ -562,6 +633,7 @@ def fit_mesh(
     method: Literal["allen", "icp"] = "allen",
     schedule: list[list[float]] | None = None,
     named_regions: bool = True,
+    pose_limbs: bool = True,
     ctx: Context,
 ) -> dict[str, Any]:
     """Fit a detailed template mesh to the marker surface's reference pose.
@@ -603,6 +675,13 @@ def fit_mesh(
         :data:`FACING_TURN`); the report's ``named_markers`` counts them per region and
         ``facing`` gives the direction.  False: every marker to the whole template, four
         headings tried.
+    pose_limbs : bool
+        Below the density, after the upright fit: turn the template's upper arms,
+        forearms, thighs and shanks (its T-pose) to the elbow, wrist, knee and ankle
+        markers the labels name (``LELB``, ``L_HLE``, ``LWRA``, ``R_RSP``, ``LKNE``,
+        ``L_FAL``, ...; :func:`~mocapflow.stages.skin.limb_pose.pose_limbs`), fit again
+        and turn them again; the report's ``limbs`` gives the joints found and the turns.
+        False: the template's T-pose (the arms stand out where the markers hang down).
 
     Returns
     -------
@@ -644,12 +723,26 @@ def fit_mesh(
         if named_regions and "joint_names" in template.attrs and "vertex_part" in template.attrs:
             regions = [marker_region(label) for label in segmentation.labels]
             masks = region_vertices(list(template.attrs["joint_names"]),
-                                    np.asarray(template.attrs["vertex_part"]))  # fmt: skip
+                                    np.asarray(template.attrs["vertex_part"]),
+                                    V @ basis[:, 1])  # fmt: skip
             facing = body_facing(segmentation.labels, segmentation.reference, basis[:, 1])
-        fitted, info = upright_fit(V, template.faces, segmentation.reference, basis[:, 1],
-                                   marker_offset=marker_offset, marker_regions=regions,
-                                   region_masks=masks, facing=facing,
-                                   forward=basis[:, 2])  # fmt: skip
+        def fit(start: np.ndarray, joints: tuple[list, dict] | None = None,
+                ) -> tuple[np.ndarray, dict[str, Any]]:
+            """The upright fit of ``start``; ``joints``: the limb joints' marker regions
+            and masks too (:func:`~mocapflow.stages.skin.limb_pose.joint_regions`)."""
+            named, named_masks = regions, masks
+            if joints is not None:
+                named = [a or b for a, b in zip(regions or [None] * len(joints[0]),
+                                                joints[0])]  # fmt: skip
+                named_masks = {**(masks or {}), **joints[1]}
+            return upright_fit(start, template.faces, segmentation.reference, basis[:, 1],
+                               marker_offset=marker_offset, marker_regions=named,
+                               region_masks=named_masks, facing=facing,
+                               forward=basis[:, 2])  # fmt: skip
+
+        fitted, info = fit(V)
+        if pose_limbs and "bones" in template.attrs and "vertex_part" in template.attrs:
+            fitted, info = _posed_fit(V, fitted, info, template, segmentation, R, fit)
         report = {**info, "vertices": int(len(V)), "template_frame": template_frame}
         ctx.figure("fit", f"upright x{info['scale']:.2f}")
         mesh = Mesh(vertices=fitted, faces=template.faces, attrs={**template.attrs, **axes})

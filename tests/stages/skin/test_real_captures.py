@@ -21,7 +21,8 @@ from mocapflow.pipeline.codecs import decode
 from mocapflow.pipeline.store import Store
 from mocapflow.stages.metrics.mesh import stretched_triangles
 from mocapflow.stages.motion.axes import axis_vector
-from mocapflow.stages.skin.marker_regions import marker_region, region_vertices
+from mocapflow.stages.skin.binding import closest_points_on_triangles
+from mocapflow.stages.skin.marker_regions import joint_landmark, marker_region, region_vertices
 from mocapflow.stages.skin.mesh_fit import template_mesh
 from mocapflow.stages.skin.render import offscreen_available
 
@@ -275,3 +276,47 @@ def test_the_fitted_body_faces_the_way_its_pelvis_does(run, name):
 
     angle = np.degrees(np.arccos(np.clip(flat(A @ [0.0, 0.0, 1.0]) @ flat(front - back), -1, 1)))
     assert angle < 20, angle
+
+
+#: Median distance (m) from the named elbow, wrist, knee and ankle markers to the fitted
+#: body, per capture whose limbs the upright fit turns to them.
+LIMB_JOINT_DISTANCE = {"ezc3d-testFiles_Qualisys.c3d": 0.02, "pyomeca_markers_analogs.c3d": 0.02}
+
+
+@pytest.mark.parametrize("name", sorted(LIMB_JOINT_DISTANCE))
+def test_limbs_are_turned_to_their_joint_markers(run, name):
+    """The template's T-pose arms stood out sideways while the Qualisys walker's arm markers
+    hung by the hips (its elbow, wrist, knee and ankle markers 145 mm from the body,
+    median) and pyomeca's one instrumented arm reached down to the box (43 mm); the fit
+    now turns the template's limbs to those markers (2,000 vertices, as here: 3 and 9
+    mm)."""
+    doc, store = run
+    by_node = {t["node"]: t for t in _tasks(doc, name)}
+    seg = decode(store.load("segment", by_node["segment"]["key"], "segmentation"))
+    fitted = decode(store.load("fit_mesh", by_node["fit"]["key"], "mesh"))
+    report = decode(store.load("fit_mesh", by_node["fit"]["key"], "report"))
+    joints = [i for i, label in enumerate(seg.labels) if joint_landmark(label)]
+    assert joints and report["limbs"]["turned_deg"], report["limbs"]
+    d = closest_points_on_triangles(seg.reference[joints], fitted.vertices, fitted.faces)[2]
+    assert np.median(d) < LIMB_JOINT_DISTANCE[name], np.round(d, 3)
+
+
+def test_an_unmarked_leg_follows_no_arm(run):
+    """pyomeca's subject sits; its one instrumented forearm hangs where the standing
+    template's left thigh is, and the whole leg was bound to the forearm's part (beta 1.0)
+    and swung up with the box.  A limb's skin now follows only its own limb's parts and
+    the body's: no leg vertex's main part holds an elbow or wrist marker."""
+    doc, store = run
+    name = "pyomeca_markers_analogs.c3d"
+    by_node = {t["node"]: t for t in _tasks(doc, name)}
+    seg = decode(store.load("segment", by_node["segment"]["key"], "segmentation"))
+    fitted = decode(store.load("fit_mesh", by_node["fit"]["key"], "mesh"))
+    mesh = decode(store.load("deform", by_node["deform"]["key"], "mesh"))
+    arm_parts = {int(np.argmax(seg.weights[i])) for i, label in enumerate(seg.labels)
+                 if joint_landmark(label) in ("elbow", "wrist")}  # fmt: skip
+    names = fitted.attrs["joint_names"]
+    legs = np.isin(np.asarray(fitted.attrs["vertex_part"]),
+                   [names.index(j) for j in names if "Leg" in j or "Foot" in j or "Toe" in j])
+    assert arm_parts and legs.sum() > 100
+    followed = np.asarray(mesh.attrs["vertex_part"])[legs]
+    assert not set(followed.tolist()) & arm_parts, sorted(set(followed.tolist()))
