@@ -455,6 +455,7 @@ def upright_fit(
         turned to face it, then turned at most :data:`FACING_TURN` from it (one heading
         instead of four): the closest points alone turned it 121 degrees away on the
         Qualisys capture (its left ASIS marker on the template's right thigh).
+
     Returns
     -------
     vertices : (V, 3) float ndarray
@@ -488,33 +489,33 @@ def upright_fit(
         f0 = np.asarray(forward, dtype=np.float64) - (np.asarray(forward) @ up) * up
         f1 = np.asarray(facing, dtype=np.float64) - (np.asarray(facing) @ up) * up
         start = float(np.arctan2(np.cross(f0, f1) @ up, f0 @ f1))
-    starts = [(h, c) for h in range(1 if fixed else 4) for c in heights.values()]
-    for heading, (c_v, c_y) in starts:
+    for heading in range(1 if fixed else 4):
         ang = start if fixed else heading * np.pi / 2
         R0 = np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * K @ K
-        mv, my = V0.mean(0) - (V0.mean(0) @ up) * up, Y.mean(0) - (Y.mean(0) @ up) * up
-        A, t = R0, my - R0 @ mv + (c_y - c_v) * up
-        turned = 0.0  # from the start (with a facing, within FACING_TURN)
-        for _ in range(iterations):
-            X = V0 @ A.T + t
-            _, _, src, dist = _region_correspondences(Y, X, faces, offset, groups)
-            w = (dist <= np.quantile(dist, 1 - trim)).astype(float)
-            bounds = ((-FACING_TURN - turned, FACING_TURN - turned) if fixed else
-                      (-np.pi, np.pi))  # fmt: skip
-            A_s, t_s, theta = _upright_step(src, Y, w, up, (0.5, 2.0), turn=bounds)
-            turned += theta
-            A_new, t_new = A_s @ A, A_s @ t + t_s
-            s_new = float(np.cbrt(abs(np.linalg.det(A_new))))
-            if not scale_range[0] <= s_new <= scale_range[1]:  # hold the scale in range
-                A_new = A_new * (np.clip(s_new, *scale_range) / s_new)
-            step = float(np.abs((V0 @ A_new.T + t_new) - X).max())
-            A, t = A_new, t_new
-            if step < 1e-6:
-                break
-        dist = _region_correspondences(Y, V0 @ A.T + t, faces, offset, groups)[3]
-        score = float(np.mean(np.sort(dist)[: max(1, int(len(dist) * (1 - trim)))] ** 2))
-        if best is None or score < best[0]:
-            best = (score, A, t)
+        for c_v, c_y in heights.values():
+            mv, my = V0.mean(0) - (V0.mean(0) @ up) * up, Y.mean(0) - (Y.mean(0) @ up) * up
+            A, t = R0, my - R0 @ mv + (c_y - c_v) * up
+            turned = 0.0  # from the start (with a facing, within FACING_TURN)
+            for _ in range(iterations):
+                X = V0 @ A.T + t
+                _, _, src, dist = _region_correspondences(Y, X, faces, offset, groups)
+                w = (dist <= np.quantile(dist, 1 - trim)).astype(float)
+                bounds = ((-FACING_TURN - turned, FACING_TURN - turned) if fixed else
+                          (-np.pi, np.pi))  # fmt: skip
+                A_s, t_s, theta = _upright_step(src, Y, w, up, (0.5, 2.0), turn=bounds)
+                turned += theta
+                A_new, t_new = A_s @ A, A_s @ t + t_s
+                s_new = float(np.cbrt(abs(np.linalg.det(A_new))))
+                if not scale_range[0] <= s_new <= scale_range[1]:  # hold the scale in range
+                    A_new = A_new * (np.clip(s_new, *scale_range) / s_new)
+                step = float(np.abs((V0 @ A_new.T + t_new) - X).max())
+                A, t = A_new, t_new
+                if step < 1e-6:
+                    break
+            dist = _region_correspondences(Y, V0 @ A.T + t, faces, offset, groups)[3]
+            score = float(np.mean(np.sort(dist)[: max(1, int(len(dist) * (1 - trim)))] ** 2))
+            if best is None or score < best[0]:
+                best = (score, A, t)
     score, A, t = best
     out = V0 @ A.T + t
     dist = _region_correspondences(Y, out, faces, offset, groups)[3]
@@ -680,7 +681,8 @@ def fit_mesh(
         forearms, thighs and shanks (its T-pose) to the elbow, wrist, knee and ankle
         markers the labels name (``LELB``, ``L_HLE``, ``LWRA``, ``R_RSP``, ``LKNE``,
         ``L_FAL``, ...; :func:`~mocapflow.stages.skin.limb_pose.pose_limbs`), fit again
-        and turn them again; the report's ``limbs`` gives the joints found and the turns.
+        and turn them again; the report's ``limbs`` gives the joints found, the turns
+        (degrees per bone, summed over the rounds) and the bones beyond reach.
         False: the template's T-pose (the arms stand out where the markers hang down).
 
     Returns
