@@ -156,3 +156,25 @@ def test_limb_binding_holds_a_limb_to_its_own_and_the_body_parts(template):
     assert (rows("Spine", "Head") == [True, False, True]).all()
     assert (rows("RightArm") == [True, False, True]).all()  # the other arm's part: not it
     assert limb_binding(["M1", "M2"], ref[4:], alpha[4:], mesh.vertices, names, part) is None
+
+
+def test_bind_mesh_holds_vertices_to_their_allowed_parts():
+    """Two parts side by side: a vertex over part 1 but allowed part 0 only takes the
+    nearest part-0 marker's weights; a vertex allowed nothing with a marker stays bound as
+    it was; every row sums to 1."""
+    from mocapflow.stages.skin.binding import bind_mesh  # noqa: PLC0415
+    from mocapflow.stages.skin.segmentation import Segmentation  # noqa: PLC0415
+
+    ref = np.array([[0.0, 0, 0], [0.1, 0, 0], [0.0, 0.1, 0], [0.3, 0, 0], [0.4, 0, 0],
+                    [0.3, 0.1, 0]])  # fmt: skip
+    alpha = np.zeros((6, 2))
+    alpha[:3, 0] = alpha[3:, 1] = 1.0
+    seg = Segmentation([f"M{i}" for i in range(6)], ["a", "b"], alpha, ref,
+                       [[0, 1, 2], [3, 4, 5]], ref[[0, 3]], np.stack([np.eye(3)] * 2),
+                       np.array([0, 1]))  # fmt: skip
+    verts = np.array([[0.05, 0.03, 0.01], [0.35, 0.03, 0.01], [0.36, 0.03, 0.01]])
+    free = bind_mesh(verts, seg, min_overlap=0.0)
+    np.testing.assert_allclose(free.beta, [[1, 0], [0, 1], [0, 1]])
+    allowed = np.array([[True, True], [True, False], [False, False]])
+    held = bind_mesh(verts, seg, min_overlap=0.0, allowed=allowed)
+    np.testing.assert_allclose(held.beta, [[1, 0], [1, 0], [0, 1]])
