@@ -69,6 +69,8 @@ PAIR_SPREAD = 0.04
 
 #: The limb chains: (proximal joint marker, distal joint marker) per limb.
 CHAINS = (("elbow", "wrist"), ("knee", "ankle"))
+#: Each joint marker's chain, by its proximal joint.
+_CHAIN_OF = {joint: first for first, second in CHAINS for joint in (first, second)}
 
 _SIDES = ("Left", "Right")
 
@@ -96,8 +98,8 @@ def joint_targets(
     the side of the body it lies on: left of the template's midline (the mean of its left
     and right shoulders for arm joints, hips for leg joints) when it lies towards the
     template's left shoulder (hip).  The joint's position is the mean of its
-    markers (a lateral and a medial epicondyle: the joint centre; one of them: a few
-    centimetres off the bone's axis, which turns the bone by a few degrees).
+    markers (a lateral and a medial epicondyle: the joint centre; one side only: moved
+    inside the limb, see ``vertices``).
 
     Parameters
     ----------
@@ -126,9 +128,7 @@ def joint_targets(
         joint = joint_landmark(label)
         if joint is None or not np.isfinite(ref[i]).all():
             continue
-        upper = LIMB_JOINTS[joint][0] if joint in ("elbow", "knee") else \
-            LIMB_JOINTS["elbow" if joint == "wrist" else "knee"][0]  # fmt: skip
-        ends = [_joint(names, side, upper) for side in _SIDES]
+        ends = [_joint(names, side, LIMB_JOINTS[_CHAIN_OF[joint]][0]) for side in _SIDES]
         if None in ends:
             continue
         side = label_side(label)
@@ -142,10 +142,10 @@ def joint_targets(
     for (side, joint), idx in out.items():
         centre = targets[(side, joint)]
         spread = max((np.linalg.norm(ref[a] - ref[b]) for a in idx for b in idx), default=0.0)
-        first = "elbow" if joint in ("elbow", "wrist") else "knee"
+        first = _CHAIN_OF[joint]
         ends = [_joint(names, sd, LIMB_JOINTS[first][0]) for sd in _SIDES]
         bone = _joint(names, side, LIMB_JOINTS[joint][0])
-        if vertices is not None and spread < PAIR_SPREAD and None not in ends and bone:
+        if vertices is not None and spread < PAIR_SPREAD and bone:
             left, right = (np.asarray(bones[e])[0] for e in ends)
             # the limb's axis into this joint: from its marked proximal joint, else from
             # the shoulder (hip); the centre lies inward across it
@@ -158,9 +158,8 @@ def joint_targets(
                 inward = inward - (inward @ axis) * axis
             if np.linalg.norm(inward) > 1e-9:
                 inward = inward / np.linalg.norm(inward)
-                centre = centre + inward * _limb_radius(vertices, np.asarray(bones[bone])[1],
-                                                        np.asarray(bones[bone])[1] -
-                                                        np.asarray(bones[bone])[0])
+                start, end = np.asarray(bones[bone])
+                centre = centre + inward * _limb_radius(vertices, end, end - start)
         shifted[(side, joint)] = (centre, np.array(idx))
     return shifted
 
@@ -431,7 +430,7 @@ def limb_binding(
         if marker_region(label) is not None:
             kind = "body"
         elif (joint := joint_landmark(label)) is not None:
-            limb = "arm" if joint in ("elbow", "wrist") else "leg"
+            limb = "arm" if _CHAIN_OF[joint] == "elbow" else "leg"
             side = label_side(label)
             if side is None:  # the side of the nearest vertex of such a limb
                 on = np.flatnonzero(np.char.startswith(vlimb.astype(str), limb))

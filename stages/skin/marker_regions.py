@@ -62,9 +62,10 @@ _UNSIDED = {
 # stripped too (:func:`marker_face`)
 _FRONT = r"asis?|ias|strn|ster\w*|xiph\w*|sxs|px|snj|sjn|ij|jn|clav\w*"
 _BACK = r"psis?|ips|sacr\w*|sa|s1|c7|cv7|t\d{1,2}|tv\d{1,2}|th\d{1,2}|bak|back|scap\w*"
-# markers on a limb joint (lower case, separators removed; matched with and without a side
-# letter or word, which is not trusted for limbs: pyomeca's ``EPICl`` is a lateral
-# epicondyle, ``STYLr`` a radial styloid); the side is read from where the marker is
+# markers on a limb joint (lower case, separators removed; matched with and without a
+# leading or trailing side letter or word, which lower case cannot tell from pyomeca's
+# ``EPICl``, a lateral epicondyle, or ``STYLr``, a radial styloid: the side is read by
+# :func:`label_side` from the label's case, else from where the marker lies)
 _JOINT_LANDMARKS = {
     "elbow": r"elb\w*|hle|hme|humer\w*|epic\w*|(?:lateral|medial)?epicondyle|olecr\w*",
     "wrist": r"wr[ab]?|wrist\w*|rsp|usp|uhe|styl\w*|(?:radial|ulnar)styloid\w*",
@@ -83,9 +84,9 @@ LIMB_JOINTS: dict[str, tuple[str, str, tuple[str, ...]]] = {
     "ankle": ("Leg", "Foot", ("Leg", "Foot", "ToeBase")),
 }
 
-_SIDE = re.compile(r"^(?:left|right|l|r)(?=.)|(?<=.)(?:left|right|l|r)$")
 _LEAD_SIDE = re.compile(r"^(?:left|right|l|r)(?=.)")
 _TRAIL_SIDE = re.compile(r"(?<=.)(?:left|right|l|r)$")
+_SIDE = re.compile(f"{_LEAD_SIDE.pattern}|{_TRAIL_SIDE.pattern}")
 
 
 def _normal(label: str) -> str:
