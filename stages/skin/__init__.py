@@ -45,7 +45,9 @@ the paper lives in one function (modules of this package):
   passes re-using estimates              fill.fill_by_local_pca
   sparse captures (beyond the paper):    fill_blend.fill_by_validated_blend (each run of
   local fill, whole-body PCA without     holes scored on copies of it moved nearby:
-  complete frames, spline, rigid body,   fill_blend._shifted_runs,
+  complete frames, spline, rigid body,   fill_blend._shifted_runs, where the marker
+                                         moves as at the run's ends:
+                                         fill_blend._placed_copies, fill_blend.MOTION_MATCH,
   blended by validation on the take      fill_blend._validation_errors; models compared
                                          on the copies they all reached:
                                          fill_blend._validation_mse),
@@ -108,8 +110,8 @@ Departures from the paper (each module docstring says why, with measurements):
   most fill_blend.WHOLE_BODY_MAX_MARKERS (120) markers the fill is then blended with a
   whole-body PCA (Gløersen & Federolf R2 trained on the filled take, no complete
   frame needed), a spline in time and a rigid-body fill, weighted per run of
-  holes by their errors on copies of it knocked out nearby
-  (fill_blend.fill_by_validated_blend); a neighbour's model
+  holes by their errors on copies of it knocked out nearby, where the marker moves
+  as at the run's ends (fill_blend.fill_by_validated_blend); a neighbour's model
   weighs fill.NEIGHBOUR_MODEL_WEIGHT (0.1) in the §4.3 average; interior holes no
   model reaches are interpolated in time, then rigidly predicted
   (fill.fill_by_rigid_fit);

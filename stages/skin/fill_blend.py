@@ -207,6 +207,9 @@ from mocapflow.stages.skin.surface import MarkerSurface
 __all__ = [
     "BLEND_MODELS",
     "BLEND_POWER",
+    "MOTION_FLOOR",
+    "MOTION_MATCH",
+    "MOTION_WINDOW",
     "PARTNER_MAX_SPREAD",
     "PARTNER_MIN_FRAMES",
     "PLAUSIBILITY_LIMIT",
@@ -240,6 +243,28 @@ VALIDATION_SHIFTS = (-1, 1, -2, 2, 0)
 #: run, where the moved copies can miss what the marker does there (a still wrist
 #: in its gap on the PiG calibration, moving 15-30 frames away).
 VALIDATION_MARGIN = 0.5
+
+#: A validation copy is placed where its marker moves as it does at its run's ends
+#: (:func:`_placed_copies`): the mean step over :data:`MOTION_WINDOW` each side
+#: of the copy within this factor of the run's, both with :data:`MOTION_FLOOR` added.
+#: ``ktk_kinematics_basket_sprint.c3d`` (120 Hz) sits still over its first 1,500 frames
+#: and sprints from about 1,550 to 2,100, where its trunk markers leave the volume:
+#: ``BodyL:ScapularSpineL`` knocked out over frames 1555-1794 (the sprint's start, the
+#: marker moving 10 mm a frame at the gap's ends; gap protocol 2 s / 1 % / independent,
+#: mask seed 874) had its backward copies over frames 835-1074 and 1195-1434, where the
+#: athlete sat still, and the spline, scored there at 3.7-9.7 mm (the other members 5-55
+#: mm) and unable to reach the forward copies, held 74 % of the blend; in the gap it is 43
+#: mm off, the other members 5-8 mm: blend 31.5 mm.  Copied where the marker moves 7-20 mm
+#: a frame (frames 1796-2035 and 1829-2068), the spline is scored at 44 mm, the
+#: rigid-body fill at 12: blend 5.2 mm.
+MOTION_MATCH = 3.0
+
+#: See :data:`MOTION_MATCH` (m/s): below it a marker counts as still (noise, sway).
+MOTION_FLOOR = 0.05
+
+#: See :data:`MOTION_MATCH` (s): the time each side of a run or copy whose steps give
+#: its motion (at least 2 frames; fewer where fewer are measured).
+MOTION_WINDOW = 0.1
 
 #: Weights of :func:`fill_by_validated_blend`: ∝ (mean squared validation error)^-p.
 BLEND_POWER = 2.0
@@ -357,7 +382,8 @@ def _gap_support(measured: np.ndarray, runs: list[tuple[int, int, int]],
 
 
 def _shifted_runs(runs: list[tuple[int, int, int]], shape: tuple[int, int],
-                  k: int, *, support: int = 0, measured: np.ndarray | None = None) -> np.ndarray:
+                  k: int, *, support: int = 0, measured: np.ndarray | None = None,
+                  motion: tuple[np.ndarray, float, int] | None = None) -> np.ndarray:
     """``(F, M)`` int: each run's copy moved by ``k`` times its length plus half of it
     (at least 5 frames), kept inside the take, labelled with the run's index (-1
     elsewhere).  Runs of equal start and length (gaps at once) move together.
@@ -371,7 +397,8 @@ def _shifted_runs(runs: list[tuple[int, int, int]], shape: tuple[int, int],
     spline 0.94 mm).
     With ``measured`` (``(F, M)`` bool, the take's measured samples), a copy poses the
     run's own problem: :func:`_placed_copies` moves it on from that place to where it
-    lands on measured samples only, apart from the marker's other holes and copies.
+    lands on measured samples only, apart from the marker's other holes and copies (and,
+    with ``motion``, where the marker moves as at the run's ends).
     With ``k`` 0, the copy is the run's margins instead: the
     :data:`VALIDATION_MARGIN` share of its length (at least 2 frames) before and
     after it, within the take, knocked out together with the run itself.
@@ -379,7 +406,7 @@ def _shifted_runs(runs: list[tuple[int, int, int]], shape: tuple[int, int],
     F, M = shape
     out = np.full(shape, -1, dtype=np.int64)
     if k != 0 and measured is not None:
-        return _placed_copies(runs, measured, k, support=support)
+        return _placed_copies(runs, measured, k, support=support, motion=motion)
     for r, (m, a, b) in enumerate(runs):
         L = b - a
         if k == 0:
@@ -395,8 +422,38 @@ def _shifted_runs(runs: list[tuple[int, int, int]], shape: tuple[int, int],
     return out
 
 
+def _steps(positions: np.ndarray) -> np.ndarray:
+    """``(F + 1, M)``: the summed lengths of each marker's measured steps before each frame
+    (``positions (F, M, 3)``, NaN where not measured; a step is counted at the frame it
+    ends on, where both its frames are measured), and the same count of those steps as
+    ``[..., 1]``: ``(F + 1, M, 2)``."""
+    d = np.linalg.norm(np.diff(positions, axis=0), axis=-1)  # (F - 1, M)
+    seen = np.isfinite(d)
+    per = np.stack([np.where(seen, d, 0.0), seen.astype(float)], -1)
+    zero = np.zeros((2,) + per.shape[1:])
+    return np.concatenate([zero, np.cumsum(per, axis=0)])  # row t: steps ending before t
+
+
+def _end_motion(steps: np.ndarray, m: np.ndarray, a: np.ndarray, b: np.ndarray,
+                window: int) -> np.ndarray:
+    """Mean measured step (m per frame) of markers ``m`` over ``window`` frames before
+    ``a`` and from ``b`` on (the frames either side of a gap ``a..b-1``), their means over
+    the markers, one per start ``a`` ``(S,)``; NaN where no step is measured there.
+    ``steps`` ``(F + 1, M, 2)`` from :func:`_steps`; ``m (G,)``, ``a`` and ``b`` ``(S,)``."""
+    n = steps.shape[0] - 1  # F
+    a, b = a[:, None], b[:, None]
+    lo1, hi1 = np.clip(a - window + 1, 1, n), np.clip(a, 1, n)
+    lo2, hi2 = np.clip(b + 1, 1, n), np.clip(b + window, 1, n)
+    tot = (steps[hi1, m] - steps[lo1, m]) + (steps[hi2, m] - steps[lo2, m])  # (S, G, 2)
+    seen = tot[..., 1] > 0
+    mean = np.where(seen, tot[..., 0] / np.maximum(tot[..., 1], 1), 0.0)
+    n = seen.sum(1)
+    return np.where(n > 0, mean.sum(1) / np.maximum(n, 1), np.nan)
+
+
 def _placed_copies(runs: list[tuple[int, int, int]], measured: np.ndarray, k: int, *,
-                   support: int) -> np.ndarray:
+                   support: int, motion: tuple[np.ndarray, float, int] | None = None
+                   ) -> np.ndarray:  # fmt: skip
     """``(F, M)`` int: the validation copies of :func:`_shifted_runs` (shift ``k`` != 0)
     placed so that each poses its run's own problem, labelled with the run's index.
 
@@ -407,7 +464,11 @@ def _placed_copies(runs: list[tuple[int, int, int]], measured: np.ndarray, k: in
     each side, no copy placed before of one of its markers lies within ``support`` frames
     (so the copy's gap has the run's length, and the spline's samples next to it are not
     knocked out by another run's copy), and the take's ends are
-    :func:`_spline_support_needed` frames away.  Groups are placed in the order of
+    :func:`_spline_support_needed` frames away; with ``motion`` (``(steps, floor,
+    window)``: :func:`_steps` of the positions, :data:`MOTION_FLOOR` in m per frame and
+    :data:`MOTION_WINDOW` in frames), only the
+    starts where the group's markers move as at the run's ends (:func:`_end_motion`
+    within :data:`MOTION_MATCH`) while any such start exists.  Groups are placed in the order of
     ``runs``; then the groups with no such start are copied where the same holds but for
     the measured samples (nearest the same place), so that their runs are still scored on
     what is measured there, away from the copies placed on measured samples; no such
@@ -450,6 +511,14 @@ def _placed_copies(runs: list[tuple[int, int, int]], measured: np.ndarray, k: in
                 if on_measured:
                     fallback.append(((a, b), members))
                 continue
+            if motion is not None:
+                steps, floor, window = motion
+                own = _end_motion(steps, ms, np.array([a]), np.array([b]), window)
+                there = _end_motion(steps, ms, starts, starts + L, window)
+                ratio = np.abs(np.log((there + floor) / (own + floor)))
+                alike = starts[ratio <= np.log(MOTION_MATCH)]  # False where NaN
+                if len(alike):
+                    starts = alike
             nominal = a + k * (L + max(L // 2, 5))
             ahead = starts[(starts - nominal) * np.sign(k) >= 0]
             pick = ahead if len(ahead) else starts
@@ -575,7 +644,8 @@ def fill_by_validated_blend(
     :data:`VALIDATION_SHIFTS`; runs that start together move together, so a
     cluster's gaps are validated as a cluster; kept far enough from the take's
     ends for the spline to reach them, and placed where each copy's gap is its run's
-    length, :func:`_placed_copies`) onto measured samples, which
+    length and, given ``rate``, where the marker moves as at the run's ends,
+    :data:`MOTION_MATCH`, :func:`_placed_copies`) onto measured samples, which
     are knocked out and filled by the same models (the local fill without the
     blend; :func:`_validation_errors`).  A run's models are compared on the
     copies that every model able to estimate the whole run estimated in full
@@ -616,8 +686,9 @@ def fill_by_validated_blend(
     n_shifts : int
         Copies of each run (the first of :data:`VALIDATION_SHIFTS`).
     rate : float, optional
-        Frames per second (see :data:`RIGID_DISAGREEMENT_DURATION`; None: the full share
-        on every run).
+        Frames per second (see :data:`RIGID_DISAGREEMENT_DURATION` and
+        :data:`MOTION_MATCH`; None: the full share on every run, copies placed
+        whatever the motion there).
 
     Returns
     -------
@@ -641,7 +712,7 @@ def fill_by_validated_blend(
         full[:, r] = reach[:, a:b, m].all(1)
     errs, ok = _validation_errors(positions, holes, runs, surface, interpolate=interpolate,
                                   local_fill=local_fill, shifts=VALIDATION_SHIFTS[:n_shifts],
-                                  donor_sets=donor_sets)
+                                  donor_sets=donor_sets, rate=rate)
     mse = _validation_mse(errs, ok, full)
     _floor_rigid_errors(mse, disagreement, run, _disagreement_shares(runs, rate))
     wr = _blend_weights(mse)
@@ -1097,6 +1168,7 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
                        interpolate: int, local_fill: Callable[[np.ndarray], np.ndarray],
                        shifts: tuple[int, ...],
                        donor_sets: dict[int, dict] | None = None,
+                       rate: float | None = None,
                        ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Each model's errors on the validation copies of each run.
 
@@ -1108,7 +1180,8 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
     With ``donor_sets`` (``{model index: {(marker, start, stop): donors}}``, the
     rigid-body fills' donors of each run, :func:`_rigid_body_fill`), a rigid-body fill
     is scored only on the copies where the run's own donors are measured, where it has
-    any (:func:`_donors_at_copies`).
+    any (:func:`_donors_at_copies`).  With ``rate`` (frames per second), a copy is
+    placed where its marker moves as at its run's ends (:data:`MOTION_MATCH`).
 
     Returns
     -------
@@ -1122,11 +1195,14 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
     n_runs = len(runs)
     K = len(BLEND_MODELS)
     support = _gap_support(obs, runs, interpolate)
+    motion = ((_steps(positions), MOTION_FLOOR / rate, max(2, round(MOTION_WINDOW * rate)))
+              if rate else None)
     mse = np.zeros((K, len(shifts), n_runs))
     ok = np.zeros((K, len(shifts), n_runs), dtype=bool)
     same = np.ones((K, len(shifts), n_runs), dtype=bool)  # carried with the run's donors
     for s, k in enumerate(shifts):
-        moved = _shifted_runs(runs, (F, M), k, support=interpolate, measured=obs)
+        moved = _shifted_runs(runs, (F, M), k, support=interpolate, measured=obs,
+                              motion=motion)
         val = (moved >= 0) & obs
         if not val.any():
             continue
