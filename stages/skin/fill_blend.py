@@ -184,7 +184,16 @@ within 0.2 mm, on fresh seeds 860-869: PiG 17 -> 17 of 18, pyomeca 0.1 s / 1 % /
 clustered 1.04 -> 1.06 x the spline (seeds 868-869: the spline, validated within 0.2 mm,
 0.13-0.21 mm off in the gap where the rigid-body fill is 0.04-0.05), pooled errors
 unchanged within 0.01 %: at a tenth of a millimetre the spline is not the better model
-often enough to be preferred.
+often enough to be preferred.  Validation copies are placed where the marker moves as it
+does at its run's ends (:data:`MOTION_MATCH`; basket_sprint's ScapularSpineL at the
+sprint's start, seed 874: 31.5 -> 5.2 mm).  Fresh mask seeds 880-889 (every configuration
+of the six files), same samples: PiG 14 of 18 (worst 1.26, 0.5 s / 1 % / clustered, the
+rigid-body fill; the same four misses with the copies placed as before), Eb015pr 24 of 24
+(0.91), Qualisys 12 of 12 (0.99), racing 24 of 24 (0.80), pyomeca 24 of 24 (0.96),
+basket_sprint 23 of 24 (2.00, 0.1 s / 10 % / independent, the spline: seed 882,
+WheelchairL:Marker4 knocked out over frames 2877-2888, joining its own holes into a
+34-frame run; the rigid-body fills reach none of the knocked-out samples and the local
+fill, validated at 4 mm, is 283 mm off there).
 
 See :mod:`mocapflow.stages.skin.fill` for the local fill it starts from.
 """
