@@ -432,10 +432,10 @@ def _shifted_runs(runs: list[tuple[int, int, int]], shape: tuple[int, int],
 
 
 def _steps(positions: np.ndarray) -> np.ndarray:
-    """``(F + 1, M)``: the summed lengths of each marker's measured steps before each frame
-    (``positions (F, M, 3)``, NaN where not measured; a step is counted at the frame it
-    ends on, where both its frames are measured), and the same count of those steps as
-    ``[..., 1]``: ``(F + 1, M, 2)``."""
+    """``(F + 1, M, 2)``: at row ``t``, the summed length (``[..., 0]``, m) and the number
+    (``[..., 1]``) of each marker's measured steps that end before frame ``t`` (a step ends
+    on its later frame and is measured where both its frames are; ``positions (F, M, 3)``,
+    NaN where not measured)."""
     d = np.linalg.norm(np.diff(positions, axis=0), axis=-1)  # (F - 1, M)
     seen = np.isfinite(d)
     per = np.stack([np.where(seen, d, 0.0), seen.astype(float)], -1)
@@ -449,15 +449,15 @@ def _end_motion(steps: np.ndarray, m: np.ndarray, a: np.ndarray, b: np.ndarray,
     ``a`` and from ``b`` on (the frames either side of a gap ``a..b-1``), their means over
     the markers, one per start ``a`` ``(S,)``; NaN where no step is measured there.
     ``steps`` ``(F + 1, M, 2)`` from :func:`_steps`; ``m (G,)``, ``a`` and ``b`` ``(S,)``."""
-    n = steps.shape[0] - 1  # F
+    F = steps.shape[0] - 1
     a, b = a[:, None], b[:, None]
-    lo1, hi1 = np.clip(a - window + 1, 1, n), np.clip(a, 1, n)
-    lo2, hi2 = np.clip(b + 1, 1, n), np.clip(b + window, 1, n)
+    lo1, hi1 = np.clip(a - window + 1, 1, F), np.clip(a, 1, F)  # steps within a-window..a-1
+    lo2, hi2 = np.clip(b + 1, 1, F), np.clip(b + window, 1, F)  # within b..b+window-1
     tot = (steps[hi1, m] - steps[lo1, m]) + (steps[hi2, m] - steps[lo2, m])  # (S, G, 2)
     seen = tot[..., 1] > 0
     mean = np.where(seen, tot[..., 0] / np.maximum(tot[..., 1], 1), 0.0)
-    n = seen.sum(1)
-    return np.where(n > 0, mean.sum(1) / np.maximum(n, 1), np.nan)
+    markers = seen.sum(1)
+    return np.where(markers > 0, mean.sum(1) / np.maximum(markers, 1), np.nan)
 
 
 def _placed_copies(runs: list[tuple[int, int, int]], measured: np.ndarray, k: int, *,

@@ -156,6 +156,12 @@ def test_copies_go_where_the_marker_moves_as_at_its_run_s_ends():
     steps = fb._steps(np.where(holes[..., None], np.nan, positions))
     window = round(fb.MOTION_WINDOW * rate)
     motion = (steps, fb.MOTION_FLOOR / rate, window)
+    np.testing.assert_allclose(  # its pace at the run's ends; still; half of each
+        fb._end_motion(steps, np.array([0]), np.array([420, 100, 395]),
+                       np.array([460, 140, 405]), window), [0.010, 0.0, 0.005], atol=1e-12)
+    gone = fb._steps(np.full((F, 1, 3), np.nan))
+    assert np.isnan(fb._end_motion(gone, np.array([0]), np.array([420]), np.array([460]),
+                                   window)).all()
     pace = 0.010 + fb.MOTION_FLOOR / rate
     for k in (-1, 1, -2, 2):
         bare = _shifted_runs(runs, (F, 2), k, support=10, measured=measured)
