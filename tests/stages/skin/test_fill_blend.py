@@ -200,6 +200,26 @@ def test_a_gap_as_the_take_starts_to_move_is_scored_where_it_moves(shared_data):
     assert err.mean() < 10e-3, err.mean()
 
 
+@pytest.mark.xfail(strict=True, reason="open (stop 56): the far-off tests compare only "
+                   "members that reach the whole run")
+def test_a_member_far_off_where_few_reach_the_gap_is_left_out(shared_data):
+    """Real basket sprint (120 Hz): WheelchairL:Marker4's 11 measured samples over frames
+    2877-2887 knocked out (the gap protocol's 0.1 s / 10 % / independent mask of seed 882,
+    the configuration's 2.00 x the spline on seeds 880-889), next to the marker's own holes:
+    one 34-frame run.  The rigid-body fills carry the run but reach none of those samples;
+    the local fill, validated at 4 mm, is 283 mm off there and the spline 1.6 mm.  The
+    tests for a member far off in the gap (:func:`fb._outlying_estimates`) compare only
+    members that estimate the whole run, at least three, so none runs: blend 62 mm, the
+    spline 1.6 mm."""
+    m = _real_take(shared_data, "ktk_kinematics_basket_sprint.c3d")
+    mask = np.zeros(m.visible.shape, bool)
+    mask[2877:2888, m.labels.index("WheelchairL:Marker4")] = True
+    assert m.visible[mask].all()
+    err, _ = _clean_errors(m, mask)
+    spline = _spline_errors(m, mask)
+    assert np.nanmean(err) < 1.2 * np.nanmean(spline), (np.nanmean(err), np.nanmean(spline))
+
+
 def _real_take(shared_data, name: str):
     """The shared C3D ``name`` as read, its unlabelled fragments dropped (skipped when
     ezc3d or the file is absent)."""
