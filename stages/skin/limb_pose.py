@@ -36,6 +36,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 
+from mocapflow.stages.motion.geometry import mesh_laplacian
 from mocapflow.stages.skin.marker_regions import (
     LIMB_JOINTS,
     joint_landmark,
@@ -177,14 +178,10 @@ def _limb_radius(vertices: np.ndarray, joint: np.ndarray, bone: np.ndarray) -> f
 
 
 def _adjacency(faces: np.ndarray, n: int) -> sp.csr_matrix:
-    """Row-normalised vertex adjacency of a triangle mesh ``(n, n)``."""
-    f = np.asarray(faces, dtype=np.int64)
-    i = np.concatenate([f[:, 0], f[:, 1], f[:, 2], f[:, 1], f[:, 2], f[:, 0]])
-    j = np.concatenate([f[:, 1], f[:, 2], f[:, 0], f[:, 0], f[:, 1], f[:, 2]])
-    A = sp.csr_matrix((np.ones(i.size), (i, j)), shape=(n, n))
-    A.data[:] = 1.0  # (an edge of two triangles counted once)
-    deg = np.asarray(A.sum(axis=1)).ravel()
-    return sp.diags(1.0 / np.maximum(deg, 1.0)) @ A
+    """Row-normalised vertex adjacency ``D⁻¹A`` of a triangle mesh ``(n, n)``: the
+    off-diagonal of :func:`~mocapflow.stages.motion.geometry.mesh_laplacian`, negated."""
+    L = mesh_laplacian(n, np.asarray(faces, dtype=np.int64))
+    return (sp.diags(L.diagonal()) - L).tocsr()
 
 
 def _blend_weights(moving: np.ndarray, adjacency: sp.csr_matrix, rings: int) -> np.ndarray:
