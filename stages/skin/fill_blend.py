@@ -743,7 +743,7 @@ def fill_by_validated_blend(
     out[sel] = blend[sel]
     nothing = holes & (tot == 0) & (unfit[0, np.maximum(run, 0)] | jumps[0])
     out[nothing] = np.nan  # no plausible member: the local fill is not either
-    out[_jumps_in_runs(out[None], runs, positions, bounds)[0]] = np.nan  # members that part
+    out[_jumps_in_runs(out[None], runs, positions, bounds, erratic=False)[0]] = np.nan  # parting
     share = wf[:, sel] / tot[sel]
     return out, {n: float(share[k].mean()) if sel.any() else 0.0
                  for k, n in enumerate(BLEND_MODELS)}
@@ -1049,8 +1049,22 @@ def _jumps(e: np.ndarray, fast: float, before: np.ndarray, after: np.ndarray) ->
     return bad[:, :-1] | bad[:, 1:]  # the step into a sample, the step out of it
 
 
+#: A blend member whose samples next to a jump (:func:`_jumps`) are at least this share of
+#: the samples it estimates in a run is erratic there and leaves all of the run
+#: (:func:`_jumps_in_runs`): its few samples between jumps are no better than the ones
+#: beside them.  basket_sprint, WheelchairL:Marker4 flickering over frames 2873-2913 and
+#: knocked out over 2877-2887 (the 0.1 s / 10 % / independent mask of seed 882): the local
+#: fill and the whole-body PCA jump beside 20 of the run's 34 samples (0.59) and are
+#: 17-509 mm and 550-1,134 mm off at the knocked-out ones; the spline, 0.3-3.9 mm off,
+#: shared the samples between jumps with the local fill: the repetition's blend 27.3 mm
+#: (18 samples filled), with them out 2.7 mm (22).  At 0.25 this also took the run of the
+#: 143-frame case of :func:`_jumps_in_runs` from them (shares 0.20-0.35, 65-110 mm off
+#: where the spline is 250-304 mm): that repetition 136 -> 213 mm; at 0.5 it stays 136.
+ERRATIC_SHARE = 0.5
+
+
 def _jumps_in_runs(est: np.ndarray, runs: list[tuple[int, int, int]], positions: np.ndarray,
-                   bounds: dict) -> np.ndarray:
+                   bounds: dict, *, erratic: bool = True) -> np.ndarray:
     """``(K, F, M)`` bool: the samples of each member's estimate (``est (K, F, M, 3)``,
     :func:`_blend_members`) next to a step longer than its marker ever makes
     (:func:`_jumps`; ``bounds``, :func:`_take_bounds`; ``positions (F, M, 3)``, NaN where
@@ -1062,14 +1076,19 @@ def _jumps_in_runs(est: np.ndarray, runs: list[tuple[int, int, int]], positions:
     276 mm, out of those samples alone 101 mm).  Applied to the blend too
     (:func:`fill_by_validated_blend`, ``est`` ``(1, F, M, 3)``): where its members part by
     metres the blend jumps between them (basket_sprint as captured, 5.4 m in a frame), and
-    the samples either side stay holes."""
+    the samples either side stay holes.  With ``erratic``, a member jumping beside at least
+    :data:`ERRATIC_SHARE` of the samples it estimates in a run is flagged on all of them
+    (not for the blend: its samples between jumps are the members' that stayed)."""
     F = positions.shape[0]
     jumps = np.zeros(est.shape[:3], dtype=bool)
     nowhere = np.full(3, np.nan)
     for m, a, b in runs:
-        jumps[:, a:b, m] = _jumps(est[:, a:b, m], bounds[m][3],
-                                  positions[a - 1, m] if a > 0 else nowhere,
-                                  positions[b, m] if b < F else nowhere)
+        e = est[:, a:b, m]
+        j = _jumps(e, bounds[m][3], positions[a - 1, m] if a > 0 else nowhere,
+                   positions[b, m] if b < F else nowhere)
+        has = np.isfinite(e).all(-1)  # (K, L)
+        off = erratic & (j.sum(1) >= ERRATIC_SHARE * np.maximum(has.sum(1), 1))  # (K,)
+        jumps[:, a:b, m] = j | (off[:, None] & has)
     return jumps
 
 
