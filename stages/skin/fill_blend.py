@@ -673,7 +673,8 @@ def fill_by_validated_blend(
     missing those ends alone; what the marker does inside its own gap, which no copy
     sees); a run with no copy scored keeps the local fill.  What the marker's measured
     samples never do is taken out: a model's samples next to a jump longer than the marker
-    ever steps leave the blend and the tests there (:func:`_jumps_in_runs`), a model off
+    ever steps leave the blend and the tests there, all of its samples of a run where
+    they are half of them (:func:`_jumps_in_runs`, :data:`ERRATIC_SHARE`), a model off
     the distances the marker keeps to its rigid partners leaves the run
     (:func:`_keep_plausible`), and samples no model is left for, or where the blend itself
     jumps, stay holes.
