@@ -57,8 +57,12 @@ the paper lives in one function (modules of this package):
                                          fill_blend.RIGID_DISAGREEMENT_SHARE; a member the
                                          gap shows far off (from the others, or missing the
                                          trajectory at the gap's ends) left out:
-                                         fill_blend._outlying_estimates,
-                                         fill_blend._boundary_misses
+                                         fill_checks._outlying_estimates,
+                                         fill_checks._boundary_misses; what the take's
+                                         samples never do (off the rigid partners, a jump
+                                         beyond the fastest step, erratic) left out:
+                                         fill_checks._keep_plausible,
+                                         fill_checks._jumps_in_runs
 §4.4 smoothing x ← x − λ Δ⁴x in the      clean.smooth_local (the iteration, every run
   local frames                           at once: clean._smooth_runs)
 §5.1–5.2 near-rigid segmentation         segment.segment

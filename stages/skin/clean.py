@@ -51,7 +51,7 @@ which the whole-body blend fills with its models that need no neighbourhood
 (:func:`~mocapflow.stages.skin.fill._thinly_connected_holes`); on sparse captures a
 gap every estimate of which leaves the marker's rigid partners or outruns its
 fastest measured step by more than
-:data:`~mocapflow.stages.skin.fill_blend.PLAUSIBILITY_LIMIT` stays a hole too
+:data:`~mocapflow.stages.skin.fill_checks.PLAUSIBILITY_LIMIT` stays a hole too
 (warning naming the markers, samples per marker in the report's
 ``fill.implausible``).
 
@@ -130,7 +130,8 @@ from mocapflow.stages.motion.contacts import true_runs
 from mocapflow.stages.motion.datatypes import Markers
 from mocapflow.stages.skin.assign import assign_fragments
 from mocapflow.stages.skin.fill import fill_holes
-from mocapflow.stages.skin.fill_blend import PLAUSIBILITY_LIMIT, WHOLE_BODY_MAX_MARKERS
+from mocapflow.stages.skin.fill_blend import WHOLE_BODY_MAX_MARKERS
+from mocapflow.stages.skin.fill_checks import PLAUSIBILITY_LIMIT
 from mocapflow.stages.skin.labelling import (
     LabellingError,
     fragment_frames,

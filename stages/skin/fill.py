@@ -326,7 +326,7 @@ def fill_holes(
         mean weight of each model over the filled samples), ``implausible`` (with
         ``whole_body``: ``(M,)`` int, the samples per marker left unfilled because no
         estimate of them stays within the marker's rigid partners' distances or its
-        fastest step, :data:`~mocapflow.stages.skin.fill_blend.PLAUSIBILITY_LIMIT`).
+        fastest step, :data:`~mocapflow.stages.skin.fill_checks.PLAUSIBILITY_LIMIT`).
     """
     ctx = ctx or Context()
     X = positions.copy()

@@ -4,7 +4,9 @@ scored per run of holes on copies of it (beyond Park & Hodgins 2006).
 :func:`fill_by_validated_blend` is called by :func:`mocapflow.stages.skin.fill.fill_holes`
 (``whole_body``) after its local fill; :func:`_interpolate_interior` (the spline member)
 is also the last resort of the paper's passes
-(:func:`~mocapflow.stages.skin.fill.fill_by_local_pca`).
+(:func:`~mocapflow.stages.skin.fill.fill_by_local_pca`).  The checks that leave a
+member out of a run beyond what its copies say (what the gap itself shows, what the
+take's measured samples never do) are in :mod:`~mocapflow.stages.skin.fill_checks`.
 
 On sparse captures (at most :data:`WHOLE_BODY_MAX_MARKERS` markers,
 ``whole_body``), :func:`fill_by_validated_blend` blends the local fill
@@ -28,15 +30,15 @@ errors combined geometrically (:func:`_shifted_runs`,
 5 % of every peer on the samples it filled), mask seeds 400-409 (drawn after
 the tuning): PiG 17 of 18 configurations (worst 1.23, 0.5 s holes in one
 marker), Qualisys 11 of 12 (1.06).  With a member far from all the others in
-the gap left out (:func:`_outlying_estimates`: the copies cannot see what the
+the gap left out (:func:`fill_checks._outlying_estimates`: the copies cannot see what the
 marker does inside its own gap; PiG LFHD turning with the head near the take's
 end 7.7 -> 1.1 mm, LPSI over its recorded 30 mm jump 32.8 -> 4.9 mm), on mask
 seeds 570-589 (20 repetitions, drawn after all tuning): PiG 18 of 18 (worst
 0.97), Qualisys 12 of 12 (0.96); seeds 550-569: PiG 16 of 18 (1.16); the
 90 repetitions of seeds 500-589 pooled: PiG 18 of 18 (0.97), Qualisys 12 of
 12 (0.95).  With the members that miss the measured trajectory at the gap's
-ends left out too (:func:`_boundary_misses`, :data:`BOUNDARY_GUARD`; Eb015pr,
-the right foot and shank gone for 0.5 s: RSK2-4 41.7-48.3 -> 4.1-11.4 mm; that
+ends left out too (:func:`fill_checks._boundary_misses`, :data:`fill_checks.BOUNDARY_GUARD`;
+Eb015pr, the right foot and shank gone for 0.5 s: RSK2-4 41.7-48.3 -> 4.1-11.4 mm; that
 configuration's worst ratio on mask seeds 530-539 1.39 -> 0.98), 10 repetitions:
 mask seeds 620-629 (drawn after all tuning): PiG 16 of 18 (worst 1.22),
 Qualisys 11 of 12 (1.06), Eb015pr 24 of 24 (1.02; 23 of 24, 1.17 without the
@@ -133,9 +135,9 @@ unscored runs (3 frames median, 41 at most): where the medoid replaces the local
 (51 runs), the local fill lies a median 42.3 mm (90th percentile 225 mm, at most 4.1 m)
 from the measured samples either side, the medoid 13.9 mm (39, 83 mm), nearer in 45.
 A member standing apart from the others' inverse-variance weighted mean is left out
-(:data:`CONSENSUS_FACTOR`, :data:`CONSENSUS_MARGIN`): basket 0.1 s / 1 % / independent on
-seeds 770-789, same samples, 1.23 -> 0.95 x the rigid-body fill (seed 788: BodyL:C7, the
-spline 6.7 mm off, blend 3.13 -> 0.13 mm).  Fresh mask seeds 810-819 (1,260 cases, every
+(:data:`fill_checks.CONSENSUS_FACTOR`, :data:`fill_checks.CONSENSUS_MARGIN`): basket 0.1 s / 1 % /
+independent on seeds 770-789, same samples, 1.23 -> 0.95 x the rigid-body fill (seed 788: BodyL:C7,
+the spline 6.7 mm off, blend 3.13 -> 0.13 mm).  Fresh mask seeds 810-819 (1,260 cases, every
 configuration of all six files), against the rule before: 54 cases change, 38 for the
 better; the pooled error x 0.979 (basket) to 1.000 (racing); basket 0.1 s / 1 % /
 independent 0.82 x the spline and 0.37 x the rigid-body fill.  Those seeds show two
@@ -145,11 +147,11 @@ same samples (0.1 s holes: 1.06 and 1.13 x the spline at 1 %, where it and ours 
 3.07 x the spline (seed 814: WheelchairL:Marker2 missing over frames 2333-2581, one
 sample knocked out beside that gap, where the local fill and the whole-body PCA are
 2.4-2.7 m off and the spline 0.28 m: blend 1.61 m).  What the marker's measured
-samples never do is now taken out (:data:`PLAUSIBILITY_LIMIT`: a member's samples next to
-a step 0.1 m longer than the marker's fastest measured step, :func:`_jumps_in_runs`, and
-a member more than 0.1 m RMS off the distances the marker keeps to its rigid partners,
-:func:`_keep_plausible`; samples nothing plausible is left for, and the blend's own jumps,
-stay holes): that wheelchair sample stays a hole and SWL:Marker2's three, 129-140 mm off,
+samples never do is now taken out (:data:`fill_checks.PLAUSIBILITY_LIMIT`: a member's samples next
+to a step 0.1 m longer than the marker's fastest measured step, :func:`fill_checks._jumps_in_runs`,
+and a member more than 0.1 m RMS off the distances the marker keeps to its rigid partners,
+:func:`fill_checks._keep_plausible`; samples nothing plausible is left for, and the blend's own
+jumps, stay holes): that wheelchair sample stays a hole and SWL:Marker2's three, 129-140 mm off,
 are filled as the spline fills them.  basket_sprint as captured loses the head, trunk and
 hand for its last ~1,550 frames: the fill's worst step beyond the marker's fastest 8.1 m
 -> 0.10 m, 3,447 more of its samples left holes; the other five shared takes as captured
@@ -208,6 +210,12 @@ from scipy.interpolate import CubicSpline
 
 from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
 from mocapflow.stages.motion.contacts import true_runs
+from mocapflow.stages.skin.fill_checks import (
+    _jumps_in_runs,
+    _keep_plausible,
+    _outlying_estimates,
+    _take_bounds,
+)
 from mocapflow.stages.skin.lowrank import whole_body_pca
 from mocapflow.stages.skin.predict import finite_rows
 from mocapflow.stages.skin.regress import predictor_ranking
@@ -219,9 +227,6 @@ __all__ = [
     "MOTION_FLOOR",
     "MOTION_MATCH",
     "MOTION_WINDOW",
-    "PARTNER_MAX_SPREAD",
-    "PARTNER_MIN_FRAMES",
-    "PLAUSIBILITY_LIMIT",
     "RIGID_BODY_POOL",
     "RIGID_DISAGREEMENT_SHARE",
     "RIGID_MODELS",
@@ -667,17 +672,17 @@ def fill_by_validated_blend(
     its donors there, which the copies need not see; a smaller share on runs
     shorter than :data:`RIGID_DISAGREEMENT_DURATION` when ``rate`` is given), a model whose estimate
     repeats an earlier one's counted once (:func:`_earlier_twins`), the
-    models the gap itself shows far off left out of it (:func:`_outlying_estimates`:
+    models the gap itself shows far off left out of it (:func:`fill_checks._outlying_estimates`:
     an estimate far beyond its and the others' validated errors from the others'
     median, sooner where it does not join the measured trajectory at the gap's ends, or
     missing those ends alone; what the marker does inside its own gap, which no copy
     sees); a run with no copy scored keeps the local fill.  What the marker's measured
     samples never do is taken out: a model's samples next to a jump longer than the marker
     ever steps leave the blend and the tests there, all of its samples of a run where
-    they are half of them (:func:`_jumps_in_runs`, :data:`ERRATIC_SHARE`), a model off
-    the distances the marker keeps to its rigid partners leaves the run
-    (:func:`_keep_plausible`), and samples no model is left for, or where the blend itself
-    jumps, stay holes.
+    they are half of them (:func:`fill_checks._jumps_in_runs`, :data:`fill_checks.ERRATIC_SHARE`), a
+    model off the distances the marker keeps to its rigid partners leaves the run
+    (:func:`fill_checks._keep_plausible`), and samples no model is left for, or where the blend
+    itself jumps, stay holes.
 
     Parameters
     ----------
@@ -792,349 +797,6 @@ def _count_once(weights: np.ndarray, twins: np.ndarray) -> None:
             j = twins[j, r]
         weights[j, r] = max(weights[j, r], weights[k, r])
     weights[repeated] = 0.0
-
-
-#: A blend member whose estimate of a run lies farther from the other members' median
-#: than this many times the validated RMS errors (its own plus the others' median) is
-#: left out of that run (:func:`_outlying_estimates`).  At 3 it also dropped a spline that
-#: was right: PiG calibration, the whole right arm gone for 0.5 s (the gap protocol's
-#: 0.5 s / 10 % / clustered mask of seed 555), where the four spatial members share their
-#: error (4-16 mm, donors gone with the arm) and the spline, 1-2 mm off, lay 4-5 mm from
-#: them: 1.43 -> 3.31 mm; at 5 that stays 1.43 mm and the cases of
-#: :func:`_outlying_estimates` keep their gains.
-OUTLIER_FACTOR = 5.0
-
-
-#: A blend member whose estimate of a run lies farther than this many standard deviations
-#: from the other members' inverse-variance weighted mean is left out of that run too
-#: (:func:`_consensus_distance`, the first test of :func:`_outlying_estimates`).  The
-#: median test above scales by the members' errors added, as if every one were as far off
-#: as its copies say; the weighted mean of four members validated at 1-3 mm is known
-#: far better than any of them.  basket_sprint, BodyL:C7 knocked out over frames
-#: 1435-1446 (0.1 s, the 0.1 s / 1 % / independent mask of seed 788): the spline,
-#: validated at 0.79 mm, is 6.7 mm off and 6.5 mm from the others' median, 2.4 x its
-#: scale there; the two rigid-body fills (0.9-1.1 mm validated) are 0.1-0.4 mm off and the
-#: others' weighted mean lies 6.4 deviations from the spline: blend 3.5 -> 0.14 mm RMS.
-#: Where the spatial members share one error the test is nearer its bound: in the PiG arm
-#: case of :data:`OUTLIER_FACTOR` (copies 1.6-2.5 mm, in the gap 4-6 mm off together) the
-#: right spline of RELB lies 3.9 deviations from them and stays; the arm's other
-#: markers 2.0-2.1.
-CONSENSUS_FACTOR = 5.0
-
-
-#: The test of :data:`CONSENSUS_FACTOR` leaves a member out only where it stands apart: its
-#: deviations at least this many times the next member's (:func:`_standing_apart`).  Two
-#: well-validated members that disagree lie about as many deviations from the rest, each
-#: the other's main counterweight, and nothing says which is off; a third that agrees
-#: with one of them breaks the tie (the basket case above: 6.4 against 3.8).  pyomeca, the
-#: box's 8 markers and 8 thorax markers gone for 2 s (the 2 s / 30 % / clustered mask of
-#: seed 802): on the box the local fill (validated at 17-28 mm, 78-165 mm off) and the
-#: spline (8-26 mm, 53-66 mm off) lie 5.0-9.8 deviations from the others, within 1.11 x
-#: of each other; leaving out the farther handed the box to the local fill: 3,200 samples
-#: at 49.0 mm mean (28.9 before the test, 26.4 with this margin).
-CONSENSUS_MARGIN = 1.25
-
-
-#: The same test at this factor for a member that also misses the measured trajectory at
-#: the run's ends by more than :data:`BOUNDARY_FACTOR` × the others' median miss
-#: (:func:`_boundary_misses`): the gap itself shows it off where the others join.  The arm
-#: case above is not touched by it: the spline joins the trajectory at the ends.
-JOINLESS_OUTLIER_FACTOR = 3.0
-
-
-#: A member whose miss at the run's ends (:func:`_boundary_misses`) exceeds this many
-#: times its validated RMS error plus the others' median miss is left out whatever its
-#: distance from the others (:func:`_outlying_estimates`).
-BOUNDARY_FACTOR = 2.0
-
-
-#: The end-miss rules of :func:`_outlying_estimates` leave a member out only while a member
-#: validated within this many times its RMS error remains: the misses tell apart members
-#: the copies scored alike, and never hand a run to members they scored far worse.  ktk
-#: racing, Head1 and Head2 over a 0.5 s hole (the 0.5 s / 10 % / clustered mask of seed
-#: 610): the local fill, validated at 4.7-5.5 mm and 46-54 mm off, misses the ends by
-#: 61-73 mm; the others, validated at 38-124 mm, are 62-326 mm off: without this bound it
-#: was left out and the repetition's blend went 33 -> 180 mm.
-BOUNDARY_GUARD = 3.0
-
-
-def _boundary_misses(est: np.ndarray, positions: np.ndarray, m: int, a: int,
-                     b: int) -> np.ndarray:
-    """``(K,)``: how far each member's estimate ``est (K, b - a, 3)`` of marker ``m``'s run
-    ``a..b-1`` lies, at the run's first and last frame, from the measured trajectory carried
-    one frame on (``2 x[a-1] - x[a-2]``, ``2 x[b] - x[b+1]``; ``positions (F, M, 3)``, NaN
-    where not measured): the larger miss of the two ends, an end without two measured
-    samples left out; NaN when neither has them.  A sample of each member's error inside the
-    gap that no validation copy gives; carrying the trajectory on errs by about its change
-    of velocity over a frame (at 50 Hz on the Eb015pr walk, 0.2-2.4 mm where the markers
-    move 1-3 mm a frame)."""
-    x = positions[:, m]
-    seen = np.isfinite(x).all(-1)
-    miss = [np.linalg.norm(est[:, at] - (2 * x[near] - x[far]), axis=-1)
-            for at, near, far in ((0, a - 1, a - 2), (-1, b, b + 1))  # start, end
-            if 0 <= min(near, far) and max(near, far) < len(x) and seen[[near, far]].all()]
-    return np.max(miss, axis=0) if miss else np.full(est.shape[0], np.nan)
-
-
-def _consensus_distance(e: np.ndarray, mse: np.ndarray, k: int, o: np.ndarray) -> float:
-    """RMS distance of member ``k``'s estimate ``e[k]`` ``(L, 3)`` from the others' (``o``)
-    inverse-variance weighted mean, in units of the standard deviation of that difference
-    (``√(mse_k + 1 / Σ_o mse_o⁻¹)``)."""
-    w = 1.0 / np.maximum(mse[o], 1e-300)
-    c = np.tensordot(w, e[o], axes=1) / w.sum()
-    d = np.sqrt(np.mean(np.sum((e[k] - c) ** 2, -1)))
-    return float(d / np.sqrt(mse[k] + 1.0 / w.sum()))
-
-
-def _standing_apart(e: np.ndarray, mse: np.ndarray, live: np.ndarray) -> np.ndarray:
-    """``(K,)``: :func:`_consensus_distance` of the member of ``live`` farthest from the
-    others, where it is at least :data:`CONSENSUS_MARGIN` times the next member's; 0 for
-    every other member (``e (K, L, 3)``, ``mse (K,)``)."""
-    z = np.zeros(len(mse))
-    for k in live:
-        z[k] = _consensus_distance(e, mse, k, live[live != k])
-    first, second = np.sort(z)[::-1][:2]
-    keep = np.zeros(len(mse))
-    if first >= CONSENSUS_MARGIN * second:
-        keep[np.argmax(z)] = first
-    return keep
-
-
-def _outlying_estimates(est: np.ndarray, runs: list[tuple[int, int, int]], mse: np.ndarray,
-                        weights: np.ndarray, positions: np.ndarray | None = None) -> np.ndarray:
-    """``(K, R)`` bool: the members of each run whose estimate the gap itself shows far off,
-    beyond what the validation copies predicted.
-
-    For each run with at least 3 weighted members (``weights (K, R)``, :func:`_blend_weights`
-    with repeats already at 0; ``mse (K, R)``, :func:`_validation_mse`; ``est (K, F, M, 3)``,
-    :func:`_blend_members`), member ``k`` with validated scale ``s_k = √mse_k`` + the median
-    of the others' ``√mse`` and RMS distance ``d_k`` over the run from the others'
-    per-sample median is off when
-
-    * ``d_k > OUTLIER_FACTOR s_k`` (:data:`OUTLIER_FACTOR`) or its distance from the
-      others' inverse-variance weighted mean exceeds :data:`CONSENSUS_FACTOR` standard
-      deviations (:func:`_consensus_distance`) and :data:`CONSENSUS_MARGIN` times the
-      next member's (:func:`_standing_apart`), or
-    * ``d_k > JOINLESS_OUTLIER_FACTOR s_k`` and its miss at the run's ends
-      (:func:`_boundary_misses`, from ``positions (F, M, 3)``) exceeds
-      :data:`BOUNDARY_FACTOR` × the others' median miss, or
-    * that miss exceeds :data:`BOUNDARY_FACTOR` × (``√mse_k`` + the others' median miss).
-
-    The last two apply only while another member's ``√mse`` is within
-    :data:`BOUNDARY_GUARD` × ``√mse_k``.  The member off by the largest ratio is left
-    out, and the last two tests are repeated on the rest while 3 remain.  The first alone
-    leaves out at most one member: of the three left after it, two wrong ones that agree
-    outvote a right one (pyomeca's box marker ``boite:droite_ext``, the 1 s / 1 % /
-    independent mask of seed 594: after the spline, 61 mm off, the local fill and the
-    whole-body PCA, 8 mm off together, left out the rigid-body fill, 0.6 mm off: blend
-    0.6 -> 8.2 mm).  Without ``positions``, the first
-    rule alone.  The median, unweighted: the others' weighted mean is the outlier itself
-    when it holds the weight, and then every other member looks as far off as it does.
-
-    The copies cannot see what a marker does inside its own gap; the other members'
-    estimates there can, and so can the measured samples at its ends.  PiG calibration
-    (100 Hz, 300 frames): LFHD knocked out over frames 184-283 (1 s, the head turning near
-    the take's end): the copies scored the spline lowest (0.56 mm), but in the gap it is
-    18 mm off where the four spatial members agree within 2 mm (the nearest-donor rigid fill
-    0.7 mm off): blend 7.7 mm mean, 1.1 mm without the spline.  LPSI knocked out over
-    frames 2-11 (its first frames jump 30 mm): the spline, scored 0.03-0.07 mm on copies
-    later in the take, is 33 mm off, the others 5-7 mm: blend 32.8 -> 4.9 mm.  Eb015pr
-    (50 Hz walk, 26 markers), the right foot and shank and LSK4 gone for 0.5 s over frames
-    152-176 (the 0.5 s / 30 % / clustered mask of seed 531): the local fill and the
-    whole-body PCA, scored 7-11 mm on the copies, are 64-132 mm off on RSK2-4 and miss
-    the trajectory at the ends by 10-71 mm, where the spline and the rigid-body fills
-    (3-13 mm off) miss it by 0.2-4 mm.  The distance alone left out one of the two (1.05-1.33
-    × its bound) and the other held the weight: blend 42-48 mm; it also lies beyond 3 × its
-    scale and misses the ends by more than twice the others do, so it goes too: 4-11 mm."""
-    K = est.shape[0]
-    out = np.zeros((K, len(runs)), dtype=bool)
-    for r, (m, a, b) in enumerate(runs):
-        e = est[:, a:b, m]  # (K, L, 3)
-        live = np.flatnonzero(np.isfinite(e).all((1, 2)) & (weights[:, r] > 0)
-                              & np.isfinite(mse[:, r]))  # fmt: skip
-        miss = (np.full(K, np.nan) if positions is None else
-                _boundary_misses(e, positions, m, a, b))  # fmt: skip
-        rms = np.sqrt(mse[:, r])
-        while len(live) >= 3:
-            worst, flagged = 1.0, -1
-            first = not out[:, r].any()  # the distance tests leave out one member at most
-            apart = _standing_apart(e, mse[:, r], live) / CONSENSUS_FACTOR if first else None
-            for k in live:
-                o = live[live != k]
-                d = np.sqrt(np.mean(np.sum((e[k] - np.median(e[o], axis=0)) ** 2, -1)))
-                scale = rms[k] + np.median(rms[o])
-                ratio = max(d / (OUTLIER_FACTOR * scale), apart[k]) if first else 0.0
-                others_miss = np.median(miss[o])
-                if (miss[k] > BOUNDARY_FACTOR * others_miss  # False where NaN
-                        and rms[o].min() <= BOUNDARY_GUARD * rms[k]):  # fmt: skip
-                    ratio = max(ratio, d / (JOINLESS_OUTLIER_FACTOR * scale),
-                                miss[k] / (BOUNDARY_FACTOR * (rms[k] + others_miss)))
-                if ratio > worst:
-                    worst, flagged = ratio, k
-            if flagged < 0:
-                break
-            out[flagged, r] = True
-            live = live[live != flagged]
-    return out
-
-
-#: Two markers are rigid partners (:func:`_take_bounds`) where their measured distance
-#: varies by at most this (m) over the frames both are measured, and those are at least
-#: :data:`PARTNER_MIN_FRAMES`: markers on one segment or object.
-PARTNER_MAX_SPREAD = 0.02
-
-#: See :data:`PARTNER_MAX_SPREAD`.
-PARTNER_MIN_FRAMES = 100
-
-#: A blend member is left out of a run where its estimate lies farther than this (m, RMS
-#: over the run) outside the distance ranges the marker keeps to its rigid partners over
-#: the take (:func:`_partner_excess`), and out of the samples either side of a step this
-#: much longer than the marker's fastest measured step (:func:`_jumps`); where no member
-#: is left, the samples stay holes (:func:`_keep_plausible`).  On the six shared real
-#: C3Ds, mask seeds 810-819 (every configuration of the gap protocol), the knocked-out
-#: samples themselves lie at most 88.7 mm outside their markers' ranges to rigid partners
-#: (Eb015pr; PiG calibration 86.5 mm: a static take whose subject moves inside some gaps;
-#: 99 % within 0-14 mm), and their steps (from the sample before a run to the one after
-#: it) exceed the marker's fastest measured step by at most 48 mm (Eb015pr; 13 mm on
-#: basket_sprint).
-PLAUSIBILITY_LIMIT = 0.1
-
-
-def _take_bounds(positions: np.ndarray, markers: np.ndarray
-                 ) -> dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, float]]:  # fmt: skip
-    """Per marker of ``markers``, what its measured samples never do (``positions (F, M,
-    3)``, NaN where not measured): its rigid partners (:data:`PARTNER_MAX_SPREAD`) with
-    the least and greatest distance to each over the frames both are measured, and its
-    fastest step between two measured consecutive frames (inf where it has none):
-    ``{marker: (partners (P,) int, lo (P,), hi (P,), step)}``."""
-    out = {}
-    for m in markers:
-        d = np.linalg.norm(positions - positions[:, m:m + 1], axis=-1)  # (F, M)
-        seen = np.isfinite(d)
-        lo = np.where(seen, d, np.inf).min(0)
-        hi = np.where(seen, d, -np.inf).max(0)
-        ok = (seen.sum(0) >= PARTNER_MIN_FRAMES) & (hi - lo <= PARTNER_MAX_SPREAD)
-        ok[m] = False
-        p = np.flatnonzero(ok)
-        steps = np.linalg.norm(np.diff(positions[:, m], axis=0), axis=-1)
-        fast = np.max(steps, where=np.isfinite(steps), initial=-np.inf)
-        out[int(m)] = (p, lo[p], hi[p], float(fast) if np.isfinite(fast) else np.inf)
-    return out
-
-
-def _partner_excess(e: np.ndarray, partners: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                    measured: np.ndarray) -> np.ndarray:
-    """``(K,)``: how far each member's estimate ``e (K, L, 3)`` of a run (NaN where it has
-    none) lies outside the marker's distance ranges ``lo``, ``hi`` ``(P,)`` to its rigid
-    ``partners`` (:func:`_take_bounds`) measured in the run's frames (``measured (L, M,
-    3)``, NaN where not): per frame the largest over the partners, RMS over the frames it
-    estimates with any; 0 where it has none."""
-    d = np.linalg.norm(e[:, :, None] - measured[None, :, partners], axis=-1)  # (K, L, P)
-    x = np.fmax.reduce(np.maximum(d - hi, lo - d), axis=-1, initial=-np.inf)  # (K, L)
-    at = x > -np.inf  # NaN (no estimate, partner unmeasured) never wins fmax
-    return np.sqrt(np.sum(np.where(at, np.maximum(x, 0.0), 0.0) ** 2, -1)
-                   / np.maximum(at.sum(-1), 1))  # fmt: skip
-
-
-def _jumps(e: np.ndarray, fast: float, before: np.ndarray, after: np.ndarray) -> np.ndarray:
-    """``(K, L)`` bool: the samples of each member's estimate ``e (K, L, 3)`` of a run next
-    to a step longer than the marker's fastest measured step ``fast`` +
-    :data:`PLAUSIBILITY_LIMIT`, its steps taken between consecutive estimates and from and
-    to the measured sample before and after the run where there is one (``before``,
-    ``after`` ``(3,)``, NaN where not)."""
-    K = e.shape[0]
-    path = np.concatenate([np.broadcast_to(before, (K, 1, 3)), e,
-                           np.broadcast_to(after, (K, 1, 3))], axis=1)
-    steps = np.linalg.norm(np.diff(path, axis=1), axis=-1)  # (K, L + 1), NaN at a missing end
-    bad = steps > fast + PLAUSIBILITY_LIMIT  # False where NaN
-    return bad[:, :-1] | bad[:, 1:]  # the step into a sample, the step out of it
-
-
-#: A blend member whose samples next to a jump (:func:`_jumps`) are at least this share of
-#: the samples it estimates in a run is erratic there and leaves all of the run
-#: (:func:`_jumps_in_runs`): its few samples between jumps are no better than the ones
-#: beside them.  basket_sprint, WheelchairL:Marker4 flickering over frames 2873-2913 and
-#: knocked out over 2877-2887 (the 0.1 s / 10 % / independent mask of seed 882): the local
-#: fill and the whole-body PCA jump beside 20 of the run's 34 samples (0.59) and are
-#: 17-509 mm and 550-1,134 mm off at the knocked-out ones; the spline, 0.3-3.9 mm off,
-#: shared the samples between jumps with the local fill: the repetition's blend 27.3 mm
-#: (18 samples filled), with them out 2.7 mm (22).  At 0.25 this also took the run of the
-#: 143-frame case of :func:`_jumps_in_runs` from them (shares 0.20-0.35, 65-110 mm off
-#: where the spline is 250-304 mm): that repetition 136 -> 213 mm; at 0.5 it stays 136.
-ERRATIC_SHARE = 0.5
-
-
-def _jumps_in_runs(est: np.ndarray, runs: list[tuple[int, int, int]], positions: np.ndarray,
-                   bounds: dict, *, erratic: bool = True) -> np.ndarray:
-    """``(K, F, M)`` bool: the samples of each member's estimate (``est (K, F, M, 3)``,
-    :func:`_blend_members`) next to a step longer than its marker ever makes
-    (:func:`_jumps`; ``bounds``, :func:`_take_bounds`; ``positions (F, M, 3)``, NaN where
-    not measured).  A jump is local: the same member is often the best one a few frames
-    away (basket_sprint, the 1 s / 10 % / clustered mask of seed 820: ForearmL:Marker1, 2
-    and 4 over frames 2383-2526, where the local fill and the whole-body PCA jump 1.3-2.3 m
-    in a frame somewhere in the run and are 84-117 mm off at the knocked-out samples, the
-    spline 263-315 mm; leaving them out of the whole run took that repetition from 95 to
-    276 mm, out of those samples alone 101 mm).  Applied to the blend too
-    (:func:`fill_by_validated_blend`, ``est`` ``(1, F, M, 3)``): where its members part by
-    metres the blend jumps between them (basket_sprint as captured, 5.4 m in a frame), and
-    the samples either side stay holes.  With ``erratic``, a member jumping beside at least
-    :data:`ERRATIC_SHARE` of the samples it estimates in a run is flagged on all of them
-    (not for the blend: its samples between jumps are the members' that stayed)."""
-    F = positions.shape[0]
-    jumps = np.zeros(est.shape[:3], dtype=bool)
-    nowhere = np.full(3, np.nan)
-    for m, a, b in runs:
-        e = est[:, a:b, m]
-        j = _jumps(e, bounds[m][3], positions[a - 1, m] if a > 0 else nowhere,
-                   positions[b, m] if b < F else nowhere)
-        has = np.isfinite(e).all(-1)  # (K, L)
-        off = erratic & (j.sum(1) >= ERRATIC_SHARE * np.maximum(has.sum(1), 1))  # (K,)
-        jumps[:, a:b, m] = j | (off[:, None] & has)
-    return jumps
-
-
-def _keep_plausible(weights: np.ndarray, est: np.ndarray, runs: list[tuple[int, int, int]],
-                    positions: np.ndarray, bounds: dict) -> np.ndarray:
-    """``(K, R)`` bool: the members of each run whose estimate lies more than
-    :data:`PLAUSIBILITY_LIMIT` outside the distances the marker keeps to its rigid partners
-    over the take (:func:`_partner_excess`; ``bounds``, :func:`_take_bounds`), their
-    ``weights (K, R)`` set to 0 in place.  Where that leaves a run no weighted member, it
-    goes to the member estimating all of it that stays within that bound, the least
-    outside it; where there is none, to nobody (``est (K, F, M, 3)``,
-    :func:`_blend_members`, NaN where a member has no estimate; ``positions (F, M, 3)``,
-    NaN where not measured).  The copies score a model where its donors and inputs were
-    measured; over a long gap of a marker whose segment is hidden with it a model may
-    extrapolate anywhere, and the take's own measured samples show where.
-
-    basket_sprint (120 Hz, the 0.1 s / 10 % / clustered mask of seed 814):
-    WheelchairL:Marker2, missing over frames 2333-2581 with one more sample knocked out
-    inside, keeps 206.7-214.5 mm from WheelchairL:Marker1 over the take; the local fill and
-    the whole-body PCA put it 2.4-2.7 m from where it was, the spline 0.28 m: blend 1.61 m.
-    In the same repetition SWL:Marker2 (a push-rim marker, at most 33 mm a frame), frames
-    2467-2506, three samples knocked out: the local fill jumps metres within the run, which
-    put the spline (9 mm off, validated best) far from the median of two and out of the
-    run (:func:`_outlying_estimates`), the whole-body PCA (150 mm off) holding the weight:
-    blend 135 mm; with the jumps out of the tests (:func:`_jumps_in_runs`) the spline
-    stays.  As captured, the take loses the head, trunk and hand markers from about frame
-    2100 to its end (1,500-1,600 frames): the local fill and the whole-body PCA, the only
-    members reaching all of it, jump up to 8-10 m a frame there."""
-    K, R = weights.shape
-    out = np.zeros((K, R), dtype=bool)
-    for r, (m, a, b) in enumerate(runs):
-        partners, lo, hi, _ = bounds[m]
-        if not len(partners):
-            continue
-        e = est[:, a:b, m]
-        x = _partner_excess(e, partners, lo, hi, positions[a:b])
-        out[:, r] = x > PLAUSIBILITY_LIMIT
-        if not out[:, r].any():
-            continue
-        weights[out[:, r], r] = 0.0
-        if not weights[:, r].any():
-            full = np.isfinite(e).all((1, 2)) & ~out[:, r]
-            if full.any():
-                weights[np.argmin(np.where(full, x, np.inf)), r] = 1.0
-    return out
 
 
 def _floor_rigid_errors(mse: np.ndarray, disagreement: dict[int, np.ndarray],

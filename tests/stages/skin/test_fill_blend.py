@@ -12,6 +12,7 @@ from scipy.interpolate import CubicSpline
 
 import mocapflow.stages.skin.fill as fill
 import mocapflow.stages.skin.fill_blend as fb
+import mocapflow.stages.skin.fill_checks as fc
 from mocapflow.pipeline import Context
 from mocapflow.stages.motion.rotations import quat_from_rotvec, quat_to_matrix
 from mocapflow.stages.skin.clean import clean
@@ -207,7 +208,7 @@ def test_a_member_jumping_beside_most_of_a_run_leaves_it(shared_data):
     flickering holes: one 34-frame run.  The rigid-body fills reach none of those samples;
     the local fill jumps beside most of the run's samples and is 283 mm off between the
     jumps, where it shared the samples with the spline (1.6 mm): blend 62 mm.  Erratic
-    there (:data:`fb.ERRATIC_SHARE`), it leaves the run: within 1.2 x the spline, and
+    there (:data:`fc.ERRATIC_SHARE`), it leaves the run: within 1.2 x the spline, and
     every knocked-out sample filled."""
     m = _real_take(shared_data, "ktk_kinematics_basket_sprint.c3d")
     mask = np.zeros(m.visible.shape, bool)
@@ -356,14 +357,14 @@ def test_a_run_judged_on_its_margins_alone(shared_data, monkeypatch):
     and broke ``test_a_rigid_fill_is_judged_where_its_own_donors_carry_it``, see
     :func:`fb._validation_mse`).  That miss is a jump no measured step of the marker makes
     (at most 38 mm a frame): the whole-body fill's samples next to its jumps (3242, and
-    3246-3247) leave the blend and the tests (:func:`fb._jumps_in_runs`), the other 15
+    3246-3247) leave the blend and the tests (:func:`fc._jumps_in_runs`), the other 15
     samples of its run stay: 2.75 mm."""
     m = _real_take(shared_data, "ktk_kinematics_basket_sprint.c3d")
     mask = _knocked_out(m, (3253, 3260), ["ArmL:Marker4"])
     err, _ = _clean_errors(m, mask)
     spline = _spline_errors(m, mask)
     assert err.mean() <= 0.9 * spline.mean(), (err.mean(), spline.mean())
-    monkeypatch.setattr(fb, "PLAUSIBILITY_LIMIT", np.inf)  # the rule off
+    monkeypatch.setattr(fc, "PLAUSIBILITY_LIMIT", np.inf)  # the rule off
     err, _ = _clean_errors(m, mask)
     assert err.mean() > 1.3 * spline.mean(), (err.mean(), spline.mean())
 
@@ -590,27 +591,27 @@ def test_a_member_far_from_all_the_others_in_the_gap_is_left_out():
     w = np.ones((5, 1))
     far = est.copy()
     far[2, :, 0] += [0.02, 0, 0]
-    flagged = fb._outlying_estimates(far, runs, mse, w)
+    flagged = fc._outlying_estimates(far, runs, mse, w)
     np.testing.assert_array_equal(flagged[:, 0], [False, False, True, False, False])
     near = est.copy()
     near[2, :, 0] += [0.004, 0, 0]
-    np.testing.assert_array_equal(fb._outlying_estimates(near, runs, mse, w)[:, 0],
+    np.testing.assert_array_equal(fc._outlying_estimates(near, runs, mse, w)[:, 0],
                                   [False, False, True, False, False])
     nearer = est.copy()
     nearer[2, :, 0] += [0.002, 0, 0]
-    assert not fb._outlying_estimates(nearer, runs, mse, w).any()
+    assert not fc._outlying_estimates(nearer, runs, mse, w).any()
     two = np.array([[1.0], [0], [1], [0], [0]])
-    assert not fb._outlying_estimates(far, runs, mse, two).any()
+    assert not fc._outlying_estimates(far, runs, mse, two).any()
     w0 = w.copy()
     w0[2] = 0.0
-    assert not fb._outlying_estimates(far, runs, mse, w0).any()
+    assert not fc._outlying_estimates(far, runs, mse, w0).any()
     # the LPSI case's validated errors (mm): the far member 0.04, the others 0.3-1.2, the
     # best of them 1 mm off the other way: the others' weighted mean flagged that one
     mse_lead = (np.array([[1.2], [0.45], [0.04], [0.45], [0.3]]) * 1e-3) ** 2
     w_lead = fb._blend_weights(mse_lead)
     assert w_lead[2, 0] > 100 * w_lead[[0, 1, 3, 4], 0].sum()
     far[4, :, 0] -= [0.001, 0, 0]
-    flagged = fb._outlying_estimates(far, runs, mse_lead, w_lead)
+    flagged = fc._outlying_estimates(far, runs, mse_lead, w_lead)
     np.testing.assert_array_equal(flagged[:, 0], [False, False, True, False, False])
 
 
@@ -670,7 +671,7 @@ def test_a_member_far_from_the_others_in_a_real_gap_is_left_out(
     frames 2-11, where its recorded trajectory jumps 30 mm: the spline (0.03-0.07 mm on
     copies later in the take) is 33 mm off, the others 5-7 mm.  The blend was ``before``
     (mean, max mm) off; leaving out the member far from the others' median
-    (``fb._outlying_estimates``): LFHD 1.1 / 2.3, RFHD 1.5 / 3.1, LPSI 4.9 / 32 mm."""
+    (``fc._outlying_estimates``): LFHD 1.1 / 2.3, RFHD 1.5 / 3.1, LPSI 4.9 / 32 mm."""
     m = pig_calibration
     err, _ = _clean_errors(m, _knocked_out(m, frames, [label]))
     err *= 1e3
@@ -703,11 +704,11 @@ def test_boundary_misses_are_the_ends_off_the_carried_trajectory():
     est[1, 0] += [0.001, 0.002, 0.003]
     est[1, -1] += [0, 0, 0.004]
     x[a:b] = np.nan
-    np.testing.assert_allclose(fb._boundary_misses(est, x, 0, a, b), [0, 0.004], atol=1e-12)
+    np.testing.assert_allclose(fc._boundary_misses(est, x, 0, a, b), [0, 0.004], atol=1e-12)
     x[a - 2] = np.nan  # the start has one measured sample before it: the end alone
-    np.testing.assert_allclose(fb._boundary_misses(est, x, 0, a, b), [0, 0.004], atol=1e-12)
+    np.testing.assert_allclose(fc._boundary_misses(est, x, 0, a, b), [0, 0.004], atol=1e-12)
     x[b + 1] = np.nan
-    assert np.isnan(fb._boundary_misses(est, x, 0, a, b)).all()
+    assert np.isnan(fc._boundary_misses(est, x, 0, a, b)).all()
 
 
 def test_a_member_off_at_the_gap_ends_is_left_out_sooner(monkeypatch):
@@ -742,17 +743,17 @@ def test_a_member_off_at_the_gap_ends_is_left_out_sooner(monkeypatch):
     # run to members the copies scored far worse (ktk racing's head)
     mse_g = np.array([[0.004], [0.004], [0.004], [0.001], [0.004]]) ** 2
     with monkeypatch.context() as mp:
-        mp.setattr(fb, "CONSENSUS_FACTOR", np.inf)
-        np.testing.assert_array_equal(fb._outlying_estimates(grown, runs, mse, w, x)[:, 0],
+        mp.setattr(fc, "CONSENSUS_FACTOR", np.inf)
+        np.testing.assert_array_equal(fc._outlying_estimates(grown, runs, mse, w, x)[:, 0],
                                       [False, True, False, False, False])
-        assert not fb._outlying_estimates(grown, runs, mse, w).any()  # no positions: 5 x
-        assert not fb._outlying_estimates(joined, runs, mse, w, x).any()
-        np.testing.assert_array_equal(fb._outlying_estimates(offset, runs, mse_c, w, x)[:, 0],
+        assert not fc._outlying_estimates(grown, runs, mse, w).any()  # no positions: 5 x
+        assert not fc._outlying_estimates(joined, runs, mse, w, x).any()
+        np.testing.assert_array_equal(fc._outlying_estimates(offset, runs, mse_c, w, x)[:, 0],
                                       [False, False, False, True, False])
-        assert not fb._outlying_estimates(offset, runs, mse_g, w, x).any()
+        assert not fc._outlying_estimates(offset, runs, mse_g, w, x).any()
         two = grown.copy()
         two[4, 10:50, 0] -= bump + [0.003, 0, 0]
-        np.testing.assert_array_equal(fb._outlying_estimates(two, runs, mse, w, x)[:, 0],
+        np.testing.assert_array_equal(fc._outlying_estimates(two, runs, mse, w, x)[:, 0],
                                       [False, True, False, False, True])
         # pyomeca's box marker (1 s hole): the local fill and the whole-body PCA agree, 10 mm
         # off in the middle and joined at the ends; the spline 60 mm off; the rigid-body
@@ -767,19 +768,19 @@ def test_a_member_off_at_the_gap_ends_is_left_out_sooner(monkeypatch):
         mse_box = (np.array([[0.9], [1.3], [2.2], [0.1], [0.1]]) * 1e-3) ** 2
         w_box = np.array([[1.0], [1], [1], [1], [0]])
         np.testing.assert_array_equal(
-            fb._outlying_estimates(box, runs, mse_box, w_box, x)[:, 0],
+            fc._outlying_estimates(box, runs, mse_box, w_box, x)[:, 0],
             [False, False, True, False, False])
     for positions in (x, None):
         np.testing.assert_array_equal(
-            fb._outlying_estimates(grown, runs, mse, w, positions)[:, 0],
+            fc._outlying_estimates(grown, runs, mse, w, positions)[:, 0],
             [False, True, False, False, False])
         np.testing.assert_array_equal(
-            fb._outlying_estimates(joined, runs, mse, w, positions)[:, 0],
+            fc._outlying_estimates(joined, runs, mse, w, positions)[:, 0],
             [False, True, False, False, False])
-    assert not fb._outlying_estimates(offset, runs, mse_g, w, x).any()
-    np.testing.assert_array_equal(fb._outlying_estimates(two, runs, mse, w, x)[:, 0],
+    assert not fc._outlying_estimates(offset, runs, mse_g, w, x).any()
+    np.testing.assert_array_equal(fc._outlying_estimates(two, runs, mse, w, x)[:, 0],
                                   [False, True, False, False, True])
-    np.testing.assert_array_equal(fb._outlying_estimates(box, runs, mse_box, w_box, x)[:, 0],
+    np.testing.assert_array_equal(fc._outlying_estimates(box, runs, mse_box, w_box, x)[:, 0],
                                   [False, False, True, False, False])
 
 
@@ -790,7 +791,7 @@ def test_members_off_at_the_ends_of_a_real_cluster_gap_are_left_out(eb015):
     are 64-132 mm off on RSK2-4 and miss the measured trajectory at the gap's ends by 10-71
     mm, where the spline and the rigid-body fills miss it by 0.2-4 mm.  Their distance from
     the others left out one of the two and the other held the weight: 41.7 / 48.3 / 46.1 mm
-    mean.  Both left out (``fb._outlying_estimates``): 4.1 / 11.4 / 5.0 mm (a cubic spline
+    mean.  Both left out (``fc._outlying_estimates``): 4.1 / 11.4 / 5.0 mm (a cubic spline
     alone 4.1 / 12.5 / 3.2)."""
     m = eb015
     names = ("RFT1", "RFT2", "RFT3", "RSK1", "RSK2", "RSK3", "RSK4", "LSK4")
@@ -808,7 +809,7 @@ def test_end_misses_do_not_hand_a_gap_to_members_validated_far_worse(shared_data
     seed 610), the head turning fast (12-13 mm a frame).  The local fill, validated at
     4.7-5.5 mm, is 46-54 mm off and misses the ends by 61-73 mm; every other member,
     validated at 38-124 mm, is 62-326 mm off.  Left out for its misses, the run went to
-    them: 263 / 282 mm; kept (``fb.BOUNDARY_GUARD``): 46 / 54 mm."""
+    them: 263 / 282 mm; kept (``fc.BOUNDARY_GUARD``): 46 / 54 mm."""
     m = _real_take(shared_data, "ktk_kinematics_racing_full.c3d")
     mask = _knocked_out(m, (497, 532), ("Head1", "Head2", "Head3", "AcromionR"))
     _, out = _clean_errors(m, mask)
@@ -1019,14 +1020,14 @@ def test_a_member_far_from_the_others_weighted_mean_is_left_out(shared_data, mon
     The spline, validated best, is 6.7 mm off in the gap where the two rigid-body fills
     are 0.1-0.4 mm off and the local fill 1.0 mm; 2.4 x its scale from the others' median,
     it kept half the weight on the whole take (blend 3.1 mm there, 4.9 mm here).  Far more
-    than :data:`fb.CONSENSUS_FACTOR` deviations from the others' inverse-variance weighted
+    than :data:`fc.CONSENSUS_FACTOR` deviations from the others' inverse-variance weighted
     mean, it is left out (0.8 mm here, 0.13 mm on the whole take)."""
     m = _real_take(shared_data, "ktk_kinematics_basket_sprint.c3d").take_frames(slice(1100, 2400))
     mask = _knocked_out(m, (335, 347), ["BodyL:C7"])
     assert _spline_errors(m, mask).mean() > 5e-3
     err, _ = _clean_errors(m, mask)
     assert err.mean() < 1.5e-3, err.mean()
-    monkeypatch.setattr(fb, "CONSENSUS_FACTOR", np.inf)  # the median test alone
+    monkeypatch.setattr(fc, "CONSENSUS_FACTOR", np.inf)  # the median test alone
     err, _ = _clean_errors(m, mask)
     assert err.mean() > 4e-3, err.mean()
 
@@ -1040,7 +1041,7 @@ def test_two_members_apart_from_each_other_alone_are_both_kept(shared_data, monk
     (9.8 and 9.6 on ``boite:gauche_ext``), and nothing says which is off.  Leaving out the
     farther of the two handed the box to the local fill: 49.0 mm mean over the 3,200
     samples (box 92 mm).  A member is left out by that test only where it stands apart
-    (:data:`fb.CONSENSUS_MARGIN` x the next member's deviations): 26.4 mm (28.9 before
+    (:data:`fc.CONSENSUS_MARGIN` x the next member's deviations): 26.4 mm (28.9 before
     the test)."""
     m = _real_take(shared_data, "pyomeca_markers_analogs.c3d")
     names = [f"boite:{n}" for n in ("gauche_ext", "gauche_int", "droite_int", "droite_ext",
@@ -1051,7 +1052,7 @@ def test_two_members_apart_from_each_other_alone_are_both_kept(shared_data, monk
     mask = _knocked_out(m, (3, 203), names)
     err, _ = _clean_errors(m, mask)
     assert err.mean() < 30e-3, err.mean()
-    monkeypatch.setattr(fb, "CONSENSUS_MARGIN", 1.0)  # the farthest, however near the next
+    monkeypatch.setattr(fc, "CONSENSUS_MARGIN", 1.0)  # the farthest, however near the next
     err, _ = _clean_errors(m, mask)
     assert err.mean() > 40e-3, err.mean()
 
@@ -1095,7 +1096,7 @@ def test_partner_excess_and_jumps_are_what_the_marker_s_samples_never_do():
     that part; the truth is at 0 and never jumps."""
     v = 0.005
     truth, pos = _partnered_take(v=v)
-    (partners, lo, hi, fast), = fb._take_bounds(pos, np.array([0])).values()
+    (partners, lo, hi, fast), = fc._take_bounds(pos, np.array([0])).values()
     np.testing.assert_array_equal(partners, [1])  # marker 2 is no rigid partner
     np.testing.assert_allclose([lo[0], hi[0], fast], [0.2, 0.2, v], atol=1e-12)
     good = truth[100:140, 0]
@@ -1104,29 +1105,29 @@ def test_partner_excess_and_jumps_are_what_the_marker_s_samples_never_do():
     jump[20, 2] += 1.0
     part = np.where(np.arange(40)[:, None] < 25, away, np.nan)  # off, then no estimate
     e = np.stack([good, away, jump, part])
-    x = fb._partner_excess(e, partners, lo, hi, pos[100:140])
+    x = fc._partner_excess(e, partners, lo, hi, pos[100:140])
     np.testing.assert_allclose(x, [0.0, 0.5, (np.hypot(0.2, 1.0) - 0.2) / np.sqrt(40), 0.5],
                                atol=1e-9)
-    j = fb._jumps(e, fast, pos[99, 0], pos[140, 0])
+    j = fc._jumps(e, fast, pos[99, 0], pos[140, 0])
     np.testing.assert_array_equal(np.flatnonzero(j[0]), [])
     np.testing.assert_array_equal(np.flatnonzero(j[1]), [0, 39])
     np.testing.assert_array_equal(np.flatnonzero(j[2]), [19, 20, 21])
     np.testing.assert_array_equal(np.flatnonzero(j[3]), [0])
     # a marker with no partner and no measured step: nothing to go by
     lone = np.where(np.arange(300)[:, None, None] % 2 == 0, pos, np.nan)[:, [0, 2]]
-    (p, _, _, f), = fb._take_bounds(lone, np.array([0])).values()
+    (p, _, _, f), = fc._take_bounds(lone, np.array([0])).values()
     assert len(p) == 0 and f == np.inf
 
 
 def test_a_member_jumping_beside_half_its_samples_of_a_run_is_out_of_all_of_it():
     """Known answers on marker 0's 40-frame run: a member whose samples step 0.5 m out
     and back at 6 samples is flagged beside those alone (18 of 40, under
-    :data:`fb.ERRATIC_SHARE`); at 7 (21 of 40) on all 40; a member estimating 6 samples,
+    :data:`fc.ERRATIC_SHARE`); at 7 (21 of 40) on all 40; a member estimating 6 samples,
     one of them off, beside 3 of its 6: on those 6 (the share is of the samples it
     estimates); the truth nowhere.  Without ``erratic`` only the samples beside a jump."""
-    assert fb.ERRATIC_SHARE == 0.5
+    assert fc.ERRATIC_SHARE == 0.5
     truth, pos = _partnered_take()
-    bounds = fb._take_bounds(pos, np.array([0]))
+    bounds = fc._take_bounds(pos, np.array([0]))
     est = np.full((4, 300, 3, 3), np.nan)
     est[:, 100:140, 0] = truth[100:140, 0]
     est[1, 100 + np.arange(1, 40, 4)[:6], 0, 0] += 0.5  # samples 1, 5, ..., 21
@@ -1138,7 +1139,7 @@ def test_a_member_jumping_beside_half_its_samples_of_a_run_is_out_of_all_of_it()
               for k in (np.arange(1, 40, 4)[:6], np.arange(1, 40, 4)[:7], [3])]
     for erratic, flagged in ((True, [[], beside[0], np.arange(40), np.arange(6)]),
                              (False, [[], beside[0], beside[1], beside[2]])):
-        jumps = fb._jumps_in_runs(est, runs, pos, bounds, erratic=erratic)
+        jumps = fc._jumps_in_runs(est, runs, pos, bounds, erratic=erratic)
         assert not jumps[:, :100].any() and not jumps[:, 140:].any() and not jumps[:, :, 1:].any()
         for k in range(4):
             np.testing.assert_array_equal(np.flatnonzero(jumps[k, 100:140, 0]), flagged[k])
@@ -1146,11 +1147,11 @@ def test_a_member_jumping_beside_half_its_samples_of_a_run_is_out_of_all_of_it()
 
 def test_keep_plausible_leaves_out_members_off_their_rigid_partners():
     """The member 0.5 m off its partner is left out of the run (beyond
-    :data:`fb.PLAUSIBILITY_LIMIT`), one 5 cm off stays; where the members left out held all
+    :data:`fc.PLAUSIBILITY_LIMIT`), one 5 cm off stays; where the members left out held all
     the weight, the plausible member estimating all of the run, the least off, takes it;
     where none is plausible, nobody."""
     truth, pos = _partnered_take()
-    bounds = fb._take_bounds(pos, np.array([0]))
+    bounds = fc._take_bounds(pos, np.array([0]))
     est = np.full((4, 300, 3, 3), np.nan)
     est[:, 100:140, 0] = truth[100:140, 0]
     est[1, 100:140, 0] -= [0.5, 0, 0]
@@ -1158,15 +1159,15 @@ def test_keep_plausible_leaves_out_members_off_their_rigid_partners():
     est[3, 100:120, 0] = np.nan  # right, over half the run
     runs = [(0, 100, 140)]
     w = np.ones((4, 1))
-    out = fb._keep_plausible(w, est, runs, pos, bounds)
+    out = fc._keep_plausible(w, est, runs, pos, bounds)
     np.testing.assert_array_equal(out[:, 0], [False, True, False, False])
     np.testing.assert_array_equal(w[:, 0], [1, 0, 1, 1])
     w = np.array([[0.0], [1.0], [0.0], [0.0]])  # the wild one held the weight
-    fb._keep_plausible(w, est, runs, pos, bounds)
+    fc._keep_plausible(w, est, runs, pos, bounds)
     np.testing.assert_array_equal(w[:, 0], [1, 0, 0, 0])
     w = np.array([[0.0], [1.0], [0.0], [0.0]])
     wild = np.where(np.isfinite(est), est[1], np.nan)  # every member off
-    assert fb._keep_plausible(w, wild, runs, pos, bounds).all()
+    assert fc._keep_plausible(w, wild, runs, pos, bounds).all()
     assert not w.any()
 
 
@@ -1178,7 +1179,7 @@ def test_a_member_metres_off_a_rigid_object_is_left_out(shared_data, monkeypatch
     810-819).  The wheelchair marker keeps 207-215 mm from WheelchairL:Marker1 over the
     take; the local fill and the whole-body PCA leave it metres away, the spline 0.2 m.
     With the members that leave the marker's rigid partners or outrun its fastest step
-    left out (:func:`fb._keep_plausible`), the push-rim samples are filled as the spline
+    left out (:func:`fc._keep_plausible`), the push-rim samples are filled as the spline
     fills them (within 0.7 mm of the spline's 0.7-15 mm) and the wheelchair's run, where
     no member is plausible, stays a hole, warned and reported; without, 35-43 mm and
     3.96 m."""
@@ -1196,7 +1197,7 @@ def test_a_member_metres_off_a_rigid_object_is_left_out(shared_data, monkeypatch
     assert np.isnan(err[1]) and spline[1] > 0.15
     assert out["report"]["fill"]["implausible"]["WheelchairL:Marker2"] > 0  # 196 measured
     assert any("left unfilled" in w and "WheelchairL:Marker2" in w for w in ctx.warnings)
-    monkeypatch.setattr(fb, "PLAUSIBILITY_LIMIT", np.inf)  # the rule off
+    monkeypatch.setattr(fc, "PLAUSIBILITY_LIMIT", np.inf)  # the rule off
     err, _ = _clean_errors(m, mask)
     assert err[1] > 1.0 and (err[[0, 2, 3]] > 20e-3).all(), err
 
@@ -1218,14 +1219,14 @@ def test_a_fill_never_steps_farther_than_its_marker_does(shared_data, monkeypatc
     """Real basket sprint as captured, frames 2000-3000, where the head, trunk, hand and
     wheelchair markers are gone for hundreds of frames: the local fill and the whole-body
     PCA extrapolate metres off and jump between frames, and the blend with them.  No filled
-    step is longer than its marker's fastest measured step + :data:`fb.PLAUSIBILITY_LIMIT`
+    step is longer than its marker's fastest measured step + :data:`fc.PLAUSIBILITY_LIMIT`
     (the samples either side stay holes); without the rule the fill jumps metres."""
     m = _real_take(shared_data, "ktk_kinematics_basket_sprint.c3d").take_frames(slice(2000, 3000))
     out = clean(m, merge=False, ctx=Context())
     filled = out["markers"].positions
-    assert _worst_step_beyond_fastest(m.positions, filled) <= fb.PLAUSIBILITY_LIMIT
+    assert _worst_step_beyond_fastest(m.positions, filled) <= fc.PLAUSIBILITY_LIMIT
     assert sum(out["report"]["fill"]["implausible"].values()) > 0
-    monkeypatch.setattr(fb, "PLAUSIBILITY_LIMIT", np.inf)  # the rule off
+    monkeypatch.setattr(fc, "PLAUSIBILITY_LIMIT", np.inf)  # the rule off
     filled = clean(m, merge=False, ctx=Context())["markers"].positions
     assert _worst_step_beyond_fastest(m.positions, filled) > 1.0
 
@@ -1257,7 +1258,7 @@ def test_a_cluster_s_third_marker_is_filled(shared_data):
     i = m.labels.index("ScapulaR1")
     holes = ~m.visible[:, i]
     assert holes.sum() == 290 and np.isfinite(out[holes, i]).all()
-    partners, lo, hi, _ = fb._take_bounds(m.positions, np.array([i]))[i]
+    partners, lo, hi, _ = fc._take_bounds(m.positions, np.array([i]))[i]
     d = np.linalg.norm(out[holes, i][:, None] - m.positions[holes][:, partners], axis=-1)
     assert np.nanmax(np.maximum(d - hi, lo - d)) < 0.01  # 5.1 mm measured
     assert _worst_step_beyond_fastest(m.positions[:, [i]], out[:, [i]]) <= 0.0
