@@ -16,8 +16,8 @@ the marker does inside its own gap; this module reads it where it shows:
   (:data:`ERRATIC_SHARE`);
 * :func:`_keep_plausible`: a member off the distances to the rigid partners.
 
-The measurements behind each bound are in its docstring, and the blend's results on
-the shared real C3Ds in :mod:`~mocapflow.stages.skin.fill_blend`'s.
+The measurements behind each bound are in the comment above it, and the blend's results
+on the shared real C3Ds in :mod:`~mocapflow.stages.skin.fill_blend`'s docstring.
 """
 
 from __future__ import annotations
