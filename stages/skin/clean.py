@@ -693,8 +693,8 @@ def _fill(
         ctx.warn(f"clean: {int(left.sum())} samples of {int((left > 0).sum())} marker(s) left "
                  f"unfilled: every estimate of their gaps leaves the marker's rigid partners "
                  f"or outruns its fastest measured step by more than "
-                 f"{PLAUSIBILITY_LIMIT * 1000:.0f} mm (next to those samples, or beside half "
-                 f"of the gap's): "
+                 f"{PLAUSIBILITY_LIMIT * 1000:.0f} mm (next to those samples, or next to half "
+                 f"of the gap's samples): "
                  f"{_names(labels, np.flatnonzero(left))}",
                  hint="little is measured near them there (their segment is hidden with "
                       "them); they stay holes rather than estimates far off "
