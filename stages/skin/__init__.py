@@ -50,11 +50,15 @@ the paper lives in one function (modules of this package):
                                          fill_blend._placed_copies, fill_blend.MOTION_MATCH,
   blended by validation on the take      fill_blend._validation_errors; models compared
                                          on the copies they all reached:
-                                         fill_blend._validation_mse),
+                                         fill_blend._validation_mse; on long runs per
+                                         distance from the nearer measured end:
+                                         fill_blend._validation_profile),
                                          lowrank.whole_body_pca, fill_blend._rigid_body_fill
                                          (most rigid / nearest donors) at least a share of
                                          the carries' disagreement:
-                                         fill_blend.RIGID_DISAGREEMENT_SHARE; a member the
+                                         fill_blend.RIGID_DISAGREEMENT_SHARE, at least its
+                                         miss at the gap's ends beyond the trajectory's own:
+                                         fill_checks._end_excess; a member the
                                          gap shows far off (from the others, or missing the
                                          trajectory at the gap's ends) left out:
                                          fill_checks._outlying_estimates,

@@ -218,6 +218,8 @@ from scipy.interpolate import CubicSpline
 from mocapflow.stages.motion.absolute_orientation import absolute_orientation_batch
 from mocapflow.stages.motion.contacts import true_runs
 from mocapflow.stages.skin.fill_checks import (
+    BOUNDARY_GUARD,
+    _end_excess,
     _jumps_in_runs,
     _keep_plausible,
     _outlying_estimates,
@@ -234,6 +236,8 @@ __all__ = [
     "MOTION_FLOOR",
     "MOTION_MATCH",
     "MOTION_WINDOW",
+    "PROFILE_EDGES",
+    "PROFILE_MIN_LENGTH",
     "RIGID_BODY_POOL",
     "RIGID_DISAGREEMENT_SHARE",
     "RIGID_MODELS",
@@ -400,6 +404,34 @@ def _gap_support(measured: np.ndarray, runs: list[tuple[int, int, int]],
     seen = _measured_before(measured)
     m, a, b = (np.array([run[i] for run in runs], dtype=np.int64) for i in range(3))
     return np.minimum(np.stack([seen[a, m], seen[-1, m] - seen[b, m]], 1), support)
+
+
+#: Edges (frames) of the bins of a hole's samples by their distance from its nearer
+#: measured end (:func:`_profile_bins`): each model is scored per bin on the copies
+#: (:func:`_validation_profile`), its error growing away from the ends at its own rate.
+PROFILE_EDGES = (2, 5, 10, 20, 40)
+
+
+#: Runs of at least this many frames (twice the last of :data:`PROFILE_EDGES`: their
+#: middle reaches the last bin) are weighted per bin (:func:`_profile_weights`); shorter
+#: ones by their copies' whole error.  On every run, PiG calibration's right arm over 50
+#: frames (``test_a_spline_right_where_the_spatial_members_share_an_error_is_kept``) went
+#: 1.95 -> 2.09 mm (the plain spline 1.43): in the middle bins the copies scored the local
+#: fill at 2.4-4.7 mm where it is 4.9-12.3 mm off, the whole run's copies at 1.8-4.3 mm
+#: against the spline's 0.8-2.3, which the spline's near-end bins had lowered; and on the
+#: five smaller shared C3Ds (mask seeds 890-899) PiG was 15 of 18 configurations within
+#: 5 % against 16 of 18 with this bound.  basket_sprint's 248-frame run of seed 892
+#: (``test_samples_near_a_long_run_s_end_go_to_the_members_right_there``) is what the
+#: profile is for: 109 -> 10.7 mm.
+PROFILE_MIN_LENGTH = 2 * PROFILE_EDGES[-1]
+
+
+def _profile_bins(frames: np.ndarray, lo: np.ndarray, hi: np.ndarray, F: int) -> np.ndarray:
+    """The bin (:data:`PROFILE_EDGES`) of each hole sample at ``frames`` by its distance from
+    the nearer measured end of its hole ``lo..hi-1`` (arrays alike); a hole on the take's
+    edge is measured on one side only; a hole of the whole take is in the last bin."""
+    d = np.minimum(np.where(lo > 0, frames - lo, F), np.where(hi < F, hi - 1 - frames, F))
+    return np.searchsorted(PROFILE_EDGES, d, side="right")
 
 
 def _shifted_runs(runs: list[tuple[int, int, int]], shape: tuple[int, int],
@@ -673,11 +705,15 @@ def fill_by_validated_blend(
     (:func:`_validation_mse`: a copy moved onto the take's edge, where a
     spline cannot reach, no longer shuts the spline out of the run), and its
     estimates are averaged with weights ∝ (mean squared error on those
-    copies)^-:data:`BLEND_POWER`, a rigid-body fill's (:data:`RIGID_MODELS`)
+    copies)^-:data:`BLEND_POWER` (on runs of at least :data:`PROFILE_MIN_LENGTH` frames,
+    each sample by the copies' error at its distance from the run's nearer measured end:
+    :func:`_validation_profile`), a rigid-body fill's (:data:`RIGID_MODELS`)
     error taken as at least :data:`RIGID_DISAGREEMENT_SHARE` of how far its
     carries from before and after the gap disagree (the marker moving against
     its donors there, which the copies need not see; a smaller share on runs
-    shorter than :data:`RIGID_DISAGREEMENT_DURATION` when ``rate`` is given), a model whose estimate
+    shorter than :data:`RIGID_DISAGREEMENT_DURATION` when ``rate`` is given), every
+    model's error taken as at least its miss of the measured trajectory at the run's ends
+    beyond the trajectory's own (:func:`fill_checks._end_excess`), a model whose estimate
     repeats an earlier one's counted once (:func:`_earlier_twins`), the
     models the gap itself shows far off left out of it (:func:`fill_checks._outlying_estimates`:
     an estimate far beyond its and the others' validated errors from the others'
@@ -732,12 +768,15 @@ def fill_by_validated_blend(
     reach = finite_rows(est) | ~holes[None]  # (K, F, M)
     for r, (m, a, b) in enumerate(runs):
         full[:, r] = reach[:, a:b, m].all(1)
-    errs, ok = _validation_errors(positions, holes, runs, surface, interpolate=interpolate,
-                                  local_fill=local_fill, shifts=VALIDATION_SHIFTS[:n_shifts],
-                                  donor_sets=donor_sets, rate=rate)
+    errs, ok, profile = _validation_errors(
+        positions, holes, runs, surface, interpolate=interpolate, local_fill=local_fill,
+        shifts=VALIDATION_SHIFTS[:n_shifts], donor_sets=donor_sets, rate=rate)
     mse = _validation_mse(errs, ok, full)
-    _floor_rigid_errors(mse, disagreement, run, _disagreement_shares(runs, rate))
-    wr = _blend_weights(mse)
+    floor = np.zeros_like(mse)
+    _floor_rigid_errors(floor, disagreement, run, _disagreement_shares(runs, rate))
+    mse = np.maximum(mse, floor)  # what the outlier tests compare
+    floor = np.maximum(floor, _end_excess_floor(est, runs, positions, mse))
+    wr = _blend_weights(np.maximum(mse, floor))
     twins = _earlier_twins(est, runs)
     _consensus_where_unscored(wr, mse, est, runs, full, twins)
     _count_once(wr, twins)  # a model given twice weighs once
@@ -747,6 +786,11 @@ def fill_by_validated_blend(
     wr[_outlying_estimates(est, runs, mse, wr, positions)] = 0.0  # far off in the gap
     unfit = _keep_plausible(wr, est, runs, positions, bounds)  # off its rigid partners
     w = np.where(holes[None], wr[:, np.maximum(run, 0)], 0.0)  # (K, F, M)
+    wpr = np.maximum(_validation_profile(profile, ok, full), floor[..., None])
+    wpr = np.where(np.isfinite(wpr), np.maximum(wpr, 1e-12) ** -BLEND_POWER, np.nan)
+    _count_once(wpr, twins)
+    wp = _profile_weights(wpr, runs, run, holes)
+    w = np.where((w > 0) & np.isfinite(wp), wp, w)  # the copies' error at that distance
     have = finite_rows(est) & holes[None]  # (K, F, M)
     wf = np.where(have, w, 0.0)
     tot = wf.sum(0)
@@ -789,20 +833,21 @@ def _earlier_twins(est: np.ndarray, runs: list[tuple[int, int, int]]) -> np.ndar
 
 
 def _count_once(weights: np.ndarray, twins: np.ndarray) -> None:
-    """Set the weights ``(K, R)`` of the repeated estimates (``twins (K, R)``: the earlier
-    model giving each, :func:`_earlier_twins`) to 0, in place, the first model giving it
-    taking the largest weight of them: the estimate weighs once, as much as its best
-    validated giver.  Before, the repeat alone lost its weight: on basket_sprint
-    (0.1 s / 10 % / clustered, mask seed 699) the local fill of SWL:Marker2's run
-    2242-2259 was the spline's (1.04 mm off, validated 1.09 mm against the local fill's
-    48 mm on other copies), the spline's weight went, the rigid-body fills could not
-    reach the knocked-out sample and the whole-body PCA filled it alone, 502 mm off."""
+    """Set the weights ``(K, R)`` (or ``(K, R, B)``, NaN where unscored) of the repeated
+    estimates (``twins (K, R)``: the earlier model giving each, :func:`_earlier_twins`) to
+    0, in place, the first model giving it taking the largest weight of them: the estimate
+    weighs once, as much as its best validated giver.  Before, the repeat alone lost its
+    weight: on basket_sprint (0.1 s / 10 % / clustered, mask seed 699) the local fill of
+    SWL:Marker2's run 2242-2259 was the spline's (1.04 mm off, validated 1.09 mm against
+    the local fill's 48 mm on other copies), the spline's weight went, the rigid-body fills
+    could not reach the knocked-out sample and the whole-body PCA filled it alone, 502 mm
+    off."""
     repeated = twins >= 0
     for k, r in zip(*np.nonzero(repeated)):
         j = twins[k, r]
         while twins[j, r] >= 0:  # the first giver of that estimate
             j = twins[j, r]
-        weights[j, r] = max(weights[j, r], weights[k, r])
+        weights[j, r] = np.fmax(weights[j, r], weights[k, r])
     weights[repeated] = 0.0
 
 
@@ -821,6 +866,37 @@ def _floor_rigid_errors(mse: np.ndarray, disagreement: dict[int, np.ndarray],
         n = np.bincount(run[at], minlength=R)
         d2 = np.bincount(run[at], weights=dis[at] ** 2, minlength=R) / np.maximum(n, 1)
         mse[k] = np.maximum(mse[k], share ** 2 * d2)  # NaN stays NaN
+
+
+def _end_excess_floor(est: np.ndarray, runs: list[tuple[int, int, int]],
+                      positions: np.ndarray, mse: np.ndarray) -> np.ndarray:
+    """``(K, R)``: the square of each member's end excess on each run
+    (:func:`fill_checks._end_excess`; 0 where unknown), a floor of its mean squared error,
+    at most :data:`fill_checks.BOUNDARY_GUARD`² × the run's least validated one (``mse (K,
+    R)``): the ends tell apart members the copies scored alike and never hand a run to
+    members they scored far worse.  Without that bound, a rigid patch on a random walk
+    (``test_clean``'s rigid capture), whose exact members miss the carried trajectory by
+    its next random step, was handed to the others: 22 mm off where it had been exact."""
+    out = np.zeros((est.shape[0], len(runs)))
+    for r, (m, a, b) in enumerate(runs):
+        out[:, r] = np.nan_to_num(_end_excess(est[:, a:b, m], positions, m, a, b)) ** 2
+    best = np.nanmin(np.where(np.isfinite(mse), mse, np.inf), axis=0)  # inf: none scored
+    return np.minimum(out, BOUNDARY_GUARD ** 2 * best)
+
+
+def _profile_weights(weights: np.ndarray, runs: list[tuple[int, int, int]], run: np.ndarray,
+                     holes: np.ndarray) -> np.ndarray:
+    """``(K, F, M)``: each hole sample's weights ``(K, R, B)`` by its distance from its run's
+    nearer measured end (:func:`_profile_bins`); NaN off the holes."""
+    out = np.full((weights.shape[0],) + holes.shape, np.nan)
+    f, m = np.nonzero(holes)
+    r = run[f, m]
+    a = np.array([x[1] for x in runs], dtype=np.int64)
+    b = np.array([x[2] for x in runs], dtype=np.int64)
+    long = (b - a)[r] >= PROFILE_MIN_LENGTH
+    f, m, r = f[long], m[long], r[long]
+    out[:, f, m] = weights[:, r, _profile_bins(f, a[r], b[r], holes.shape[0])]
+    return out
 
 
 def _disagreement_shares(runs: list[tuple[int, int, int]], rate: float | None
@@ -887,6 +963,9 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
         Mean squared error of model ``k`` on copy ``s`` of run ``r``.
     ok : (K, S, R) bool ndarray
         The copy has measured samples and the model estimated all of them.
+    profile : (K, S, R, B) float ndarray
+        The same per bin of the copy's samples by their distance from its nearer measured
+        end (:func:`_profile_bins`); NaN where the bin has no sample or the model missed one.
     """
     F, M, _ = positions.shape
     obs = finite_rows(positions)
@@ -896,6 +975,8 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
     motion = ((_steps(positions), MOTION_FLOOR / rate, max(2, round(MOTION_WINDOW * rate)))
               if rate else None)
     mse = np.zeros((K, len(shifts), n_runs))
+    B = len(PROFILE_EDGES) + 1
+    profile = np.full((K, len(shifts), n_runs, B), np.nan)
     ok = np.zeros((K, len(shifts), n_runs), dtype=bool)
     same = np.ones((K, len(shifts), n_runs), dtype=bool)  # carried with the run's donors
     for s, k in enumerate(shifts):
@@ -913,13 +994,23 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
             same[j, s] = _donors_at_copies(moved, runs, sets, obs & ~val)
         rid = moved[val]
         cnt = np.bincount(rid, minlength=n_runs)
+        span_f, span_m = np.nonzero(moved >= 0)
+        lo, hi = np.full(n_runs, F), np.zeros(n_runs, dtype=np.int64)
+        np.minimum.at(lo, moved[span_f, span_m], span_f)
+        np.maximum.at(hi, moved[span_f, span_m], span_f + 1)
+        at = rid * B + _profile_bins(np.nonzero(val)[0], lo[rid], hi[rid], F)
+        cnt_b = np.bincount(at, minlength=n_runs * B)
         for j in range(K):
             fin = np.isfinite(err[j])
             mse[j, s] = np.bincount(rid[fin], weights=err[j][fin], minlength=n_runs) / \
                 np.maximum(cnt, 1)
             ok[j, s] = (cnt > 0) & (np.bincount(rid[~fin], minlength=n_runs) == 0)
+            full_b = (cnt_b > 0) & (np.bincount(at[~fin], minlength=n_runs * B) == 0)
+            profile[j, s] = np.where(full_b, np.bincount(at[fin], weights=err[j][fin],
+                                                         minlength=n_runs * B)
+                                     / np.maximum(cnt_b, 1), np.nan).reshape(n_runs, B)
     ok &= same | ~(ok & same).any(1, keepdims=True)  # the run's donors, where they carry any
-    return mse, ok
+    return mse, ok, profile
 
 
 def _donors_at_copies(moved: np.ndarray, runs: list[tuple[int, int, int]], own: dict,
@@ -976,11 +1067,29 @@ def _validation_mse(mse: np.ndarray, ok: np.ndarray, usable: np.ndarray) -> np.n
     (errors of 1e-30 on some copies) set the scale of all the others.  ``mse`` and ``ok`` are
     ``(K, S, R)`` (:func:`_validation_errors`).
     """
+    return _geometric_mean(mse, _common_copies(ok, usable))
+
+
+def _common_copies(ok: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """``(K, S, R)`` bool: the copies :func:`_validation_mse` scores each model on."""
     common = (ok | ~usable[:, None]).all(0) & ok.any(0)  # (S, R)
-    use = np.where(common.any(0)[None, None], common[None] & ok, ok)  # (K, S, R)
+    return np.where(common.any(0)[None, None], common[None] & ok, ok)
+
+
+def _geometric_mean(mse: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """The geometric mean over axis 1 of ``mse`` where ``use`` (NaN where none is)."""
     n = use.sum(1)
-    log_mse = np.log(np.maximum(mse, np.finfo(float).tiny))
+    log_mse = np.log(np.maximum(np.where(use, mse, 1.0), np.finfo(float).tiny))
     return np.where(n > 0, np.exp((log_mse * use).sum(1) / np.maximum(n, 1)), np.nan)
+
+
+def _validation_profile(profile: np.ndarray, ok: np.ndarray, usable: np.ndarray
+                        ) -> np.ndarray:  # fmt: skip
+    """``(K, R, B)``: :func:`_validation_mse` per bin of the samples' distance from the
+    nearer measured end (``profile (K, S, R, B)``, :func:`_validation_errors`), on the
+    same copies; NaN where no such copy has samples in the bin."""
+    use = _common_copies(ok, usable)[..., None] & np.isfinite(profile)
+    return _geometric_mean(profile, use)
 
 
 def _blend_weights(mse: np.ndarray) -> np.ndarray:

@@ -92,6 +92,46 @@ def test_boundary_misses_are_the_ends_off_the_carried_trajectory():
     assert np.isnan(fc._boundary_misses(est, x, 0, a, b)).all()
 
 
+def test_end_excess_is_the_miss_beyond_twice_the_trajectory_s_own():
+    """A marker accelerating 0.1 mm a frame² along x: carried on one frame, its measured
+    trajectory misses its own next sample by 0.1 mm, so a member's miss at a run's end
+    counts beyond 2 x 0.1 mm (``END_REFERENCE_FACTOR``).  The true trajectory (miss 0.1
+    mm) has no excess; a member 5 mm off along y at the run's first frame misses by
+    √(25 + 0.01) mm, an excess of that less 0.2 mm; at the last frame 3 mm off, less.  An
+    end with two measured samples is left out (the start alone counts); none: NaN."""
+    F, a, b = 40, 15, 25
+    t = np.arange(F, dtype=float)
+    x = np.zeros((F, 1, 3))
+    x[:, 0, 0] = 0.5 * 1e-4 * t**2  # 0.1 mm a frame² (second difference 1e-4 m)
+    est = np.repeat(x[None, a:b, 0], 2, axis=0)  # (2, 10, 3)
+    est[1, 0, 1] += 0.005
+    est[1, -1, 1] += 0.003
+    x[a:b] = np.nan
+    start = np.hypot(0.005, 1e-4) - 2e-4
+    np.testing.assert_allclose(fc._end_excess(est, x, 0, a, b), [0, start], atol=1e-12)
+    x[b + 2] = np.nan  # two measured samples after the run: its end is left out
+    np.testing.assert_allclose(fc._end_excess(est, x, 0, a, b), [0, start], atol=1e-12)
+    x[a - 3] = np.nan
+    assert np.isnan(fc._end_excess(est, x, 0, a, b)).all()
+    x[a - 3] = x[a - 2] - [[1e-4 * (a - 2.5), 0, 0]]  # back, and an outlier behind it:
+    x[a - 4, 0, 0] += 0.002  # the reference grows with it (2 mm more): no excess left
+    assert fc._end_excess(est, x, 0, a, b)[1] < start - 0.002
+
+
+def test_profile_bins_count_from_the_nearer_measured_end():
+    """Samples of a hole over frames 10-29 of 100: distance 0-1 from the nearer end is
+    bin 0, 2-4 bin 1, 5-9 bin 2 (``PROFILE_EDGES``); a hole from the take's first frame is
+    measured after it only; one of the whole take is in the last bin."""
+    f = np.arange(10, 30)
+    got = fb._profile_bins(f, np.full(20, 10), np.full(20, 30), 100)
+    np.testing.assert_array_equal(got, [0, 0, 1, 1, 1, 2, 2, 2, 2, 2,
+                                        2, 2, 2, 2, 2, 1, 1, 1, 0, 0])
+    f = np.arange(0, 30)
+    got = fb._profile_bins(f, np.zeros(30, int), np.full(30, 30), 100)
+    np.testing.assert_array_equal(got[[29, 28, 27, 0]], [0, 0, 1, 4])  # d 0, 1, 2, 29
+    assert (fb._profile_bins(f, np.zeros(30, int), np.full(30, 100), 100) == 5).all()
+
+
 def test_a_member_off_at_the_gap_ends_is_left_out_sooner(monkeypatch):
     """The end-miss rules, with the test against the others' weighted mean off
     (``CONSENSUS_FACTOR`` infinite; what it adds is at the end).  Validated at 2 mm each, a
