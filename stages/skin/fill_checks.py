@@ -152,7 +152,7 @@ def _end_excess(est: np.ndarray, positions: np.ndarray, m: int, a: int, b: int) 
 #: (:func:`_end_excess`): the trajectory's acceleration changes from frame to frame.
 #: Measured against the least miss of the run's members instead, the spline (which
 #: carries the trajectory on by construction, missing it by about nothing) set the
-#: reference: ktk racing, OlecraneR knocked out for 0.7 s while moving 36 mm a frame (the
+#: reference: ktk racing, OlecraneR knocked out for 70 frames while moving 36 mm a frame (the
 #: 1 s / 1 % / clustered mask of seed 898), every spatial member missed by 25-28 mm where
 #: the trajectory misses its own last samples by 15-32 mm, and the exact rigid-body fill
 #: lost the run: 0.004 -> 6.3 mm; with this reference it keeps it (excess 0).
