@@ -509,11 +509,11 @@ def test_members_off_the_trajectory_at_the_gap_ends_weigh_less(pig_calibration):
     frames 247-296 (the gap protocol's 0.5 s / 10 % / clustered mask of seed 894): the
     head turns there, which no copy sees.  The copies scored the local fill and the spline
     alike (1.1-1.7 mm RMS) and the whole-body PCA near them (1.4-2.4 mm); in the gap they
-    are 10.5-12.5, 6.5-7.8 and 6.8-10.1 mm off.  At the gap's start the local fill misses
-    the measured trajectory carried on by 3.9-4.8 mm, 25-30 x what carrying it on misses
-    the trajectory's own last samples (0.15-0.18 mm), the spline by 0.1 mm: blend 9.30 mm
-    mean against the plain spline's 7.10 mm.  A member's error is now taken as at least
-    its miss beyond twice that (``fill_checks._end_excess``)."""
+    are 10.5-12.5, 6.5-7.8 and 6.8-10.1 mm off.  At the gap's end (frame 297 of 300) the
+    local fill misses the measured trajectory carried back by 3.9-4.8 mm, 15-28 x what
+    carrying it on misses the trajectory's own next sample there (0.17-0.27 mm), the spline
+    by 0.1 mm: blend 9.30 mm mean against the plain spline's 7.10 mm.  A member's error is
+    now taken as at least its miss beyond twice that (``fill_checks._end_excess``)."""
     m = pig_calibration
     mask = _knocked_out(m, (247, 297), ["LFHD", "RFHD", "LBHD", "RBHD"])
     err, _ = _clean_errors(m, mask)
