@@ -106,6 +106,25 @@ BOUNDARY_FACTOR = 2.0
 BOUNDARY_GUARD = 3.0
 
 
+def _measured_ends(x: np.ndarray, a: int, b: int) -> list[tuple[int, np.ndarray]]:
+    """The ends of the run ``a..b-1`` of one marker's trajectory ``x (F, 3)`` (NaN where not
+    measured): ``(at, frames)`` for the start (``at`` 0) and the end (``at`` -1), ``frames``
+    the up to 4 measured frames in a row going away from the run (nearest first)."""
+    seen = np.isfinite(x).all(-1)
+    ends = []
+    for at, step in ((0, -1), (-1, 1)):  # start, end
+        f = (a - 1 if step < 0 else b) + step * np.arange(4)
+        f = f[(f >= 0) & (f < len(x))]
+        ends.append((at, f[:int(np.cumprod(seen[f]).sum())]))
+    return ends
+
+
+def _carried_miss(est: np.ndarray, x: np.ndarray, at: int, f: np.ndarray) -> np.ndarray:
+    """``(K,)``: how far the members' estimates ``est (K, L, 3)`` lie at the run's end ``at``
+    from the trajectory ``x`` carried one frame on from its measured ``f[0]``, ``f[1]``."""
+    return np.linalg.norm(est[:, at] - (2 * x[f[0]] - x[f[1]]), axis=-1)
+
+
 def _boundary_misses(est: np.ndarray, positions: np.ndarray, m: int, a: int,
                      b: int) -> np.ndarray:
     """``(K,)``: how far each member's estimate ``est (K, b - a, 3)`` of marker ``m``'s run
@@ -117,10 +136,7 @@ def _boundary_misses(est: np.ndarray, positions: np.ndarray, m: int, a: int,
     of velocity over a frame (at 50 Hz on the Eb015pr walk, 0.2-2.4 mm where the markers
     move 1-3 mm a frame)."""
     x = positions[:, m]
-    seen = np.isfinite(x).all(-1)
-    miss = [np.linalg.norm(est[:, at] - (2 * x[near] - x[far]), axis=-1)
-            for at, near, far in ((0, a - 1, a - 2), (-1, b, b + 1))  # start, end
-            if 0 <= min(near, far) and max(near, far) < len(x) and seen[[near, far]].all()]
+    miss = [_carried_miss(est, x, at, f) for at, f in _measured_ends(x, a, b) if len(f) >= 2]
     return np.max(miss, axis=0) if miss else np.full(est.shape[0], np.nan)
 
 
@@ -132,18 +148,13 @@ def _end_excess(est: np.ndarray, positions: np.ndarray, m: int, a: int, b: int) 
     end that have two measured samples behind them): the larger excess of the two ends, 0
     where within; NaN where neither end has three measured samples."""
     x = positions[:, m]
-    seen = np.isfinite(x).all(-1)
-    F = len(x)
     out = []
-    for at, step in ((0, -1), (-1, 1)):  # start, end
-        f = (a - 1 if step < 0 else b) + step * np.arange(4)  # the end's measured frames
-        f = f[(f >= 0) & (f < F)]
-        n = int(np.argmin(seen[f])) if not seen[f].all() else len(f)  # measured in a row
-        if n < 3:
+    for at, f in _measured_ends(x, a, b):
+        if len(f) < 3:
             continue
-        miss = np.linalg.norm(est[:, at] - (2 * x[f[0]] - x[f[1]]), axis=-1)
-        ref = max(np.linalg.norm(x[f[i]] - (2 * x[f[i + 1]] - x[f[i + 2]])) for i in range(n - 2))
-        out.append(np.maximum(miss - END_REFERENCE_FACTOR * ref, 0.0))
+        ref = max(np.linalg.norm(x[f[i]] - (2 * x[f[i + 1]] - x[f[i + 2]]))
+                  for i in range(len(f) - 2))
+        out.append(np.maximum(_carried_miss(est, x, at, f) - END_REFERENCE_FACTOR * ref, 0.0))
     return np.max(out, axis=0) if out else np.full(est.shape[0], np.nan)
 
 
