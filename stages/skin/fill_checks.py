@@ -9,8 +9,9 @@ the marker does inside its own gap; this module reads it where it shows:
   estimates of the run (:data:`OUTLIER_FACTOR`, :data:`CONSENSUS_FACTOR`), sooner where
   it misses the measured trajectory at the run's ends (:func:`_boundary_misses`);
 * :func:`_end_excess`: how much farther a member misses the trajectory at the run's ends
-  than the trajectory misses its own last samples (:data:`END_REFERENCE_FACTOR`), which
-  the blend takes as a floor of the member's error;
+  than the trajectory misses its own nearest samples (:data:`END_REFERENCE_FACTOR`; the
+  samples within :data:`END_REACH` frames, in a row or not), which the blend takes as a
+  floor of the member's error;
 * :func:`_take_bounds`: what the marker's measured samples never do over the take, the
   distances it keeps to its rigid partners (:data:`PARTNER_MAX_SPREAD`) and its fastest
   step;
@@ -32,6 +33,7 @@ __all__ = [
     "BOUNDARY_GUARD",
     "CONSENSUS_FACTOR",
     "CONSENSUS_MARGIN",
+    "END_REACH",
     "END_REFERENCE_FACTOR",
     "ERRATIC_SHARE",
     "JOINLESS_OUTLIER_FACTOR",
@@ -140,22 +142,62 @@ def _boundary_misses(est: np.ndarray, positions: np.ndarray, m: int, a: int,
     return np.max(miss, axis=0) if miss else np.full(est.shape[0], np.nan)
 
 
+def _end_samples(x: np.ndarray, a: int, b: int) -> list[tuple[int, np.ndarray]]:
+    """The ends of the run ``a..b-1`` of one marker's trajectory ``x (F, 3)`` (NaN where not
+    measured) as :func:`_end_excess` reads them: ``(at, frames)`` for the start (``at`` 0)
+    and the end (``at`` -1), ``frames`` the up to 4 measured frames nearest the run within
+    :data:`END_REACH` frames of it, in a row or not (nearest first)."""
+    seen = np.isfinite(x).all(-1)
+    ends = []
+    for at, step in ((0, -1), (-1, 1)):  # start, end
+        f = (a - 1 if step < 0 else b) + step * np.arange(END_REACH)
+        f = f[(f >= 0) & (f < len(x))]
+        ends.append((at, f[seen[f]][:4]))
+    return ends
+
+
+def _carried(x: np.ndarray, f0: int, f1: int, to: int) -> np.ndarray:
+    """``(3,)``: the trajectory ``x (F, 3)`` carried on in a straight line from its measured
+    frames ``f1`` and ``f0`` to frame ``to`` (``2 x[f0] - x[f1]`` a frame on)."""
+    s = (to - f0) / (f0 - f1)
+    return (1 + s) * x[f0] - s * x[f1]
+
+
 def _end_excess(est: np.ndarray, positions: np.ndarray, m: int, a: int, b: int) -> np.ndarray:
     """``(K,)``: how much farther each member's estimate ``est (K, b - a, 3)`` of marker
-    ``m``'s run ``a..b-1`` lies from the measured trajectory carried on at the run's ends
-    (:func:`_boundary_misses`) than :data:`END_REFERENCE_FACTOR` × carrying it on misses the
-    trajectory's own last measured samples (the larger over the one or two frames before the
-    end that have two measured samples behind them): the larger excess of the two ends, 0
-    where within; NaN where neither end has three measured samples."""
+    ``m``'s run ``a..b-1`` lies, at the run's first and last frame, from the measured
+    trajectory carried on in a straight line from its two nearest samples (:func:`_carried`;
+    ``positions (F, M, 3)``, NaN where not measured) than :data:`END_REFERENCE_FACTOR` ×
+    carrying it on misses the trajectory's own nearest samples (the larger over the one or
+    two nearest that have two measured samples behind them): the larger excess of the two
+    ends, 0 where within; NaN where neither end has three measured samples within
+    :data:`END_REACH` frames (:func:`_end_samples`: on a marker seen now and then, the
+    samples need not be in a row)."""
     x = positions[:, m]
     out = []
-    for at, f in _measured_ends(x, a, b):
+    for at, f in _end_samples(x, a, b):
         if len(f) < 3:
             continue
-        ref = max(np.linalg.norm(x[f[i]] - (2 * x[f[i + 1]] - x[f[i + 2]]))
+        ref = max(np.linalg.norm(x[f[i]] - _carried(x, f[i + 1], f[i + 2], f[i]))
                   for i in range(len(f) - 2))
-        out.append(np.maximum(_carried_miss(est, x, at, f) - END_REFERENCE_FACTOR * ref, 0.0))
+        miss = np.linalg.norm(est[:, at] - _carried(x, f[0], f[1], a if at == 0 else b - 1),
+                              axis=-1)
+        out.append(np.maximum(miss - END_REFERENCE_FACTOR * ref, 0.0))
     return np.max(out, axis=0) if out else np.full(est.shape[0], np.nan)
+
+
+#: How far (frames) from a run's end :func:`_end_excess` looks for the measured samples it
+#: carries the trajectory on from.  In a row (the three frames next to the run) on most
+#: runs; a marker seen now and then leaves gaps between them: basket_sprint's
+#: ``ForearmL:Marker4`` (120 Hz), measured over frames 2439-2446 between holes of 56 and 2
+#: frames, then at 2449, 2451, 2454 and 2456 (the gap protocol's 0.1 s / 1 % / independent
+#: mask of seed 907 knocks out the eight, joining them into a 66-frame run): the
+#: whole-body PCA, validated best (12 mm RMS against the spline's 17 mm and the local
+#: fill's 149), is 154 mm off there and misses the trajectory carried back to frame 2448 by
+#: 87 mm, where carrying it on misses its own sample at 2449 by 18 mm; the spline, 48 mm
+#: off, misses by 1 mm.  With the three samples in a row required, that end was not read
+#: and the blend was 102 mm off.
+END_REACH = 8
 
 
 #: How many times the measured trajectory's own miss of its last samples, carried on, a

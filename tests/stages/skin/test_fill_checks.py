@@ -109,13 +109,39 @@ def test_end_excess_is_the_miss_beyond_twice_the_trajectory_s_own():
     x[a:b] = np.nan
     start = np.hypot(0.005, 1e-4) - 2e-4
     np.testing.assert_allclose(fc._end_excess(est, x, 0, a, b), [0, start], atol=1e-12)
-    x[b + 2] = np.nan  # two measured samples after the run: its end is left out
+    x[b + 2] = np.nan  # the end's samples need not be in a row: b, b + 1, b + 3 still count
     np.testing.assert_allclose(fc._end_excess(est, x, 0, a, b), [0, start], atol=1e-12)
-    x[a - 3] = np.nan
-    assert np.isnan(fc._end_excess(est, x, 0, a, b)).all()
+    y = x.copy()
+    y[: a - 2] = np.nan
+    y[b + 2:] = np.nan  # two measured samples on each side: NaN
+    assert np.isnan(fc._end_excess(est, y, 0, a, b)).all()
+    y = x.copy()
+    y[a - fc.END_REACH - 3: a - 2] = np.nan  # the start's third sample beyond END_REACH
+    y[b + 2:] = np.nan
+    assert np.isnan(fc._end_excess(est, y, 0, a, b)).all()
     x[a - 3] = x[a - 2] - [[1e-4 * (a - 2.5), 0, 0]]  # back, and an outlier behind it:
     x[a - 4, 0, 0] += 0.002  # the reference grows with it (2 mm more): no excess left
     assert fc._end_excess(est, x, 0, a, b)[1] < start - 0.002
+
+
+def test_end_excess_reads_an_end_seen_every_other_frame():
+    """The marker of the test above measured after the run only at every other frame (b, b +
+    2, b + 4, b + 6) and not at all before it within ``END_REACH``: a straight line through
+    two samples 2 frames apart, carried 2 frames on, misses a trajectory accelerating at c
+    by c (2 x 4) / 2 = 0.4 mm, the reference; carried one frame back to the run's last
+    frame, by c (1 x 3) / 2 = 0.15 mm, within twice that: the true trajectory has no
+    excess, a member 3 mm off along y there √(9 + 0.0225) - 0.8 mm.  Read only in a row
+    (as before), that end had one sample and the excess was unknown."""
+    F, a, b = 40, 15, 25
+    t = np.arange(F, dtype=float)
+    x = np.zeros((F, 1, 3))
+    x[:, 0, 0] = 0.5 * 1e-4 * t**2
+    est = np.repeat(x[None, a:b, 0], 2, axis=0)
+    est[1, -1, 1] += 0.003
+    x[: b] = np.nan
+    x[b + 1: b + 7: 2] = np.nan
+    want = np.hypot(0.003, 1.5e-4) - 2 * 4e-4
+    np.testing.assert_allclose(fc._end_excess(est, x, 0, a, b), [0, want], atol=1e-12)
 
 
 def test_profile_bins_count_from_the_nearer_measured_end():
