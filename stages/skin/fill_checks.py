@@ -108,23 +108,36 @@ BOUNDARY_FACTOR = 2.0
 BOUNDARY_GUARD = 3.0
 
 
-def _measured_ends(x: np.ndarray, a: int, b: int) -> list[tuple[int, np.ndarray]]:
+def _measured_ends(x: np.ndarray, a: int, b: int, *, reach: int = 4,
+                   in_a_row: bool = True) -> list[tuple[int, np.ndarray]]:
     """The ends of the run ``a..b-1`` of one marker's trajectory ``x (F, 3)`` (NaN where not
     measured): ``(at, frames)`` for the start (``at`` 0) and the end (``at`` -1), ``frames``
-    the up to 4 measured frames in a row going away from the run (nearest first)."""
+    the up to 4 measured frames nearest the run within ``reach`` frames of it (nearest
+    first), in a row from the run's side (``in_a_row``) or not."""
     seen = np.isfinite(x).all(-1)
     ends = []
     for at, step in ((0, -1), (-1, 1)):  # start, end
-        f = (a - 1 if step < 0 else b) + step * np.arange(4)
+        f = (a - 1 if step < 0 else b) + step * np.arange(reach)
         f = f[(f >= 0) & (f < len(x))]
-        ends.append((at, f[:int(np.cumprod(seen[f]).sum())]))
+        f = f[:int(np.cumprod(seen[f]).sum())] if in_a_row else f[seen[f]]
+        ends.append((at, f[:4]))
     return ends
 
 
-def _carried_miss(est: np.ndarray, x: np.ndarray, at: int, f: np.ndarray) -> np.ndarray:
-    """``(K,)``: how far the members' estimates ``est (K, L, 3)`` lie at the run's end ``at``
-    from the trajectory ``x`` carried one frame on from its measured ``f[0]``, ``f[1]``."""
-    return np.linalg.norm(est[:, at] - (2 * x[f[0]] - x[f[1]]), axis=-1)
+def _carried(x: np.ndarray, f0: int, f1: int, to: int) -> np.ndarray:
+    """``(3,)``: the trajectory ``x (F, 3)`` carried on in a straight line from its measured
+    frames ``f1`` and ``f0`` to frame ``to`` (``2 x[f0] - x[f1]`` a frame on)."""
+    s = (to - f0) / (f0 - f1)
+    return (1 + s) * x[f0] - s * x[f1]
+
+
+def _carried_miss(est: np.ndarray, x: np.ndarray, at: int, f: np.ndarray, a: int,
+                  b: int) -> np.ndarray:
+    """``(K,)``: how far the members' estimates ``est (K, b - a, 3)`` of the run ``a..b-1`` lie
+    at its end ``at`` (0: frame ``a``, -1: frame ``b - 1``) from the trajectory ``x`` carried
+    on from its measured ``f[0]``, ``f[1]`` (:func:`_carried`)."""
+    return np.linalg.norm(est[:, at] - _carried(x, f[0], f[1], a if at == 0 else b - 1),
+                          axis=-1)
 
 
 def _boundary_misses(est: np.ndarray, positions: np.ndarray, m: int, a: int,
@@ -138,29 +151,9 @@ def _boundary_misses(est: np.ndarray, positions: np.ndarray, m: int, a: int,
     of velocity over a frame (at 50 Hz on the Eb015pr walk, 0.2-2.4 mm where the markers
     move 1-3 mm a frame)."""
     x = positions[:, m]
-    miss = [_carried_miss(est, x, at, f) for at, f in _measured_ends(x, a, b) if len(f) >= 2]
+    miss = [_carried_miss(est, x, at, f, a, b) for at, f in _measured_ends(x, a, b)
+            if len(f) >= 2]
     return np.max(miss, axis=0) if miss else np.full(est.shape[0], np.nan)
-
-
-def _end_samples(x: np.ndarray, a: int, b: int) -> list[tuple[int, np.ndarray]]:
-    """The ends of the run ``a..b-1`` of one marker's trajectory ``x (F, 3)`` (NaN where not
-    measured) as :func:`_end_excess` reads them: ``(at, frames)`` for the start (``at`` 0)
-    and the end (``at`` -1), ``frames`` the up to 4 measured frames nearest the run within
-    :data:`END_REACH` frames of it, in a row or not (nearest first)."""
-    seen = np.isfinite(x).all(-1)
-    ends = []
-    for at, step in ((0, -1), (-1, 1)):  # start, end
-        f = (a - 1 if step < 0 else b) + step * np.arange(END_REACH)
-        f = f[(f >= 0) & (f < len(x))]
-        ends.append((at, f[seen[f]][:4]))
-    return ends
-
-
-def _carried(x: np.ndarray, f0: int, f1: int, to: int) -> np.ndarray:
-    """``(3,)``: the trajectory ``x (F, 3)`` carried on in a straight line from its measured
-    frames ``f1`` and ``f0`` to frame ``to`` (``2 x[f0] - x[f1]`` a frame on)."""
-    s = (to - f0) / (f0 - f1)
-    return (1 + s) * x[f0] - s * x[f1]
 
 
 def _end_excess(est: np.ndarray, positions: np.ndarray, m: int, a: int, b: int) -> np.ndarray:
@@ -171,18 +164,17 @@ def _end_excess(est: np.ndarray, positions: np.ndarray, m: int, a: int, b: int) 
     carrying it on misses the trajectory's own nearest samples (the larger over the one or
     two nearest that have two measured samples behind them): the larger excess of the two
     ends, 0 where within; NaN where neither end has three measured samples within
-    :data:`END_REACH` frames (:func:`_end_samples`: on a marker seen now and then, the
+    :data:`END_REACH` frames (:func:`_measured_ends`: on a marker seen now and then, the
     samples need not be in a row)."""
     x = positions[:, m]
     out = []
-    for at, f in _end_samples(x, a, b):
+    for at, f in _measured_ends(x, a, b, reach=END_REACH, in_a_row=False):
         if len(f) < 3:
             continue
         ref = max(np.linalg.norm(x[f[i]] - _carried(x, f[i + 1], f[i + 2], f[i]))
                   for i in range(len(f) - 2))
-        miss = np.linalg.norm(est[:, at] - _carried(x, f[0], f[1], a if at == 0 else b - 1),
-                              axis=-1)
-        out.append(np.maximum(miss - END_REFERENCE_FACTOR * ref, 0.0))
+        out.append(np.maximum(_carried_miss(est, x, at, f, a, b)
+                              - END_REFERENCE_FACTOR * ref, 0.0))
     return np.max(out, axis=0) if out else np.full(est.shape[0], np.nan)
 
 
