@@ -170,6 +170,15 @@ class SearchParams:
         also costing 0.5 cost units per use of the input they would play, salsa's
         coverage is back (0.99) but local 0.135 / 0.153 / 0.158, global 0.147 / 0.199 /
         0.187: the figure-8's global and salsa's local still fail.
+        Also tried (seeds 0-4, local ÷ 1.2 × the baseline's / global ÷ the baseline's,
+        salsa, walk, figure-8 walk): the coarsest level's jumps drawn within a window of
+        absolute cost units instead of the ``variety`` quantile (1.2 units: the 0.53, 0.85
+        and 0.83 quantile of the three inputs' best-jump costs), with ``pose_weight`` 0.2,
+        ``pose_lines`` 4, ``usage_weight`` 1: 1.02 / 1.12, 1.02 / 1.20, 0.66 / 0.72 (coverage
+        ≥ 0.98, jerk and skate ratios 0.94-1.03).  On the figure-8 walk the pose lines are
+        a stride from the left line's own continuation (median jump 29 frames; 88 at the
+        defaults), seams that replay the input a stride away; pose lines kept within 10
+        frames of the drawn line lose the local gain (1.64 / 1.99, 1.83 / 2.05, 0.92 / 0.97).
         ``benchmarks/texture.py --seeds 5`` (1,024 frames from the first 512 input
         frames), the previous default values (0, 4, 0.3, 0.3, 0.5, no cross-fade; on
         this code) -> these: global 0.164 -> 0.144, 0.185 -> 0.182, 0.167 -> 0.210
