@@ -66,7 +66,9 @@ the paper lives in one function (modules of this package):
                                          samples never do (off the rigid partners, a jump
                                          beyond the fastest step, erratic) left out:
                                          fill_checks._keep_plausible,
-                                         fill_checks._jumps_in_runs
+                                         fill_checks._jumps_in_runs; the spline not
+                                         through a one-frame glitch beside the gap:
+                                         fill_checks._isolated_spikes
 §4.4 smoothing x ← x − λ Δ⁴x in the      clean.smooth_local (the iteration, every run
   local frames                           at once: clean._smooth_runs)
 §5.1–5.2 near-rigid segmentation         segment.segment

@@ -2,7 +2,8 @@
 scored per run of holes on copies of it (beyond Park & Hodgins 2006).
 
 :func:`fill_by_validated_blend` is called by :func:`mocapflow.stages.skin.fill.fill_holes`
-(``whole_body``) after its local fill; :func:`_interpolate_interior` (the spline member)
+(``whole_body``) after its local fill; :func:`_interpolate_interior` (the spline member,
+which in the blend skips the measured samples :func:`fill_checks._isolated_spikes` flags)
 is also the last resort of the paper's passes
 (:func:`~mocapflow.stages.skin.fill.fill_by_local_pca`).  The checks that leave a
 member out of a run beyond what its copies say (what the gap itself shows, what the
@@ -241,6 +242,7 @@ from mocapflow.stages.motion.contacts import true_runs
 from mocapflow.stages.skin.fill_checks import (
     BOUNDARY_GUARD,
     _end_excess,
+    _isolated_spikes,
     _jumps_in_runs,
     _keep_plausible,
     _outlying_estimates,
@@ -778,8 +780,9 @@ def fill_by_validated_blend(
     F, M, _ = X.shape
     disagreement = {k: np.full(holes.shape, np.nan) for k in RIGID_MODELS}
     donor_sets: dict[int, dict] = {k: {} for k in RIGID_MODELS}
+    spikes = _isolated_spikes(positions)  # the spline does not ring through them
     est = _blend_members(X, positions, holes, surface, interpolate=interpolate,
-                         disagreement=disagreement, donor_sets=donor_sets)
+                         disagreement=disagreement, donor_sets=donor_sets, spikes=spikes)
     runs = _runs(holes)
     run = np.full((F, M), -1, dtype=np.int64)
     for r, (m, a, b) in enumerate(runs):
@@ -791,7 +794,7 @@ def fill_by_validated_blend(
         full[:, r] = reach[:, a:b, m].all(1)
     errs, ok, profile = _validation_errors(
         positions, holes, runs, surface, interpolate=interpolate, local_fill=local_fill,
-        shifts=VALIDATION_SHIFTS[:n_shifts], donor_sets=donor_sets, rate=rate)
+        shifts=VALIDATION_SHIFTS[:n_shifts], donor_sets=donor_sets, rate=rate, spikes=spikes)
     mse = _validation_mse(errs, ok, full)
     floor = np.zeros_like(mse)
     _floor_rigid_errors(floor, disagreement, run, _disagreement_shares(runs, rate))
@@ -936,19 +939,22 @@ def _blend_members(X: np.ndarray, positions: np.ndarray, holes: np.ndarray,
                    surface: MarkerSurface, *, interpolate: int,
                    disagreement: dict[int, np.ndarray] | None = None,
                    spline_sides: tuple[np.ndarray, np.ndarray] | None = None,
-                   donor_sets: dict[int, dict] | None = None) -> np.ndarray:
+                   donor_sets: dict[int, dict] | None = None,
+                   spikes: np.ndarray | None = None) -> np.ndarray:
     """``(K, F, M, 3)``: the estimates of :data:`BLEND_MODELS` at ``holes`` (NaN elsewhere
     and where a model cannot estimate), ``X`` being the local fill; ``disagreement``,
     optional ``{model index: (F, M) array}``: the rigid-body fills' (filled in, see
     :func:`_rigid_body_fill`); ``spline_sides``: the spline's support per hole
     (``sides`` of :func:`_interpolate_interior`); ``donor_sets``, optional ``{model
     index: dict}``: the rigid-body fills' donors per run (filled in, see
-    :func:`_rigid_body_fill`)."""
+    :func:`_rigid_body_fill`); ``spikes``, optional ``(F, M)`` bool: measured samples the
+    spline does not interpolate through (:func:`fill_checks._isolated_spikes`)."""
     dis = disagreement or {}
     dons = donor_sets or {}
     low = whole_body_pca(X, finite_rows(positions), holes)
     spl = np.full_like(positions, np.nan)
-    _interpolate_interior(spl, positions, holes, interpolate, sides=spline_sides)
+    through = positions if spikes is None else np.where(spikes[..., None], np.nan, positions)
+    _interpolate_interior(spl, through, holes, interpolate, sides=spline_sides)
     rig = _rigid_body_fill(positions, holes, surface.reference,
                            disagreement=dis.get(RIGID_MODELS[0]),
                            donor_sets=dons.get(RIGID_MODELS[0]))
@@ -964,6 +970,7 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
                        shifts: tuple[int, ...],
                        donor_sets: dict[int, dict] | None = None,
                        rate: float | None = None,
+                       spikes: np.ndarray | None = None,
                        ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """Each model's errors on the validation copies of each run.
 
@@ -976,7 +983,9 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
     rigid-body fills' donors of each run, :func:`_rigid_body_fill`), a rigid-body fill
     is scored only on the copies where the run's own donors are measured, where it has
     any (:func:`_donors_at_copies`).  With ``rate`` (frames per second), a copy is
-    placed where its marker moves as at its run's ends (:data:`MOTION_MATCH`).
+    placed where its marker moves as at its run's ends (:data:`MOTION_MATCH`).  ``spikes``
+    (``(F, M)`` bool, :func:`fill_checks._isolated_spikes`): samples the spline does not
+    interpolate through, on the copies as on the run.
 
     Returns
     -------
@@ -1009,7 +1018,7 @@ def _validation_errors(positions: np.ndarray, holes: np.ndarray,
         Pv = np.where(val[..., None], np.nan, positions)
         Xv = local_fill(Pv)
         ev = _blend_members(Xv, Pv, holes | val, surface, interpolate=interpolate,
-                            spline_sides=(np.where(val, moved, -1), support))
+                            spline_sides=(np.where(val, moved, -1), support), spikes=spikes)
         err = ((ev[:, val] - positions[val][None]) ** 2).sum(-1)  # (K, n)
         for j, sets in (donor_sets or {}).items():
             same[j, s] = _donors_at_copies(moved, runs, sets, obs & ~val)

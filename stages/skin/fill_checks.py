@@ -18,7 +18,10 @@ the marker does inside its own gap; this module reads it where it shows:
 * :func:`_jumps_in_runs`: a member's samples next to a step longer than that
   (:data:`PLAUSIBILITY_LIMIT`), all of its samples of a run where they are half of them
   (:data:`ERRATIC_SHARE`);
-* :func:`_keep_plausible`: a member off the distances to the rigid partners.
+* :func:`_keep_plausible`: a member off the distances to the rigid partners;
+* :func:`_isolated_spikes`: measured samples that stand alone off their trajectory (a
+  reconstruction glitch, :data:`SPIKE_FACTOR`, :data:`SPIKE_CONTRAST`), which the spline
+  member does not interpolate through.
 
 The measurements behind each bound are in the comment above it, and the blend's results
 on the shared real C3Ds in :mod:`~mocapflow.stages.skin.fill_blend`'s docstring.
@@ -41,6 +44,8 @@ __all__ = [
     "PARTNER_MAX_SPREAD",
     "PARTNER_MIN_FRAMES",
     "PLAUSIBILITY_LIMIT",
+    "SPIKE_CONTRAST",
+    "SPIKE_FACTOR",
 ]
 
 
@@ -463,4 +468,58 @@ def _keep_plausible(weights: np.ndarray, est: np.ndarray, runs: list[tuple[int, 
             full = np.isfinite(e).all((1, 2)) & ~out[:, r]
             if full.any():
                 weights[np.argmin(np.where(full, x, np.inf)), r] = 1.0
+    return out
+
+
+#: A measured sample is an isolated spike (:func:`_isolated_spikes`) when it lies more than
+#: this many times its marker's median off the midpoint of its two neighbours (the median
+#: over the take: the marker's noise and curvature at its own rate).  The spline member's
+#: cubic through a spike rings across the gap beside it: basket_sprint (120 Hz), ``BodyL:C7``
+#: knocked out over frames 1250-1261 (gap protocol 0.1 s / 1 % / independent, mask seed
+#: 911): frame 1248, two samples before the gap, stands 4.1 mm off the midpoint of its
+#: neighbours, 32 times the marker's median (0.13 mm; C7 has such one-frame spikes every
+#: few frames there), and the spline through it is 7.7 mm off in the gap (5-15 mm at every
+#: sample), without it 0.5 mm.  Its copies were scored 0.38 mm, so it held the blend: 7.7 mm
+#: against the rigid-body fill's 1.65.  Flagged (with :data:`SPIKE_CONTRAST`) of the measured
+#: samples at 10 / 20 / 40: basket_sprint 657 / 422 / 169 of 58,560 (C7's two at 10 and 20
+#: only), Qualisys 38 / 17 / 1 of 18,700, pyomeca 61 / 12 / 0, PiG 7 / 1 / 0, Eb015pr 4 / 1 /
+#: 1, racing and the simulator's dense captures none.
+SPIKE_FACTOR = 20.0
+
+#: See :data:`SPIKE_FACTOR`: a spike also lies this many times farther off that midpoint than
+#: either neighbour lies off its own neighbours' once the spike is put on the midpoint.  A
+#: single sample displaced by ``d`` leaves its neighbours where they were (they lie ``d / 2``
+#: off their own midpoints only because of it); a kink of the trajectory (a sudden change of
+#: velocity, which is motion) puts the neighbours half as far off as the corner: contrast 2.
+SPIKE_CONTRAST = 4.0
+
+
+def _isolated_spikes(positions: np.ndarray) -> np.ndarray:
+    """``(F, M)`` bool: measured samples that stand alone off their marker's trajectory.
+
+    Sample ``i`` of marker ``m`` (``positions (F, M, 3)``, NaN where not measured), with
+    ``i - 1 … i + 1`` and at least one of ``i - 2``, ``i + 2`` measured, is a spike when
+    its distance ``d`` from the midpoint ``p`` of samples ``i - 1`` and ``i + 1`` exceeds
+    :data:`SPIKE_FACTOR` × the marker's median such distance and :data:`SPIKE_CONTRAST` ×
+    the larger of the distances of samples ``i - 1`` and ``i + 1`` from the midpoints of
+    their own neighbours with ``p`` in place of sample ``i`` (the one measured, where the
+    other's outer neighbour is not).  The first and last two frames are never spikes.
+    """
+    P = np.asarray(positions, dtype=float)
+    F, M = P.shape[:2]
+    out = np.zeros((F, M), dtype=bool)
+    if F < 5:
+        return out
+    mid = 0.5 * (P[:-2] + P[2:])  # frames 1 .. F-2: midpoint of the two neighbours
+    dev = np.linalg.norm(P[1:-1] - mid, axis=-1)  # (F-2, M), NaN where any is missing
+    seen = np.isfinite(dev)
+    scale = np.full(M, np.nan)
+    some = seen.any(0)
+    scale[some] = np.nanmedian(dev[:, some], axis=0)
+    p = mid[1:-1]  # frames 2 .. F-3
+    left = np.linalg.norm(P[1:-3] - 0.5 * (P[:-4] + p), axis=-1)
+    right = np.linalg.norm(P[3:-1] - 0.5 * (p + P[4:]), axis=-1)
+    d = dev[1:-1]
+    with np.errstate(invalid="ignore"):
+        out[2:-2] = (d > SPIKE_FACTOR * scale) & (d > SPIKE_CONTRAST * np.fmax(left, right))
     return out

@@ -327,3 +327,28 @@ def test_keep_plausible_leaves_out_members_off_their_rigid_partners():
     assert fc._keep_plausible(w, wild, runs, pos, bounds).all()
     assert not w.any()
 
+
+
+def test_isolated_spikes_are_single_samples_off_their_trajectory():
+    """A smooth trajectory (a 1 m/s arc, 0.05 mm noise, 120 Hz) with one sample pushed 4 mm
+    off it (frame 60), one pushed off with the sample two frames later missing (frame 150,
+    152 not measured), one on the take's second frame, and a kink: the velocity reversed
+    at frame 100 (motion, not a glitch).  Only the two interior pushed samples are spikes;
+    the kink's corner lies off its neighbours' midpoint by half its velocity change
+    (8.3 mm, 86 x the median), its neighbours, with the corner on that midpoint, half as
+    far (contrast 2 < :data:`fc.SPIKE_CONTRAST`: at 1.5 the kink is flagged too)."""
+    rng = np.random.default_rng(0)
+    F = 200
+    t = np.arange(F) / 120.0
+    x = np.stack([np.cos(t), np.sin(t), 0.1 * t], axis=1)
+    x[100:] = x[100] - (x[100:] - x[100])  # the velocity reversed at frame 100
+    x = x + rng.normal(0.0, 5e-5, x.shape)
+    for f in (60, 150, 1):
+        x[f] += [0.004, 0.0, 0.0]
+    x[152] = np.nan
+    spikes = fc._isolated_spikes(np.stack([x, x + 1.0], axis=1))
+    assert np.flatnonzero(spikes[:, 0]).tolist() == [60, 150]
+    assert (spikes[:, 1] == spikes[:, 0]).all()
+    corner = np.linalg.norm(x[100] - 0.5 * (x[99] + x[101]))
+    assert 0.003 < corner  # far beyond SPIKE_FACTOR x the median: only the contrast spares it
+    assert not fc._isolated_spikes(np.full((4, 2, 3), 0.0)).any()  # too short to tell
