@@ -184,14 +184,15 @@ class SearchParams:
         somewhere, never all three at once.  ``slots`` 2, ``max_run`` 0.15, ``pose_weight``
         0.4, ``pose_lines`` 8, ``variety`` 0.2: salsa 0.90 / 1.11, figure-8 walk 0.88 /
         1.14, walk 1.13 / 1.48 (its verbatim runs: median 16.5 frames at ``variety`` 0.45).
-        The walk meets them at ``slots`` 3 (``max_run`` 0.12, ``transition_blend`` 0.6: 0.97
-        / 1.05; ``max_run`` 0.15, ``pose_weight`` 0.25, ``pose_lines`` 6: 0.98 / 1.03),
-        where the figure-8's global falls to 0.72-0.81 (its runs replay its 29-frame stride)
-        unless ``max_run`` is 0.1 (27 frames; 0.75 / 1.01 at ``pose_weight`` 0.25,
-        ``pose_lines`` 6), where salsa's local is 1.58: its best jumps cost 1.6-2.4 × the
-        walks' in pose, and at ``slots`` 3 it needs ``max_run`` ≥ 0.2.  Pose lines required
-        to leave the left line's continuation (their poses 8-28 frames on at least 1.5 or
-        2.5 × as far from it as at the join) met no more inputs.
+        The walk meets them at ``slots`` 3 and ``variety`` 0.45 (``pose_weight`` 0.4,
+        ``pose_lines`` 8, ``max_run`` 0.12, ``transition_blend`` 0.6: 0.97 / 1.05;
+        ``max_run`` 0.15, ``pose_weight`` 0.25, ``pose_lines`` 6: 0.98 / 1.03), where the
+        figure-8's global falls to 0.72-0.81 (its runs replay its 29-frame stride) unless
+        ``max_run`` is 0.1 (27 frames; 0.75 / 1.01 at ``pose_weight`` 0.25, ``pose_lines``
+        6), where salsa's local is 1.58: its best jumps cost 1.6-2.4 × the walks' in pose,
+        and at ``slots`` 3 it needs ``max_run`` ≥ 0.2.  Pose lines required to leave the
+        left line's continuation (their poses 8-28 frames on at least 1.5 or 2.5 × as far
+        from it as at the join) met no more inputs.
         ``benchmarks/texture.py --seeds 5`` (1,024 frames from the first 512 input
         frames), the previous default values (0, 4, 0.3, 0.3, 0.5, no cross-fade; on
         this code) -> these: global 0.164 -> 0.144, 0.185 -> 0.182, 0.167 -> 0.210
